@@ -1,0 +1,131 @@
+"""Every model parameter of hippomap, in one pydantic config.
+
+Each field carries its default and, in its description, the source of that default:
+``[S]`` the paper (``shared/paper``), ``[BBc]`` Bicanski & Burgess' code, ``[ORS]``
+OpenRatSLAM, or ``spec`` for a decision of ``shared/docs/MODEL_SPEC.md``; ``ours`` marks a
+choice made (and measured) by this project, explained in ``docs/MODEL.md``.
+
+Units: metres and radians for space, pixels for images, seconds for time.
+The config is immutable (``frozen``); build a changed copy with ``model_copy(update=...)``
+or validate a nested override dict with :func:`HippomapConfig.with_overrides`.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+
+class _Frozen(BaseModel):
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+
+class SpatialConfig(_Frozen):
+    """Grid cells -> place cells (paper §2.3, §2.4; spec §3)."""
+
+    area_size_m: float = Field(0.40, gt=0, description="L = D, side of the local coding area: 40 cm x 40 cm [S §3.1]")
+    resolution_m: float = Field(0.0005, gt=0, description="delta, place-matrix cell size: 0.05 cm [spec §3]")
+    n_modules: int = Field(8, ge=1, description="grid-cell modules [S §3.1]")
+    cells_per_module: int = Field(4, ge=1, description="cells per module, each with its own phase r0 [spec §3]")
+    spacing_min_m: float = Field(0.005, gt=0, description="lambda lower bound 0.5 cm [S §3.1]")
+    spacing_max_m: float = Field(0.02, gt=0, description="lambda upper bound 2 cm [S §3.1]")
+    g_max: float = Field(1.0, gt=0, description="peak firing rate g_max of Eq. 6 [spec §5]")
+    window: float = Field(0.1, gt=0, description="Delta T, window-comparator width as a fraction of g_max, Eq. 9 [spec §3, T]")
+    variance_threshold_m2: float = Field(
+        1e-6, gt=0, description="T_s, the single-field variance stop test: 0.01 cm^2 = 1e-6 m^2 [spec §3]"
+    )
+    rate_noise: float = Field(0.0, ge=0, description="sigma_T, noise on the current discharge T (x g_max); keep window/2 >= 3 sigma [spec §3]")
+    seed: int = Field(0, description="seed for lambda, theta, r0 of the grid cells [ours: reproducible sessions]")
+
+    @model_validator(mode="after")
+    def _check(self) -> "SpatialConfig":
+        if self.spacing_min_m > self.spacing_max_m:
+            raise ValueError("spacing_min_m must not exceed spacing_max_m")
+        if self.resolution_m * 4 > self.area_size_m:
+            raise ValueError("resolution_m is too coarse for area_size_m")
+        if self.rate_noise > 0 and self.window / 2 < 3 * self.rate_noise:
+            raise ValueError("window/2 must be >= 3 * rate_noise, or the iteration loses the true cell [spec §3]")
+        return self
+
+
+class VisualConfig(_Frozen):
+    """Visual grid cells and the visual recognition memory (paper §2.2; spec §1-2)."""
+
+    vgc_frequencies: tuple[float, ...] = Field(
+        (0.0014, 0.002, 0.0028, 0.004, 0.0055, 0.0077, 0.0108, 0.0151, 0.0211),
+        description="f_m, cycles/px of the 9 visual grid-cell modules (ratio ~sqrt 2) [BBc]",
+    )
+    vgc_offsets_per_axis: int = Field(10, ge=2, description="10 x 10 = 100 offsets per module [S], [BBc]")
+    vgc_orientation: float = Field(0.0, description="psi_m, common module orientation [BBc]")
+    fovea: int = Field(31, ge=5, description="fovea side 2h+1: 31 for <= 320 px frames (61 for 440 px) [BBc]")
+    working_width: int = Field(320, ge=32, description="frames are resized to this width before learning/recognition [ours: fovea scale]")
+    sensory_sigma: float = Field(10.0, gt=0, description="sigma_SC, sensory tuning exp(-((I-v)/10)^2) [BBc]")
+    sensory_cutoff: float = Field(0.01, ge=0, description="sensory sparseness cutoff [BBc]")
+    blur: int = Field(3, ge=1, description="box blur of the learned image: 5 (3 for small images) [BBc]")
+    n_fixations: int = Field(9, ge=3, description="N_f, fixation points learned per frame [BBc]")
+    fixation_mode: Literal["corners", "random"] = Field("corners", description="top-K Shi-Tomasi corners, or random points as in [S] [spec §6.1]")
+    min_fixations: int = Field(3, ge=1, description="skip a frame with fewer corners [spec §2]")
+    n_std: float = Field(2.8, ge=0, description="N_std, FLC pruning threshold (0.8 for 10 images, 2.8 for 99) [BBc]")
+    kappa: float = Field(0.4, gt=0, description="FLC -> frame gain [BBc]")
+    weight_jitter: float = Field(0.1, ge=0, description="W_FLC->ID = 1 - U(0, jitter) [BBc]")
+    prediction_bias: float = Field(2.0, ge=1, description="bias on the predicted FLC [BBc]")
+    decision_threshold: float = Field(0.9, gt=0, le=1, description="theta_dec, frame accepted above it [S §3.2], [BBc]")
+    tolerance_px: int = Field(4, ge=0, description="tol, vector tolerance and snap radius [BBc]")
+    max_prediction_errors: int = Field(2, ge=0, description="reset when wrong predictions exceed it [BBc]")
+    max_total_activity: float = Field(5.0, gt=0, description="reset if sum of frame activity exceeds it [BBc]")
+    max_resets: int = Field(10, ge=0, description="resets before rejecting ('no match') [BBc]")
+    max_saccades: int = Field(18, ge=1, description="saccades per attempt, 2 N_f [spec decision]")
+    next_target: Literal["stochastic", "most_active"] = Field("stochastic", description="[BBc] stochastic choice or [S] most active frame [spec §6.3]")
+    seed: int = Field(0, description="seed for fixation order, weight jitter and saccade choices [ours]")
+
+
+class MapConfig(_Frozen):
+    """Cognitive map: nodes, links, loop closure, relaxation, pruning (paper §2.4; spec §4)."""
+
+    mu_p: float = Field(1.0, gt=0, description="mu_p of Eq. 13, per metre [spec §5]")
+    node_spacing_m: float = Field(0.25, gt=0, description="S_th, place-code distance that creates a node (Eq. 12-13) [spec §5]")
+    loop_radius_m: float = Field(3.0, gt=0, description="S_loop, place-code radius of the visual check [spec §5]")
+    loop_radius_per_m: float = Field(
+        0.05, ge=0, description="gate growth per metre travelled between the two nodes: odometric drift allowance [ours]"
+    )
+    exclude_recent: int = Field(5, ge=0, description="N_excl, recent nodes excluded from loop closure and pruning [spec §5]")
+    initial_pose: tuple[float, float, float] = Field((0.0, 0.0, 0.0), description="first node (0,0,0) [S §2.4]")
+    alpha: float = Field(0.5, gt=0, le=1, description="relaxation correction constant alpha, Eq. 14 [S], [ORS]")
+    relax_loops: int = Field(10, ge=0, description="EXP_LOOPS, relaxation sweeps per action [ORS]")
+    prune_block_m: float = Field(0.5, gt=0, description="b, pruning block side, Eq. 15 [spec §4]")
+    prune_online: bool = Field(True, description="merge a new node into an older node of its block, Eq. 15 / Fig. 7 [S]")
+    loop_min_support: int = Field(
+        2, ge=1, description="consistent hypotheses needed before a loop closes (geometric check) [ours]"
+    )
+    loop_support_window: int = Field(50, ge=1, description="steps a hypothesis waits for support [ours]")
+    loop_consistency_m: float = Field(1.0, gt=0, description="max translation error of a loop cycle [ours]")
+    loop_consistency_rad: float = Field(0.3, gt=0, description="max rotation error of a loop cycle [ours]")
+
+
+class MapperConfig(_Frozen):
+    """Glue between the pathways (paper Fig. 1)."""
+
+    keyframe_interval: int = Field(100, ge=1, description="raw frames per learned key frame [S §3.2]")
+    keyframe_distance_m: float | None = Field(None, gt=0, description="alternatively learn a key frame every so many metres [ours]")
+
+
+class HippomapConfig(_Frozen):
+    """All of hippomap's model parameters."""
+
+    spatial: SpatialConfig = SpatialConfig()
+    visual: VisualConfig = VisualConfig()
+    map: MapConfig = MapConfig()
+    mapper: MapperConfig = MapperConfig()
+
+    @classmethod
+    def with_overrides(cls, overrides: dict[str, Any] | None = None) -> "HippomapConfig":
+        """Defaults updated by a nested dict, e.g. ``{"map": {"alpha": 0.3}}``; validated."""
+        base = cls().model_dump()
+        for section, values in (overrides or {}).items():
+            if section not in base:
+                raise ValueError(f"unknown config section {section!r}; known: {sorted(base)}")
+            if not isinstance(values, dict):
+                raise ValueError(f"config section {section!r} must be a mapping")
+            base[section].update(values)
+        return cls.model_validate(base)
