@@ -1,0 +1,45 @@
+"""Trajectory metrics through evo: ATE and RPE against ground truth, matched by timestamp."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from .errors import InputError
+from .exports import to_evo
+
+
+def _stats(metric) -> dict[str, float]:
+    s = metric.get_all_statistics()
+    return {k: float(s[k]) for k in ("rmse", "mean", "median", "std", "min", "max")}
+
+
+def trajectory_metrics(est_times: Any, est_poses: Any, ref_times: Any, ref_poses: Any,
+                       max_time_diff: float = 0.1, rpe_delta_m: float = 10.0) -> dict[str, Any]:
+    """ATE (translation, after an SE(3) Umeyama alignment without scale, evo's ``-a``)
+    and RPE (translation over ``rpe_delta_m`` metres of travel) of an estimate against
+    ground truth. Poses are associated by nearest timestamp within ``max_time_diff``."""
+    from evo.core import metrics, sync
+    from evo.core.units import Unit
+
+    est = to_evo(est_times, est_poses, "estimate")
+    ref = to_evo(ref_times, ref_poses, "reference")
+    try:
+        ref_s, est_s = sync.associate_trajectories(ref, est, max_diff=max_time_diff)
+    except Exception as exc:  # evo raises its own SyncException
+        raise InputError(f"cannot match estimate and ground truth by timestamp: {exc}") from exc
+    if ref_s.num_poses < 3:
+        raise InputError(f"only {ref_s.num_poses} poses matched ground truth by timestamp")
+    est_s.align(ref_s, correct_scale=False)
+    ape = metrics.APE(metrics.PoseRelation.translation_part)
+    ape.process_data((ref_s, est_s))
+    out: dict[str, Any] = {"matched_poses": int(ref_s.num_poses), "ate": _stats(ape)}
+    try:
+        rpe = metrics.RPE(metrics.PoseRelation.translation_part, delta=rpe_delta_m, delta_unit=Unit.meters,
+                          all_pairs=False)
+        rpe.process_data((ref_s, est_s))
+        out["rpe"] = {"delta_m": rpe_delta_m, **_stats(rpe)}
+    except Exception as exc:  # too short a trajectory for the delta
+        out["rpe"] = {"delta_m": rpe_delta_m, "error": str(exc)}
+    return out

@@ -1,0 +1,223 @@
+"""Offline run of the spatial pathway and the cognitive map on a g2o odometry data set.
+
+``hippomap run-odometry DATA_DIR --loops FILE --out OUT_DIR`` feeds every odometry
+increment through the grid cells -> place cells -> cognitive map, offers each loop
+proposal of FILE to the map as a :class:`~hippomap.cognitive_map.LoopHypothesis` at the
+time its later pose occurs, and writes the exports and ``metrics.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from collections import defaultdict
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .cognitive_map import CognitiveMap, LoopHypothesis
+from .config import HippomapConfig
+from .datasets import OdometryDataset, load_odometry_dataset
+from .errors import InputError
+from .evaluation import trajectory_metrics
+from .exports import graph_dict, plot_map, write_g2o, write_json, write_tum
+from .geometry import between, compose, integrate
+from .place_cells import SpatialPathway
+
+#: a loop closure is counted as true when ground truth puts its two poses this close [ours]
+TRUE_LOOP_DISTANCE_M = 2.0
+
+
+@dataclass
+class OdometryRun:
+    """Everything a run produced: per-pose trajectories and the final map."""
+
+    times: np.ndarray
+    odometry: np.ndarray  # (N, 3) raw integrated odometry
+    corrected: np.ndarray  # (N, 3) map trajectory after the final relaxation
+    node_at_pose: np.ndarray  # (N,) current node at each pose
+    cmap: CognitiveMap
+    decisions: list[dict[str, Any]] = field(default_factory=list)
+    steps_without_field: int = 0
+    seconds: float = 0.0
+
+
+def _loops_by_pose(dataset: OdometryDataset) -> dict[int, list[tuple[int, np.ndarray, int]]]:
+    """Index loop proposals by their later pose: {later: [(earlier, earlier-in-later-frame, line)]}."""
+    out: dict[int, list[tuple[int, np.ndarray, int]]] = defaultdict(list)
+    for e in dataset.graph.loops:
+        t = np.asarray(e.transform, dtype=float)
+        if e.i > e.j:
+            out[e.i].append((e.j, t, e.line))
+        else:  # the edge measures the later pose j in the frame of i: invert it
+            out[e.j].append((e.i, between(t, np.zeros(3)), e.line))
+    return out
+
+
+def run_odometry(dataset: OdometryDataset, config: HippomapConfig | None = None, progress: bool = False) -> OdometryRun:
+    """Run the spatial pathway + cognitive map over the whole data set."""
+    cfg = config or HippomapConfig()
+    inc = dataset.graph.odometry
+    times = dataset.times
+    n = len(times)
+    pathway = SpatialPathway(cfg.spatial)
+    cmap = CognitiveMap(cfg.map)
+    loops = _loops_by_pose(dataset)
+    node_at_pose = np.empty(n, dtype=np.int64)
+    offset_at_pose = np.empty((n, 3))
+    decisions: list[dict[str, Any]] = []
+    no_field = 0
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=n, unit="pose", desc="run-odometry")
+    t0 = time.perf_counter()
+    for k in range(n):
+        if k > 0:
+            code = pathway.step_increment(*inc[k - 1])
+            if code is None:
+                no_field += 1
+            cmap.update(None if code is None else (code.x, code.y, code.theta), inc[k - 1], float(times[k]))
+        for j, t_kj, line in loops.get(k, ()):
+            # pose of node_at_pose[j] in the frame of the current node, through the two
+            # short odometric offsets of the robot from its node at k and at j
+            rel = compose(compose(cmap.robot_offset, t_kj), between(offset_at_pose[j], np.zeros(3)))
+            hyp = LoopHypothesis(
+                node=int(node_at_pose[j]), transform=tuple(float(v) for v in rel), evidence=1.0,
+                source="dataset", time=float(times[k]), meta={"poses": [k, j], "line": line},
+            )
+            cmap.propose_loop(hyp)
+        node_at_pose[k] = cmap.current
+        offset_at_pose[k] = cmap.robot_offset
+        if bar is not None:
+            bar.update(1)
+    cmap.finish() if hasattr(cmap, "finish") else None
+    if bar is not None:
+        bar.close()
+    seconds = time.perf_counter() - t0
+    corrected = compose(cmap.poses[node_at_pose], offset_at_pose)
+    for d in cmap.loop_decisions:
+        decisions.append(d.to_dict())
+    odometry = integrate(inc, cfg.map.initial_pose)
+    return OdometryRun(times, odometry, corrected, node_at_pose, cmap, decisions, no_field, seconds)
+
+
+def _loop_truth(run: OdometryRun, gt: tuple[np.ndarray, np.ndarray] | None) -> None:
+    """Mark each decision with the ground-truth distance between its two poses."""
+    if gt is None:
+        return
+    tg, pg = gt
+    for d in run.decisions:
+        poses = d.get("hypothesis", {}).get("meta", {}).get("poses")
+        if not poses:
+            continue
+        idx = [int(np.argmin(np.abs(tg - run.times[p]))) for p in poses]
+        if all(abs(tg[i] - run.times[p]) < 0.5 for i, p in zip(idx, poses)):
+            dist = float(np.linalg.norm(pg[idx[0], :2] - pg[idx[1], :2]))
+            d["groundtruth_distance_m"] = dist
+            d["groundtruth_true"] = dist < TRUE_LOOP_DISTANCE_M
+
+
+def summarise(run: OdometryRun, dataset: OdometryDataset) -> dict[str, Any]:
+    """metrics.json content: ATE/RPE of raw odometry and map, loop-closure counts."""
+    _loop_truth(run, dataset.groundtruth)
+    status = [d["status"] for d in run.decisions]
+    accepted = [d for d in run.decisions if d["status"] == "accepted"]
+    metrics: dict[str, Any] = {
+        "data": str(dataset.loops_file),
+        "poses": int(len(run.times)),
+        "nodes": int(run.cmap.node_count),
+        "links": int(run.cmap.link_count),
+        "steps_without_place_field": run.steps_without_field,
+        "run_seconds": round(run.seconds, 3),
+        "loop_closures": {
+            "proposed": int(sum(len(v) for v in _loops_by_pose(dataset).values())),
+            "accepted": status.count("accepted"),
+            "rejected": status.count("rejected"),
+            "pending_at_end": status.count("pending"),
+        },
+    }
+    if dataset.groundtruth is not None:
+        metrics["odometry"] = trajectory_metrics(run.times, run.odometry, *dataset.groundtruth)
+        metrics["map"] = trajectory_metrics(run.times, run.corrected, *dataset.groundtruth)
+        judged = [d for d in accepted if "groundtruth_true" in d]
+        metrics["loop_closures"]["accepted_true"] = sum(d["groundtruth_true"] for d in judged)
+        metrics["loop_closures"]["accepted_false"] = sum(not d["groundtruth_true"] for d in judged)
+        metrics["loop_closures"]["true_distance_m"] = TRUE_LOOP_DISTANCE_M
+    return metrics
+
+
+def write_outputs(run: OdometryRun, dataset: OdometryDataset, out_dir: str | Path) -> dict[str, Any]:
+    """Write map.tum, odometry.tum, map.g2o, map.json, loop_closures.json, map.png, metrics.json."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    metrics = summarise(run, dataset)
+    cm = run.cmap
+    links = cm.links
+    write_tum(out / "map.tum", run.times, run.corrected)
+    write_tum(out / "odometry.tum", run.times, run.odometry)
+    write_g2o(out / "map.g2o", cm.poses, links["source"], links["target"], links["transform"])
+    write_json(out / "map.json", graph_dict(cm.poses, cm.place_codes, cm.frames, cm.times, links["source"],
+                                            links["target"], links["transform"], links["kind"]))
+    write_json(out / "loop_closures.json", run.decisions)
+    accepted = [d["hypothesis"]["meta"]["poses"] for d in run.decisions if d["status"] == "accepted"]
+    segs = [[run.corrected[a, :2], run.corrected[b, :2]] for a, b in accepted]
+    gt_poses = None
+    if dataset.groundtruth is not None:
+        # ground truth in the map's frame: align it to the corrected trajectory for the plot
+        from evo.core import sync
+
+        from .exports import from_evo, to_evo
+
+        ref = to_evo(*dataset.groundtruth, "gt")
+        est = to_evo(run.times, run.corrected, "map")
+        ref_s, est_s = sync.associate_trajectories(ref, est, max_diff=0.1)
+        ref_s.align(est_s, correct_scale=False)
+        gt_poses = from_evo(ref_s)[1]
+    plot_map(out / "map.png", run.odometry, run.corrected, gt_poses, segs,
+             title=f"{Path(dataset.loops_file).name}: ATE odometry "
+                   f"{metrics.get('odometry', {}).get('ate', {}).get('rmse', float('nan')):.2f} m, map "
+                   f"{metrics.get('map', {}).get('ate', {}).get('rmse', float('nan')):.2f} m")
+    write_json(out / "metrics.json", metrics)
+    return metrics
+
+
+def _load_config(path: str | None) -> HippomapConfig:
+    if not path:
+        return HippomapConfig()
+    try:
+        data = json.loads(Path(path).read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise InputError(f"cannot read config {path}: {exc}") from exc
+    try:
+        return HippomapConfig.with_overrides(data)
+    except ValueError as exc:
+        raise InputError(f"invalid config {path}: {exc}") from exc
+
+
+def _cmd(args: argparse.Namespace) -> int:
+    dataset = load_odometry_dataset(args.data_dir, args.loops)
+    run = run_odometry(dataset, _load_config(args.config), progress=not args.quiet)
+    metrics = write_outputs(run, dataset, args.out)
+    lc = metrics["loop_closures"]
+    line = f"{metrics['nodes']} nodes, loop closures accepted {lc['accepted']} / rejected {lc['rejected']}"
+    if "map" in metrics:
+        line += f"; ATE rmse odometry {metrics['odometry']['ate']['rmse']:.3f} m -> map {metrics['map']['ate']['rmse']:.3f} m"
+    print(line)
+    print(f"wrote {args.out}/metrics.json, map.tum, odometry.tum, map.g2o, map.json, map.png")
+    return 0
+
+
+def add_parser(sub: Any) -> None:
+    p = sub.add_parser("run-odometry", help="run grid cells -> place cells -> cognitive map on a g2o odometry data set",
+                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("data_dir", help="data folder, e.g. ../shared/data/bicocca25b")
+    p.add_argument("--loops", required=True, help="g2o file with odometry and loop proposals (e.g. B25b_1.000.g2o)")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--config", help="JSON file of config overrides, e.g. {\"map\": {\"alpha\": 0.5}}")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=_cmd)
