@@ -1,27 +1,26 @@
-"""The ``hippomap`` command line. Each subcommand lives in the module that does the work
-and registers itself through an ``add_parser(subparsers)`` function listed here."""
+"""The ``hippomap`` command line.
+
+Each subcommand lives in the module that does the work and registers itself through an
+``add_parser(subparsers)`` function, declared as an entry point of the group
+``hippomap.commands`` in ``pyproject.toml``. Discovery through entry points lets the
+server package add ``serve`` without ``hippomap/`` ever importing web code."""
 
 from __future__ import annotations
 
 import argparse
-import importlib
 import sys
+from importlib.metadata import entry_points
 
 from .errors import HippomapError
 
-#: modules providing ``add_parser(subparsers)``; a missing optional one is skipped only
-#: when its own dependencies are not installed (e.g. the server extra).
-COMMAND_MODULES = (
-    "hippomap.run_odometry",
-    "hippomap.vpr_eval",
-)
+GROUP = "hippomap.commands"
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="hippomap", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for name in COMMAND_MODULES:
-        importlib.import_module(name).add_parser(sub)
+    for ep in sorted(entry_points(group=GROUP), key=lambda e: e.name):
+        ep.load()(sub)
     return parser
 
 

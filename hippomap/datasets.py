@@ -113,25 +113,29 @@ def read_g2o(path: str | Path) -> G2OGraph:
     return G2OGraph(verts, odo, loops)
 
 
-def _check_increasing(t: np.ndarray, path: Path) -> None:
+def _check_increasing(t: np.ndarray, path: Path, lines: list[int] | None = None) -> None:
+    """Strictly increasing timestamps; ``lines`` maps row index -> file line number."""
     bad = np.flatnonzero(np.diff(t) <= 0)
     if bad.size:
         k = int(bad[0])
-        raise InputError(f"{path}:{k + 2}: timestamps must increase: {t[k + 1]!r} follows {t[k]!r}")
+        line = lines[k + 1] if lines is not None else k + 2
+        raise InputError(f"{path}:{line}: timestamps must increase: {float(t[k + 1])!r} follows {float(t[k])!r}")
 
 
 def read_timestamps(path: str | Path) -> np.ndarray:
     """One timestamp per line (seconds), strictly increasing."""
     path = Path(path)
     out: list[float] = []
+    lines: list[int] = []
     with path.open() as fh:
         for lineno, line in enumerate(fh, 1):
             s = line.strip()
             if not s:
                 continue
             out.append(_floats([s], path, lineno, line)[0])
+            lines.append(lineno)
     t = np.array(out, dtype=float)
-    _check_increasing(t, path)
+    _check_increasing(t, path, lines)
     return t
 
 
@@ -139,6 +143,7 @@ def read_groundtruth_csv(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     """``t, x, y, theta`` rows (comma separated, optional header) -> (t (M,), poses (M, 3))."""
     path = Path(path)
     rows: list[list[float]] = []
+    lines: list[int] = []
     with path.open() as fh:
         for lineno, line in enumerate(fh, 1):
             s = line.strip()
@@ -150,10 +155,11 @@ def read_groundtruth_csv(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
             if len(tokens) != 4:
                 raise InputError(f"{path}:{lineno}: expected 't,x,y,theta', got {s!r}")
             rows.append(_floats(tokens, path, lineno, line))
+            lines.append(lineno)
     if not rows:
         raise InputError(f"{path}: no ground-truth rows")
     arr = np.array(rows, dtype=float)
-    _check_increasing(arr[:, 0], path)
+    _check_increasing(arr[:, 0], path, lines)
     return arr[:, 0], arr[:, 1:4]
 
 
@@ -201,3 +207,167 @@ def load_odometry_dataset(data_dir: str | Path, loops: str | Path) -> OdometryDa
     gts = sorted(data_dir.glob("*GT*.csv"))
     gt = read_groundtruth_csv(gts[0]) if gts else None
     return OdometryDataset(graph, times, gt, loops_path)
+
+
+# --------------------------------------------------------------------------------------
+# Camera + odometry data sets (the documented folder format, TUM RGB-D folders)
+# --------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class FrameRef:
+    """A camera frame on disk, loaded only when needed."""
+
+    t: float
+    path: Path
+
+    def load(self):
+        """Decode to a :class:`~hippomap.inputs.Frame` (grayscale)."""
+        import cv2
+
+        from .inputs import Frame
+
+        img = cv2.imread(str(self.path), cv2.IMREAD_GRAYSCALE)
+        if img is None:
+            raise InputError(f"cannot read image {self.path}")
+        return Frame(self.t, img)
+
+
+@dataclass(frozen=True)
+class SensorDataset:
+    """Odometry readings, frame references and optional ground truth, each time-sorted."""
+
+    odometry: list  # list[hippomap.inputs.Odometry]
+    frames: list[FrameRef]
+    groundtruth: tuple[np.ndarray, np.ndarray] | None
+    source: Path
+
+    def events(self):
+        """All inputs merged in time order (odometry before a frame of the same time)."""
+        import heapq
+
+        odo = ((o.t, 0, k, o) for k, o in enumerate(self.odometry))
+        frm = ((f.t, 1, k, f) for k, f in enumerate(self.frames))
+        for _, _, _, item in heapq.merge(odo, frm):
+            yield item
+
+
+def _read_csv_rows(path: Path, columns: tuple[str, ...]) -> list[list[str]]:
+    """Rows of a CSV whose header must name ``columns`` (in that order)."""
+    import csv
+
+    with path.open(newline="") as fh:
+        reader = csv.reader(fh)
+        header = next(reader, None)
+        if header is None or tuple(h.strip() for h in header) != columns:
+            raise InputError(f"{path}:1: header must be {','.join(columns)!r}, got {header!r}")
+        rows = []
+        for lineno, row in enumerate(reader, 2):
+            if not row or not "".join(row).strip():
+                continue
+            if len(row) != len(columns):
+                raise InputError(f"{path}:{lineno}: expected {len(columns)} columns {columns}, got {row!r}")
+            rows.append([lineno, *[c.strip() for c in row]])
+        return rows
+
+
+def read_folder_dataset(folder: str | Path) -> SensorDataset:
+    """The project's folder format: ``frames/`` images, ``frames.csv`` (``t,file``),
+    ``odometry.csv`` (``t,v,omega`` in m/s, rad/s), optional ``groundtruth.csv``
+    (``t,x,y,theta``). Timestamps must increase within each file."""
+    folder = Path(folder)
+    for name in ("frames.csv", "odometry.csv"):
+        if not (folder / name).is_file():
+            raise InputError(f"{folder} is not a hippomap data folder: {name} is missing")
+    odometry = read_folder_odometry(folder / "odometry.csv")
+    frames: list[FrameRef] = []
+    rows = _read_csv_rows(folder / "frames.csv", ("t", "file"))
+    for lineno, t, name in rows:
+        tf = _floats([t], folder / "frames.csv", lineno, f"{t},{name}")[0]
+        path = folder / "frames" / name if not (folder / name).is_file() else folder / name
+        if not path.is_file():
+            raise InputError(f"{folder / 'frames.csv'}:{lineno}: image {name!r} not found")
+        frames.append(FrameRef(tf, path))
+    _check_increasing(np.array([f.t for f in frames]), folder / "frames.csv", [r[0] for r in rows])
+    gt = read_groundtruth_csv(folder / "groundtruth.csv") if (folder / "groundtruth.csv").is_file() else None
+    return SensorDataset(odometry, frames, gt, folder)
+
+
+def _read_tum_like(path: Path) -> np.ndarray:
+    """``t tx ty tz qx qy qz qw`` rows (TUM trajectory files), comments with '#'."""
+    rows, lines = [], []
+    with path.open() as fh:
+        for lineno, line in enumerate(fh, 1):
+            s = line.strip()
+            if not s or s.startswith("#"):
+                continue
+            tokens = s.replace(",", " ").split()
+            if len(tokens) != 8:
+                raise InputError(f"{path}:{lineno}: expected 't tx ty tz qx qy qz qw', got {s!r}")
+            rows.append(_floats(tokens, path, lineno, line))
+            lines.append(lineno)
+    if not rows:
+        raise InputError(f"{path}: no poses")
+    arr = np.array(rows)
+    _check_increasing(arr[:, 0], path, lines)
+    return arr
+
+
+def _tum_to_se2(arr: np.ndarray) -> np.ndarray:
+    qx, qy, qz, qw = arr[:, 4], arr[:, 5], arr[:, 6], arr[:, 7]
+    yaw = np.arctan2(2 * (qw * qz + qx * qy), 1 - 2 * (qy**2 + qz**2))
+    return np.column_stack([arr[:, 1], arr[:, 2], yaw])
+
+
+def read_tum_rgbd(folder: str | Path) -> SensorDataset:
+    """A TUM RGB-D folder: ``rgb.txt`` (``t file``), ``groundtruth.txt`` (TUM poses), and
+    the wheel odometry as ``odometry.txt`` (TUM poses, e.g. the Pioneer sequences' /pose
+    topic exported) or ``odometry.csv`` (``t,v,omega``). The poses' yaw and x-y are used
+    (planar robot)."""
+    from .geometry import between
+    from .inputs import Odometry
+
+    folder = Path(folder)
+    if not (folder / "rgb.txt").is_file():
+        raise InputError(f"{folder} is not a TUM RGB-D folder: rgb.txt is missing")
+    frames, lines = [], []
+    with (folder / "rgb.txt").open() as fh:
+        for lineno, line in enumerate(fh, 1):
+            s = line.strip()
+            if not s or s.startswith("#"):
+                continue
+            tokens = s.split()
+            if len(tokens) != 2:
+                raise InputError(f"{folder / 'rgb.txt'}:{lineno}: expected 't file', got {s!r}")
+            t = _floats(tokens[:1], folder / "rgb.txt", lineno, line)[0]
+            if not (folder / tokens[1]).is_file():
+                raise InputError(f"{folder / 'rgb.txt'}:{lineno}: image {tokens[1]!r} not found")
+            frames.append(FrameRef(t, folder / tokens[1]))
+            lines.append(lineno)
+    _check_increasing(np.array([f.t for f in frames]), folder / "rgb.txt", lines)
+    if (folder / "odometry.txt").is_file():
+        arr = _read_tum_like(folder / "odometry.txt")
+        poses = _tum_to_se2(arr)
+        inc = between(poses[:-1], poses[1:])
+        odometry = [Odometry(float(t), increment=tuple(map(float, d))) for t, d in zip(arr[1:, 0], inc)]
+    elif (folder / "odometry.csv").is_file():
+        odometry = read_folder_odometry(folder / "odometry.csv")
+    else:
+        raise InputError(f"{folder}: no wheel odometry (odometry.txt in TUM format or odometry.csv with t,v,omega)")
+    gt = None
+    if (folder / "groundtruth.txt").is_file():
+        arr = _read_tum_like(folder / "groundtruth.txt")
+        gt = (arr[:, 0], _tum_to_se2(arr))
+    return SensorDataset(odometry, frames, gt, folder)
+
+
+def read_folder_odometry(path: Path) -> list:
+    from .inputs import Odometry
+
+    out = []
+    rows = _read_csv_rows(path, ("t", "v", "omega"))
+    for lineno, t, v, w in rows:
+        tf, vf, wf = _floats([t, v, w], path, lineno, f"{t},{v},{w}")
+        out.append(Odometry(tf, v=vf, omega=wf))
+    _check_increasing(np.array([o.t for o in out]), path, [r[0] for r in rows])
+    return out

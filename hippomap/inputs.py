@@ -1,0 +1,114 @@
+"""Sensor inputs of a mapping session: odometry and camera frames, validated.
+
+Odometry comes either as velocities ``(v, omega)`` held over ``dt`` (m/s, rad/s) or as a
+relative pose increment ``(dx, dy, dtheta)`` in the frame of the previous pose (g2o
+convention). Both are checked here, once, so every consumer (offline runs, the server)
+rejects the same bad input with the same message.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .errors import InputError
+
+
+def _finite(name: str, value: float) -> float:
+    try:
+        f = float(value)
+    except (TypeError, ValueError):
+        raise InputError(f"{name} must be a number, got {value!r}") from None
+    if not math.isfinite(f):
+        raise InputError(f"{name} must be finite, got {f}")
+    return f
+
+
+@dataclass(frozen=True)
+class Odometry:
+    """One odometry reading at time ``t``: velocities (``v``, ``omega``) or an increment."""
+
+    t: float
+    v: float | None = None
+    omega: float | None = None
+    increment: tuple[float, float, float] | None = None
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "t", _finite("odometry t", self.t))
+        if self.increment is not None:
+            if self.v is not None or self.omega is not None:
+                raise InputError("odometry carries either (v, omega) or an increment, not both")
+            if len(self.increment) != 3:
+                raise InputError(f"odometry increment must be (dx, dy, dtheta), got {self.increment!r}")
+            inc = tuple(_finite(f"odometry {k}", x) for k, x in zip(("dx", "dy", "dtheta"), self.increment))
+            object.__setattr__(self, "increment", inc)
+        else:
+            if self.v is None or self.omega is None:
+                raise InputError("odometry needs v and omega (or an increment)")
+            object.__setattr__(self, "v", _finite("odometry v", self.v))
+            object.__setattr__(self, "omega", _finite("odometry omega", self.omega))
+
+    def as_increment(self, dt: float) -> tuple[float, float, float]:
+        """The relative pose increment over ``dt`` (rotate first, then move: [ORS] order)."""
+        if self.increment is not None:
+            return self.increment
+        th = self.omega * dt
+        d = self.v * dt
+        return (d * math.cos(th), d * math.sin(th), th)
+
+
+@dataclass(frozen=True)
+class Frame:
+    """A camera frame at time ``t``: a decoded uint8 image (gray or BGR)."""
+
+    t: float
+    image: np.ndarray
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "t", _finite("frame t", self.t))
+        img = self.image
+        if not isinstance(img, np.ndarray):
+            raise InputError(f"frame image must be a numpy array, got {type(img).__name__}")
+        if img.dtype != np.uint8:
+            raise InputError(f"frame image must be uint8, got {img.dtype}")
+        if img.ndim not in (2, 3) or img.size == 0 or (img.ndim == 3 and img.shape[2] not in (1, 3, 4)):
+            raise InputError(f"frame image must be HxW or HxWx{{1,3,4}} and non-empty, got shape {img.shape}")
+
+    def gray(self) -> np.ndarray:
+        import cv2
+
+        img = self.image
+        if img.ndim == 2:
+            return img
+        if img.shape[2] == 1:
+            return img[:, :, 0]
+        return cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY if img.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
+
+
+def decode_jpeg(data: bytes) -> np.ndarray:
+    """Decode JPEG (or PNG) bytes to a grayscale uint8 image, with a clear error."""
+    import cv2
+
+    if not data:
+        raise InputError("empty image payload")
+    if not (data[:3] == b"\xff\xd8\xff" or data[:8] == b"\x89PNG\r\n\x1a\n"):
+        raise InputError("image payload is not a JPEG or PNG (bad magic bytes)")
+    img = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_GRAYSCALE)
+    if img is None or img.size == 0:
+        raise InputError("corrupt image payload: the decoder could not read it")
+    return img
+
+
+class TimeOrder:
+    """Checks that timestamps strictly increase within one input stream."""
+
+    def __init__(self, name: str, last: float | None = None) -> None:
+        self.name = name
+        self.last = last
+
+    def check(self, t: float) -> None:
+        if self.last is not None and not t > self.last:
+            raise InputError(f"{self.name} timestamps must increase: {t!r} follows {self.last!r}")
+        self.last = t

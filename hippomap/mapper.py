@@ -1,0 +1,259 @@
+"""The whole mapper of the paper's Fig. 1: one object per mapping session.
+
+Odometry drives the place code (grid cells -> place cells); every ``keyframe_interval``
+frames (or every ``keyframe_distance_m`` metres) a frame is first recognised against
+the key frames of nodes near the current place code (Eq. 13 gate) and then learned into
+the visual memory; an accepted recognition becomes a
+:class:`~hippomap.cognitive_map.LoopHypothesis` that the cognitive map verifies before
+closing the loop and relaxing.
+
+Inputs must come in time order; every call returns a list of events (plain dicts with a
+``type`` key, JSON-ready) and never mutates state when it raises ``InputError``.
+The whole state serialises to bytes (:meth:`Mapper.to_bytes`) and restores to a mapper
+whose future outputs are identical.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+from typing import Any
+
+import numpy as np
+
+from .cognitive_map import CognitiveMap, LoopHypothesis
+from .config import HippomapConfig
+from .errors import InputError
+from .geometry import compose
+from .inputs import Frame, Odometry
+from .place_cells import SpatialPathway
+from .visual_memory import VisualMemory
+
+FORMAT_VERSION = 1
+
+
+class _Grow:
+    """Append-only float array of fixed row width with amortised doubling."""
+
+    def __init__(self, width: int, dtype: Any = float) -> None:
+        self.data = np.empty((64, width), dtype=dtype)
+        self.n = 0
+
+    def append(self, row: Any) -> None:
+        if self.n == len(self.data):
+            self.data = np.concatenate([self.data, np.empty_like(self.data)])
+        self.data[self.n] = row
+        self.n += 1
+
+    @property
+    def view(self) -> np.ndarray:
+        return self.data[: self.n]
+
+    @classmethod
+    def of(cls, arr: np.ndarray) -> "_Grow":
+        g = cls(arr.shape[1], arr.dtype)
+        g.data = np.array(arr, copy=True) if len(arr) else g.data
+        g.n = len(arr)
+        return g
+
+
+class Mapper:
+    """One mapping session: ``step(odometry)`` and ``observe(frame)`` in time order."""
+
+    def __init__(self, config: HippomapConfig | None = None) -> None:
+        self.config = config or HippomapConfig()
+        self.pathway = SpatialPathway(self.config.spatial, self.config.map.initial_pose)
+        self.cmap = CognitiveMap(self.config.map)
+        self.memory = VisualMemory(self.config.visual)
+        self.last_t: float | None = None  # time of the last input of either kind
+        self.last_odometry_t: float | None = None
+        self.frames_seen = 0
+        self.distance = 0.0  # odometric path length, metres
+        self.distance_at_keyframe = -math.inf
+        self.frame_node: dict[int, int] = {}  # key-frame id -> node id
+        self.recognitions: list[dict[str, Any]] = []
+        self.place: tuple[float, float, float] | None = None  # latest place code p
+        self.place_field = None  # latest PlaceCode with its field (not persisted)
+        # per odometry step: t, raw odometric pose, current node, robot offset from it
+        self._traj = _Grow(8)
+
+    # ------------------------------------------------------------------ inputs
+    def _check_time(self, t: float, what: str) -> None:
+        if self.last_t is not None and not t > self.last_t:
+            raise InputError(f"{what} timestamp {t!r} does not follow the last input at {self.last_t!r}")
+
+    def step(self, odometry: Odometry) -> list[dict[str, Any]]:
+        """Feed one odometry reading; returns the events it caused."""
+        if not isinstance(odometry, Odometry):
+            raise InputError(f"step() takes an Odometry, got {type(odometry).__name__}")
+        t = odometry.t
+        self._check_time(t, "odometry")
+        if odometry.increment is None and self.last_odometry_t is None:
+            inc = (0.0, 0.0, 0.0)  # velocities need a previous time to integrate over
+        else:
+            dt = t - (self.last_odometry_t if self.last_odometry_t is not None else t)
+            inc = odometry.as_increment(dt)
+        self.last_t = self.last_odometry_t = t
+        code = self.pathway.step_increment(*inc)
+        self.distance += math.hypot(inc[0], inc[1])
+        events = [e.to_dict() for e in self.cmap.update(
+            None if code is None else (code.x, code.y, code.theta), inc, t)]
+        if code is not None:
+            self.place = (code.x, code.y, code.theta)
+            self.place_field = code
+        pose = self.pathway.pose
+        self._traj.append([t, pose[0], pose[1], pose[2], self.cmap.current, *self.cmap.robot_offset])
+        return events
+
+    def observe(self, frame: Frame) -> list[dict[str, Any]]:
+        """Feed one camera frame; on a key frame: recognise near the place code, then learn."""
+        if not isinstance(frame, Frame):
+            raise InputError(f"observe() takes a Frame, got {type(frame).__name__}")
+        self._check_time(frame.t, "frame")
+        gray = frame.gray()
+        self.memory.check_image(gray)  # raises InputError before any state changes
+        self.last_t = frame.t
+        self.frames_seen += 1
+        if not self._is_keyframe():
+            return []
+        events: list[dict[str, Any]] = []
+        if self.place is not None and self.memory.frame_count:
+            near = self.cmap.nodes_near(self.place, self.config.map.loop_radius_m
+                                        + self.config.map.loop_radius_per_m * self.distance)
+            frames = self.cmap.frames[near]
+            candidates = sorted(set(int(f) for f in frames[frames >= 0]))
+            if candidates:
+                rec = self.memory.recognise(gray, candidates=candidates)
+                rec_id = len(self.recognitions)
+                rec_dict = {"id": rec_id, "t": frame.t, "node": int(self.cmap.current), **rec.to_dict()}
+                self.recognitions.append(rec_dict)
+                events.append({"type": "recognition", **rec_dict})
+                if rec.frame is not None:
+                    hyp = LoopHypothesis(node=self.frame_node[int(rec.frame)], transform=None,
+                                         evidence=float(rec.evidence), source="visual", time=frame.t,
+                                         meta={"recognition": rec_id, "frame": int(rec.frame)})
+                    decision = self.cmap.propose_loop(hyp)
+                    events.append({"type": "loop_decision", **decision.to_dict()})
+        fid = self.memory.learn(gray)
+        if fid is not None:
+            node = int(self.cmap.current)
+            self.cmap.set_frame(node, fid)
+            self.frame_node[int(fid)] = node
+            self.distance_at_keyframe = self.distance
+            events.append({"type": "keyframe_learned", "t": frame.t, "frame": int(fid), "node": node})
+        return events
+
+    def _is_keyframe(self) -> bool:
+        m = self.config.mapper
+        if m.keyframe_distance_m is not None:
+            return self.distance - self.distance_at_keyframe >= m.keyframe_distance_m
+        return (self.frames_seen - 1) % m.keyframe_interval == 0
+
+    # ----------------------------------------------------------------- queries
+    @property
+    def trajectory_times(self) -> np.ndarray:
+        return self._traj.view[:, 0].copy()
+
+    def odometry_trajectory(self) -> np.ndarray:
+        """(N, 3) raw path-integrated poses, one per odometry step."""
+        return self._traj.view[:, 1:4].copy()
+
+    def corrected_trajectory(self) -> np.ndarray:
+        """(N, 3) the same steps placed on the current (relaxed) map."""
+        v = self._traj.view
+        if not len(v):
+            return np.empty((0, 3))
+        return compose(self.cmap.poses[v[:, 4].astype(np.int64)], v[:, 5:8])
+
+    def stats(self) -> dict[str, Any]:
+        decisions = [d.status for d in self.cmap.loop_decisions]
+        return {
+            "odometry_steps": int(self._traj.n),
+            "frames": int(self.frames_seen),
+            "keyframes": int(self.memory.frame_count),
+            "nodes": int(self.cmap.node_count),
+            "links": int(self.cmap.link_count),
+            "recognitions": len(self.recognitions),
+            "loop_closures_accepted": decisions.count("accepted"),
+            "loop_closures_rejected": decisions.count("rejected"),
+            "distance_m": float(self.distance),
+            "last_t": self.last_t,
+        }
+
+    # ------------------------------------------------------------- persistence
+    def to_bytes(self) -> bytes:
+        """The whole state as bytes (npz of arrays + a JSON header; no pickle)."""
+        arrays: dict[str, np.ndarray] = {}
+        meta = {
+            "format": FORMAT_VERSION,
+            "config": self.config.model_dump(mode="json"),
+            "pathway": _split(self.pathway.state_dict(), "pathway", arrays),
+            "cmap": _split(self.cmap.state_dict(), "cmap", arrays),
+            "memory": _split(self.memory.state_dict(), "memory", arrays),
+            "last_t": self.last_t,
+            "last_odometry_t": self.last_odometry_t,
+            "frames_seen": self.frames_seen,
+            "distance": self.distance,
+            "distance_at_keyframe": None if math.isinf(self.distance_at_keyframe) else self.distance_at_keyframe,
+            "frame_node": [[k, v] for k, v in self.frame_node.items()],
+            "recognitions": self.recognitions,
+            "place": self.place,
+        }
+        arrays["traj"] = self._traj.view
+        buf = io.BytesIO()
+        np.savez_compressed(buf, __meta__=np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8), **arrays)
+        return buf.getvalue()
+
+    @classmethod
+    def from_bytes(cls, data: bytes) -> "Mapper":
+        try:
+            npz = np.load(io.BytesIO(data), allow_pickle=False)
+            arrays = {k: npz[k] for k in npz.files}
+            meta = json.loads(arrays.pop("__meta__").tobytes().decode())
+        except Exception as exc:
+            raise InputError(f"not a hippomap mapper snapshot: {exc}") from exc
+        if meta.get("format") != FORMAT_VERSION:
+            raise InputError(f"unsupported snapshot format {meta.get('format')!r}")
+        self = cls.__new__(cls)
+        self.config = HippomapConfig.model_validate(meta["config"])
+        self.pathway = SpatialPathway.from_state(self.config.spatial, _join(meta["pathway"], arrays))
+        self.cmap = CognitiveMap.from_state(self.config.map, _join(meta["cmap"], arrays))
+        self.memory = VisualMemory.from_state(self.config.visual, _join(meta["memory"], arrays))
+        self.last_t = meta["last_t"]
+        self.last_odometry_t = meta["last_odometry_t"]
+        self.frames_seen = meta["frames_seen"]
+        self.distance = meta["distance"]
+        dk = meta["distance_at_keyframe"]
+        self.distance_at_keyframe = -math.inf if dk is None else dk
+        self.frame_node = {int(k): int(v) for k, v in meta["frame_node"]}
+        self.recognitions = meta["recognitions"]
+        self.place = None if meta["place"] is None else tuple(meta["place"])
+        self.place_field = None
+        self._traj = _Grow.of(arrays["traj"])
+        return self
+
+
+def _split(obj: Any, prefix: str, arrays: dict[str, np.ndarray]) -> Any:
+    """Move numpy arrays out of a nested state into ``arrays``; leave JSON behind."""
+    if isinstance(obj, np.ndarray):
+        key = f"{prefix}"
+        arrays[key] = obj
+        return {"__array__": key}
+    if isinstance(obj, dict):
+        return {str(k): _split(v, f"{prefix}.{k}", arrays) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_split(v, f"{prefix}.{i}", arrays) for i, v in enumerate(obj)]
+    if isinstance(obj, np.generic):
+        return obj.item()
+    return obj
+
+
+def _join(obj: Any, arrays: dict[str, np.ndarray]) -> Any:
+    if isinstance(obj, dict):
+        if set(obj) == {"__array__"}:
+            return arrays[obj["__array__"]]
+        return {k: _join(v, arrays) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [_join(v, arrays) for v in obj]
+    return obj
