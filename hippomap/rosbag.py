@@ -1,0 +1,94 @@
+"""ROS 1 / ROS 2 bags as hippomap data sets, read with the ``rosbags`` library.
+
+An image topic (``sensor_msgs/Image`` mono8/bgr8/rgb8 or ``sensor_msgs/CompressedImage``)
+and an odometry topic (``nav_msgs/Odometry``: the planar pose of each message becomes
+the increment from the previous one) are turned into the same time-ordered
+:class:`~hippomap.datasets.SensorDataset` the other readers produce. Frames are decoded
+when the data set is read (bags are small on a robot's time scale; a long bag can be
+limited with ``max_frames``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .datasets import SensorDataset, _check_increasing
+from .errors import InputError
+from .geometry import between
+from .inputs import Frame, Odometry
+
+
+@dataclass(frozen=True)
+class DecodedFrame:
+    """A frame already in memory (same interface as :class:`~hippomap.datasets.FrameRef`)."""
+
+    t: float
+    image: np.ndarray
+
+    def load(self) -> Frame:
+        return Frame(self.t, self.image)
+
+
+def _image(msg, msgtype: str) -> np.ndarray:
+    import cv2
+
+    if msgtype.endswith("CompressedImage"):
+        img = cv2.imdecode(np.frombuffer(bytes(msg.data), np.uint8), cv2.IMREAD_GRAYSCALE)
+        if img is None:
+            raise InputError(f"undecodable compressed image ({msg.format})")
+        return img
+    enc = msg.encoding.lower()
+    data = np.frombuffer(bytes(msg.data), np.uint8)
+    if enc in ("mono8", "8uc1"):
+        return data.reshape(msg.height, msg.step)[:, : msg.width].copy()
+    if enc in ("bgr8", "rgb8", "8uc3"):
+        img = data.reshape(msg.height, msg.step)[:, : msg.width * 3].reshape(msg.height, msg.width, 3)
+        return cv2.cvtColor(img, cv2.COLOR_RGB2GRAY if enc == "rgb8" else cv2.COLOR_BGR2GRAY)
+    raise InputError(f"unsupported image encoding {msg.encoding!r} (mono8, bgr8, rgb8 or compressed)")
+
+
+def _yaw(q) -> float:
+    return float(np.arctan2(2 * (q.w * q.z + q.x * q.y), 1 - 2 * (q.y**2 + q.z**2)))
+
+
+def read_rosbag(path: str | Path, image_topic: str, odometry_topic: str, max_frames: int | None = None) -> SensorDataset:
+    """Read a ROS 1 (``.bag``) or ROS 2 (folder) bag. Times are the messages' header stamps."""
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+
+    path = Path(path)
+    if not path.exists():
+        raise InputError(f"bag {path} does not exist")
+    frames: list[DecodedFrame] = []
+    stamps: list[float] = []
+    poses: list[tuple[float, float, float]] = []
+    with AnyReader([path], default_typestore=get_typestore(Stores.ROS2_HUMBLE)) as reader:
+        topics = {c.topic: c for c in reader.connections}
+        for topic in (image_topic, odometry_topic):
+            if topic not in topics:
+                raise InputError(f"bag {path} has no topic {topic!r}; topics: {sorted(topics)}")
+        conns = [c for c in reader.connections if c.topic in (image_topic, odometry_topic)]
+        for conn, _, raw in reader.messages(connections=conns):
+            msg = reader.deserialize(raw, conn.msgtype)
+            t = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
+            if conn.topic == image_topic:
+                if max_frames is None or len(frames) < max_frames:
+                    frames.append(DecodedFrame(t, _image(msg, conn.msgtype)))
+            else:
+                if not conn.msgtype.endswith("Odometry"):
+                    raise InputError(f"odometry topic {odometry_topic!r} carries {conn.msgtype}, not nav_msgs/Odometry")
+                p = msg.pose.pose
+                stamps.append(t)
+                poses.append((p.position.x, p.position.y, _yaw(p.orientation)))
+    if len(poses) < 2:
+        raise InputError(f"bag {path}: fewer than two odometry messages on {odometry_topic!r}")
+    frames.sort(key=lambda f: f.t)
+    _check_increasing(np.array(stamps), Path(f"{path}[{odometry_topic}]"))
+    _check_increasing(np.array([f.t for f in frames]), Path(f"{path}[{image_topic}]"))
+    arr = np.array(poses)
+    inc = between(arr[:-1], arr[1:])
+    odometry = [Odometry(float(t), increment=tuple(map(float, d))) for t, d in zip(stamps[1:], inc)]
+    return SensorDataset(odometry, frames, None, path)
