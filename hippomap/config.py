@@ -129,3 +129,22 @@ class HippomapConfig(_Frozen):
                 raise ValueError(f"config section {section!r} must be a mapping")
             base[section].update(values)
         return cls.model_validate(base)
+
+    @classmethod
+    def from_file(cls, path: str | None) -> "HippomapConfig":
+        """Defaults, or defaults updated by a JSON file of nested overrides."""
+        import json
+        from pathlib import Path
+
+        from .errors import InputError
+
+        if not path:
+            return cls()
+        try:
+            data = json.loads(Path(path).read_text())
+        except (OSError, json.JSONDecodeError) as exc:
+            raise InputError(f"cannot read config {path}: {exc}") from exc
+        try:
+            return cls.with_overrides(data)
+        except ValueError as exc:
+            raise InputError(f"invalid config {path}: {exc}") from exc

@@ -9,7 +9,6 @@ time its later pose occurs, and writes the exports and ``metrics.json``.
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from collections import defaultdict
 from dataclasses import dataclass, field
@@ -186,22 +185,9 @@ def write_outputs(run: OdometryRun, dataset: OdometryDataset, out_dir: str | Pat
     return metrics
 
 
-def _load_config(path: str | None) -> HippomapConfig:
-    if not path:
-        return HippomapConfig()
-    try:
-        data = json.loads(Path(path).read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        raise InputError(f"cannot read config {path}: {exc}") from exc
-    try:
-        return HippomapConfig.with_overrides(data)
-    except ValueError as exc:
-        raise InputError(f"invalid config {path}: {exc}") from exc
-
-
 def _cmd(args: argparse.Namespace) -> int:
     dataset = load_odometry_dataset(args.data_dir, args.loops)
-    run = run_odometry(dataset, _load_config(args.config), progress=not args.quiet)
+    run = run_odometry(dataset, HippomapConfig.from_file(args.config), progress=not args.quiet)
     metrics = write_outputs(run, dataset, args.out)
     lc = metrics["loop_closures"]
     line = f"{metrics['nodes']} nodes, loop closures accepted {lc['accepted']} / rejected {lc['rejected']}"

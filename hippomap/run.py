@@ -1,0 +1,172 @@
+"""Offline run of the whole mapper (odometry + camera) over a recorded data set.
+
+``hippomap run DATA_DIR --out OUT_DIR`` reads a hippomap data folder (``frames/``,
+``frames.csv``, ``odometry.csv``, optional ``groundtruth.csv`` — also what the simulator
+writes), a TUM RGB-D folder, or a ROS 1/2 bag (``--image-topic``, ``--odom-topic``),
+feeds every input in time order to one :class:`~hippomap.mapper.Mapper` and writes
+``map.tum``, ``odometry.tum``, ``map.g2o``, ``map.json``, ``loop_closures.json``,
+``map.png`` and ``metrics.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .config import HippomapConfig
+from .datasets import SensorDataset, read_folder_dataset, read_tum_rgbd
+from .errors import InputError
+from .evaluation import trajectory_metrics
+from .exports import graph_dict, plot_map, write_g2o, write_json, write_tum
+from .inputs import Odometry
+from .mapper import Mapper
+
+#: an accepted loop closure is false when ground truth puts its two places this far apart
+FALSE_LOOP_DISTANCE_M = 2.0
+
+
+def open_dataset(path: str | Path, image_topic: str | None = None, odom_topic: str | None = None) -> SensorDataset:
+    """Pick the reader by what the path holds."""
+    path = Path(path)
+    if not path.exists():
+        raise InputError(f"data set {path} does not exist")
+    if path.is_dir() and (path / "frames.csv").is_file():
+        return read_folder_dataset(path)
+    if path.is_dir() and (path / "rgb.txt").is_file():
+        return read_tum_rgbd(path)
+    if path.suffix == ".bag" or (path.is_dir() and (path / "metadata.yaml").is_file()):
+        if not (image_topic and odom_topic):
+            raise InputError("a ROS bag needs --image-topic and --odom-topic")
+        from .rosbag import read_rosbag
+
+        return read_rosbag(path, image_topic, odom_topic)
+    raise InputError(f"{path}: not a hippomap data folder (frames.csv), a TUM RGB-D folder (rgb.txt) or a ROS bag")
+
+
+def run_dataset(dataset: SensorDataset, config: HippomapConfig | None = None, progress: bool = False,
+                mapper: Mapper | None = None) -> tuple[Mapper, dict[str, Any]]:
+    """Feed the data set to a mapper; returns it and timing figures."""
+    m = mapper or Mapper(config)
+    total = len(dataset.odometry) + len(dataset.frames)
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=total, unit="input", desc="run")
+    decode_s, frame_s, odo_s = [], [], []
+    for item in dataset.events():
+        if isinstance(item, Odometry):
+            t0 = time.perf_counter()
+            m.step(item)
+            odo_s.append(time.perf_counter() - t0)
+        else:
+            t0 = time.perf_counter()
+            frame = item.load()
+            t1 = time.perf_counter()
+            m.observe(frame)
+            decode_s.append(t1 - t0)
+            frame_s.append(time.perf_counter() - t1)
+        if bar is not None:
+            bar.update(1)
+    if bar is not None:
+        bar.close()
+
+    def ms(xs: list[float]) -> dict[str, float]:
+        a = np.array(xs) * 1e3 if xs else np.zeros(1)
+        return {"mean": float(a.mean()), "p95": float(np.percentile(a, 95)), "n": len(xs)}
+
+    return m, {"frame_ms": ms(frame_s), "decode_ms": ms(decode_s), "odometry_ms": ms(odo_s)}
+
+
+def _gt_at(gt: tuple[np.ndarray, np.ndarray], t: float, tol: float = 0.5) -> np.ndarray | None:
+    tg, pg = gt
+    k = int(np.clip(np.searchsorted(tg, t), 1, len(tg) - 1))
+    k = k if abs(tg[k] - t) < abs(tg[k - 1] - t) else k - 1
+    return pg[k] if abs(tg[k] - t) <= tol else None
+
+
+def loop_report(m: Mapper, gt: tuple[np.ndarray, np.ndarray] | None) -> list[dict[str, Any]]:
+    """Every loop decision, with the ground-truth distance between its two places."""
+    out = []
+    times = m.cmap.times
+    for d in m.cmap.loop_decisions:
+        row = d.to_dict()
+        if gt is not None:
+            h = d.hypothesis
+            a = _gt_at(gt, float(h.time))
+            b = _gt_at(gt, float(times[h.node]))
+            if a is not None and b is not None:
+                row["groundtruth_distance_m"] = float(np.linalg.norm(a[:2] - b[:2]))
+        out.append(row)
+    return out
+
+
+def write_run(m: Mapper, dataset: SensorDataset, out_dir: str | Path, timing: dict[str, Any] | None = None) -> dict[str, Any]:
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    t = m.trajectory_times
+    odo = m.odometry_trajectory()
+    cor = m.corrected_trajectory()
+    cm = m.cmap
+    links = cm.links
+    write_tum(out / "map.tum", t, cor)
+    write_tum(out / "odometry.tum", t, odo)
+    write_g2o(out / "map.g2o", cm.poses, links["source"], links["target"], links["transform"])
+    write_json(out / "map.json", graph_dict(cm.poses, cm.place_codes, cm.frames, cm.times, links["source"],
+                                            links["target"], links["transform"], links["kind"]))
+    loops = loop_report(m, dataset.groundtruth)
+    write_json(out / "loop_closures.json", loops)
+    accepted = [r for r in loops if r["status"] == "accepted"]
+    metrics: dict[str, Any] = {"data": str(dataset.source), "stats": m.stats(), "timing": timing or {}}
+    metrics["loop_closures"] = {
+        "accepted": len(accepted),
+        "rejected": sum(r["status"] == "rejected" for r in loops),
+    }
+    gt_plot = None
+    if dataset.groundtruth is not None and len(t) > 3:
+        metrics["odometry"] = trajectory_metrics(t, odo, *dataset.groundtruth)
+        metrics["map"] = trajectory_metrics(t, cor, *dataset.groundtruth)
+        metrics["map_ate_ratio"] = metrics["map"]["ate"]["rmse"] / max(metrics["odometry"]["ate"]["rmse"], 1e-12)
+        judged = [r for r in accepted if "groundtruth_distance_m" in r]
+        metrics["loop_closures"]["accepted_false"] = sum(r["groundtruth_distance_m"] >= FALSE_LOOP_DISTANCE_M for r in judged)
+        metrics["loop_closures"]["max_accepted_distance_m"] = max((r["groundtruth_distance_m"] for r in judged), default=None)
+        gt_plot = dataset.groundtruth[1]
+    seg = []
+    for r in accepted:
+        h = r["hypothesis"]
+        k = int(np.clip(np.searchsorted(t, h["time"]), 0, len(t) - 1)) if len(t) else 0
+        if len(t):
+            seg.append([cor[k, :2], cm.poses[h["node"], :2]])
+    if len(t):
+        plot_map(out / "map.png", odo, cor, gt_plot, seg, title=f"{Path(dataset.source).name}")
+    write_json(out / "metrics.json", metrics)
+    return metrics
+
+
+def _cmd(args: argparse.Namespace) -> int:
+    dataset = open_dataset(args.data_dir, args.image_topic, args.odom_topic)
+    m, timing = run_dataset(dataset, HippomapConfig.from_file(args.config), progress=not args.quiet)
+    metrics = write_run(m, dataset, args.out, timing)
+    s = metrics["stats"]
+    line = (f"{s['nodes']} nodes, {s['keyframes']} key frames, loop closures accepted "
+            f"{metrics['loop_closures']['accepted']} / rejected {metrics['loop_closures']['rejected']}")
+    if "map" in metrics:
+        line += f"; ATE rmse odometry {metrics['odometry']['ate']['rmse']:.3f} m -> map {metrics['map']['ate']['rmse']:.3f} m"
+    print(line)
+    return 0
+
+
+def add_parser(sub: Any) -> None:
+    p = sub.add_parser("run", help="run the whole mapper (odometry + camera) over a data set",
+                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("data_dir", help="hippomap data folder, TUM RGB-D folder, or ROS bag")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--image-topic", help="ROS bag: image or compressed-image topic")
+    p.add_argument("--odom-topic", help="ROS bag: nav_msgs/Odometry topic")
+    p.add_argument("--config", help="JSON file of config overrides")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=_cmd)
