@@ -37,6 +37,11 @@ class SpatialConfig(_Frozen):
     )
     rate_noise: float = Field(0.0, ge=0, description="sigma_T, noise on the current discharge T (x g_max); keep window/2 >= 3 sigma [spec §3]")
     seed: int = Field(0, description="seed for lambda, theta, r0 of the grid cells [ours: reproducible sessions]")
+    iteration_order: Literal["narrowest_first", "cyclic"] = Field(
+        "narrowest_first",
+        description="order of the MB_n in Eq. 10: fewest window hits first, or cell index order n = 1, 2, ... "
+        "cycling through the modules as in [S] Eq. 10 [ours: narrowest_first, measured in bench/bench_spatial.py]",
+    )
 
     @model_validator(mode="after")
     def _check(self) -> "SpatialConfig":
@@ -78,6 +83,32 @@ class VisualConfig(_Frozen):
     max_saccades: int = Field(18, ge=1, description="saccades per attempt, 2 N_f [spec decision]")
     next_target: Literal["stochastic", "most_active"] = Field("stochastic", description="[BBc] stochastic choice or [S] most active frame [spec §6.3]")
     seed: int = Field(0, description="seed for fixation order, weight jitter and saccade choices [ours]")
+    contrast_clip: float = Field(0.01, ge=0, lt=0.5, description="imadjust: fraction saturated in each tail [BBc]")
+    corner_quality: float = Field(0.01, gt=0, le=1, description="Shi-Tomasi quality level of fixation points [ours]")
+    corner_block: int = Field(3, ge=3, description="Shi-Tomasi block size [ours]")
+    min_distance: int = Field(0, ge=0, description="min separation of fixation points; 0 = h, half the fovea [spec §2]")
+    query_keypoints: int = Field(27, ge=1, description="corners of a query frame usable as first fixations [spec §6.2]")
+    query_blur: bool = Field(False, description="blur the query like the learned image before sensing [ours]")
+    anchor: Literal["start", "none"] = Field(
+        "start",
+        description="'start': the grid code re-anchors on the first matched feature (BB's global remapping for "
+        "shifted stimuli) and snaps to each predicted feature; 'none': absolute image coordinates [spec §2] [ours]",
+    )
+    decoder: Literal["phase", "svc"] = Field("phase", description="saccade decoder: phase unwrapping (spec §1 B) or spatial view cells (C)")
+    svc_stride: int = Field(4, ge=1, description="spacing of spatial view cells in working px [spec §2: 1-2; ours 4 for memory]")
+    softmax_gain: float = Field(1.0, gt=0, description="gain of the softmax over surviving FLCs [BBc: 1]")
+    index_side: int = Field(8, ge=2, description="side of the area-averaged patch descriptor used by the FLC index [ours]")
+    index_shortlist: int = Field(64, ge=1, description="FLCs scored exactly per fixation when the index is used [ours]")
+    stats_sample: int = Field(256, ge=8, description="FLCs sampled to estimate mean/sd of the drive for N_std [ours]")
+    trace_hypotheses: int = Field(5, ge=1, description="leading frame hypotheses recorded per trace step [ours]")
+    prediction_tolerance: float = Field(
+        1.0, gt=0, le=1,
+        description="a prediction is confirmed when the predicted FLC's drive is >= this fraction of the best drive "
+        "(1 = it must be the winner, [BBc]) [ours]",
+    )
+    out_of_view: Literal["reset", "skip"] = Field(
+        "reset", description="a saccade whose fovea leaves the frame resets the attempt [BBc] or picks another feature [ours]"
+    )
 
 
 class MapConfig(_Frozen):
@@ -101,6 +132,13 @@ class MapConfig(_Frozen):
     loop_support_window: int = Field(50, ge=1, description="steps a hypothesis waits for support [ours]")
     loop_consistency_m: float = Field(1.0, gt=0, description="max translation error of a loop cycle [ours]")
     loop_consistency_rad: float = Field(0.3, gt=0, description="max rotation error of a loop cycle [ours]")
+    solver: Literal["relax", "jacobi", "lsq"] = Field(
+        "relax",
+        description="map correction after each action: 'relax' = [ORS] per-link relaxation (Eq. 14), vectorised by "
+        "edge colour; 'jacobi' = simultaneous Eq. 14 with degree-normalised alpha; 'lsq' = Gauss-Newton SE(2) pose "
+        "graph, exact [ours]",
+    )
+    lsq_iterations: int = Field(10, ge=1, description="max Gauss-Newton iterations per correction when solver='lsq' [ours]")
 
 
 class MapperConfig(_Frozen):
