@@ -51,12 +51,17 @@ class Odometry:
             object.__setattr__(self, "omega", _finite("odometry omega", self.omega))
 
     def as_increment(self, dt: float) -> tuple[float, float, float]:
-        """The relative pose increment over ``dt`` (rotate first, then move: [ORS] order)."""
+        """The relative pose increment over ``dt``: the exact arc driven at constant
+        ``(v, omega)`` (chord of length 2 v/omega sin(omega dt / 2) at half the turn).
+        [ORS] rotates first and then moves the whole distance, which puts every turn
+        half a step early; the arc is exact for a robot holding its command (MODEL.md)."""
         if self.increment is not None:
             return self.increment
         th = self.omega * dt
         d = self.v * dt
-        return (d * math.cos(th), d * math.sin(th), th)
+        half = th / 2
+        chord = d * (math.sin(half) / half if abs(half) > 1e-9 else 1.0 - half * half / 6)
+        return (chord * math.cos(half), chord * math.sin(half), th)
 
 
 @dataclass(frozen=True)

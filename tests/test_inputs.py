@@ -32,9 +32,16 @@ def test_bad_odometry_names_the_value(kwargs, needle):
     assert needle in str(err.value)
 
 
-def test_velocity_increment_rotates_then_moves():
-    inc = Odometry(0.0, v=1.0, omega=math.pi / 2).as_increment(1.0)
-    np.testing.assert_allclose(inc, [0.0, 1.0, math.pi / 2], atol=1e-12)
+def test_velocity_increment_is_the_exact_arc():
+    # a quarter circle of radius r = v / omega ends at (r, r) facing +90 degrees
+    v, w = 1.0, math.pi / 2
+    inc = Odometry(0.0, v=v, omega=w).as_increment(1.0)
+    r = v / w
+    np.testing.assert_allclose(inc, [r, r, math.pi / 2], atol=1e-12)
+    # many small arcs compose to the same end pose as one big arc
+    small = integrate([Odometry(0.0, v=v, omega=w).as_increment(0.01)] * 100)[-1]
+    np.testing.assert_allclose(small, inc, atol=1e-9)
+    np.testing.assert_allclose(Odometry(0.0, v=2.0, omega=0.0).as_increment(0.5), [1.0, 0.0, 0.0], atol=1e-12)
     assert Odometry(0.0, increment=(0.1, 0.2, 0.3)).as_increment(5.0) == (0.1, 0.2, 0.3)
 
 

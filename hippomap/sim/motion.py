@@ -1,0 +1,256 @@
+"""Robot motion for the simulator: trajectories, drive plans and wheel odometry.
+
+A step of wheel odometry is a unicycle moving with constant forward speed ``v`` and
+turn rate ``ω`` for ``dt``: an exact circular arc (:func:`arc_increments`). Drive plans
+are integrated with exactly these arcs, so with zero odometry noise the odometry
+integrates (``hippomap.geometry.integrate``) to the ground truth to rounding error.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import InputError
+from ..geometry import between, integrate, wrap_angle
+from .params import OdometryNoise
+
+
+def arc_increments(v, omega, dt) -> np.ndarray:
+    """Relative pose (dx, dy, dθ) in the start frame after moving at constant ``v``,
+    ``omega`` for ``dt`` (arrays broadcast): (N, 3)."""
+    v, omega, dt = np.broadcast_arrays(*(np.asarray(a, dtype=float) for a in (v, omega, dt)))
+    th = omega * dt
+    d = v * dt
+    dx = d * np.sinc(th / np.pi)  # sin(th) / th
+    dy = d * np.sin(th / 2) * np.sinc(th / (2 * np.pi))  # (1 - cos th) / th
+    return np.stack([dx, dy, th], axis=-1).reshape(-1, 3)
+
+
+def velocities_from_increments(increments, dt) -> tuple[np.ndarray, np.ndarray]:
+    """The constant (v, ω) whose arc joins each increment's end points:
+    ``ω = dθ / dt`` and ``v = ±arc length / dt`` (negative when driving backwards).
+    Exact inverse of :func:`arc_increments` for |dθ| < 2π; for an increment that is not
+    an arc (sideways slip) the arc keeps its chord length and heading change."""
+    inc = np.asarray(increments, dtype=float).reshape(-1, 3)
+    dt = np.asarray(dt, dtype=float)
+    th = inc[:, 2]
+    chord = np.hypot(inc[:, 0], inc[:, 1])
+    arc = chord / np.sinc(th / (2 * np.pi))
+    sign = np.where(inc[:, 0] < 0, -1.0, 1.0)
+    return sign * arc / dt, th / dt
+
+
+def _check_times(times: np.ndarray, what: str) -> None:
+    if times.ndim != 1 or len(times) < 2:
+        raise InputError(f"{what}: need at least 2 times, got shape {times.shape}")
+    if not np.isfinite(times).all():
+        raise InputError(f"{what}: time {int(np.flatnonzero(~np.isfinite(times))[0])} is not finite")
+    bad = np.flatnonzero(np.diff(times) <= 0)
+    if bad.size:
+        k = int(bad[0])
+        raise InputError(f"{what}: times must increase: t[{k + 1}] = {times[k + 1]!r} follows t[{k}] = {times[k]!r}")
+
+
+@dataclass(frozen=True, eq=False)
+class Trajectory:
+    """A camera path: ``times`` (N,), ground-truth ``poses`` (N, 3).
+
+    Optionally the true per-step ``velocities`` (N-1, 2: v, ω held over each step, from a
+    drive plan) or measured ``odometry`` increments (N-1, 3, e.g. real wheel odometry of
+    a recorded run) that the simulator reports instead of deriving odometry from poses.
+    """
+
+    times: np.ndarray
+    poses: np.ndarray
+    velocities: np.ndarray | None = None
+    odometry: np.ndarray | None = None
+
+    def __post_init__(self):
+        t = np.asarray(self.times, dtype=float).reshape(-1)
+        p = np.asarray(self.poses, dtype=float)
+        _check_times(t, "trajectory")
+        if p.shape != (len(t), 3):
+            raise InputError(f"trajectory poses must be ({len(t)}, 3) to match the times, got {p.shape}")
+        if not np.isfinite(p).all():
+            raise InputError(f"trajectory pose {int(np.flatnonzero(~np.isfinite(p).all(1))[0])} is not finite")
+        object.__setattr__(self, "times", t)
+        object.__setattr__(self, "poses", p)
+        for name, cols in (("velocities", 2), ("odometry", 3)):
+            a = getattr(self, name)
+            if a is None:
+                continue
+            a = np.asarray(a, dtype=float)
+            if a.shape != (len(t) - 1, cols):
+                raise InputError(f"trajectory {name} must be ({len(t) - 1}, {cols}), got {a.shape}")
+            if not np.isfinite(a).all():
+                raise InputError(f"trajectory {name} row {int(np.flatnonzero(~np.isfinite(a).all(1))[0])} is not finite")
+            object.__setattr__(self, name, a)
+
+    def __len__(self) -> int:
+        return len(self.times)
+
+    def sample(self, rate_hz: float | None = None) -> "Trajectory":
+        """A trajectory already has its times: returned unchanged."""
+        return self
+
+
+@dataclass(frozen=True)
+class DrivePlan:
+    """Piecewise-constant commands ``(duration_s, v, omega)`` from ``start``. Each
+    duration is rounded to a whole number of odometry steps (at least one)."""
+
+    commands: tuple
+    start: tuple = (0.0, 0.0, 0.0)
+
+    def __post_init__(self):
+        c = np.asarray(self.commands, dtype=float)
+        if c.ndim != 2 or c.shape[1] != 3 or len(c) == 0:
+            raise InputError(f"drive plan commands must be (duration, v, omega) rows, got shape {c.shape}")
+        if not np.isfinite(c).all() or (c[:, 0] <= 0).any():
+            k = int(np.flatnonzero(~np.isfinite(c).all(1) | (c[:, 0] <= 0))[0])
+            raise InputError(f"drive plan command {k} = {tuple(c[k])}: durations must be > 0 and values finite")
+        object.__setattr__(self, "commands", tuple(map(tuple, c)))
+
+    def sample(self, rate_hz: float) -> Trajectory:
+        c = np.asarray(self.commands)
+        n = np.maximum(1, np.round(c[:, 0] * rate_hz).astype(int))
+        v, w = np.repeat(c[:, 1], n), np.repeat(c[:, 2], n)
+        dt = 1.0 / rate_hz
+        poses = integrate(arc_increments(v, w, dt), self.start)
+        times = np.arange(len(poses)) * dt
+        return Trajectory(times, poses, velocities=np.stack([v, w], axis=1))
+
+
+def _smooth(rng, n, corr):
+    k = max(1, int(corr))
+    raw = rng.standard_normal(n + 4 * k)
+    ker = np.hanning(4 * k + 1)
+    sm = np.convolve(raw, ker / ker.sum(), mode="same")[2 * k : 2 * k + n]
+    return sm / (sm.std() or 1.0)
+
+
+@dataclass(frozen=True)
+class RoutePlan:
+    """Drive along waypoints with a pure-pursuit controller (the robot steers towards
+    the point ``lookahead_m`` ahead on the route, turns on the spot when that point is
+    behind it). ``closed`` routes are driven ``laps`` times round; open routes are driven
+    out and back ``laps`` times in all. Each lap wanders by a seeded, smooth lateral
+    offset (std ``lateral_jitter_m``) and speed change (``speed_jitter`` fraction), so
+    revisits are near, not identical, poses."""
+
+    waypoints: tuple
+    closed: bool = True
+    laps: int = 1
+    speed_mps: float = 0.4
+    lookahead_m: float = 0.8
+    max_omega: float = 1.0
+    lateral_jitter_m: float = 0.12
+    speed_jitter: float = 0.15
+    seed: int = 0
+
+    def __post_init__(self):
+        w = np.asarray(self.waypoints, dtype=float)
+        if w.ndim != 2 or w.shape[1] != 2 or len(w) < 2 or not np.isfinite(w).all():
+            raise InputError(f"route waypoints must be finite (K >= 2, 2), got shape {w.shape}")
+        object.__setattr__(self, "waypoints", tuple(map(tuple, w)))
+        for name in ("speed_mps", "lookahead_m", "max_omega"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v > 0):
+                raise InputError(f"RoutePlan.{name} = {v!r} must be finite and > 0")
+        if not (isinstance(self.laps, int) and self.laps >= 1):
+            raise InputError(f"RoutePlan.laps = {self.laps!r} must be an integer >= 1")
+        if not (0 <= self.speed_jitter < 1) or not self.lateral_jitter_m >= 0:
+            raise InputError(f"RoutePlan jitters must be >= 0 (speed_jitter < 1), got {self.lateral_jitter_m}, {self.speed_jitter}")
+
+    def path(self, spacing: float = 0.05) -> np.ndarray:
+        """The route as driven (all laps, jitter applied), resampled every ``spacing`` m."""
+        w = np.asarray(self.waypoints)
+        if self.closed:
+            lap = np.vstack([w, w[:1]])
+            pl = np.vstack([lap] + [lap[1:]] * (self.laps - 1))
+        else:
+            legs = [w if k % 2 == 0 else w[::-1] for k in range(self.laps)]
+            pl = np.vstack([legs[0]] + [leg[1:] for leg in legs[1:]])
+        seg = np.hypot(*np.diff(pl, axis=0).T)
+        s = np.concatenate([[0.0], np.cumsum(seg)])
+        q = np.arange(0.0, s[-1], spacing)
+        q = np.append(q, s[-1])
+        dense = np.stack([np.interp(q, s, pl[:, 0]), np.interp(q, s, pl[:, 1])], axis=1)
+        if self.lateral_jitter_m > 0:
+            rng = np.random.default_rng([self.seed, 1])
+            tang = np.gradient(dense, axis=0)
+            tang /= np.maximum(np.linalg.norm(tang, axis=1, keepdims=True), 1e-12)
+            normal = np.stack([-tang[:, 1], tang[:, 0]], axis=1)
+            off = self.lateral_jitter_m * _smooth(rng, len(dense), 3.0 / spacing)
+            off[0] = 0.0
+            # no offset at the start so lap 1 begins on the route
+            ramp = np.clip(np.arange(len(dense)) * spacing / 1.0, 0, 1)
+            dense = dense + (off * ramp)[:, None] * normal
+        return dense
+
+    def sample(self, rate_hz: float) -> Trajectory:
+        spacing = 0.05
+        q = self.path(spacing)
+        m = len(q)
+        dt = 1.0 / rate_hz
+        rng = np.random.default_rng([self.seed, 2])
+        speed = self.speed_mps * (1 + self.speed_jitter * np.clip(_smooth(rng, m, 4.0 / spacing), -2, 2) / 2)
+        look = max(1, int(round(self.lookahead_m / spacing)))
+        window = int((self.speed_mps * 2 * dt + 0.5) / spacing) + 2
+        ahead = q[min(m - 1, look)] - q[0]
+        pose = np.array([q[0, 0], q[0, 1], np.arctan2(ahead[1], ahead[0])])
+        i = 0
+        vs, ws = [], []
+        max_steps = int(10 * m * spacing / (self.speed_mps * dt)) + 100
+        while len(vs) < max_steps:
+            lo, hi = i, min(m, i + window)
+            d = np.hypot(q[lo:hi, 0] - pose[0], q[lo:hi, 1] - pose[1])
+            i = lo + int(np.argmin(d))
+            if i >= m - 1 or (m - 1 - i) * spacing < 0.05:
+                break
+            tgt = q[min(m - 1, i + look)]
+            alpha = wrap_angle(np.arctan2(tgt[1] - pose[1], tgt[0] - pose[0]) - pose[2])
+            sp = speed[i]
+            if abs(alpha) < np.pi / 2:
+                v = sp * np.cos(alpha)
+                w = float(np.clip(2 * sp * np.sin(alpha) / self.lookahead_m, -self.max_omega, self.max_omega))
+            else:  # target behind: turn on the spot
+                v, w = 0.0, float(np.copysign(self.max_omega, alpha))
+            # near the end: do not overshoot the last point
+            remaining = (m - 1 - i) * spacing
+            v = min(v, remaining / dt)
+            inc = arc_increments(v, w, dt)[0]
+            c, s_ = np.cos(pose[2]), np.sin(pose[2])
+            pose = np.array([pose[0] + c * inc[0] - s_ * inc[1], pose[1] + s_ * inc[0] + c * inc[1], wrap_angle(pose[2] + inc[2])])
+            vs.append(v)
+            ws.append(w)
+            if remaining < 0.05:
+                break
+        if not vs:
+            raise InputError("route is too short to drive")
+        v, w = np.array(vs), np.array(ws)
+        start = np.array([q[0, 0], q[0, 1], np.arctan2(ahead[1], ahead[0])])
+        poses = integrate(arc_increments(v, w, dt), start)
+        return Trajectory(np.arange(len(poses)) * dt, poses, velocities=np.stack([v, w], axis=1))
+
+
+def measure_odometry(traj: Trajectory, noise: OdometryNoise, rng: np.random.Generator):
+    """Wheel odometry of a trajectory: per step (v, ω) as measured and the increments
+    they integrate to. Source motion: the plan's true velocities if known, else the
+    trajectory's measured odometry, else the ground-truth increments; then the
+    :class:`OdometryNoise` model. With zero noise the increments are the source ones
+    unchanged (so ground-truth increments integrate exactly back to the poses)."""
+    dt = np.diff(traj.times)
+    if traj.velocities is not None:
+        v, w = traj.velocities[:, 0].copy(), traj.velocities[:, 1].copy()
+        inc = arc_increments(v, w, dt)
+    else:
+        inc = traj.odometry if traj.odometry is not None else between(traj.poses[:-1], traj.poses[1:])
+        v, w = velocities_from_increments(inc, dt)
+    if noise.is_zero:
+        return v, w, inc
+    v = (1.0 + noise.scale_error) * v + (rng.normal(0.0, noise.sigma_v, len(v)) if noise.sigma_v > 0 else 0.0)
+    w = w + noise.omega_bias + (rng.normal(0.0, noise.sigma_omega, len(w)) if noise.sigma_omega > 0 else 0.0)
+    return v, w, arc_increments(v, w, dt)

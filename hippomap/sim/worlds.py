@@ -1,0 +1,117 @@
+"""Ready-made worlds: a rectangular corridor loop, a straight corridor, and the
+Bicocca 2009-02-25b run (real odometry, ground-truth camera path, walls built around it)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..datasets import read_g2o, read_groundtruth_csv, read_timestamps
+from ..errors import InputError
+from ..geometry import wrap_angle
+from .motion import RoutePlan, Trajectory
+from .params import TextureParams
+from .world import World, walls_around_path
+
+
+def _rect(x0, y0, x1, y1) -> np.ndarray:
+    return np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1], [x0, y0]], dtype=float)
+
+
+def loop_world(
+    seed: int = 0,
+    size: tuple[float, float] = (16.0, 10.0),
+    corridor_width: float = 2.5,
+    laps: int = 3,
+    speed_mps: float = 0.4,
+    texture: TextureParams | None = None,
+) -> World:
+    """A rectangular corridor loop: the centre line is a ``size`` rectangle with its
+    lower-left corner at the origin, walls ``corridor_width / 2`` either side. The
+    default route drives it ``laps`` times anticlockwise, starting at (size_x / 2, 0)
+    facing +x, each lap wandering slightly so revisits are near, not identical."""
+    sx, sy = size
+    h = corridor_width / 2
+    if not (sx > corridor_width and sy > corridor_width and h > 0):
+        raise InputError(f"loop size {size} must exceed the corridor width {corridor_width} in both directions")
+    outer = _rect(-h, -h, sx + h, sy + h)
+    inner = _rect(h, h, sx - h, sy - h)
+    way = [(sx / 2, 0.0), (sx, 0.0), (sx, sy), (0.0, sy), (0.0, 0.0)]
+    route = RoutePlan(tuple(way), closed=True, laps=laps, speed_mps=speed_mps,
+                      lateral_jitter_m=min(0.12, 0.1 * corridor_width), seed=seed)
+    return World.from_polylines([outer, inner], name="loop", texture=texture, seed=seed, route=route)
+
+
+def corridor_world(
+    seed: int = 0,
+    length: float = 30.0,
+    width: float = 2.4,
+    passes: int = 2,
+    speed_mps: float = 0.4,
+    texture: TextureParams | None = None,
+) -> World:
+    """A straight closed corridor along +x from the origin. The default route drives
+    it end to end ``passes`` times (out, back, ...), turning on the spot at each end."""
+    h = width / 2
+    if not (length > 4 and h > 0.4):
+        raise InputError(f"corridor length {length} must be > 4 m and width {width} > 0.8 m")
+    walls = _rect(-2.0, -h, length + 2.0, h)
+    route = RoutePlan(((0.0, 0.0), (length, 0.0)), closed=False, laps=passes, speed_mps=speed_mps,
+                      lateral_jitter_m=min(0.1, 0.1 * width), seed=seed)
+    return World.from_polylines([walls], name="corridor", texture=texture, seed=seed, route=route)
+
+
+def interpolate_poses(t_query, t, poses) -> np.ndarray:
+    """Poses (M, 3) at times ``t`` linearly interpolated at ``t_query`` (headings
+    through their unwrapped values). Times outside [t0, t_end] are clamped."""
+    th = np.unwrap(poses[:, 2])
+    out = np.stack([np.interp(t_query, t, poses[:, 0]), np.interp(t_query, t, poses[:, 1]),
+                    wrap_angle(np.interp(t_query, t, th))], axis=1)
+    return out
+
+
+def bicocca_trajectory(data_dir: str | Path, g2o: str = "B25b_1.000.g2o") -> Trajectory:
+    """The Bicocca 25b run: the g2o file's odometry edges as measured odometry; the
+    ground-truth CSV matched by timestamp (linear interpolation at the odometry times)
+    as the camera path; odometry poses outside the ground truth's time span dropped."""
+    data_dir = Path(data_dir)
+    if not data_dir.is_dir():
+        raise InputError(f"Bicocca folder {data_dir} does not exist")
+    graph = read_g2o(data_dir / g2o)
+    stamps = sorted(data_dir.glob("*timestamps.txt"))
+    gts = sorted(data_dir.glob("*GT*.csv"))
+    if not stamps or not gts:
+        raise InputError(f"{data_dir} needs a *timestamps.txt and a *GT*.csv file")
+    times = read_timestamps(stamps[0])
+    if len(times) != len(graph.vertices):
+        raise InputError(f"{stamps[0]} has {len(times)} timestamps for {len(graph.vertices)} poses in {g2o}")
+    gt_t, gt = read_groundtruth_csv(gts[0])
+    keep = np.flatnonzero((times >= gt_t[0]) & (times <= gt_t[-1]))
+    if len(keep) < 2:
+        raise InputError(f"odometry times and ground-truth times of {data_dir} do not overlap")
+    a, b = int(keep[0]), int(keep[-1]) + 1
+    poses = interpolate_poses(times[a:b], gt_t, gt)
+    return Trajectory(times[a:b], poses, odometry=graph.odometry[a : b - 1])
+
+
+def bicocca_world(
+    data_dir: str | Path = "/work/shared/data/bicocca25b",
+    g2o: str = "B25b_1.000.g2o",
+    seed: int = 0,
+    half_width_m: float = 1.2,
+    resolution_m: float = 0.1,
+    texture: TextureParams | None = None,
+) -> World:
+    """Walls around the Bicocca ground-truth path (:func:`walls_around_path`: free space
+    = within ``half_width_m`` of the path) and the real run as the default route."""
+    traj = bicocca_trajectory(data_dir, g2o)
+    polys = walls_around_path(traj.poses[:, :2], half_width_m=half_width_m, resolution_m=resolution_m)
+    return World.from_polylines(polys, name="bicocca25b", texture=texture, seed=seed, route=traj)
+
+
+def path_world(path_xy, *, half_width_m: float = 1.2, resolution_m: float = 0.1, seed: int = 0,
+               texture: TextureParams | None = None, route=None, name: str = "path") -> World:
+    """Walls around any 2-D path (as for Bicocca), e.g. a synthetic one."""
+    polys = walls_around_path(path_xy, half_width_m=half_width_m, resolution_m=resolution_m)
+    return World.from_polylines(polys, name=name, texture=texture, seed=seed, route=route)

@@ -1,0 +1,387 @@
+"""Camera simulator (hippomap.sim): rendering geometry, texture distinctiveness,
+odometry noise model, dataset-folder output and wall building around a path."""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from hippomap import sim
+from hippomap.errors import InputError
+from hippomap.geometry import integrate, wrap_angle
+from hippomap.sim.world import World
+
+
+@pytest.fixture(scope="module")
+def loop():
+    return sim.loop_world(seed=3)
+
+
+@pytest.fixture(scope="module")
+def loop_run(loop):
+    return sim.simulate(loop, rate_hz=5.0)
+
+
+def ncc(a, b, size=(64, 48)):
+    a = cv2.resize(a, size, interpolation=cv2.INTER_AREA).astype(float).ravel()
+    b = cv2.resize(b, size, interpolation=cv2.INTER_AREA).astype(float).ravel()
+    a -= a.mean()
+    b -= b.mean()
+    return float(a @ b / np.sqrt((a @ a) * (b @ b)))
+
+
+def flat_wall_world(d: float, wall_height: float = 2.5) -> World:
+    """One long wall across the x axis at x = d, textured plain white."""
+    tex = sim.TextureParams(wall_height_m=wall_height, texels_per_m=20)
+    wall = np.array([[d, -60.0], [d, 60.0]])
+    strip = np.full((tex.rows, 130 * 20), 255, np.uint8)
+    return World.from_polylines([wall], texture=tex, strip=strip)
+
+
+# --------------------------------------------------------------------------- rendering
+
+
+@pytest.mark.parametrize("w,h", [(320, 240), (640, 480)])
+def test_frame_shape_dtype_and_content(loop, loop_run, w, h):
+    cam = sim.Camera(width=w, height=h)
+    img = sim.render(loop, loop_run.groundtruth[10], cam)
+    assert img.shape == (h, w) and img.dtype == np.uint8
+    assert img.std() > 20  # not blank
+
+
+def test_frames_offer_shi_tomasi_corners(loop, loop_run):
+    """The visual memory fixates on Shi–Tomasi corners (spec §2): every frame along the
+    route, even facing a wall at a corner, must offer at least N_f = 9 of them."""
+    counts = []
+    for p in loop_run.groundtruth[:: max(1, len(loop_run) // 40)]:
+        c = cv2.goodFeaturesToTrack(sim.render(loop, p), 50, 0.01, 5)
+        counts.append(0 if c is None else len(c))
+    assert min(counts) >= 9, counts
+
+
+@pytest.mark.parametrize("d", [5.0, 7.0, 10.0, 15.0])
+def test_wall_ahead_projects_to_f_H_over_d(d):
+    cam = sim.Camera()
+    shade = sim.Shading(fog_floor=1.0, directional=0.0, floor_contrast=0.0)
+    img = sim.render(flat_wall_world(d), (0.0, 0.0, 0.0), cam, shade)
+    col = img[:, cam.width // 2].astype(int)
+    wall_rows = np.flatnonzero(col == 255)
+    expected = cam.focal_px * 2.5 / d
+    assert abs(len(wall_rows) - expected) <= 1.5
+    assert np.all(np.diff(wall_rows) == 1)  # one contiguous band
+    # the bottom edge sits mount height below the horizon: cy + f h / d
+    assert wall_rows[-1] + 1 == pytest.approx(cam.cy + cam.focal_px * cam.mount_height_m / d, abs=1.0)
+    # same at 640x480 with a different field of view: scales with f
+    cam2 = sim.Camera(width=640, height=480, hfov_deg=75)
+    col2 = sim.render(flat_wall_world(d), (0.0, 0.0, 0.0), cam2, shade)[:, 320]
+    assert abs((col2 == 255).sum() - cam2.focal_px * 2.5 / d) <= 1.5
+
+
+def test_wall_seen_at_an_angle_has_perpendicular_depth():
+    """Camera turned 20° from a wall at x = d: each column's ray (forward component 1 in
+    the camera frame) meets the wall at the analytic parameter t = d / dx."""
+    d, yaw = 6.0, np.radians(20.0)
+    cam = sim.Camera()
+    hits = sim.raycast(flat_wall_world(d), (0.0, 0.0, yaw), cam)
+    # column ray direction (forward component 1 in the camera frame) -> wall x = d
+    k = -(np.arange(cam.width) + 0.5 - cam.cx) / cam.focal_px
+    dx = np.cos(yaw) - k * np.sin(yaw)
+    np.testing.assert_allclose(hits.depth, d / dx, rtol=1e-9)
+
+
+def test_same_pose_same_image_and_seeded_worlds(loop, loop_run):
+    p = loop_run.groundtruth[77]
+    a = sim.render(loop, p)
+    assert np.array_equal(a, sim.render(loop, p))
+    assert np.array_equal(a, sim.render(sim.loop_world(seed=3), p))
+    assert not np.array_equal(a, sim.render(sim.loop_world(seed=4), p))
+
+
+def test_revisits_look_alike_distant_places_differ(loop, loop_run):
+    gt = loop_run.groundtruth
+    lap = len(gt) // 3
+    rng = np.random.default_rng(1)
+    rev, far = [], []
+    for i in rng.integers(0, lap - 50, 24):
+        later = gt[lap + 50 :]
+        cost = np.hypot(*(later[:, :2] - gt[i, :2]).T) + 2 * np.abs(wrap_angle(later[:, 2] - gt[i, 2]))
+        j = lap + 50 + int(np.argmin(cost))
+        assert np.hypot(*(gt[j, :2] - gt[i, :2])) < 0.4  # the route really revisits
+        distant = np.flatnonzero(np.hypot(*(gt[:, :2] - gt[i, :2]).T) > 6.0)
+        k = int(distant[rng.integers(len(distant))])
+        a = sim.render(loop, gt[i])
+        rev.append(ncc(a, sim.render(loop, gt[j])))
+        far.append(ncc(a, sim.render(loop, gt[k])))
+    rev, far = np.array(rev), np.array(far)
+    assert np.median(rev) > 0.6
+    assert np.median(far) < 0.3
+    assert (rev > far).mean() >= 0.85
+
+
+def test_procedural_textures_do_not_repeat():
+    tex = sim.TextureParams()
+    strip = sim.procedural_strip(60.0, tex, seed=5).astype(float)
+    w = int(2.0 * tex.texels_per_m)  # 2 m windows
+    wins = [strip[:, s : s + w] for s in range(0, strip.shape[1] - w, w)]
+    cors = []
+    for i in range(len(wins)):
+        for j in range(i + 1, len(wins)):
+            a, b = wins[i] - wins[i].mean(), wins[j] - wins[j].mean()
+            cors.append((a * b).sum() / np.sqrt((a * a).sum() * (b * b).sum()))
+    assert max(cors) < 0.6
+    assert np.array_equal(strip, sim.procedural_strip(60.0, tex, seed=5))
+    assert not np.array_equal(strip, sim.procedural_strip(60.0, tex, seed=6))
+
+
+def test_photo_textures_from_a_folder(tmp_path):
+    rng = np.random.default_rng(0)
+    for k in range(3):
+        im = (rng.random((60, 80)) * 255).astype(np.uint8)
+        cv2.imwrite(str(tmp_path / f"p{k}.png"), cv2.GaussianBlur(im, (5, 5), 0))
+    world = sim.loop_world(seed=0, texture=sim.TextureParams(source=str(tmp_path)))
+    run = sim.simulate(world, rate_hz=2.0)
+    img = run.frame(5)
+    assert img.shape == (240, 320) and img.std() > 10
+    with pytest.raises(InputError, match="does not exist"):
+        sim.loop_world(texture=sim.TextureParams(source=str(tmp_path / "missing")))
+
+
+def test_grid_raycast_equals_brute_force():
+    rng = np.random.default_rng(2)
+    a = rng.uniform(-40, 40, (300, 2))
+    b = a + rng.normal(0, 3, (300, 2))
+    world = World.from_polylines([np.stack([p, q]) for p, q in zip(a, b)], seed=1)
+    assert world.grid is not None
+    brute = World(world.name, world.segments, world.u0, world.atlas, world.texture)
+    brute.grid = None
+    cam = sim.Camera(near_range_m=5.0, max_range_m=60.0)
+    for pose in np.column_stack([rng.uniform(-30, 30, (25, 2)), rng.uniform(-np.pi, np.pi, 25)]):
+        g, f = sim.raycast(world, pose, cam), sim.raycast(brute, pose, cam)
+        np.testing.assert_array_equal(g.segment, f.segment)
+        np.testing.assert_allclose(g.depth, f.depth)
+
+
+# --------------------------------------------------------------------------- odometry
+
+
+def test_zero_noise_odometry_integrates_to_ground_truth(loop_run):
+    run = loop_run
+    np.testing.assert_allclose(integrate(run.increments, run.groundtruth[0]), run.groundtruth, atol=1e-9)
+    # the (t, v, omega) rows, integrated as arcs, give the same path
+    dt = np.diff(run.odometry[:, 0])
+    inc = sim.arc_increments(run.odometry[1:, 1], run.odometry[1:, 2], dt)
+    np.testing.assert_allclose(integrate(inc, run.groundtruth[0]), run.groundtruth, atol=1e-9)
+    assert np.all(run.odometry[0, 1:] == 0)
+
+
+def test_zero_noise_on_a_given_trajectory_is_exact():
+    rng = np.random.default_rng(0)
+    t = np.cumsum(rng.uniform(0.1, 0.3, 200))
+    poses = integrate(np.column_stack([rng.uniform(0, 0.1, 199), rng.normal(0, 0.01, 199), rng.normal(0, 0.1, 199)]))
+    run = sim.simulate(sim.loop_world(), sim.Trajectory(t, poses))
+    np.testing.assert_allclose(integrate(run.increments, poses[0]), poses, atol=1e-9)
+    np.testing.assert_array_equal(run.times, t)
+
+
+def test_omega_bias_shows_up_as_heading_drift(loop):
+    bias = 0.01
+    clean = sim.simulate(loop, rate_hz=5.0)
+    run = sim.simulate(loop, rate_hz=5.0, odometry_noise=sim.OdometryNoise(omega_bias=bias))
+    est = integrate(run.increments, run.groundtruth[0])
+    drift = np.unwrap(est[:, 2]) - np.unwrap(clean.groundtruth[:, 2])
+    np.testing.assert_allclose(drift, bias * (run.times - run.times[0]), atol=1e-9)
+    # and the position drifts too, more the longer the run
+    err = np.hypot(*(est[:, :2] - clean.groundtruth[:, :2]).T)
+    assert err[-1] > 1.0 > err[50]
+
+
+def test_odometry_noise_statistics_match_config(loop):
+    noise = sim.OdometryNoise(sigma_v=0.02, sigma_omega=0.05, omega_bias=0.01, scale_error=0.1)
+    clean = sim.simulate(loop, rate_hz=10.0)
+    run = sim.simulate(loop, rate_hz=10.0, odometry_noise=noise, seed=4)
+    v0, w0 = clean.odometry[1:, 1], clean.odometry[1:, 2]
+    v, w = run.odometry[1:, 1], run.odometry[1:, 2]
+    n = len(v)
+    dw = w - w0
+    assert abs(dw.mean() - 0.01) < 4 * 0.05 / np.sqrt(n)
+    assert dw.std() == pytest.approx(0.05, rel=0.1)
+    dv = v - 1.1 * v0
+    assert abs(dv.mean()) < 4 * 0.02 / np.sqrt(n)
+    assert dv.std() == pytest.approx(0.02, rel=0.1)
+    # scale error: the noisy distance is 10 % longer
+    assert np.sum(v) / np.sum(v0) == pytest.approx(1.1, rel=0.01)
+    # deterministic per seed
+    again = sim.simulate(loop, rate_hz=10.0, odometry_noise=noise, seed=4)
+    np.testing.assert_array_equal(again.odometry, run.odometry)
+    other = sim.simulate(loop, rate_hz=10.0, odometry_noise=noise, seed=5)
+    assert not np.array_equal(other.odometry, run.odometry)
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    v=st.floats(-2, 2),
+    w=st.floats(-3, 3),
+    dt=st.floats(0.01, 0.5),
+)
+def test_arc_velocity_round_trip(v, w, dt):
+    inc = sim.arc_increments(v, w, dt)
+    v2, w2 = sim.velocities_from_increments(inc, dt)
+    np.testing.assert_allclose(sim.arc_increments(v2, w2, dt), inc, atol=1e-12)
+    # the arc's chord length never exceeds the distance driven
+    assert np.hypot(inc[0, 0], inc[0, 1]) <= abs(v) * dt + 1e-12
+
+
+def test_drive_plan_circle_closes():
+    w = 2 * np.pi / 20.0  # one turn in 20 s = 400 steps at 20 Hz
+    plan = sim.DrivePlan([(20.0, 0.5, w)], start=(1.0, 2.0, 0.3))
+    traj = plan.sample(20.0)
+    assert len(traj) == 401
+    np.testing.assert_allclose(traj.poses[-1], [1.0, 2.0, 0.3], atol=1e-9)
+    radius = np.hypot(*(traj.poses[:, :2] - traj.poses[:-1, :2].mean(0)).T)
+    np.testing.assert_allclose(radius, 0.5 / w, atol=1e-9)
+
+
+# --------------------------------------------------------------------------- output
+
+
+def test_write_produces_the_dataset_folder_format(tmp_path, loop):
+    plan = sim.DrivePlan([(3.0, 0.4, 0.0), (2.0, 0.3, 0.4)], start=(8.0, 0.0, 0.0))
+    run = sim.simulate(loop, plan, rate_hz=10.0, frame_every=3,
+                       odometry_noise=sim.OdometryNoise(sigma_omega=0.01), seed=2)
+    out = run.write(tmp_path / "run")
+    files = sorted((out / "frames").iterdir())
+    assert len(files) == run.n_frames == len(range(0, len(run), 3))
+    with (out / "frames.csv").open() as fh:
+        rows = list(csv.DictReader(fh))
+    assert list(rows[0]) == ["t", "file"]
+    assert [Path(r["file"]).name for r in rows] == [f.name for f in files]
+    np.testing.assert_allclose([float(r["t"]) for r in rows], run.frame_times, atol=1e-6)
+    img = cv2.imread(str(out / rows[4]["file"]), cv2.IMREAD_UNCHANGED)
+    assert img.shape == (240, 320) and img.dtype == np.uint8
+    assert np.array_equal(img, run.frame(4))
+    with (out / "odometry.csv").open() as fh:
+        odo = list(csv.DictReader(fh))
+    assert list(odo[0]) == ["t", "v", "omega"] and len(odo) == len(run)
+    np.testing.assert_allclose([[float(r[k]) for k in ("t", "v", "omega")] for r in odo], run.odometry, atol=1e-6)
+    with (out / "groundtruth.csv").open() as fh:
+        gt = list(csv.DictReader(fh))
+    assert list(gt[0]) == ["t", "x", "y", "theta"] and len(gt) == len(run)
+    np.testing.assert_allclose([[float(r[k]) for k in ("x", "y", "theta")] for r in gt], run.groundtruth, atol=1e-9)
+
+
+def test_frames_iterator_is_lazy_and_matches_frame(loop_run):
+    it = loop_run.frames()
+    t0, f0 = next(it)
+    t1, f1 = next(it)
+    assert t0 == loop_run.frame_times[0] and t1 == loop_run.frame_times[1]
+    assert np.array_equal(f1, loop_run.frame(1))
+    with pytest.raises(InputError, match="out of range"):
+        loop_run.frame(loop_run.n_frames)
+
+
+# --------------------------------------------------------------------------- path worlds
+
+
+def figure_eight(n=600):
+    s = np.linspace(0, 2 * np.pi, n)
+    xy = np.column_stack([12 * np.sin(s), 6 * np.sin(2 * s)])
+    th = np.arctan2(np.gradient(xy[:, 1]), np.gradient(xy[:, 0]))
+    return np.column_stack([xy, th])
+
+
+def test_walls_around_a_self_crossing_path():
+    path = figure_eight()
+    # driven twice, the second time 0.3 m to the side (re-runs merge into one corridor)
+    path2 = path.copy()
+    path2[:, 1] += 0.3
+    both = np.vstack([path, path2])
+    hw, res, simp = 1.2, 0.1, 0.15
+    polys = sim.walls_around_path(both[:, :2], half_width_m=hw, resolution_m=res, simplify_m=simp)
+    world = World.from_polylines(polys)
+    # the camera is never inside (or against) a wall anywhere on the path, the crossing included
+    d = sim.point_segment_distance(both[:, :2], world.segments)
+    assert d.min() >= hw - res - simp
+    assert np.hypot(*both[np.argmin(np.hypot(*both[:, :2].T)), :2]) < 0.5  # the path does cross at the origin
+    # ... and enclosed: every ray from the start pose meets a wall, none too close
+    for yaw in np.linspace(-np.pi, np.pi, 8, endpoint=False):
+        hits = sim.raycast(world, (both[0, 0], both[0, 1], yaw), sim.Camera())
+        assert np.isfinite(hits.depth).all()
+        assert (hits.depth * np.hypot(hits.dx, hits.dy)).min() >= hw - res - simp
+    # walls hug the path: on a straight stretch the corridor is about 2 * hw + offset wide
+    i = 75  # top of the right lobe (s = pi/4), heading along +x
+    ray_up = sim.raycast(world, (path[i, 0], path[i, 1], np.pi / 2), sim.Camera(width=9, hfov_deg=2))
+    ray_dn = sim.raycast(world, (path[i, 0], path[i, 1], -np.pi / 2), sim.Camera(width=9, hfov_deg=2))
+    width = ray_up.depth[4] + ray_dn.depth[4]
+    assert 2 * hw + 0.3 - 0.5 <= width <= 2 * hw + 0.3 + 0.5
+
+
+def test_path_world_renders_along_the_path():
+    path = figure_eight(300)
+    world = sim.path_world(path[:, :2], seed=2, route=sim.Trajectory(np.arange(len(path)) * 0.2, path))
+    run = sim.simulate(world, frame_every=50)
+    assert run.n_frames == 6
+    for _, img in run.frames():
+        assert img.std() > 15
+
+
+def test_bicocca_trajectory_matches_ground_truth_by_timestamp(tmp_path):
+    """Synthetic files in the Bicocca layout: odometry at 5 Hz, ground truth at other
+    times starting later; poses before the ground truth are dropped, the rest are
+    interpolated at the odometry times."""
+    rng = np.random.default_rng(0)
+    n = 60
+    t = 1000.0 + 0.2 * np.arange(n)
+    inc = np.column_stack([np.full(n - 1, 0.1), np.zeros(n - 1), rng.normal(0, 0.05, n - 1)])
+    true = integrate(inc)
+    lines = [f"VERTEX_SE2 {i} {x} {y} {th}" for i, (x, y, th) in enumerate(true)]
+    info = " ".join(["1", "0", "0", "1", "0", "1"])
+    lines += [f"EDGE_SE2 {i} {i + 1} {dx} {dy} {dth} {info}" for i, (dx, dy, dth) in enumerate(inc)]
+    (tmp_path / "run.g2o").write_text("\n".join(lines) + "\n")
+    (tmp_path / "run_timestamps.txt").write_text("\n".join(f"{x:.6f}" for x in t) + "\n")
+    gt_t = np.arange(t[3] - 0.05, t[-1] + 0.3, 0.23)
+    # ground truth of a pure straight motion x = 0.5 (t - 1000), heading 0.1 t
+    gt = np.column_stack([0.5 * (gt_t - 1000), np.zeros_like(gt_t), wrap_angle(0.1 * (gt_t - 1000))])
+    (tmp_path / "run_GT.csv").write_text("".join(f"{a:.6f}, {b}, {c}, {d}\n" for a, b, c, d in zip(gt_t, *gt.T)))
+    traj = sim.bicocca_trajectory(tmp_path, "run.g2o")
+    assert traj.times[0] == t[3] and traj.times[-1] == t[-1]
+    np.testing.assert_allclose(traj.poses[:, 0], 0.5 * (traj.times - 1000), atol=1e-6)
+    np.testing.assert_allclose(traj.poses[:, 2], wrap_angle(0.1 * (traj.times - 1000)), atol=1e-6)
+    np.testing.assert_array_equal(traj.odometry, inc[3:])
+    run = sim.simulate(World.from_polylines(sim.walls_around_path(traj.poses[:, :2])), traj)
+    np.testing.assert_allclose(run.increments, inc[3:])  # real odometry passed through
+
+
+# --------------------------------------------------------------------------- bad input
+
+
+def test_bad_input_raises_input_error(loop):
+    with pytest.raises(InputError, match="width"):
+        sim.Camera(width=2)
+    with pytest.raises(InputError, match="sigma_omega"):
+        sim.OdometryNoise(sigma_omega=-1)
+    with pytest.raises(InputError, match="pose"):
+        sim.render(loop, (0.0, np.nan, 0.0))
+    with pytest.raises(InputError, match="unknown option"):
+        sim.simulate(loop, rate=3)
+    with pytest.raises(InputError, match="increase"):
+        sim.Trajectory([0.0, 1.0, 1.0], np.zeros((3, 3)))
+    with pytest.raises(InputError, match="not finite"):
+        sim.walls_around_path(np.array([[0.0, 0.0], [np.inf, 1.0]]))
+
+
+def test_command_line_writes_a_run(tmp_path, capsys):
+    from hippomap.sim.cli import main
+
+    rc = main(["corridor", "--out", str(tmp_path / "c"), "--laps", "1", "--frame-every", "40",
+               "--sigma-omega", "0.01", "--format", "jpg"])
+    assert rc == 0
+    assert len(list((tmp_path / "c" / "frames").glob("*.jpg"))) == len(
+        (tmp_path / "c" / "frames.csv").read_text().splitlines()) - 1 > 0
+    assert main(["loop", "--out", str(tmp_path / "x"), "--width", "4"]) == 2
+    assert "width" in capsys.readouterr().err
