@@ -1,0 +1,311 @@
+"""Visual recognition memory (paper §2.2, spec §2): learning, recognition by saccades, the
+trace, candidates, the index path, bad input, snapshots."""
+
+from __future__ import annotations
+
+import json
+import pickle
+
+import cv2
+import numpy as np
+import pytest
+
+import hippomap
+from hippomap.config import VisualConfig
+from hippomap.errors import InputError
+from hippomap.visual_memory import (
+    Recognition,
+    VisualMemory,
+    draw_frame_features,
+    draw_trace,
+    prepare_image,
+)
+
+
+def scene(seed: int, width: int = 320, height: int = 240) -> np.ndarray:
+    """A random gray scene of filled circles, rectangles and triangles."""
+    r = np.random.default_rng(seed)
+    img = np.full((height, width), int(r.integers(60, 200)), np.uint8)
+    for _ in range(40):
+        c = int(r.integers(0, 256))
+        t = int(r.integers(0, 3))
+        if t == 0:
+            cv2.circle(img, (int(r.integers(0, width)), int(r.integers(0, height))), int(r.integers(5, 30)), c, -1)
+        elif t == 1:
+            x, y = int(r.integers(0, width)), int(r.integers(0, height))
+            cv2.rectangle(img, (x, y), (x + int(r.integers(5, 50)), y + int(r.integers(5, 50))), c, -1)
+        else:
+            pts = r.integers(0, [width, height], size=(3, 2)).astype(np.int32)
+            cv2.fillPoly(img, [pts], c)
+    return img
+
+
+def perturb(img: np.ndarray, seed: int, noise: float = 8.0, gain: float = 0.85, offset: float = 25.0,
+            shift: tuple[int, int] = (3, 5)) -> np.ndarray:
+    """Sensor noise, a brightness change (gain and offset, unsaturated: 255 * 0.85 + 25 < 255)
+    and a shift of the view by a few pixels."""
+    rng = np.random.default_rng(seed)
+    q = img.astype(np.float64) * gain + offset + rng.normal(0.0, noise, img.shape)
+    return np.roll(np.clip(q, 0, 255).astype(np.uint8), shift, axis=(0, 1))
+
+
+N_FRAMES = 12
+SCENES = [scene(s) for s in range(N_FRAMES)]
+
+
+@pytest.fixture(scope="module")
+def memory() -> VisualMemory:
+    mem = VisualMemory(VisualConfig())
+    ids = [mem.learn(img) for img in SCENES]
+    assert ids == list(range(N_FRAMES))
+    return mem
+
+
+# -- learning -------------------------------------------------------------------------
+def test_learning_stores_one_frame_node_and_its_feature_units(memory):
+    assert memory.n_frames == N_FRAMES
+    assert memory.n_features == N_FRAMES * memory.config.n_fixations
+    info = memory.frame_features(3)
+    h = memory.config.fovea // 2
+    pts = info["points"]
+    assert len(pts) == memory.config.n_fixations
+    # fixations keep the fovea inside the frame and are at least h apart (spec §2)
+    assert pts.min() >= h + 1 and pts[:, 0].max() < 320 - h - 1 and pts[:, 1].max() < 240 - h - 1
+    dist = np.abs(pts[:, None, :] - pts[None, :, :]).max(axis=2) + np.eye(len(pts), dtype=int) * 1000
+    assert dist.min() >= h - 1
+    assert memory.memory_bytes() > 0
+
+
+def test_featureless_frame_is_not_learned():
+    mem = VisualMemory()
+    assert mem.learn(np.full((240, 320), 128, np.uint8)) is None
+    assert mem.n_frames == 0
+
+
+def test_random_fixation_mode_learns_n_points():
+    mem = VisualMemory(VisualConfig(fixation_mode="random"))
+    fid = mem.learn(SCENES[0])
+    assert len(mem.frame_features(fid)["points"]) == mem.config.n_fixations
+
+
+# -- recognition ------------------------------------------------------------------------
+@pytest.mark.parametrize("frame", [0, 4, 7, 11])
+def test_learned_frame_is_recognised_under_noise_brightness_and_shift(memory, frame):
+    query = perturb(SCENES[frame], seed=100 + frame)
+    rec = memory.recognise(query)
+    assert rec.accepted, rec.reason
+    assert rec.frame_id == frame
+    assert rec.evidence > memory.config.decision_threshold
+    assert rec.steps[-1].event == "accept"
+
+
+def test_contrast_change_is_normalised(memory):
+    query = perturb(SCENES[2], seed=5, noise=4.0, gain=0.6, offset=60.0, shift=(-4, 2))
+    assert memory.recognise(query).frame_id == 2
+
+
+def test_never_learned_frame_is_rejected(memory):
+    for s in (1000, 1001, 1002):
+        rec = memory.recognise(scene(s))
+        assert rec.frame_id is None and not rec.accepted
+        assert rec.n_resets == memory.config.max_resets
+        assert rec.confidence == 0.0
+
+
+def test_query_at_another_resolution_is_recognised_and_traced_in_its_own_pixels(memory):
+    big = cv2.resize(perturb(SCENES[6], seed=3, shift=(0, 0)), (640, 480), interpolation=cv2.INTER_LINEAR)
+    big = cv2.cvtColor(big, cv2.COLOR_GRAY2BGR)
+    rec = memory.recognise(big)
+    assert rec.frame_id == 6
+    assert rec.image_size == (640, 480)
+    xs = np.array(rec.trace)
+    assert xs[:, 0].max() > 320 or xs[:, 1].max() > 240  # coordinates of the 640 x 480 input
+
+
+@pytest.mark.parametrize("frame", [1, 9])
+def test_trace_stays_inside_the_image_and_matches_the_evidence_steps(memory, frame):
+    rec = memory.recognise(perturb(SCENES[frame], seed=frame))
+    h = memory.config.fovea // 2
+    assert len(rec.trace) == len(rec.evidence_trace) == rec.n_fixations > 0
+    for st in rec.steps:
+        x, y = st.fixation
+        assert h <= x <= 320 - h - 1 and h <= y <= 240 - h - 1  # the whole fovea is inside
+        if st.target is not None:  # the saccade aimed within the microsaccade radius of it
+            assert max(abs(st.target[0] - x), abs(st.target[1] - y)) <= memory.config.tolerance_px
+        assert st.outcome in ("start", "confirmed", "mismatch", "no_evidence")
+        acts = [a for _, a in st.evidence]
+        assert acts == sorted(acts, reverse=True) and all(0.0 < a <= 1.0 for a in acts)
+    attempts = [st.attempt for st in rec.steps]
+    assert attempts == sorted(attempts) and attempts[-1] == rec.n_resets
+    # within an attempt the evidence of the accepted frame never decreases
+    last = [st for st in rec.steps if st.attempt == rec.n_resets]
+    ev = [dict(st.evidence).get(rec.frame_id, 0.0) for st in last]
+    assert all(b >= a - 1e-12 for a, b in zip(ev, ev[1:]))
+    assert ev[-1] > memory.config.decision_threshold
+    # every step after the first of an attempt was predicted by a frame hypothesis
+    assert all(st.predicted_feature is not None for st in last[1:])
+    assert last[0].predicted_feature is None and last[0].target is None
+
+
+def test_recognition_is_json_serialisable(memory):
+    rec = memory.recognise(perturb(SCENES[3], seed=1))
+    d = json.loads(json.dumps(rec.to_dict()))
+    assert d["frame_id"] == rec.frame_id == rec.frame == 3
+    assert d["accepted"] is True
+    assert len(d["steps"]) == rec.n_fixations
+    assert d["steps"][0]["fixation"] == list(rec.steps[0].fixation)
+    assert Recognition.from_dict(d).to_dict() == rec.to_dict()
+    with pytest.raises(InputError):
+        Recognition.from_dict({"steps": [{"attempt": 0}]})
+    rej = json.loads(json.dumps(memory.recognise(scene(2000)).to_dict()))
+    assert rej["frame_id"] is None and rej["accepted"] is False
+
+
+def test_draw_trace_and_frame_features(memory):
+    query = perturb(SCENES[5], seed=2)
+    rec = memory.recognise(query)
+    img = draw_trace(query, rec, fovea=31)
+    assert img.dtype == np.uint8 and img.shape == (240, 320, 3)
+    assert np.abs(img.astype(int) - cv2.cvtColor(query, cv2.COLOR_GRAY2BGR).astype(int)).sum() > 0
+    every = draw_trace(cv2.cvtColor(query, cv2.COLOR_GRAY2BGR), rec, attempt="all")
+    assert every.shape == (240, 320, 3)
+    feat = draw_frame_features(SCENES[5], memory, 5, highlight=[s.found_feature for s in rec.steps if s.found_feature])
+    assert feat.shape == (240, 320, 3)
+    with pytest.raises(InputError):
+        draw_trace(np.zeros((0, 0), np.uint8), rec)
+
+
+# -- candidates ----------------------------------------------------------------------------
+def test_candidates_restrict_the_hypotheses(memory):
+    query = perturb(SCENES[8], seed=11)
+    assert memory.recognise(query, candidates=[2, 8, 10]).frame_id == 8
+    rec = memory.recognise(query, candidates=[0, 1, 2])
+    assert rec.frame_id is None
+    assert all(st.found_frame in (None, 0, 1, 2) for st in rec.steps)
+    empty = memory.recognise(query, candidates=[])
+    assert empty.frame_id is None and empty.n_fixations == 0
+    with pytest.raises(InputError):
+        memory.recognise(query, candidates=[99])
+    with pytest.raises(InputError):
+        memory.recognise(query, candidates=["x"])
+
+
+# -- the index path (more feature units than the exact path scores) ------------------------
+def test_index_path_recognises_and_rejects():
+    cfg = VisualConfig(index_shortlist=12, stats_sample=16)
+    mem = VisualMemory(cfg)
+    for img in SCENES:
+        mem.learn(img)
+    assert mem.n_features > cfg.index_shortlist + cfg.stats_sample
+    for f in (0, 6, 10):
+        assert mem.recognise(perturb(SCENES[f], seed=f)).frame_id == f
+    assert mem.recognise(scene(3000)).frame_id is None
+    assert mem.recognise(perturb(SCENES[6], seed=1), candidates=[5, 6]).frame_id == 6
+
+
+@pytest.mark.parametrize(
+    "override",
+    [{"decoder": "svc"}, {"anchor": "none", "tolerance_px": 6}, {"next_target": "stochastic"},
+     {"next_target": "most_active", "verify_saccades": 0}],
+)
+def test_variants_still_recognise(override):
+    mem = VisualMemory(VisualConfig(**override))
+    for img in SCENES[:6]:
+        mem.learn(img)
+    assert mem.recognise(perturb(SCENES[4], seed=4, shift=(0, 0))).frame_id == 4
+
+
+# -- bad input ----------------------------------------------------------------------------
+@pytest.mark.parametrize(
+    "bad",
+    [
+        np.zeros((0, 0), np.uint8),
+        np.zeros((240, 320), np.float32),
+        np.zeros((240, 320), np.uint16),
+        np.zeros((20, 20), np.uint8),
+        np.zeros((240, 2000), np.uint8),
+        np.zeros((240, 320, 2), np.uint8),
+        np.zeros((2, 240, 320, 3), np.uint8),
+        [[1, 2], [3, 4]],
+        None,
+    ],
+)
+def test_bad_images_raise_input_error(bad):
+    mem = VisualMemory()
+    with pytest.raises(InputError):
+        mem.learn(bad)
+    with pytest.raises(ValueError):  # InputError is a ValueError
+        mem.recognise(bad)
+
+
+def test_check_image_validates_without_learning():
+    mem = VisualMemory()
+    mem.check_image(SCENES[0])
+    with pytest.raises(InputError):
+        mem.check_image(np.zeros((10, 10), np.uint8))
+    assert mem.frame_count == mem.n_frames == 0
+
+
+def test_bad_image_messages_name_the_problem():
+    with pytest.raises(InputError, match="uint8"):
+        prepare_image(np.zeros((240, 320), np.float64))
+    with pytest.raises(InputError, match="empty"):
+        prepare_image(np.zeros((0, 320), np.uint8))
+    with pytest.raises(InputError, match="fovea"):
+        prepare_image(np.zeros((16, 16), np.uint8))
+
+
+def test_public_names():
+    assert hippomap.VisualMemory is VisualMemory
+    assert hippomap.Recognition is Recognition
+
+
+# -- snapshots ----------------------------------------------------------------------------
+@pytest.mark.parametrize("next_target", ["nearest", "stochastic"])
+def test_state_roundtrip_gives_identical_future_outputs(next_target):
+    cfg = VisualConfig(next_target=next_target, start_order="random", seed=42)
+    mem = VisualMemory(cfg)
+    for img in SCENES[:8]:
+        mem.learn(img)
+    mem.recognise(perturb(SCENES[1], seed=9))  # advance the rng before the snapshot
+    state = pickle.loads(pickle.dumps(mem.state_dict()))
+    clone = VisualMemory.from_state(cfg, state)
+    assert clone.n_frames == mem.n_frames and clone.n_features == mem.n_features
+
+    def future(m: VisualMemory) -> list:
+        out = [m.recognise(perturb(SCENES[k], seed=k)).to_dict() for k in (2, 5)]
+        out.append(m.recognise(scene(4000)).to_dict())
+        out.append(m.learn(SCENES[9]))
+        out.append(m.recognise(perturb(SCENES[9], seed=3)).to_dict())
+        return out
+
+    assert future(mem) == future(clone)
+    # the snapshot was a copy: the two memories now agree without sharing arrays
+    assert mem.state_dict()["rng"] == clone.state_dict()["rng"]
+
+
+def test_same_seed_same_outputs_and_different_seed_differs():
+    def run(seed: int) -> list:
+        mem = VisualMemory(VisualConfig(seed=seed, start_order="random", next_target="stochastic"))
+        for img in SCENES[:6]:
+            mem.learn(img)
+        return [mem.recognise(perturb(SCENES[k], seed=k)).to_dict() for k in range(6)]
+
+    assert run(1) == run(1)
+    assert run(1) != run(2)
+
+
+def test_from_state_rejects_malformed_states():
+    mem = VisualMemory()
+    mem.learn(SCENES[0])
+    state = mem.state_dict()
+    with pytest.raises(InputError):
+        VisualMemory.from_state(VisualConfig(fovea=21), state)  # patches of another fovea
+    bad = dict(state)
+    bad["version"] = 99
+    with pytest.raises(InputError):
+        VisualMemory.from_state(None, bad)
+    bad = dict(state)
+    del bad["pos"]
+    with pytest.raises(InputError):
+        VisualMemory.from_state(None, bad)
