@@ -1,0 +1,460 @@
+"""The cognitive map: node creation (Eq. 12-13), online and batch pruning (Eq. 15), loop closure
+through propose_loop, relaxation after each action, state round trip and input validation."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from hippomap.cognitive_map import (
+    CognitiveMap,
+    LoopAccepted,
+    LoopHypothesis,
+    LoopRejected,
+    MapEvent,
+    NodeCreated,
+    NodeMerged,
+)
+from hippomap.config import MapConfig
+from hippomap.errors import InputError
+from hippomap.geometry import between, compose, integrate
+
+
+def square_increments(side=8.0, step=0.1, laps=2, turn_steps=5):
+    inc = []
+    for _ in range(laps):
+        for _ in range(4):
+            inc += [(step, 0.0, 0.0)] * int(round(side / step))
+            inc += [(0.0, 0.0, math.pi / 2 / turn_steps)] * turn_steps
+    return np.array(inc)
+
+
+def drive(cmap, increments, times=None, hypotheses=None, extra=None):
+    """Feed increments (place code = dead-reckoned pose, spec §6.7). ``hypotheses(k, cmap, node_at,
+    off)`` may return LoopHypothesis objects to propose after step k. Returns per-pose node ids and
+    robot offsets (index 0 = start) and all events."""
+    odo = integrate(increments)
+    node_at, off, events = [cmap.current], [cmap.robot_offset], []
+    for k, inc in enumerate(increments, start=1):
+        events += cmap.update(odo[k], inc, float(k) if times is None else times[k])
+        if hypotheses is not None:
+            for h in hypotheses(k, cmap, node_at, off) or ():
+                cmap.propose_loop(h)
+        node_at.append(cmap.current)
+        off.append(cmap.robot_offset)
+    return np.array(node_at), np.array(off), events
+
+
+def true_loops(gt, first_lap, every=5, start=20):
+    """Hypotheses built like the data-set runner: pose j of lap 1 seen from pose k of lap 2,
+    with the true relative transform, re-expressed between the two current nodes."""
+
+    def make(k, cmap, node_at, off):
+        if k <= first_lap + start or k % every:
+            return []
+        j = k - first_lap
+        rel = compose(compose(cmap.robot_offset, between(gt[k], gt[j])), between(off[j], np.zeros(3)))
+        return [LoopHypothesis(node=int(node_at[j]), transform=tuple(rel), source="test", time=float(k),
+                               meta={"poses": [k, j]})]
+
+    return make
+
+
+def corrected(cmap, node_at, off):
+    return compose(cmap.poses[node_at], off)
+
+
+def rms_xy(a, b):
+    return float(np.sqrt(np.mean(np.sum((a[:, :2] - b[:, :2]) ** 2, axis=1))))
+
+
+# ----------------------------------------------------------------------------- nodes
+def test_first_node_is_at_the_initial_pose():
+    cmap = CognitiveMap(MapConfig())
+    assert cmap.node_count == 1 and cmap.current == 0
+    np.testing.assert_array_equal(cmap.poses[0], [0, 0, 0])
+    other = CognitiveMap(MapConfig(initial_pose=(1.0, 2.0, 0.5)))
+    np.testing.assert_array_equal(other.poses[0], [1.0, 2.0, 0.5])
+
+
+@pytest.mark.parametrize("spacing", [0.25, 0.5])
+def test_node_creation_spacing_follows_s_th(spacing):
+    cmap = CognitiveMap(MapConfig(node_spacing_m=spacing))
+    inc = np.tile([0.01, 0.0, 0.0], (1000, 1))  # 10 m straight
+    _, _, events = drive(cmap, inc)
+    created = [e for e in events if isinstance(e, NodeCreated)]
+    assert len(created) == cmap.node_count - 1
+    codes = cmap.place_codes
+    gaps = np.hypot(*np.diff(codes[:, :2], axis=0).T)
+    assert np.all(gaps > spacing) and np.all(gaps <= spacing + 0.0100001)
+    assert abs(cmap.node_count - 10 / spacing) <= 2
+    # every node sits where the odometry put it, linked from its predecessor
+    np.testing.assert_allclose(cmap.poses[:, 0], codes[:, 0], atol=1e-9)
+    links = cmap.links
+    np.testing.assert_array_equal(links["source"], np.arange(cmap.node_count - 1))
+    np.testing.assert_array_equal(links["target"], np.arange(1, cmap.node_count))
+    assert set(links["kind"]) == {"odometry"}
+    np.testing.assert_allclose(links["d"], gaps, atol=1e-9)
+
+
+def test_no_place_code_means_no_node_but_odometry_is_kept():
+    cmap = CognitiveMap(MapConfig())
+    for k in range(100):
+        cmap.update(None, (0.01, 0.0, 0.0), float(k))
+    assert cmap.node_count == 1
+    np.testing.assert_allclose(cmap.robot_offset, [1.0, 0.0, 0.0], atol=1e-12)
+    cmap.update((1.01, 0.0, 0.0), (0.01, 0.0, 0.0), 100.0)
+    assert cmap.node_count == 2
+    np.testing.assert_allclose(cmap.poses[1], [1.01, 0.0, 0.0], atol=1e-12)
+
+
+def test_links_expose_ors_fields_consistent_with_the_transform():
+    cmap = CognitiveMap(MapConfig())
+    inc = np.tile([0.05, 0.01, 0.03], (200, 1))
+    drive(cmap, inc)
+    L = cmap.links
+    tr = L["transform"]
+    np.testing.assert_allclose(L["d"] * np.cos(L["heading"]), tr[:, 0], atol=1e-12)
+    np.testing.assert_allclose(L["d"] * np.sin(L["heading"]), tr[:, 1], atol=1e-12)
+    np.testing.assert_allclose(L["facing"], tr[:, 2])
+    # the stored transform is the target's pose in the source's frame (no loop yet: exact)
+    np.testing.assert_allclose(between(cmap.poses[L["source"]], cmap.poses[L["target"]]), tr, atol=1e-9)
+    with pytest.raises(ValueError):
+        cmap.poses[0, 0] = 5.0  # read-only views
+
+
+# ----------------------------------------------------------------------------- loop closure and relaxation
+@pytest.mark.parametrize("solver", ["relax", "jacobi", "lsq"])
+def test_loop_closure_removes_injected_heading_drift(solver):
+    inc = square_increments()
+    gt = integrate(inc)
+    noisy = inc.copy()
+    noisy[:, 2] += 0.002 * (inc[:, 0] > 0)  # heading bias on every forward step
+    odo = integrate(noisy)
+    first_lap = len(inc) // 2
+    cmap = CognitiveMap(MapConfig(solver=solver, prune_online=False))
+    node_at, off, _ = drive(cmap, noisy, hypotheses=true_loops(gt, first_lap))
+    cmap.finish(iterations=2000)
+    before, after = rms_xy(odo, gt), rms_xy(corrected(cmap, node_at, off), gt)
+    status = [d.status for d in cmap.loop_decisions]
+    assert status.count("accepted") > 0.9 * len(status)
+    assert after < before / 4, (before, after)
+
+
+def test_uncorrupted_loop_stays_put():
+    inc = square_increments()
+    gt = integrate(inc)
+    first_lap = len(inc) // 2
+    cmap = CognitiveMap(MapConfig(prune_online=False))
+    node_at, off, _ = drive(cmap, inc, hypotheses=true_loops(gt, first_lap))
+    assert all(d.status == "accepted" for d in cmap.loop_decisions)
+    assert any(k == "loop" for k in cmap.links["kind"])
+    np.testing.assert_allclose(corrected(cmap, node_at, off), gt, atol=1e-6)
+
+
+def test_gate_rejects_far_hypotheses_without_touching_the_map():
+    cmap = CognitiveMap(MapConfig(loop_min_support=1, loop_radius_m=3.0, loop_radius_per_m=0.05))
+    drive(cmap, np.tile([0.1, 0.0, 0.0], (200, 1)))  # 20 m straight
+    poses = cmap.poses.copy()
+    n_links = cmap.link_count
+    d = cmap.propose_loop(LoopHypothesis(node=2, transform=None, source="test"))
+    assert d.status == "rejected" and "gate" in d.reason
+    assert d.gate_distance > d.gate_limit
+    assert d.gate_limit == pytest.approx(3.0 + 0.05 * (20.0 - 0.5), abs=0.05)
+    np.testing.assert_array_equal(cmap.poses, poses)
+    assert cmap.link_count == n_links and cmap.current == cmap.node_count - 1
+    events = cmap.update(None, (0.0, 0.0, 0.0), 1000.0)
+    assert [type(e) for e in events] == [LoopRejected]
+
+
+def test_gate_radius_grows_with_the_path_travelled():
+    """The same 4 m place-code discrepancy passes after a long trip, not after a short one."""
+    cfg = MapConfig(loop_min_support=1, loop_radius_m=3.0, loop_radius_per_m=0.05, exclude_recent=2)
+    short = CognitiveMap(cfg)
+    drive(short, np.tile([0.1, 0.0, 0.0], (60, 1)))  # 6 m
+    far = CognitiveMap(cfg)
+    drive(far, np.vstack([np.tile([0.1, 0.0, 0.0], (60, 1)), np.tile([0.0, 0.0, 0.0], (1, 1)),
+                          np.tile([0.1, 0.0, 0.0], (400, 1))]))
+    # node 1 (x = 0.26) claimed to be 4 m off where its place code puts it
+    for cmap, expected in ((short, "rejected"), (far, "accepted")):
+        rel = between(cmap.robot_pose, cmap.poses[1] + [4.0, 0.0, 0.0])
+        h = LoopHypothesis(node=1, transform=tuple(compose(cmap.robot_offset, rel)), source="test")
+        assert cmap.propose_loop(h).status == expected
+
+
+def test_random_hypotheses_are_rejected_and_never_move_nodes():
+    inc = square_increments()
+    gt = integrate(inc)
+    noisy = inc.copy()
+    noisy[:, 2] += 0.001 * (inc[:, 0] > 0)
+    first_lap = len(inc) // 2
+    rng = np.random.default_rng(7)
+    cfg = MapConfig(prune_online=False)
+
+    def random_only(k, cmap, node_at, off):
+        if k > first_lap and k % 7 == 0:
+            node = int(rng.integers(0, max(1, cmap.node_count - 10)))
+            return [LoopHypothesis(node=node, transform=tuple(rng.uniform(-2, 2, 3)), source="random",
+                                   time=float(k), meta={"random": True})]
+        return []
+
+    plain = CognitiveMap(cfg)
+    drive(plain, noisy)
+    noisy_map = CognitiveMap(cfg)
+    drive(noisy_map, noisy, hypotheses=random_only)
+    assert len(noisy_map.loop_decisions) > 20
+    assert all(d.status in ("rejected", "pending") for d in noisy_map.loop_decisions)
+    np.testing.assert_array_equal(noisy_map.poses, plain.poses)
+    assert noisy_map.link_count == plain.link_count
+
+    # true and random hypotheses interleaved: the true ones are accepted, the random ones are not
+    truth = true_loops(gt, first_lap)
+
+    def mixed(k, cmap, node_at, off):
+        return truth(k, cmap, node_at, off) + random_only(k, cmap, node_at, off)
+
+    both = CognitiveMap(cfg)
+    drive(both, noisy, hypotheses=mixed)
+    by_source = {"test": [], "random": []}
+    for d in both.loop_decisions:
+        by_source[d.hypothesis.source].append(d.status)
+    assert by_source["random"] and all(s != "accepted" for s in by_source["random"])
+    assert by_source["test"].count("accepted") > 0.9 * len(by_source["test"])
+
+
+def test_min_support_one_accepts_after_the_gate_and_relocalises():
+    cmap = CognitiveMap(MapConfig(loop_min_support=1, prune_online=False))
+    inc = square_increments(laps=1)
+    drive(cmap, inc)
+    # back near the start: node 0 is at the robot's pose (identity transform)
+    d = cmap.propose_loop(LoopHypothesis(node=1, transform=None, source="visual"))
+    assert d.status == "accepted" and d.link >= 0
+    assert cmap.current == 1
+    events = cmap.update(None, (0.0, 0.0, 0.0), 1e6)
+    assert any(isinstance(e, LoopAccepted) and e.relocalised for e in events)
+    assert cmap.links["kind"][d.link] == "loop"
+
+
+def test_isolated_hypothesis_waits_then_expires():
+    cfg = MapConfig(loop_min_support=2, loop_support_window=10, prune_online=False)
+    cmap = CognitiveMap(cfg)
+    drive(cmap, square_increments(laps=1))
+    poses = cmap.poses.copy()
+    d = cmap.propose_loop(LoopHypothesis(node=1, transform=None, source="visual"))
+    assert d.status == "pending" and cmap.pending_count == 1
+    events = []
+    for k in range(11):
+        events += cmap.update(None, (0.0, 0.0, 0.0), 1e6 + k)
+    assert cmap.loop_decisions[d.id].status == "rejected"
+    assert "expired" in cmap.loop_decisions[d.id].reason
+    assert any(isinstance(e, LoopRejected) and e.decision == d.id for e in events)
+    np.testing.assert_array_equal(cmap.poses, poses)
+
+
+def test_two_consistent_hypotheses_support_each_other():
+    cfg = MapConfig(loop_min_support=2, prune_online=False)
+    cmap = CognitiveMap(cfg)
+    drive(cmap, square_increments(laps=1))
+    poses_before = cmap.poses.copy()
+    # two observations of node 3, from two different robot poses along the start of lap 2
+    for step in range(2):
+        rel = between(cmap.robot_pose, cmap.poses[3 + 2 * step])
+        d = cmap.propose_loop(LoopHypothesis(node=3 + 2 * step, transform=tuple(compose(cmap.robot_offset, rel))))
+        assert d.status == ("pending" if step == 0 else "accepted")
+        for _ in range(3):
+            cmap.update(None, (0.1, 0.0, 0.0), 1e6 + step)
+    first = cmap.loop_decisions[0]
+    assert first.status == "accepted" and first.support == (1,)
+    assert cmap.loop_decisions[1].support == (0,)
+    assert (cmap.links["kind"] == "loop").sum() == 2
+    # consistent with the map as it was: closing these loops moves nothing
+    np.testing.assert_allclose(cmap.poses, poses_before, atol=1e-9)
+
+
+# ----------------------------------------------------------------------------- pruning
+def back_and_forth(passes=4, length=5.0, step=0.05):
+    one = [(step, 0.0, 0.0)] * int(length / step)
+    turn = [(0.0, 0.0, math.pi / 10)] * 10
+    inc = []
+    for _ in range(passes):
+        inc += one + turn
+    return np.array(inc)
+
+
+def test_online_pruning_bounds_the_map_on_revisits():
+    inc = back_and_forth()
+    # the corridor runs mid-block (y = 0.25): a path exactly on a block border would alternate blocks
+    pruned = CognitiveMap(MapConfig(prune_online=True, initial_pose=(0.0, 0.25, 0.0)))
+    _, _, events = drive(pruned, inc)
+    grown = CognitiveMap(MapConfig(prune_online=False, initial_pose=(0.0, 0.25, 0.0)))
+    drive(grown, inc)
+    assert grown.node_count > 3 * 5.0 / 0.25
+    assert pruned.node_count < 1.5 * 5.0 / 0.25 + 2
+    merges = [e for e in events if isinstance(e, NodeMerged)]
+    assert merges and all(e.node < pruned.node_count for e in merges)
+    kinds = pruned.links["kind"]
+    assert "prune" in set(kinds)
+    # a merge keeps the robot where odometry says it is (no jump) and links with zero residual
+    assert np.all(np.isfinite(pruned.poses))
+
+
+def test_graph_gated_pruning_avoids_merging_across_a_drifted_loop():
+    """Literal online pruning merges the drifted end of lap 1 into the wrong start nodes (an
+    unverified loop closure); gated by graph distance it waits for the verified one instead."""
+    inc = square_increments()
+    gt = integrate(inc)
+    noisy = inc.copy()
+    noisy[:, 2] += 0.002 * (inc[:, 0] > 0)
+    first_lap = len(inc) // 2
+    errors, nodes = {}, {}
+    for name, over in {"none": dict(prune_online=False), "literal": {}, "gated": dict(prune_graph_radius_m=3.0)}.items():
+        cmap = CognitiveMap(MapConfig(solver="lsq", **over))
+        node_at, off, _ = drive(cmap, noisy, hypotheses=true_loops(gt, first_lap))
+        errors[name] = rms_xy(corrected(cmap, node_at, off), gt)
+        nodes[name] = cmap.node_count
+    assert nodes["gated"] < 0.7 * nodes["none"]
+    assert errors["gated"] < 0.5 * errors["literal"], errors
+    assert errors["gated"] < 1.5 * errors["none"], errors
+
+
+def test_hypothesis_on_a_node_reached_by_pruning_replaces_the_prune_link():
+    """The robot came back and online pruning put it on old node A through an unverified prune
+    link; a loop hypothesis naming A (the current node) turns that link into a measured one."""
+    cmap = CognitiveMap(MapConfig(loop_min_support=1, initial_pose=(0.0, 0.25, 0.0), exclude_recent=3))
+    out_and_back = np.array([(0.05, 0.0, 0.0)] * 60 + [(0.0, 0.0, math.pi / 10)] * 10 + [(0.05, 0.0, 0.0)] * 30)
+    _, _, events = drive(cmap, out_and_back)
+    assert isinstance([e for e in events if e.type in ("node_created", "node_merged")][-1], NodeMerged)
+    a = cmap.current
+    k = cmap._arrival
+    assert cmap.links["kind"][k] == "prune" and cmap.links["target"][k] == a
+    old_tr = cmap.links["transform"][k].copy()
+    offset_before = cmap.robot_offset
+    measured = (0.1, 0.0, 0.0)  # A seen 10 cm ahead of where the robot thought it was
+    d = cmap.propose_loop(LoopHypothesis(node=a, transform=measured, source="test"))
+    assert d.status == "accepted" and d.link == k
+    assert cmap.links["kind"][k] == "loop"
+    np.testing.assert_allclose(cmap.links["transform"][k], compose(old_tr, measured), atol=1e-12)
+    # relocalised: the robot is where the measurement puts it relative to A
+    np.testing.assert_allclose(cmap.robot_offset, compose(between(measured, np.zeros(3)), offset_before), atol=1e-12)
+
+
+def test_finish_corrects_and_keeps_pending_hypotheses():
+    cmap = CognitiveMap(MapConfig(loop_min_support=3, prune_online=False))
+    drive(cmap, square_increments(laps=1))
+    cmap.propose_loop(LoopHypothesis(node=1, transform=None))
+    events = cmap.finish(iterations=5)
+    assert {e.type for e in events} == {"loop_pending", "map_relaxed"}
+    assert cmap.loop_decisions[0].status == "pending"
+
+
+def test_batch_prune_keeps_one_node_per_block_and_relinks():
+    inc = back_and_forth(passes=3)
+    cfg = MapConfig(prune_online=False, initial_pose=(0.0, 0.25, 0.0))
+    cmap = CognitiveMap(cfg)
+    drive(cmap, inc)
+    cmap.set_frame(5, 42)
+    n_old = cmap.node_count
+    old_blocks = np.floor(cmap.poses[:, :2] / cfg.prune_block_m)
+    robot_before = cmap.robot_pose
+    old_to_new = cmap.prune()
+    assert len(old_to_new) == n_old and cmap.node_count < n_old
+    new_blocks = np.floor(cmap.poses[:, :2] / cfg.prune_block_m)
+    assert len(np.unique(new_blocks, axis=0)) == cmap.node_count  # one node per block
+    np.testing.assert_array_equal(old_blocks, new_blocks[old_to_new])  # each node went to its block's keeper
+    L = cmap.links
+    assert np.all(L["source"] != L["target"])
+    pairs = {(min(a, b), max(a, b)) for a, b in zip(L["source"], L["target"])}
+    assert len(pairs) == cmap.link_count
+    assert (cmap.frames == 42).sum() == 1 and cmap.frames[old_to_new[5]] == 42
+    # the graph is still connected
+    reach = {0}
+    for _ in range(cmap.node_count):
+        reach |= {int(b) for a, b in zip(L["source"], L["target"]) if a in reach}
+        reach |= {int(a) for a, b in zip(L["source"], L["target"]) if b in reach}
+    assert reach == set(range(cmap.node_count))
+    np.testing.assert_allclose(cmap.robot_pose[:2], robot_before[:2], atol=0.5)
+
+
+# ----------------------------------------------------------------------------- queries
+def test_nodes_near_is_sorted_and_excludes_recent_nodes():
+    cfg = MapConfig(exclude_recent=3)
+    cmap = CognitiveMap(cfg)
+    drive(cmap, np.tile([0.1, 0.0, 0.0], (50, 1)))  # nodes every ~0.3 m up to 5 m
+    ids = cmap.nodes_near((1.0, 0.0, 0.0), 0.7)
+    d = np.hypot(cmap.place_codes[ids, 0] - 1.0, cmap.place_codes[ids, 1])
+    assert len(ids) >= 3 and np.all(np.diff(d) >= 0) and np.all(d < 0.7)
+    assert cmap.nodes_near(cmap.place_codes[-1], 0.1).size == 0
+    assert cmap.nodes_near(cmap.place_codes[-1], 0.1, exclude_recent=False).tolist() == [cmap.node_count - 1]
+
+
+# ----------------------------------------------------------------------------- state
+def test_state_round_trip_gives_identical_future_outputs():
+    inc = square_increments()
+    gt = integrate(inc)
+    noisy = inc.copy()
+    noisy[:, 2] += 0.002 * (inc[:, 0] > 0)
+    first_lap = len(inc) // 2
+    odo = integrate(noisy)
+    cfg = MapConfig()
+    hyps = true_loops(gt, first_lap)
+    half = first_lap + 60
+    a = CognitiveMap(cfg)
+    node_at, off, _ = drive(a, noisy[:half], hypotheses=hyps)
+    a.set_frame(3, 7)
+    b = CognitiveMap.from_state(cfg, a.state_dict())
+    json.dumps({k: v for k, v in a.state_dict().items() if k in ("robot", "loop", "events")})
+    node_at, off = list(node_at), list(off)
+    for cm in (a, b):
+        cm._trace = ([], list(node_at), list(off))
+    for k in range(half + 1, len(noisy) + 1):
+        for cm in (a, b):
+            ev, na, of = cm._trace
+            ev.append([e.to_dict() for e in cm.update(odo[k], noisy[k - 1], float(k))])
+            for h in hyps(k, cm, na, of):
+                cm.propose_loop(h)
+            na.append(cm.current)
+            of.append(cm.robot_offset)
+    assert a._trace[0] == b._trace[0]
+    np.testing.assert_array_equal(a.poses, b.poses)
+    assert [d.to_dict() for d in a.loop_decisions] == [d.to_dict() for d in b.loop_decisions]
+    assert a.frames[3] == b.frames[3] == 7
+
+
+def test_events_and_decisions_serialise():
+    inc = square_increments()
+    gt = integrate(inc)
+    cmap = CognitiveMap(MapConfig())
+    _, _, events = drive(cmap, inc, hypotheses=true_loops(gt, len(inc) // 2))
+    types = {e.type for e in events}
+    assert {"node_created", "map_relaxed", "loop_accepted"} <= types
+    for e in events:
+        d = json.loads(json.dumps(e.to_dict()))
+        assert MapEvent.from_dict(d) == e
+    json.dumps([d.to_dict() for d in cmap.loop_decisions])
+
+
+# ----------------------------------------------------------------------------- bad input
+def test_bad_inputs_raise_input_error_naming_the_value():
+    cmap = CognitiveMap(MapConfig())
+    with pytest.raises(InputError, match="nan"):
+        cmap.update((0, 0, 0), (float("nan"), 0, 0), 0.0)
+    with pytest.raises(InputError, match="inf"):
+        cmap.update((0, float("inf"), 0), (0, 0, 0), 0.0)
+    with pytest.raises(InputError, match="three numbers"):
+        cmap.update((0, 0), (0, 0, 0), 0.0)
+    with pytest.raises(InputError, match="time"):
+        cmap.update(None, (0, 0, 0), float("nan"))
+    cmap.update(None, (0, 0, 0), 5.0)
+    with pytest.raises(InputError, match="before"):
+        cmap.update(None, (0, 0, 0), 4.0)
+    with pytest.raises(InputError, match="17"):
+        cmap.propose_loop(LoopHypothesis(node=17))
+    with pytest.raises(InputError, match="nan"):
+        LoopHypothesis(node=0, transform=(0.0, float("nan"), 0.0))
+    with pytest.raises(InputError, match="-1"):
+        LoopHypothesis(node=-1)
+    with pytest.raises(InputError, match="99"):
+        cmap.set_frame(99, 1)
+    with pytest.raises(InputError):
+        CognitiveMap.from_state(MapConfig(), {"version": 1, "nodes": {}})

@@ -1,0 +1,261 @@
+"""Map relaxation (Eq. 14, [ORS] iterate) and the exact pose-graph solver."""
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from hippomap.errors import InputError
+from hippomap.geometry import between, compose, integrate
+from hippomap.relaxation import (
+    MAX_COLOURS,
+    colour_link,
+    edge_colouring,
+    graph_cost,
+    link_residuals,
+    relax,
+    relax_jacobi,
+    relax_ors_reference,
+    solve_lsq,
+)
+
+
+def square_loop(side_nodes=10, spacing=0.5, bias=0.02):
+    """Square loop of nodes; odometry links corrupted by a constant heading bias per link,
+    the closing link (last -> first) measured exactly. Returns gt, odo, src, dst, T."""
+    inc = []
+    for _ in range(4):
+        inc += [(spacing, 0.0, 0.0)] * (side_nodes - 1) + [(spacing, 0.0, np.pi / 2)]
+    inc = np.array(inc)
+    gt = integrate(inc[:-1])
+    noisy = inc.copy()
+    noisy[:, 2] += bias
+    odo = integrate(noisy[:-1])
+    n = len(gt)
+    src = np.append(np.arange(n - 1), n - 1)
+    dst = np.append(np.arange(1, n), 0)
+    T = np.vstack([noisy[:-1], between(gt[-1], gt[0])])
+    return gt, odo, src, dst, T
+
+
+def rms_xy(a, b):
+    return float(np.sqrt(np.mean(np.sum((a[:, :2] - b[:, :2]) ** 2, axis=1))))
+
+
+def to_anchor(P, i=0):
+    """The map seen from node i (gauge fix for un-anchored solvers)."""
+    return between(P[i], P)
+
+
+def random_graph(rng, n=15, extra=6, noise=0.0):
+    """Chain + random extra links; transforms from true poses (+ noise); returns true, src, dst, T."""
+    inc = np.column_stack([rng.uniform(0.2, 1.0, n - 1), rng.normal(0, 0.1, n - 1), rng.normal(0, 0.4, n - 1)])
+    true = integrate(inc)
+    src = list(range(n - 1))
+    dst = list(range(1, n))
+    while len(src) < n - 1 + extra:
+        a, b = rng.integers(0, n, 2)
+        if a != b:
+            src.append(int(a))
+            dst.append(int(b))
+    src, dst = np.array(src), np.array(dst)
+    T = between(true[src], true[dst]) + rng.normal(0, noise, (len(src), 3))
+    return true, src, dst, T
+
+
+# ----------------------------------------------------------------------------- drift removal
+@pytest.mark.parametrize("solver", ["relax", "jacobi", "lsq"])
+def test_relaxation_removes_injected_heading_drift(solver):
+    gt, odo, src, dst, T = square_loop(bias=0.02)
+    before = rms_xy(odo, gt)
+    assert before > 1.0  # 0.8 rad of accumulated heading error: the loop is badly open
+    P = odo.copy()
+    if solver == "relax":
+        relax(P, src, dst, T, 2000)
+    elif solver == "jacobi":
+        relax_jacobi(P, src, dst, T, 20000)
+    else:
+        solve_lsq(P, src, dst, T)
+    after = rms_xy(P, gt)
+    assert after < before / 15, (before, after)
+    np.testing.assert_allclose(P[0], gt[0], atol=1e-12)  # the anchor keeps its pose
+
+
+@pytest.mark.parametrize("solver", ["relax", "jacobi", "lsq", "ors"])
+def test_uncorrupted_loop_stays_put(solver):
+    gt, _, src, dst, T = square_loop(bias=0.0)
+    P = gt.copy()
+    {"relax": lambda: relax(P, src, dst, T, 50), "jacobi": lambda: relax_jacobi(P, src, dst, T, 50),
+     "lsq": lambda: solve_lsq(P, src, dst, T), "ors": lambda: relax_ors_reference(P, src, dst, T, 50)}[solver]()
+    np.testing.assert_allclose(P, gt, atol=1e-9)
+
+
+def test_lsq_reaches_a_lower_cost_than_relaxation():
+    gt, odo, src, dst, T = square_loop(bias=0.02)
+    Pr, Pl = odo.copy(), odo.copy()
+    relax(Pr, src, dst, T, 3000)
+    res = solve_lsq(Pl, src, dst, T)
+    assert res.iterations < 10
+    assert graph_cost(Pl, src, dst, T) <= graph_cost(Pr, src, dst, T) + 1e-12
+    assert graph_cost(Pl, src, dst, T) < graph_cost(odo, src, dst, T) / 100
+
+
+# ----------------------------------------------------------------------------- agreement with [ORS]
+def test_vectorised_relax_matches_ors_on_a_consistent_graph():
+    """Perturbed poses, consistent links: both converge to the same (exact) map, up to gauge."""
+    rng = np.random.default_rng(3)
+    true, src, dst, T = random_graph(rng, n=14, extra=5)
+    start = true + rng.normal(0, 0.3, true.shape)
+    Po, Pv, Pj = start.copy(), start.copy(), start.copy()
+    relax_ors_reference(Po, src, dst, T, 3000)
+    relax(Pv, src, dst, T, 3000, anchor=None)
+    relax_jacobi(Pj, src, dst, T, 20000, anchor=None)
+    for P in (Po, Pv, Pj):
+        np.testing.assert_allclose(link_residuals(P, src, dst, T), 0, atol=1e-7)
+        np.testing.assert_allclose(to_anchor(P), to_anchor(true), atol=1e-6)
+
+
+def test_vectorised_relax_agrees_with_ors_at_convergence_on_an_inconsistent_loop():
+    """With an inconsistent loop the [ORS] loop and its vectorised form settle on (nearly) the same
+    map: the differences are far below the inconsistency they distribute."""
+    gt, odo, src, dst, T = square_loop(side_nodes=5, bias=0.05)
+    Po, Pv, Pj = odo.copy(), odo.copy(), odo.copy()
+    relax_ors_reference(Po, src, dst, T, 3000)
+    relax(Pv, src, dst, T, 3000, anchor=None)
+    relax_jacobi(Pj, src, dst, T, 30000, anchor=None)
+    open_gap = np.hypot(*link_residuals(odo, src, dst, T)[-1, :2])
+    assert open_gap > 1.0
+    for P in (Pv, Pj):
+        diff = np.max(np.hypot(*(to_anchor(P) - to_anchor(Po))[:, :2].T))
+        assert diff < 0.01 * open_gap, diff
+    # and all three removed most of the error
+    for P in (Po, Pv, Pj):
+        assert rms_xy(to_anchor(P), to_anchor(gt)) < rms_xy(to_anchor(odo), to_anchor(gt)) / 5
+
+
+def test_link_order_inside_a_sweep_does_not_change_the_convergence_rate():
+    """Why colouring is legitimate: [ORS] in id order vs the vectorised (colour) order, same sweeps."""
+    gt, odo, src, dst, T = square_loop(side_nodes=15, bias=0.01)
+    Po, Pv = odo.copy(), odo.copy()
+    relax_ors_reference(Po, src, dst, T, 200)
+    relax(Pv, src, dst, T, 200, anchor=None)
+    eo = rms_xy(to_anchor(Po), to_anchor(gt))
+    ev = rms_xy(to_anchor(Pv), to_anchor(gt))
+    e0 = rms_xy(to_anchor(odo), to_anchor(gt))
+    assert eo < 0.8 * e0 and ev < 0.8 * e0
+    assert 0.7 < ev / eo < 1.3, (eo, ev)
+
+
+# ----------------------------------------------------------------------------- stability
+def hub_graph(rng, spokes=40):
+    """A hub with many links (a much-revisited pruned node) plus a ring through the spokes."""
+    ang = np.linspace(0, 2 * np.pi, spokes, endpoint=False)
+    true = np.vstack([[0.0, 0.0, 0.0], np.column_stack([2 * np.cos(ang), 2 * np.sin(ang), ang])])
+    src = np.concatenate([np.zeros(spokes, int), np.arange(1, spokes + 1)])
+    dst = np.concatenate([np.arange(1, spokes + 1), np.roll(np.arange(1, spokes + 1), -1)])
+    T = between(true[src], true[dst]) + rng.normal(0, 0.05, (len(src), 3))
+    return true, src, dst, T
+
+
+@pytest.mark.parametrize("solver", ["relax", "jacobi"])
+def test_relaxation_is_stable_at_a_hub(solver):
+    rng = np.random.default_rng(0)
+    true, src, dst, T = hub_graph(rng)
+    P = true + rng.normal(0, 0.2, true.shape)
+    r0 = np.abs(link_residuals(P, src, dst, T)).max()
+    fn = relax if solver == "relax" else relax_jacobi
+    worst = 0.0
+    for _ in range(50):
+        fn(P, src, dst, T, 10)
+        worst = max(worst, np.abs(link_residuals(P, src, dst, T)).max())
+    assert np.all(np.isfinite(P))
+    assert worst <= r0 * 1.5
+    assert np.abs(link_residuals(P, src, dst, T)).max() < 0.5 * r0
+
+
+def test_literal_simultaneous_eq14_is_unstable_at_a_hub():
+    """The reason for the degree normalisation: the literal Jacobi Eq. 14, alpha = 0.5, blows up."""
+    rng = np.random.default_rng(0)
+    true, src, dst, T = hub_graph(rng)
+    P = true + rng.normal(0, 0.2, true.shape)
+    r0 = np.abs(link_residuals(P, src, dst, T)).max()
+    with np.errstate(all="ignore"):
+        relax_jacobi(P, src, dst, T, 30, normalise=False, anchor=None)
+        r = np.abs(link_residuals(P, src, dst, T)).max()
+    assert not np.isfinite(r) or r > 1e3 * r0
+
+
+def test_colour_overflow_at_a_huge_hub_still_converges():
+    rng = np.random.default_rng(1)
+    true, src, dst, T = hub_graph(rng, spokes=MAX_COLOURS + 20)
+    T = between(true[src], true[dst])  # consistent
+    colours = edge_colouring(src, dst, len(true))
+    assert (colours == -1).any()  # the hub has more links than colours
+    P = true + rng.normal(0, 0.1, true.shape)
+    relax(P, src, dst, T, 3000, colours=colours)
+    np.testing.assert_allclose(link_residuals(P, src, dst, T), 0, atol=1e-6)
+
+
+# ----------------------------------------------------------------------------- colouring
+def test_edge_colouring_classes_are_matchings_and_incremental_equals_batch():
+    rng = np.random.default_rng(5)
+    _, src, dst, _ = random_graph(rng, n=60, extra=80)
+    colours = edge_colouring(src, dst, 60)
+    for c in np.unique(colours):
+        ends = np.concatenate([src[colours == c], dst[colours == c]])
+        assert len(np.unique(ends)) == len(ends)
+    masks = np.zeros(60, dtype=np.int64)
+    inc = [colour_link(masks, int(a), int(b)) for a, b in zip(src, dst)]
+    np.testing.assert_array_equal(inc, colours)
+
+
+# ----------------------------------------------------------------------------- properties
+graphs = st.tuples(st.integers(0, 10_000), st.integers(3, 12), st.integers(0, 6))
+
+
+@settings(max_examples=25, deadline=None)
+@given(graphs)
+def test_consistent_graph_is_a_fixed_point(g):
+    seed, n, extra = g
+    true, src, dst, T = random_graph(np.random.default_rng(seed), n=n, extra=extra)
+    for fn in (lambda P: relax(P, src, dst, T, 20), lambda P: relax_jacobi(P, src, dst, T, 20),
+               lambda P: solve_lsq(P, src, dst, T), lambda P: relax_ors_reference(P, src, dst, T, 5)):
+        P = true.copy()
+        fn(P)
+        np.testing.assert_allclose(P, true, atol=1e-8)
+
+
+@settings(max_examples=20, deadline=None)
+@given(graphs, st.floats(-np.pi, np.pi), st.floats(-50, 50), st.floats(-50, 50))
+def test_relaxation_commutes_with_a_rigid_motion(g, th, x, y):
+    seed, n, extra = g
+    rng = np.random.default_rng(seed)
+    true, src, dst, T = random_graph(rng, n=n, extra=extra, noise=0.1)
+    P = true + rng.normal(0, 0.2, true.shape)
+    motion = np.array([x, y, th])
+    for fn in (lambda Q: relax(Q, src, dst, T, 15, anchor=None), lambda Q: relax_jacobi(Q, src, dst, T, 15, anchor=None),
+               lambda Q: relax(Q, src, dst, T, 15), lambda Q: solve_lsq(Q, src, dst, T, iterations=3)):
+        A = P.copy()
+        B = compose(motion, P)
+        fn(A)
+        fn(B)
+        np.testing.assert_allclose(between(compose(motion, A), B)[:, :2], 0, atol=1e-6)
+        np.testing.assert_allclose(np.sin(between(compose(motion, A), B)[:, 2]), 0, atol=1e-6)
+
+
+# ----------------------------------------------------------------------------- bad input
+def test_bad_graphs_raise_input_error():
+    P = np.zeros((3, 3))
+    T = np.zeros((1, 3))
+    with pytest.raises(InputError, match="outside"):
+        relax(P, [0], [5], T, 1)
+    with pytest.raises(InputError, match="self-link"):
+        relax(P, [1], [1], T, 1)
+    with pytest.raises(InputError, match="poses"):
+        relax(np.zeros((3, 2)), [0], [1], T, 1)
+    with pytest.raises(InputError, match="transforms"):
+        solve_lsq(P, [0, 1], [1, 2], T)
+    with pytest.raises(InputError, match="alpha"):
+        relax(P, [0], [1], T, 1, alpha=1.5)
+    with pytest.raises(InputError, match="in place"):
+        relax(P.tolist(), [0], [1], T, 1)
