@@ -17,7 +17,8 @@ GROUP = "hippomap.commands"
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="hippomap", description=__doc__)
+    parser = argparse.ArgumentParser(
+        prog="hippomap", description="hippomap: bio-inspired SLAM after the rat hippocampus (grid cells, place cells, visual recognition memory, cognitive map).")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for ep in sorted(entry_points(group=GROUP), key=lambda e: e.name):
         ep.load()(sub)

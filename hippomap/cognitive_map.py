@@ -672,7 +672,8 @@ class CognitiveMap:
         * ``node`` must be an existing node, not the current one nor among the last ``N_excl``.
         * (a) place-code gate: the node's place code must lie within
           ``loop_radius_m + loop_radius_per_m × (path travelled since the node was created)``
-          of where the hypothesis puts it (``p_robot ⊕`` the node's pose in the robot's frame;
+          (``loop_transform_radius_m`` instead of ``loop_radius_m`` when the hypothesis carries a
+          measured transform: then only odometric drift separates the two) of where the hypothesis puts it (``p_robot ⊕`` the node's pose in the robot's frame;
           for ``transform=None`` simply ``‖p_node − p_robot‖``, Eq. 13).
         * (b) with ``loop_min_support`` ≥ 2, cycle consistency: for two hypotheses a (older)
           and b made at different updates, the cycle robot_a → robot_b (dead-reckoned
@@ -710,7 +711,8 @@ class CognitiveMap:
             else:
                 pred = _compose3(code, cand.M)
                 dist = cfg.mu_p * math.hypot(pred[0] - self._C[h.node, 0], pred[1] - self._C[h.node, 1])
-                limit = cfg.loop_radius_m + cfg.loop_radius_per_m * (self._path - self._S[h.node])
+                radius = cfg.loop_radius_m if h.transform is None else cfg.loop_transform_radius_m
+                limit = radius + cfg.loop_radius_per_m * (self._path - self._S[h.node])
                 base = replace(base, gate_distance=dist, gate_limit=limit)
                 if not dist < limit:
                     reason = f"place-code distance {dist:.3f} m exceeds the gate {limit:.3f} m"

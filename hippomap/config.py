@@ -147,6 +147,11 @@ class MapConfig(_Frozen):
     mu_p: float = Field(1.0, gt=0, description="mu_p of Eq. 13, per metre [spec §5]")
     node_spacing_m: float = Field(0.25, gt=0, description="S_th, place-code distance that creates a node (Eq. 12-13) [spec §5]")
     loop_radius_m: float = Field(3.0, gt=0, description="S_loop, place-code radius of the visual check [spec §5]")
+    loop_transform_radius_m: float = Field(
+        0.3, gt=0, description="gate base for a hypothesis that carries a measured transform: it says where the node "
+        "is, so only odometric drift may separate that from the node's place code; ~2 sigma of Bicocca's loop-transform "
+        "noise, measured in docs/BENCHMARKS.md [ours]"
+    )
     loop_radius_per_m: float = Field(
         0.05, ge=0, description="gate growth per metre travelled between the two nodes: odometric drift allowance [ours]"
     )
@@ -157,9 +162,10 @@ class MapConfig(_Frozen):
     prune_block_m: float = Field(0.5, gt=0, description="b, pruning block side, Eq. 15 [spec §4]")
     prune_online: bool = Field(True, description="merge a new node into an older node of its block, Eq. 15 / Fig. 7 [S]")
     prune_graph_radius_m: float | None = Field(
-        None, gt=0,
-        description="if set, online pruning only merges into nodes within this path length of the current node "
-        "along the graph (guards against merging in a drifted map); None = any node of the block [S] [ours]",
+        3.0, gt=0,
+        description="online pruning only merges into nodes within this path length of the current node along the "
+        "graph: literal Eq. 15 merging (None) is an unverified loop closure in a drifted map; 3 m measured best on "
+        "Bicocca and the synthetic loop (docs/BENCHMARKS.md) [ours]",
     )
     loop_min_support: int = Field(
         2, ge=1, description="consistent hypotheses needed before a loop closes (geometric check) [ours]"

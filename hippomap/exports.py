@@ -144,3 +144,38 @@ def plot_map(path: str | Path, odometry: Any, corrected: Any, groundtruth: Any |
     fig.savefig(path)
     plt.close(fig)
     return path
+
+
+def align_to(ref_times: Any, ref_poses: Any, times: Any, poses: Any) -> np.ndarray | None:
+    """``ref`` (e.g. ground truth) rigidly aligned onto ``(times, poses)`` for plotting;
+    None when the two cannot be matched by timestamp."""
+    from evo.core import sync
+
+    try:
+        ref, est = sync.associate_trajectories(to_evo(ref_times, ref_poses, "ref"), to_evo(times, poses, "est"),
+                                               max_diff=0.1)
+        ref.align(est, correct_scale=False)
+    except Exception:
+        return None
+    return from_evo(ref)[1]
+
+
+def export_map(out_dir: str | Path, cmap: Any, times: Any, odometry: Any, corrected: Any,
+               decisions: list[dict[str, Any]], groundtruth: tuple[Any, Any] | None = None,
+               loop_segments: Any | None = None, title: str = "hippomap") -> Path:
+    """Write a run's exports: ``map.tum`` (corrected trajectory), ``odometry.tum`` (raw),
+    ``map.g2o``, ``map.json`` (graph), ``loop_closures.json`` and ``map.png`` (with the
+    ground truth aligned onto the map when given)."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    links = cmap.links
+    write_tum(out / "map.tum", times, corrected)
+    write_tum(out / "odometry.tum", times, odometry)
+    write_g2o(out / "map.g2o", cmap.poses, links["source"], links["target"], links["transform"])
+    write_json(out / "map.json", graph_dict(cmap.poses, cmap.place_codes, cmap.frames, cmap.times, links["source"],
+                                            links["target"], links["transform"], links["kind"]))
+    write_json(out / "loop_closures.json", decisions)
+    if len(np.asarray(times)):
+        gt = align_to(*groundtruth, times, corrected) if groundtruth is not None else None
+        plot_map(out / "map.png", odometry, corrected, gt, loop_segments, title=title)
+    return out

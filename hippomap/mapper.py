@@ -68,6 +68,7 @@ class Mapper:
         self.memory = VisualMemory(self.config.visual)
         self.last_t: float | None = None  # time of the last input of either kind
         self.last_odometry_t: float | None = None
+        self.last_frame_t: float | None = None
         self.frames_seen = 0
         self.distance = 0.0  # odometric path length, metres
         self.distance_at_keyframe = -math.inf
@@ -79,16 +80,18 @@ class Mapper:
         self._traj = _Grow(8)
 
     # ------------------------------------------------------------------ inputs
-    def _check_time(self, t: float, what: str) -> None:
-        if self.last_t is not None and not t > self.last_t:
-            raise InputError(f"{what} timestamp {t!r} does not follow the last input at {self.last_t!r}")
+    def _check_time(self, t: float, last: float | None, what: str) -> None:
+        """Each stream's timestamps strictly increase; the two streams may interleave
+        freely (a frame may carry the time of an odometry reading)."""
+        if last is not None and not t > last:
+            raise InputError(f"{what} timestamp {t!r} does not follow the previous {what} at {last!r}")
 
     def step(self, odometry: Odometry) -> list[dict[str, Any]]:
         """Feed one odometry reading; returns the events it caused."""
         if not isinstance(odometry, Odometry):
             raise InputError(f"step() takes an Odometry, got {type(odometry).__name__}")
         t = odometry.t
-        self._check_time(t, "odometry")
+        self._check_time(t, self.last_odometry_t, "odometry")
         if odometry.increment is None and self.last_odometry_t is None:
             inc = (0.0, 0.0, 0.0)  # velocities need a previous time to integrate over
         else:
@@ -110,10 +113,10 @@ class Mapper:
         """Feed one camera frame; on a key frame: recognise near the place code, then learn."""
         if not isinstance(frame, Frame):
             raise InputError(f"observe() takes a Frame, got {type(frame).__name__}")
-        self._check_time(frame.t, "frame")
+        self._check_time(frame.t, self.last_frame_t, "frame")
         gray = frame.gray()
         self.memory.check_image(gray)  # raises InputError before any state changes
-        self.last_t = frame.t
+        self.last_t = self.last_frame_t = frame.t
         self.frames_seen += 1
         if not self._is_keyframe():
             return []
@@ -193,6 +196,7 @@ class Mapper:
             "memory": _split(self.memory.state_dict(), "memory", arrays),
             "last_t": self.last_t,
             "last_odometry_t": self.last_odometry_t,
+            "last_frame_t": self.last_frame_t,
             "frames_seen": self.frames_seen,
             "distance": self.distance,
             "distance_at_keyframe": None if math.isinf(self.distance_at_keyframe) else self.distance_at_keyframe,
@@ -222,6 +226,7 @@ class Mapper:
         self.memory = VisualMemory.from_state(self.config.visual, _join(meta["memory"], arrays))
         self.last_t = meta["last_t"]
         self.last_odometry_t = meta["last_odometry_t"]
+        self.last_frame_t = meta["last_frame_t"]
         self.frames_seen = meta["frames_seen"]
         self.distance = meta["distance"]
         dk = meta["distance_at_keyframe"]

@@ -21,7 +21,7 @@ from .config import HippomapConfig
 from .datasets import SensorDataset, read_folder_dataset, read_tum_rgbd
 from .errors import InputError
 from .evaluation import trajectory_metrics
-from .exports import graph_dict, plot_map, write_g2o, write_json, write_tum
+from .exports import export_map, write_json
 from .inputs import Odometry
 from .mapper import Mapper
 
@@ -106,27 +106,14 @@ def loop_report(m: Mapper, gt: tuple[np.ndarray, np.ndarray] | None) -> list[dic
 
 
 def write_run(m: Mapper, dataset: SensorDataset, out_dir: str | Path, timing: dict[str, Any] | None = None) -> dict[str, Any]:
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    """Write the exports (see :func:`hippomap.exports.export_map`) and metrics.json."""
     t = m.trajectory_times
     odo = m.odometry_trajectory()
     cor = m.corrected_trajectory()
-    cm = m.cmap
-    links = cm.links
-    write_tum(out / "map.tum", t, cor)
-    write_tum(out / "odometry.tum", t, odo)
-    write_g2o(out / "map.g2o", cm.poses, links["source"], links["target"], links["transform"])
-    write_json(out / "map.json", graph_dict(cm.poses, cm.place_codes, cm.frames, cm.times, links["source"],
-                                            links["target"], links["transform"], links["kind"]))
     loops = loop_report(m, dataset.groundtruth)
-    write_json(out / "loop_closures.json", loops)
     accepted = [r for r in loops if r["status"] == "accepted"]
     metrics: dict[str, Any] = {"data": str(dataset.source), "stats": m.stats(), "timing": timing or {}}
-    metrics["loop_closures"] = {
-        "accepted": len(accepted),
-        "rejected": sum(r["status"] == "rejected" for r in loops),
-    }
-    gt_plot = None
+    metrics["loop_closures"] = {"accepted": len(accepted), "rejected": sum(r["status"] == "rejected" for r in loops)}
     if dataset.groundtruth is not None and len(t) > 3:
         metrics["odometry"] = trajectory_metrics(t, odo, *dataset.groundtruth)
         metrics["map"] = trajectory_metrics(t, cor, *dataset.groundtruth)
@@ -134,15 +121,16 @@ def write_run(m: Mapper, dataset: SensorDataset, out_dir: str | Path, timing: di
         judged = [r for r in accepted if "groundtruth_distance_m" in r]
         metrics["loop_closures"]["accepted_false"] = sum(r["groundtruth_distance_m"] >= FALSE_LOOP_DISTANCE_M for r in judged)
         metrics["loop_closures"]["max_accepted_distance_m"] = max((r["groundtruth_distance_m"] for r in judged), default=None)
-        gt_plot = dataset.groundtruth[1]
-    seg = []
-    for r in accepted:
-        h = r["hypothesis"]
-        k = int(np.clip(np.searchsorted(t, h["time"]), 0, len(t) - 1)) if len(t) else 0
-        if len(t):
-            seg.append([cor[k, :2], cm.poses[h["node"], :2]])
+    segs = []
     if len(t):
-        plot_map(out / "map.png", odo, cor, gt_plot, seg, title=f"{Path(dataset.source).name}")
+        for r in accepted:
+            h = r["hypothesis"]
+            k = int(np.clip(np.searchsorted(t, h["time"]), 0, len(t) - 1))
+            segs.append([cor[k, :2], m.cmap.poses[h["node"], :2]])
+    title = Path(dataset.source).name
+    if "map" in metrics:
+        title += f": ATE odometry {metrics['odometry']['ate']['rmse']:.2f} m, map {metrics['map']['ate']['rmse']:.2f} m"
+    out = export_map(out_dir, m.cmap, t, odo, cor, loops, dataset.groundtruth, segs, title=title)
     write_json(out / "metrics.json", metrics)
     return metrics
 

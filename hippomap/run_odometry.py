@@ -22,7 +22,7 @@ from .config import HippomapConfig
 from .datasets import OdometryDataset, load_odometry_dataset
 from .errors import InputError
 from .evaluation import trajectory_metrics
-from .exports import graph_dict, plot_map, write_g2o, write_json, write_tum
+from .exports import export_map, write_json
 from .geometry import between, compose, integrate
 from .place_cells import SpatialPathway
 
@@ -42,6 +42,8 @@ class OdometryRun:
     decisions: list[dict[str, Any]] = field(default_factory=list)
     steps_without_field: int = 0
     seconds: float = 0.0
+    #: (pose index, map trajectory up to it as it stood then): the online map along the run
+    checkpoints: list[tuple[int, np.ndarray]] = field(default_factory=list)
 
 
 def _loops_by_pose(dataset: OdometryDataset) -> dict[int, list[tuple[int, np.ndarray, int]]]:
@@ -56,8 +58,11 @@ def _loops_by_pose(dataset: OdometryDataset) -> dict[int, list[tuple[int, np.nda
     return out
 
 
-def run_odometry(dataset: OdometryDataset, config: HippomapConfig | None = None, progress: bool = False) -> OdometryRun:
-    """Run the spatial pathway + cognitive map over the whole data set."""
+def run_odometry(dataset: OdometryDataset, config: HippomapConfig | None = None, progress: bool = False,
+                 checkpoints: int = 8) -> OdometryRun:
+    """Run the spatial pathway + cognitive map over the whole data set; ``checkpoints``
+    snapshots of the map trajectory are kept along the way (to show the online map,
+    not only the final one, against odometry)."""
     cfg = config or HippomapConfig()
     inc = dataset.graph.odometry
     times = dataset.times
@@ -69,6 +74,8 @@ def run_odometry(dataset: OdometryDataset, config: HippomapConfig | None = None,
     offset_at_pose = np.empty((n, 3))
     decisions: list[dict[str, Any]] = []
     no_field = 0
+    marks = set(np.linspace(0, n - 1, checkpoints + 1, dtype=int)[1:-1].tolist()) if checkpoints else set()
+    snaps: list[tuple[int, np.ndarray]] = []
     bar = None
     if progress:
         from tqdm import tqdm
@@ -92,9 +99,11 @@ def run_odometry(dataset: OdometryDataset, config: HippomapConfig | None = None,
             cmap.propose_loop(hyp)
         node_at_pose[k] = cmap.current
         offset_at_pose[k] = cmap.robot_offset
+        if k in marks:
+            snaps.append((k, compose(cmap.poses[node_at_pose[: k + 1]], offset_at_pose[: k + 1])))
         if bar is not None:
             bar.update(1)
-    cmap.finish() if hasattr(cmap, "finish") else None
+    cmap.finish()
     if bar is not None:
         bar.close()
     seconds = time.perf_counter() - t0
@@ -102,7 +111,8 @@ def run_odometry(dataset: OdometryDataset, config: HippomapConfig | None = None,
     for d in cmap.loop_decisions:
         decisions.append(d.to_dict())
     odometry = integrate(inc, cfg.map.initial_pose)
-    return OdometryRun(times, odometry, corrected, node_at_pose, cmap, decisions, no_field, seconds)
+    snaps.append((n - 1, corrected))
+    return OdometryRun(times, odometry, corrected, node_at_pose, cmap, decisions, no_field, seconds, snaps)
 
 
 def _loop_truth(run: OdometryRun, gt: tuple[np.ndarray, np.ndarray] | None) -> None:
@@ -143,6 +153,16 @@ def summarise(run: OdometryRun, dataset: OdometryDataset) -> dict[str, Any]:
     if dataset.groundtruth is not None:
         metrics["odometry"] = trajectory_metrics(run.times, run.odometry, *dataset.groundtruth)
         metrics["map"] = trajectory_metrics(run.times, run.corrected, *dataset.groundtruth)
+        rows = []
+        for k, traj in run.checkpoints:
+            try:
+                odo_ate = trajectory_metrics(run.times[: k + 1], run.odometry[: k + 1], *dataset.groundtruth)["ate"]["rmse"]
+                map_ate = trajectory_metrics(run.times[: k + 1], traj, *dataset.groundtruth)["ate"]["rmse"]
+            except InputError:  # too few ground-truth poses so far
+                continue
+            rows.append({"pose": int(k), "odometry_ate_rmse": odo_ate, "map_ate_rmse": map_ate})
+        metrics["online"] = rows
+        metrics["map_never_worse_than_odometry"] = all(r["map_ate_rmse"] <= r["odometry_ate_rmse"] for r in rows)
         judged = [d for d in accepted if "groundtruth_true" in d]
         metrics["loop_closures"]["accepted_true"] = sum(d["groundtruth_true"] for d in judged)
         metrics["loop_closures"]["accepted_false"] = sum(not d["groundtruth_true"] for d in judged)
@@ -151,36 +171,14 @@ def summarise(run: OdometryRun, dataset: OdometryDataset) -> dict[str, Any]:
 
 
 def write_outputs(run: OdometryRun, dataset: OdometryDataset, out_dir: str | Path) -> dict[str, Any]:
-    """Write map.tum, odometry.tum, map.g2o, map.json, loop_closures.json, map.png, metrics.json."""
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    """Write the exports (see :func:`hippomap.exports.export_map`) and metrics.json."""
     metrics = summarise(run, dataset)
-    cm = run.cmap
-    links = cm.links
-    write_tum(out / "map.tum", run.times, run.corrected)
-    write_tum(out / "odometry.tum", run.times, run.odometry)
-    write_g2o(out / "map.g2o", cm.poses, links["source"], links["target"], links["transform"])
-    write_json(out / "map.json", graph_dict(cm.poses, cm.place_codes, cm.frames, cm.times, links["source"],
-                                            links["target"], links["transform"], links["kind"]))
-    write_json(out / "loop_closures.json", run.decisions)
     accepted = [d["hypothesis"]["meta"]["poses"] for d in run.decisions if d["status"] == "accepted"]
     segs = [[run.corrected[a, :2], run.corrected[b, :2]] for a, b in accepted]
-    gt_poses = None
-    if dataset.groundtruth is not None:
-        # ground truth in the map's frame: align it to the corrected trajectory for the plot
-        from evo.core import sync
-
-        from .exports import from_evo, to_evo
-
-        ref = to_evo(*dataset.groundtruth, "gt")
-        est = to_evo(run.times, run.corrected, "map")
-        ref_s, est_s = sync.associate_trajectories(ref, est, max_diff=0.1)
-        ref_s.align(est_s, correct_scale=False)
-        gt_poses = from_evo(ref_s)[1]
-    plot_map(out / "map.png", run.odometry, run.corrected, gt_poses, segs,
-             title=f"{Path(dataset.loops_file).name}: ATE odometry "
-                   f"{metrics.get('odometry', {}).get('ate', {}).get('rmse', float('nan')):.2f} m, map "
-                   f"{metrics.get('map', {}).get('ate', {}).get('rmse', float('nan')):.2f} m")
+    ate = {k: metrics.get(k, {}).get("ate", {}).get("rmse", float("nan")) for k in ("odometry", "map")}
+    out = export_map(out_dir, run.cmap, run.times, run.odometry, run.corrected, run.decisions, dataset.groundtruth,
+                     segs, title=f"{Path(dataset.loops_file).name}: ATE odometry {ate['odometry']:.2f} m, "
+                                 f"map {ate['map']:.2f} m")
     write_json(out / "metrics.json", metrics)
     return metrics
 
