@@ -168,7 +168,8 @@ class MapConfig(_Frozen):
         "Bicocca and the synthetic loop (docs/BENCHMARKS.md) [ours]",
     )
     loop_min_support: int = Field(
-        2, ge=1, description="consistent hypotheses needed before a loop closes (geometric check) [ours]"
+        3, ge=1, description="mutually consistent hypotheses needed before a loop closes (geometric check); 3 is the "
+        "smallest that accepted no false proposal of B25b_0.000 (docs/BENCHMARKS.md) [ours]"
     )
     loop_support_window: int = Field(50, ge=1, description="steps a hypothesis waits for support [ours]")
     loop_consistency_m: float = Field(
