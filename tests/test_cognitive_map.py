@@ -133,7 +133,8 @@ def test_loop_closure_removes_injected_heading_drift(solver):
     noisy[:, 2] += 0.002 * (inc[:, 0] > 0)  # heading bias on every forward step
     odo = integrate(noisy)
     first_lap = len(inc) // 2
-    cmap = CognitiveMap(MapConfig(solver=solver, prune_online=False))
+    # a strong drift (0.02 rad/m): open the gate wide enough for it, support as in [ours] v1
+    cmap = CognitiveMap(MapConfig(solver=solver, prune_online=False, loop_transform_radius_m=3.0, loop_min_support=2))
     node_at, off, _ = drive(cmap, noisy, hypotheses=true_loops(gt, first_lap))
     cmap.finish(iterations=2000)
     before, after = rms_xy(odo, gt), rms_xy(corrected(cmap, node_at, off), gt)
@@ -170,7 +171,8 @@ def test_gate_rejects_far_hypotheses_without_touching_the_map():
 
 def test_gate_radius_grows_with_the_path_travelled():
     """The same 4 m place-code discrepancy passes after a long trip, not after a short one."""
-    cfg = MapConfig(loop_min_support=1, loop_radius_m=3.0, loop_radius_per_m=0.05, exclude_recent=2)
+    cfg = MapConfig(loop_min_support=1, loop_radius_m=3.0, loop_transform_radius_m=3.0, loop_radius_per_m=0.05,
+                    exclude_recent=2)
     short = CognitiveMap(cfg)
     drive(short, np.tile([0.1, 0.0, 0.0], (60, 1)))  # 6 m
     far = CognitiveMap(cfg)
@@ -308,8 +310,10 @@ def test_graph_gated_pruning_avoids_merging_across_a_drifted_loop():
     noisy[:, 2] += 0.002 * (inc[:, 0] > 0)
     first_lap = len(inc) // 2
     errors, nodes = {}, {}
-    for name, over in {"none": dict(prune_online=False), "literal": {}, "gated": dict(prune_graph_radius_m=3.0)}.items():
-        cmap = CognitiveMap(MapConfig(solver="lsq", **over))
+    common = dict(solver="lsq", loop_transform_radius_m=3.0, loop_min_support=2)
+    for name, over in {"none": dict(prune_online=False), "literal": dict(prune_graph_radius_m=None),
+                       "gated": dict(prune_graph_radius_m=3.0)}.items():
+        cmap = CognitiveMap(MapConfig(**common, **over))
         node_at, off, _ = drive(cmap, noisy, hypotheses=true_loops(gt, first_lap))
         errors[name] = rms_xy(corrected(cmap, node_at, off), gt)
         nodes[name] = cmap.node_count
@@ -458,3 +462,21 @@ def test_bad_inputs_raise_input_error_naming_the_value():
         cmap.set_frame(99, 1)
     with pytest.raises(InputError):
         CognitiveMap.from_state(MapConfig(), {"version": 1, "nodes": {}})
+
+
+def test_measured_transform_gets_the_tight_gate():
+    """After a short trip a 1 m disagreement between a measured transform and the place
+    code is a false proposal (odometry is good to centimetres there) and is rejected;
+    the same node proposed as 'same place' (no transform) uses the wide visual radius."""
+    cfg = MapConfig(loop_min_support=1, loop_radius_m=3.0, loop_transform_radius_m=0.3, loop_radius_per_m=0.05,
+                    exclude_recent=2)
+    cmap = CognitiveMap(cfg)
+    drive(cmap, np.tile([0.1, 0.0, 0.0], (40, 1)))  # 4 m
+    for offset, expected in ((1.0, "rejected"), (0.1, "accepted")):
+        rel = between(cmap.robot_pose, cmap.poses[1] + [offset, 0.0, 0.0])
+        d = cmap.propose_loop(LoopHypothesis(node=1, transform=tuple(compose(cmap.robot_offset, rel)), source="test"))
+        assert d.status == expected, d
+        assert d.gate_limit == pytest.approx(0.3 + 0.05 * (4.0 - 0.3), abs=0.06)
+    cmap2 = CognitiveMap(cfg)
+    drive(cmap2, np.tile([0.1, 0.0, 0.0], (40, 1)))
+    assert cmap2.propose_loop(LoopHypothesis(node=1, transform=None, source="visual")).gate_limit > 3.0
