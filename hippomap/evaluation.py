@@ -31,7 +31,10 @@ def trajectory_metrics(est_times: Any, est_poses: Any, ref_times: Any, ref_poses
         raise InputError(f"cannot match estimate and ground truth by timestamp: {exc}") from exc
     if ref_s.num_poses < 3:
         raise InputError(f"only {ref_s.num_poses} poses matched ground truth by timestamp")
-    est_s.align(ref_s, correct_scale=False)
+    try:
+        est_s.align(ref_s, correct_scale=False)
+    except Exception as exc:  # evo's GeometryException: e.g. all poses on one line
+        raise InputError(f"cannot align estimate to ground truth: {exc}") from exc
     ape = metrics.APE(metrics.PoseRelation.translation_part)
     ape.process_data((ref_s, est_s))
     out: dict[str, Any] = {"matched_poses": int(ref_s.num_poses), "ate": _stats(ape)}

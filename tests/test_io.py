@@ -153,3 +153,6 @@ def test_metrics_measure_known_error():
     assert 0.3 < ate <= 0.5 + 1e-9
     with pytest.raises(InputError, match="timestamp"):
         trajectory_metrics(t + 1000, gt, t, gt)
+    line = np.column_stack([np.arange(10.0), np.zeros(10), np.zeros(10)])
+    with pytest.raises(InputError, match="cannot align"):
+        trajectory_metrics(t[:10], line, t[:10], line)
