@@ -169,6 +169,12 @@ class Mapper:
             return np.empty((0, 3))
         return compose(self.cmap.poses[v[:, 4].astype(np.int64)], v[:, 5:8])
 
+    def trajectory_rows(self, start: int = 0) -> np.ndarray:
+        """Per-step rows from ``start`` on: ``t, x, y, theta`` (raw odometric pose), current
+        node, and the robot's offset from it (``dx, dy, dtheta``). Append-only, so a viewer
+        copies only what is new."""
+        return self._traj.view[start:].copy()
+
     def stats(self) -> dict[str, Any]:
         decisions = [d.status for d in self.cmap.loop_decisions]
         return {
