@@ -21,8 +21,25 @@ def build_parser() -> argparse.ArgumentParser:
         prog="hippomap", description="hippomap: bio-inspired SLAM after the rat hippocampus (grid cells, place cells, visual recognition memory, cognitive map).")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for ep in sorted(entry_points(group=GROUP), key=lambda e: e.name):
-        ep.load()(sub)
+        try:
+            register = ep.load()
+        except ImportError as exc:  # e.g. `serve` without the server extra installed
+            _unavailable(sub, ep.name, exc)
+            continue
+        register(sub)
     return parser
+
+
+def _unavailable(sub: argparse._SubParsersAction, name: str, exc: ImportError) -> None:
+    """Keep a command whose dependencies are missing visible, with the way to fix it."""
+    message = f"needs a missing dependency ({exc.name or exc}); install it with: pip install 'hippomap[server]'"
+    p = sub.add_parser(name, help=f"(unavailable: {message})")
+
+    def fail(args: argparse.Namespace) -> int:
+        print(f"hippomap {name}: {message}", file=sys.stderr)
+        return 2
+
+    p.set_defaults(func=fail)
 
 
 def main(argv: list[str] | None = None) -> int:
