@@ -1,0 +1,162 @@
+"""``hippomap replay DATASET --server URL``: stream a recorded data set into a server session.
+
+Any data set ``hippomap run`` reads (hippomap data folder, TUM RGB-D folder, ROS bag) is sent
+in time order over the session's websocket: odometry as JSON, frames as the original JPEG/PNG
+bytes (other images are JPEG-encoded). ``--speed 1`` replays in real time (``--speed 2``
+twice as fast); by default inputs go as fast as the server acknowledges them, with at most
+``--window`` messages awaiting acknowledgement. ``--resume`` skips what the session already
+has (odometry and frames up to the session's last timestamp of each), so an interrupted
+replay can be restarted.
+The token comes from ``--token``, ``$HIPPOMAP_TOKEN``, or a local server's
+``hippomap-data/admin.token``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+from .errors import InputError
+from .inputs import Odometry
+
+#: consecutive odometry readings sent as one message when not replaying in real time
+FAST_BATCH = 200
+
+
+def _frame_bytes(ref: Any) -> bytes:
+    path = getattr(ref, "path", None)
+    if path is not None and Path(path).suffix.lower() in (".jpg", ".jpeg", ".png"):
+        return Path(path).read_bytes()
+    from .client import encode_image
+
+    return encode_image(ref.load().image)
+
+
+async def replay(dataset: Any, url: str, token: str | None, session_id: str, speed: float | None = None,
+                 window: int = 128, resume: bool = False, progress: bool = False) -> dict[str, Any]:
+    """Stream ``dataset`` into ``session_id``; returns counts and timing. Raises
+    :class:`~hippomap.client.ServerError` on the first input the server rejects."""
+    from .client import AsyncStream
+
+    errors: list[BaseException] = []
+    counts = {"odometry": 0, "frames": 0, "skipped": 0, "messages": 0}
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(dataset.odometry) + len(dataset.frames), unit="input", desc="replay")
+
+    def watch(fut: asyncio.Future, n: int) -> None:
+        def done(f: asyncio.Future) -> None:
+            if f.exception() is not None:
+                errors.append(f.exception())
+            elif bar is not None:
+                bar.update(n)
+        fut.add_done_callback(done)
+
+    start = time.perf_counter()
+    async with AsyncStream(url, token, session_id, max_in_flight=window) as stream:
+        last = ({"odometry": stream.hello.get("last_odometry_t"), "frame": stream.hello.get("last_frame_t")}
+                if resume else {})
+        t0: float | None = None
+        batch: list[Odometry] = []
+
+        async def flush() -> None:
+            if batch:
+                watch(await stream.send_odometry(list(batch)), len(batch))
+                counts["messages"] += 1
+                batch.clear()
+
+        for item in dataset.events():
+            if errors:
+                break
+            seen = last.get("odometry" if isinstance(item, Odometry) else "frame")
+            if seen is not None and item.t <= seen:
+                counts["skipped"] += 1
+                continue
+            if speed is not None:
+                t0 = item.t if t0 is None else t0
+                delay = start + (item.t - t0) / speed - time.perf_counter()
+                if delay > 0:
+                    await flush()
+                    await asyncio.sleep(delay)
+            if isinstance(item, Odometry):
+                counts["odometry"] += 1
+                batch.append(item)
+                if speed is not None or len(batch) >= FAST_BATCH:
+                    await flush()
+                continue
+            await flush()
+            data = await asyncio.to_thread(_frame_bytes, item)
+            watch(await stream.send_frame(item.t, data), 1)
+            counts["frames"] += 1
+            counts["messages"] += 1
+        await flush()
+        await stream.drain()
+    if bar is not None:
+        bar.close()
+    if errors:
+        raise errors[0]
+    elapsed = time.perf_counter() - start
+    return {**counts, "seconds": elapsed, "inputs_per_s": (counts["odometry"] + counts["frames"]) / max(elapsed, 1e-9)}
+
+
+def _cmd(args: argparse.Namespace) -> int:
+    from .client import Client
+    from .run import open_dataset
+
+    if args.speed is not None and not args.speed > 0:
+        raise InputError(f"--speed must be > 0, got {args.speed}")
+    if args.window < 1:
+        raise InputError(f"--window must be >= 1, got {args.window}")
+    dataset = open_dataset(args.dataset, args.image_topic, args.odom_topic)
+    config = None
+    if args.config:
+        try:
+            config = json.loads(Path(args.config).read_text())
+        except (OSError, ValueError) as exc:
+            raise InputError(f"cannot read config {args.config}: {exc}") from exc
+    with Client(args.server, args.token) as client:
+        if args.session:
+            sid = args.session
+            client.session(sid)
+        else:
+            sid = client.create_session(name=args.name or Path(args.dataset).name, config=config)["id"]
+        print(f"session {sid}", flush=True)
+        result = asyncio.run(replay(dataset, args.server, client.token, sid, speed=args.speed, window=args.window,
+                                    resume=args.resume, progress=not args.quiet))
+        print(f"sent {result['odometry']} odometry readings and {result['frames']} frames in "
+              f"{result['seconds']:.1f} s ({result['inputs_per_s']:.0f} inputs/s), all acknowledged"
+              + (f"; skipped {result['skipped']} already stored" if result["skipped"] else ""), flush=True)
+        if not args.no_wait:
+            st = client.wait_processed(sid, timeout=args.wait_timeout)
+            m = st["mapper"]
+            print(f"mapper: {m.get('nodes')} nodes, {m.get('links')} links, loop closures accepted "
+                  f"{m.get('loop_closures_accepted')} / rejected {m.get('loop_closures_rejected')}", flush=True)
+    return 0
+
+
+def add_parser(sub: Any) -> None:
+    p = sub.add_parser("replay", help="stream a data set into a hippomap server session",
+                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("dataset", help="hippomap data folder, TUM RGB-D folder, or ROS bag")
+    p.add_argument("--server", required=True, help="server URL, e.g. http://127.0.0.1:8000")
+    p.add_argument("--token", help="bearer token (default: $HIPPOMAP_TOKEN or ./hippomap-data/admin.token)")
+    p.add_argument("--session", help="stream into this existing session (default: create one)")
+    p.add_argument("--name", help="name of the created session (default: the data set's name)")
+    p.add_argument("--config", help="JSON file of config overrides for the created session")
+    p.add_argument("--speed", type=float, default=None,
+                   help="real-time factor (1 = real time); default: as fast as acknowledged")
+    p.add_argument("--window", type=int, default=128, help="messages in flight before waiting for acks")
+    p.add_argument("--resume", action="store_true", help="skip inputs the session already has")
+    p.add_argument("--image-topic", help="ROS bag: image topic")
+    p.add_argument("--odom-topic", help="ROS bag: odometry topic")
+    p.add_argument("--no-wait", action="store_true", help="do not wait for the mapper to finish")
+    p.add_argument("--wait-timeout", type=float, default=3600.0, help="seconds to wait for the mapper")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=_cmd)
+

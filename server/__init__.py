@@ -1,0 +1,21 @@
+"""hippomap's web service: the mapper served to robots over HTTP and websockets.
+
+The server is deliberately thin: it validates inputs, stores them durably, schedules
+them to one :class:`hippomap.mapper.Mapper` per session and serialises the answers.
+All model logic stays in :mod:`hippomap`.
+
+Modules, one concept each:
+
+* :mod:`server.settings`  — limits, paths and intervals (one pydantic model)
+* :mod:`server.store`     — the storage interface; :mod:`server.sqlite_store` its embedded backend
+* :mod:`server.auth`      — bearer tokens, roles and who sees which session
+* :mod:`server.limits`    — request-rate buckets and the body-size guard
+* :mod:`server.ingest`    — parsing and validating odometry and frames (4xx naming the problem)
+* :mod:`server.protocol`  — the websocket stream's messages and binary frame header
+* :mod:`server.model`     — the only module that touches the mapper (create, load, query)
+* :mod:`server.worker`    — one thread per session feeding its mapper in order, snapshotting
+* :mod:`server.sessions`  — live sessions: ordering, durability, backpressure, restore
+* :mod:`server.views`     — serialisers: GraphML, g2o, TUM, place fields, saccade images
+* :mod:`server.api`       — the FastAPI routes; :mod:`server.app` assembles the app
+* :mod:`server.cli`       — ``hippomap serve``
+"""

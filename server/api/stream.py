@@ -1,0 +1,155 @@
+"""The websocket stream (protocol in :mod:`server.protocol`): odometry and frames on one connection.
+
+The receive loop validates each message and submits it; a sender task awaits each
+message's durability future *in message order* and only then sends its ack, so an ack
+always means "stored". Validation and storage are pipelined: the robot need not wait for
+one ack before sending the next message, while ``max_pending`` bounds what is in flight.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+from typing import Any
+
+from fastapi import APIRouter, WebSocket, WebSocketDisconnect
+from starlette.websockets import WebSocketState
+
+from hippomap.errors import InputError
+
+from ..ingest import IngestError, parse_odometry_message
+from ..protocol import CLOSE_FORBIDDEN, CLOSE_NOT_FOUND, CLOSE_UNAUTHORIZED, unpack_frame
+from ..sessions import Forbidden, LiveSession, NotFound
+
+router = APIRouter(tags=["ingest"])
+log = logging.getLogger("hippomap.server")
+
+
+def _secret(ws: WebSocket) -> str | None:
+    auth = ws.headers.get("authorization", "")
+    if auth.lower().startswith("bearer "):
+        return auth[7:].strip()
+    return ws.query_params.get("token")
+
+
+async def _sender(ws: WebSocket, out: asyncio.Queue) -> None:
+    """Send queued messages in order; an ack waits for its inputs to be durable."""
+    while True:
+        item = await out.get()
+        if item is None:
+            return
+        if isinstance(item, tuple):  # ("ack", future, id, first, last, count)
+            _, fut, mid, first, last, count = item
+            try:
+                await fut
+                msg: dict[str, Any] = {"type": "ack", "id": mid, "seq": first, "last_seq": last, "count": count}
+            except Exception as exc:
+                msg = {"type": "error", "id": mid, "status": 503, "detail": f"inputs could not be stored: {exc}"}
+        else:
+            msg = item
+        try:
+            await ws.send_text(json.dumps(msg))
+        except Exception:  # the client went away; inputs already accepted stay stored
+            return
+
+
+async def _handle(live: LiveSession, message: dict[str, Any], out: asyncio.Queue) -> None:
+    """Validate and submit one websocket message; errors are queued as error messages."""
+    mid: Any = None
+    settings = live.settings
+    try:
+        if message.get("bytes") is not None:
+            data: bytes = message["bytes"]
+            if len(data) > settings.max_body_bytes:
+                raise IngestError(413, f"message of {len(data)} bytes exceeds the limit of {settings.max_body_bytes}")
+            try:
+                mid, t, image = unpack_frame(data)
+            except InputError as exc:
+                raise IngestError(422, str(exc)) from None
+            items = [await live.validate_frame(image, t)]
+        else:
+            text = message.get("text") or ""
+            if len(text) > settings.max_body_bytes:
+                raise IngestError(413, f"message of {len(text)} bytes exceeds the limit of {settings.max_body_bytes}")
+            try:
+                d = json.loads(text)
+            except ValueError as exc:
+                raise IngestError(422, f"text message is not JSON: {exc}") from None
+            if not isinstance(d, dict):
+                raise IngestError(422, "text message must be a JSON object with a 'type'")
+            mid = d.get("id")
+            kind = d.get("type")
+            if kind == "ping":
+                await out.put({"type": "pong", "id": mid})
+                return
+            if kind != "odometry":
+                raise IngestError(422, f"unknown message type {kind!r}: expected 'odometry' or 'ping' "
+                                       "(frames are binary messages)")
+            items = parse_odometry_message(d, settings.max_odometry_batch)
+
+        async def busy() -> None:
+            await out.put({"type": "busy", "pending": live.pending, "max_pending": settings.max_pending})
+
+        first, last, fut = await live.submit(items, wait_s=None, on_busy=busy)
+        await out.put(("ack", fut, mid, first, last, len(items)))
+    except IngestError as exc:
+        live.rejected[exc.status] += 1
+        await out.put({"type": "error", "id": mid, "status": exc.status, "detail": exc.detail})
+
+
+@router.websocket("/sessions/{session_id}/stream")
+async def stream(ws: WebSocket, session_id: str) -> None:
+    """Odometry (JSON text) and frames (binary) in; ``ack``/``error`` messages out."""
+    app = ws.app
+    await ws.accept()
+    token = app.state.auth.authenticate(_secret(ws))
+    if token is None:
+        await ws.close(CLOSE_UNAUTHORIZED, "missing or unknown bearer token")
+        return
+    try:
+        live = app.state.manager.get(token, session_id, write=True)
+    except NotFound:
+        await ws.close(CLOSE_NOT_FOUND, f"session {session_id!r} not found")
+        return
+    except Forbidden:
+        await ws.close(CLOSE_FORBIDDEN, "this token is read-only")
+        return
+    await ws.send_text(json.dumps({"type": "hello", "session": live.id, "last_seq": live.next_seq - 1,
+                                   "last_t": live.last_t, "last_odometry_t": live.last_times.get("odometry"),
+                                   "last_frame_t": live.last_times.get("frame"),
+                                   "max_pending": live.settings.max_pending}))
+    out: asyncio.Queue = asyncio.Queue()
+    sender = asyncio.create_task(_sender(ws, out))
+    try:
+        while True:
+            receive = asyncio.ensure_future(ws.receive())
+            done, _ = await asyncio.wait({receive, sender}, return_when=asyncio.FIRST_COMPLETED)
+            if receive not in done:  # the sender failed: the client is gone
+                receive.cancel()
+                break
+            message = receive.result()
+            if message["type"] == "websocket.disconnect":
+                break
+            wait = live.bucket.reserve()
+            if wait > 0:  # over the rate: read later (the robot is slowed, nothing dropped)
+                await asyncio.sleep(wait)
+            try:
+                await _handle(live, message, out)
+            except NotFound:
+                await out.put(None)
+                await sender
+                await ws.close(CLOSE_NOT_FOUND, f"session {session_id!r} was deleted")
+                return
+        await out.put(None)
+        await sender  # acks for everything accepted before the disconnect
+    except (WebSocketDisconnect, RuntimeError):
+        pass
+    finally:
+        if not sender.done():
+            sender.cancel()
+        if ws.application_state == WebSocketState.CONNECTED and ws.client_state == WebSocketState.CONNECTED:
+            try:
+                await ws.close()
+            except RuntimeError:
+                pass

@@ -1,0 +1,102 @@
+"""``hippomap serve``: run the server on the embedded database.
+
+    hippomap serve [--host H] [--port P] [--data-dir D] [--database FILE] [--demo]
+
+On the first start an admin token is generated, printed and saved in ``D/admin.token``
+(later starts print where it is; ``export HIPPOMAP_TOKEN=$(cat D/admin.token)`` lets the
+client and ``hippomap replay`` find it). ``HIPPOMAP_ADMIN_TOKEN`` sets it explicitly.
+Sessions are created with ``POST /sessions``. ``--demo`` also starts a simulated robot
+streaming into a session and prints that session's viewer URL. ``--port 0`` picks a free port.
+Other limits come from ``HIPPOMAP_*`` environment variables (see ``server/settings.py``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import socket
+import sys
+from typing import Any
+
+from .settings import ServerSettings
+
+
+def _banner(app: Any, settings: ServerSettings, url: str) -> None:
+    print(f"hippomap server on {url}  (API docs: {url}/docs)", flush=True)
+    print(f"data: {settings.database_path}", flush=True)
+    if settings.admin_token:
+        print("admin token: from HIPPOMAP_ADMIN_TOKEN", flush=True)
+    elif app.state.admin_token_created:
+        print(f"admin token (new, saved in {settings.token_file}): {app.state.admin_token}", flush=True)
+    else:
+        print(f"admin token: in {settings.token_file}", flush=True)
+    print(f"  export HIPPOMAP_TOKEN=$(cat {settings.token_file})" if not settings.admin_token else "", flush=True)
+
+
+async def _serve(args: argparse.Namespace) -> int:
+    import uvicorn
+
+    from .app import create_app
+
+    settings = ServerSettings.from_env(data_dir=args.data_dir, database=args.database)
+    sys.setswitchinterval(settings.switch_interval_s)
+    app = create_app(settings)
+    # proto=IPPROTO_TCP matters: asyncio sets TCP_NODELAY only on sockets that say they are TCP, and
+    # without it small acks wait for the robot's next message (Nagle + delayed ACK: ~one message period)
+    sock = socket.socket(socket.AF_INET6 if ":" in args.host else socket.AF_INET, socket.SOCK_STREAM, socket.IPPROTO_TCP)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+    sock.bind((args.host, args.port))
+    port = sock.getsockname()[1]
+    host = f"[{args.host}]" if ":" in args.host else args.host
+    url = f"http://{host}:{port}"
+    config = uvicorn.Config(app, log_level=args.log_level, ws_max_size=settings.max_body_bytes + 1024,
+                            timeout_graceful_shutdown=10, access_log=args.access_log)
+    server = uvicorn.Server(config)
+    task = asyncio.create_task(server.serve(sockets=[sock]))
+    while not server.started and not task.done():
+        await asyncio.sleep(0.02)
+    if task.done():
+        return 1
+    _banner(app, settings, url)
+    demo = None
+    if args.demo:
+        from .demo import run_demo
+
+        demo = asyncio.create_task(run_demo(url, app.state.admin_token, rate_hz=args.demo_rate,
+                                            stopping=lambda: server.should_exit))
+    await task
+    if demo is not None:
+        demo.cancel()
+    return 0
+
+
+def _cmd(args: argparse.Namespace) -> int:
+    try:  # uvloop (part of uvicorn[standard]) when present: a faster event loop
+        import uvloop
+
+        return uvloop.run(_serve(args))
+    except ImportError:
+        return asyncio.run(_serve(args))
+
+
+def add_parser(sub: Any) -> None:
+    p = sub.add_parser("serve", help="serve the mapper to robots (HTTP + websocket)", description=__doc__,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--host", default="127.0.0.1", help="interface to listen on (default 127.0.0.1)")
+    p.add_argument("--port", type=int, default=8000, help="port (default 8000; 0 = any free port)")
+    p.add_argument("--data-dir", default=None, help="data folder (default ./hippomap-data or $HIPPOMAP_DATA_DIR)")
+    p.add_argument("--database", default=None, help="SQLite file (default <data-dir>/hippomap.sqlite3)")
+    p.add_argument("--demo", action="store_true", help="also stream a simulated robot into a session")
+    p.add_argument("--demo-rate", type=float, default=10.0, help="demo camera frames per second")
+    p.add_argument("--log-level", default="warning", choices=["critical", "error", "warning", "info", "debug"])
+    p.add_argument("--access-log", action="store_true", help="log every request")
+    p.set_defaults(func=_cmd)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m server")
+    sub = parser.add_subparsers(dest="command", required=True)
+    add_parser(sub)
+    args = parser.parse_args(["serve", *(argv if argv is not None else sys.argv[1:])])
+    return int(args.func(args) or 0)

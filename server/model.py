@@ -1,0 +1,182 @@
+"""The server's only window on the model: create, restore and query a session's mapper.
+
+Everything the server needs from :class:`hippomap.mapper.Mapper` goes through this module,
+so the sessions, the worker and the routes see a small interface (:class:`MapperPort` plus
+the query functions below) and a change in the model touches one file. No model logic
+lives here: only calls and conversions to plain, JSON-ready data.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import struct
+from typing import Any, Protocol
+
+import numpy as np
+
+from hippomap.config import HippomapConfig
+from hippomap.inputs import Frame, Odometry
+
+
+class MapperPort(Protocol):
+    """What the session worker uses of a mapper."""
+
+    place_field: Any  # the latest PlaceCode (with its field), or None
+
+    def step(self, odometry: Odometry) -> list[dict[str, Any]]: ...
+
+    def observe(self, frame: Frame) -> list[dict[str, Any]]: ...
+
+    def to_bytes(self) -> bytes: ...
+
+    def stats(self) -> dict[str, Any]: ...
+
+
+# ---------------------------------------------------------------- lifecycle
+def effective_config(overrides: dict[str, Any] | None) -> HippomapConfig:
+    """The validated model config of a session (ValueError naming the bad field)."""
+    return HippomapConfig.with_overrides(overrides or {})
+
+
+def new_mapper(config: HippomapConfig) -> MapperPort:
+    from hippomap.mapper import Mapper
+
+    return Mapper(config)
+
+
+def load_mapper(data: bytes) -> MapperPort:
+    from hippomap.mapper import Mapper
+
+    return Mapper.from_bytes(data)
+
+
+def follows(last_t: float | None, t: float) -> bool:
+    """The mapper's time rule (``Mapper._check_time``): within each stream (odometry, frames)
+    timestamps strictly increase; the streams may interleave. ``last_t`` is the previous input
+    of the same kind. Checked at ingest, so an input the mapper would refuse is never stored."""
+    return last_t is None or t > last_t
+
+
+def check_frame(config: HippomapConfig, frame: Frame) -> None:
+    """Raise InputError if the visual memory could not use this frame (e.g. too small for the fovea)."""
+    from hippomap.visual_memory import prepare_image
+
+    prepare_image(frame.image, config.visual, name=f"frame at t={frame.t}")
+
+
+def stats(m: MapperPort) -> dict[str, Any]:
+    return _finite(m.stats())
+
+
+# ------------------------------------------------------------------ the map
+def graph(m: Any) -> dict[str, Any]:
+    """Nodes and links as JSON (``hippomap.exports.graph_dict``)."""
+    from hippomap.exports import graph_dict
+
+    cm = m.cmap
+    links = cm.links
+    return graph_dict(cm.poses, cm.place_codes, cm.frames, cm.times, links["source"], links["target"],
+                      links["transform"], links["kind"])
+
+
+def graph_arrays(m: Any) -> dict[str, np.ndarray]:
+    """Copies of the map's arrays: poses, place_codes, frames, times; link source/target/transform/kind."""
+    cm = m.cmap
+    links = cm.links
+    return {"poses": np.array(cm.poses), "place_codes": np.array(cm.place_codes), "frames": np.array(cm.frames),
+            "times": np.array(cm.times), "source": np.array(links["source"]), "target": np.array(links["target"]),
+            "transform": np.array(links["transform"]), "kind": np.array(links["kind"])}
+
+
+def trajectory(m: Any, source: str) -> tuple[np.ndarray, np.ndarray]:
+    """``(times, (N, 3) poses)`` of every odometry step: on the corrected map or raw odometry."""
+    poses = m.corrected_trajectory() if source == "map" else m.odometry_trajectory()
+    return m.trajectory_times, poses
+
+
+# ------------------------------------------------------------ loop closures
+def loop_closures(m: Any) -> list[dict[str, Any]]:
+    """Every loop decision (latest status), JSON-ready, with the recognition behind it."""
+    out = []
+    for d in m.cmap.loop_decisions:
+        row = _finite(d.to_dict())
+        h = row["hypothesis"]
+        meta = h.get("meta") or {}
+        out.append({"id": row["id"], "t": h.get("time"), "status": row["status"],
+                    "nodes": [row.get("from_node"), h.get("node")], "evidence": h.get("evidence"),
+                    "source": h.get("source"), "recognition": meta.get("recognition"), "decision": row})
+    return out
+
+
+def recognition(m: Any, rid: int) -> dict[str, Any] | None:
+    recs = m.recognitions
+    return _finite(recs[rid]) if 0 <= rid < len(recs) else None
+
+
+def recognitions(m: Any, since_id: int, limit: int) -> list[dict[str, Any]]:
+    return [_finite(r) for r in m.recognitions[max(since_id + 1, 0): max(since_id + 1, 0) + limit]]
+
+
+def draw_saccades(image: np.ndarray, rec: dict[str, Any], attempt: Any = "last") -> np.ndarray:
+    """The query frame with the recognition's saccade trace drawn (BGR), by the model's drawing code."""
+    from hippomap.visual_memory import Recognition, SaccadeStep, draw_trace
+
+    fields = {f for f in SaccadeStep.__dataclass_fields__}
+    steps = []
+    for s in rec.get("steps", []):
+        kw = {k: v for k, v in s.items() if k in fields}
+        kw["fixation"] = tuple(kw["fixation"]) if kw.get("fixation") is not None else None
+        kw["target"] = tuple(kw["target"]) if kw.get("target") is not None else None
+        kw["evidence"] = [tuple(e) for e in kw.get("evidence", [])]
+        steps.append(SaccadeStep(**kw))
+    r = Recognition(frame_id=rec.get("frame_id"), evidence=float(rec.get("evidence") or 0.0), steps=steps,
+                    n_resets=int(rec.get("n_resets", 0)), confidence=float(rec.get("confidence") or 0.0),
+                    image_size=tuple(rec.get("image_size", (0, 0))), reason=rec.get("reason", ""))
+    return draw_trace(image, r, attempt=attempt)
+
+
+# ------------------------------------------------------------- place fields
+_PF_HEADER = struct.Struct("<I")
+
+
+def place_field_blob(code: Any) -> bytes:
+    """A PlaceCode's field as bytes: JSON metadata + the sparse field's flat indices (int32)."""
+    f = code.field
+    meta = {"size": int(f.size), "resolution": float(f.resolution), "origin": [float(v) for v in code.origin],
+            "centroid": [float(v) for v in f.centroid], "place_code": [float(code.x), float(code.y), float(code.theta)],
+            "iterations": int(f.iterations)}
+    js = json.dumps(meta).encode()
+    return _PF_HEADER.pack(len(js)) + js + np.asarray(f.indices, dtype=np.int32).tobytes()
+
+
+def place_field_from_blob(data: bytes) -> tuple[dict[str, Any], np.ndarray]:
+    (n,) = _PF_HEADER.unpack_from(data)
+    meta = json.loads(data[_PF_HEADER.size:_PF_HEADER.size + n])
+    idx = np.frombuffer(data[_PF_HEADER.size + n:], dtype=np.int32).astype(np.int64)
+    return meta, idx
+
+
+def place_field_dense(meta: dict[str, Any], indices: np.ndarray) -> np.ndarray:
+    """The position matrix POS (rows = y, columns = x) as uint8 0/1."""
+    size = int(meta["size"])
+    out = np.zeros(size * size, dtype=np.uint8)
+    out[indices] = 1
+    return out.reshape(size, size)
+
+
+# -------------------------------------------------------------------- utils
+def _finite(obj: Any) -> Any:
+    """JSON cannot carry NaN or infinity: replace them by None, recursively."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: _finite(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_finite(v) for v in obj]
+    if isinstance(obj, np.generic):
+        return _finite(obj.item())
+    return obj
+
+
+json_safe = _finite

@@ -1,0 +1,172 @@
+"""Request and response bodies of the HTTP API (they make the OpenAPI document)."""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+
+class _In(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+# ------------------------------------------------------------------ inputs
+class OdometryReading(_In):
+    """One odometry reading: velocities held since the previous reading, or a pose increment."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra={
+        "oneOf": [{"required": ["t", "v", "omega"]}, {"required": ["t", "increment"]}]})
+
+    t: float = Field(description="timestamp, seconds; must exceed the session's previous input")
+    v: float | None = Field(None, description="forward velocity, m/s")
+    omega: float | None = Field(None, description="turn rate, rad/s")
+    increment: tuple[float, float, float] | None = Field(
+        None, description="relative pose (dx, dy, dtheta) in the previous pose's frame, instead of v/omega")
+
+
+class OdometryBatch(_In):
+    readings: list[OdometryReading] = Field(min_length=1, description="readings in increasing time order")
+
+
+class IngestAck(BaseModel):
+    """Inputs stored durably under sequence numbers ``seq``..``last_seq``."""
+
+    session: str
+    seq: int
+    last_seq: int
+    count: int
+
+
+# ---------------------------------------------------------------- sessions
+class SessionCreate(_In):
+    name: str = Field("", max_length=200, description="free label")
+    config: dict[str, dict[str, Any]] = Field(
+        default_factory=dict,
+        description="overrides of the model config by section, e.g. {\"mapper\": {\"keyframe_interval\": 10}}")
+
+
+class SessionInfo(BaseModel):
+    id: str
+    name: str
+    created: float
+    config_overrides: dict[str, Any]
+    stats: dict[str, Any] = Field(description="see GET /sessions/{id}/stats")
+
+
+class SessionDetail(SessionInfo):
+    config: dict[str, Any] = Field(description="the effective model config")
+    links: dict[str, str] = Field(description="URLs of the session's resources")
+
+
+class Stats(BaseModel):
+    """Server-side progress of a session and the mapper's own statistics."""
+
+    session: str
+    inputs_stored: int = Field(description="inputs accepted and durable")
+    last_seq: int = Field(description="sequence number of the last stored input (-1: none)")
+    last_t: float | None = Field(description="timestamp of the newest input of either kind")
+    last_odometry_t: float | None = Field(description="the next odometry reading must be later than this")
+    last_frame_t: float | None = Field(description="the next frame must be later than this")
+    processed_seq: int = Field(description="last input the mapper has consumed (-1: none)")
+    pending: int = Field(description="inputs stored but not yet consumed by the mapper")
+    snapshot_seq: int = Field(description="last input covered by the newest snapshot (-1: none)")
+    replaying: bool = Field(description="the session is restoring after a restart")
+    error: str | None = Field(description="why the session's worker stopped, if it did")
+    rejected: dict[str, int] = Field(description="rejected inputs by HTTP status")
+    mapper: dict[str, Any] = Field(description="Mapper.stats()")
+
+
+# ----------------------------------------------------------------- queries
+class Node(BaseModel):
+    id: int
+    pose: list[float] = Field(description="map pose (x, y, theta) after relaxation")
+    place_code: list[float] = Field(description="global place code p (x, y, theta), Eq. 11")
+    frame: int | None = Field(description="key frame learned at the node")
+    t: float | None
+
+
+class Link(BaseModel):
+    source: int
+    target: int
+    transform: list[float] = Field(description="(dx, dy, dtheta) of target in source's frame")
+    kind: str
+
+
+class MapGraph(BaseModel):
+    nodes: list[Node]
+    links: list[Link]
+
+
+class Event(BaseModel):
+    id: int = Field(description="event number in the session, from 0")
+    seq: int = Field(description="the input that caused it")
+    type: str
+    t: float | None
+    data: dict[str, Any]
+
+
+class LoopClosure(BaseModel):
+    """One loop-closure decision of the cognitive map, accepted or rejected."""
+
+    id: int = Field(description="event id (use since_id to page)")
+    t: float | None = Field(description="time of the hypothesis")
+    status: str
+    nodes: list[int | None] = Field(description="[current node, matched node]")
+    evidence: float | None
+    source: str | None = Field(description="what proposed it, e.g. 'visual'")
+    recognition: int | None = Field(description="id of the recognition (saccade trace) behind it")
+    saccades: str | None = Field(description="URL of the saccade trace")
+    decision: dict[str, Any] = Field(description="the decision as the cognitive map reported it")
+
+
+class RecognitionInfo(BaseModel):
+    id: int
+    t: float | None
+    node: int | None
+    accepted: bool | None
+    frame_id: int | None
+    evidence: float | None
+    n_fixations: int | None
+    saccades: str
+    image: str
+
+
+class PlaceFieldInfo(BaseModel):
+    step: int = Field(description="odometry step (counts odometry inputs from 0)")
+    seq: int
+    t: float
+
+
+class PlaceField(PlaceFieldInfo):
+    size: int = Field(description="the position matrix is size x size")
+    resolution: float = Field(description="metres per cell")
+    origin: list[float] = Field(description="corner o of the coding area, metres")
+    centroid: list[float] = Field(description="field centroid in the coding area, metres")
+    place_code: list[float] = Field(description="global place code p = o + centroid, with heading")
+    iterations: int
+    indices: list[int] = Field(description="flat indices iy * size + ix of the field's cells")
+
+
+# ------------------------------------------------------------------ tokens
+class TokenCreate(_In):
+    role: Literal["viewer", "writer"] = "viewer"
+    session: str | None = Field(None, description="viewer only: limit the token to this session")
+    label: str = Field("", max_length=200)
+
+
+class TokenInfo(BaseModel):
+    id: str
+    role: str
+    owner: str | None
+    session: str | None
+    label: str
+    created: float
+
+
+class TokenCreated(TokenInfo):
+    token: str = Field(description="the secret; shown only once")
+
+
+class Problem(BaseModel):
+    detail: Any

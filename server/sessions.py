@@ -1,0 +1,258 @@
+"""Live sessions: ordering, durability before acknowledgement, backpressure, restore.
+
+The path of an input (HTTP or websocket alike), all on the event loop except the commit:
+
+1. validated by :mod:`server.ingest` (nothing stored yet);
+2. :meth:`LiveSession.submit` — under the session's ingest lock: the timestamp must exceed
+   the last accepted one of the same kind (409 otherwise; the mapper's rule), room must exist in the mapper queue
+   (``max_pending``; HTTP waits up to ``backpressure_wait_s`` then gets 429, the websocket
+   waits), then sequence numbers are assigned and the write is queued to the store;
+3. the store commits (group commit) and, in commit order, hands the inputs to the
+   session's worker; only then is the future the caller awaits complete — the
+   acknowledgement always follows durability.
+
+:class:`SessionManager` creates, lists, finds (with the token rules of :mod:`server.auth`),
+deletes and, at start-up, restores every stored session.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import secrets
+import time
+from collections import Counter
+from typing import Any, Awaitable, Callable
+
+from pydantic import ValidationError
+
+from hippomap.config import HippomapConfig
+
+from . import model
+from .auth import can_read, can_write
+from .ingest import Accepted, IngestError, check_frame, pydantic_message
+from .limits import TokenBucket
+from .settings import ServerSettings
+from .store import InputRecord, SessionRecord, Store, TokenRecord
+from .worker import SessionWorker, WorkItem
+
+
+class NotFound(Exception):
+    """No such session — or one the token may not see (indistinguishable on purpose)."""
+
+
+class Forbidden(Exception):
+    """The token may see the session but not change it (a viewer token)."""
+
+
+class LiveSession:
+    """A session in memory: its record, config, worker and ingest state."""
+
+    def __init__(self, record: SessionRecord, config: HippomapConfig, store: Store, settings: ServerSettings,
+                 loop: asyncio.AbstractEventLoop) -> None:
+        self.record = record
+        self.config = config
+        self.store = store
+        self.settings = settings
+        self.loop = loop
+        last = store.last_input(record.id)
+        self.next_seq = 0 if last is None else last[0] + 1
+        #: timestamp of the last accepted input of each kind: the next one of that kind must exceed it
+        self.last_times: dict[str, float] = store.last_times(record.id)
+        self.stored_seq = self.next_seq - 1  # last durable input
+        self.pending = 0
+        self.closed = False
+        self.store_error: str | None = None
+        self.rejected: Counter[int] = Counter()
+        self.bucket = TokenBucket(settings.rate_per_s, settings.rate_burst)
+        self._lock = asyncio.Lock()
+        self._room = asyncio.Event()
+        self.worker = SessionWorker(record.id, config, store, settings, replay_until=self.next_seq - 1,
+                                    on_processed=self._processed_threadsafe)
+
+    @property
+    def id(self) -> str:
+        return self.record.id
+
+    @property
+    def error(self) -> str | None:
+        return self.store_error or self.worker.error
+
+    @property
+    def last_t(self) -> float | None:
+        """Timestamp of the newest accepted input of either kind."""
+        return max(self.last_times.values()) if self.last_times else None
+
+    # --------------------------------------------------------------- ingest
+    def _processed_threadsafe(self, seq: int) -> None:
+        try:
+            self.loop.call_soon_threadsafe(self._processed)
+        except RuntimeError:  # loop closed during shutdown
+            pass
+
+    def _processed(self) -> None:
+        self.pending = max(0, self.pending - 1)
+        self._room.set()
+
+    def _has_room(self, n: int) -> bool:
+        return self.pending == 0 or self.pending + n <= self.settings.max_pending
+
+    async def submit(self, items: list[Accepted], wait_s: float | None,
+                     on_busy: Callable[[], Awaitable[None]] | None = None) -> tuple[int, int, asyncio.Future]:
+        """Accept validated inputs; returns ``(first seq, last seq, durability future)``.
+
+        ``wait_s``: how long to wait for room in the mapper queue before 429 (None: forever,
+        calling ``on_busy`` once first — the websocket's "busy" notice)."""
+        async with self._lock:
+            if self.closed:
+                raise NotFound()
+            if self.error:
+                raise IngestError(503, f"session {self.id} cannot take inputs: {self.error}")
+            first = items[0]
+            last_t = self.last_times.get(first.kind)
+            if not model.follows(last_t, first.t):
+                raise IngestError(409, f"{first.kind} timestamp {first.t!r} does not follow the session's previous "
+                                       f"{first.kind} at {last_t!r}")
+            if not self._has_room(len(items)):
+                if wait_s is None and on_busy is not None:
+                    await on_busy()
+                deadline = None if wait_s is None else self.loop.time() + wait_s
+                while not self._has_room(len(items)):
+                    if self.closed:
+                        raise NotFound()
+                    self._room.clear()
+                    remaining = None if deadline is None else deadline - self.loop.time()
+                    if remaining is not None and remaining <= 0:
+                        raise IngestError(429, f"session {self.id} is busy: {self.pending} inputs wait for the mapper "
+                                               f"(limit {self.settings.max_pending}); retry later", retry_after=1)
+                    try:
+                        await asyncio.wait_for(self._room.wait(), remaining)
+                    except asyncio.TimeoutError:
+                        pass
+            seq0 = self.next_seq
+            records = [InputRecord(seq=seq0 + k, kind=a.kind, t=a.t, data=a.data) for k, a in enumerate(items)]
+            work = [WorkItem(seq0 + k, a.value) for k, a in enumerate(items)]
+            self.next_seq += len(items)
+            for a in items:
+                self.last_times[a.kind] = a.t
+            self.pending += len(items)
+            worker = self.worker
+            cfut = self.store.append_inputs(self.id, records, on_durable=lambda: worker.put(work))
+        last = seq0 + len(items) - 1
+        fut = asyncio.wrap_future(cfut, loop=self.loop)
+        fut.add_done_callback(lambda f: self._stored(f, last))
+        return seq0, last, fut
+
+    def _stored(self, fut: asyncio.Future, last: int) -> None:
+        if fut.cancelled() or fut.exception() is not None:
+            # sequence numbers were promised but not stored: refuse further inputs rather than leave a gap
+            self.store_error = f"storage failed: {None if fut.cancelled() else fut.exception()}"
+            return
+        self.stored_seq = max(self.stored_seq, last)
+
+    def _validate_frame(self, data: bytes, t: Any) -> Accepted:
+        accepted = check_frame(data, t, self.settings)
+        try:  # the model's own rules (e.g. large enough for the fovea)
+            model.check_frame(self.config, accepted.value)
+        except ValueError as exc:
+            raise IngestError(422, str(exc)) from None
+        return accepted
+
+    async def validate_frame(self, data: bytes, t: Any) -> Accepted:
+        """Validate an encoded frame off the event loop (decoding is CPU work): IngestError if bad."""
+        return await asyncio.to_thread(self._validate_frame, data, t)
+
+    # ---------------------------------------------------------------- state
+    def stats(self) -> dict[str, Any]:
+        w = self.worker
+        mapper_stats = w.query(model.stats) or {}
+        return {
+            "session": self.id,
+            "inputs_stored": self.stored_seq + 1,
+            "last_seq": self.stored_seq,
+            "last_t": self.last_t,
+            "last_odometry_t": self.last_times.get("odometry"),
+            "last_frame_t": self.last_times.get("frame"),
+            "processed_seq": w.processed_seq,
+            "pending": max(0, self.stored_seq - w.processed_seq),
+            "snapshot_seq": w.snapshot_seq,
+            "replaying": w.replaying,
+            "error": self.error,
+            "rejected": {str(k): v for k, v in sorted(self.rejected.items())},
+            "mapper": mapper_stats,
+        }
+
+
+class SessionManager:
+    """All live sessions of the server."""
+
+    def __init__(self, store: Store, settings: ServerSettings) -> None:
+        self.store = store
+        self.settings = settings
+        self.sessions: dict[str, LiveSession] = {}
+        self.loop: asyncio.AbstractEventLoop | None = None
+
+    def start(self, loop: asyncio.AbstractEventLoop) -> None:
+        """Restore every stored session (each worker replays in its own thread)."""
+        self.loop = loop
+        for rec in self.store.list_sessions():
+            try:
+                config = model.effective_config(rec.config)
+            except ValueError:
+                config = HippomapConfig()
+            self._open(rec, config)
+
+    def _open(self, rec: SessionRecord, config: HippomapConfig) -> LiveSession:
+        assert self.loop is not None
+        live = LiveSession(rec, config, self.store, self.settings, self.loop)
+        self.sessions[rec.id] = live
+        live.worker.start()
+        return live
+
+    def stop(self) -> None:
+        for live in list(self.sessions.values()):
+            live.closed = True
+            live.worker.stop(snapshot=True)
+        self.sessions.clear()
+
+    # ------------------------------------------------------------ commands
+    async def create(self, token: TokenRecord, name: str, overrides: dict[str, Any]) -> LiveSession:
+        if token.role == "viewer":
+            raise Forbidden()
+        try:
+            config = model.effective_config(overrides)
+        except ValidationError as exc:
+            raise IngestError(422, f"invalid config: {pydantic_message(exc)}") from None
+        except (ValueError, TypeError) as exc:
+            raise IngestError(422, f"invalid config: {exc}") from None
+        owned = sum(1 for s in self.sessions.values() if s.record.owner == token.id)
+        if owned >= self.settings.max_sessions_per_token:
+            raise IngestError(429, f"token {token.id} already owns {owned} sessions "
+                                   f"(limit {self.settings.max_sessions_per_token}); delete one first")
+        rec = SessionRecord(id="s_" + secrets.token_hex(8), owner=token.id, name=name, config=overrides,
+                            created=time.time())
+        await asyncio.wrap_future(self.store.create_session(rec))
+        live = self._open(rec, config)
+        # answer once the mapper exists: building it (grid-cell tables...) must not delay the first inputs
+        await asyncio.to_thread(live.worker.ready.wait, 120)
+        return live
+
+    def visible(self, token: TokenRecord) -> list[LiveSession]:
+        return [s for s in self.sessions.values() if can_read(token, s.record)]
+
+    def get(self, token: TokenRecord, session_id: str, write: bool = False) -> LiveSession:
+        live = self.sessions.get(session_id)
+        if live is None or live.closed or not can_read(token, live.record):
+            raise NotFound()
+        if write and not can_write(token, live.record):
+            raise Forbidden()
+        return live
+
+    async def delete(self, token: TokenRecord, session_id: str) -> None:
+        live = self.get(token, session_id, write=True)
+        live.closed = True
+        live._room.set()  # wakes an ingest waiting for room; it sees `closed` and gives up
+        async with live._lock:  # no submit is half-way through after this
+            pass
+        self.sessions.pop(session_id, None)
+        await asyncio.to_thread(live.worker.stop, False)
+        await asyncio.wrap_future(self.store.delete_session(session_id))

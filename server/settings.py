@@ -1,0 +1,77 @@
+"""Server settings: where data lives, and every limit the server enforces.
+
+These are service parameters, not model parameters (those live in
+``hippomap/config.py``). Every field can be set from the environment as
+``HIPPOMAP_<FIELD>`` (upper case), e.g. ``HIPPOMAP_DATA_DIR=/var/lib/hippomap``; the
+``serve`` command's flags override the environment.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+
+class ServerSettings(BaseModel):
+    """All settings of one server process."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    data_dir: Path = Field(Path("hippomap-data"), description="folder of the embedded database and the admin token file")
+    database: str | None = Field(
+        None, description="database location: a SQLite file path (default <data_dir>/hippomap.sqlite3)"
+    )
+    durability: Literal["full", "normal"] = Field(
+        "full",
+        description="SQLite synchronous mode: 'full' fsyncs every commit (survives power loss); "
+        "'normal' survives a process crash only",
+    )
+    # ---- limits (security) ----
+    max_body_bytes: int = Field(8 << 20, ge=1024, description="largest HTTP request body or websocket message")
+    max_frame_bytes: int = Field(4 << 20, ge=1024, description="largest encoded camera frame")
+    max_image_side: int = Field(4096, ge=32, description="largest frame width or height, pixels")
+    max_image_pixels: int = Field(8_000_000, ge=1024, description="largest frame area, pixels")
+    max_odometry_batch: int = Field(10_000, ge=1, description="most readings in one odometry batch")
+    rate_per_s: float = Field(500.0, gt=0, description="requests (HTTP) or messages (websocket) per second per session")
+    rate_burst: float = Field(1000.0, ge=1, description="burst allowance of the per-session rate limit")
+    max_pending: int = Field(
+        256, ge=1, description="inputs accepted but not yet processed by the mapper before backpressure starts"
+    )
+    backpressure_wait_s: float = Field(
+        2.0, ge=0, description="how long an HTTP ingest waits for queue room before answering 429"
+    )
+    max_sessions_per_token: int = Field(100, ge=1, description="live sessions one token may own")
+    switch_interval_s: float = Field(
+        0.0005, gt=0, le=0.1,
+        description="Python's GIL switch interval in the server process: short, so the event loop (acks) is not "
+        "held up for long behind a mapper thread (Python's default is 5 ms)")
+    # ---- persistence ----
+    snapshot_every_inputs: int = Field(2000, ge=1, description="snapshot the mapper after this many inputs...")
+    snapshot_every_s: float = Field(60.0, gt=0, description="...or this many seconds, whichever comes first")
+    keep_snapshots: int = Field(2, ge=1, description="snapshots kept per session (older ones are deleted)")
+    # ---- auth ----
+    admin_token: str | None = Field(
+        None, description="the admin token; if unset one is generated on first start and saved in <data_dir>/admin.token"
+    )
+
+    @property
+    def database_path(self) -> Path:
+        return Path(self.database) if self.database else Path(self.data_dir) / "hippomap.sqlite3"
+
+    @property
+    def token_file(self) -> Path:
+        return Path(self.data_dir) / "admin.token"
+
+    @classmethod
+    def from_env(cls, **overrides: Any) -> "ServerSettings":
+        """Defaults, then ``HIPPOMAP_*`` environment variables, then ``overrides`` (None = unset)."""
+        values: dict[str, Any] = {}
+        for name in cls.model_fields:
+            env = os.environ.get(f"HIPPOMAP_{name.upper()}")
+            if env is not None and env != "":
+                values[name] = env
+        values.update({k: v for k, v in overrides.items() if v is not None})
+        return cls.model_validate(values)

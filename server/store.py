@@ -1,0 +1,182 @@
+"""The storage interface: what the server keeps, independent of the database behind it.
+
+Everything the server must not lose goes through a :class:`Store`:
+
+* **tokens** (only a hash of each secret is kept) and **sessions** (owner, name, config overrides);
+* **inputs**: every accepted odometry reading and camera frame (the JPEG as received), numbered by a
+  per-session sequence number ``seq`` — written *before* the input is acknowledged;
+* **snapshots** of each session's mapper (``Mapper.to_bytes``) tagged with the last ``seq`` they contain;
+* **derived records** the mapper produced (events, place fields), tagged with the ``seq`` of the input
+  that produced them, so a restore can drop those after the snapshot and regenerate them by replay.
+
+Writes return a :class:`concurrent.futures.Future` that completes once the write is durable; the
+embedded backend (:mod:`server.sqlite_store`) commits many writes per transaction (group commit).
+Writes of one store complete in submission order. Reads are synchronous and thread-safe.
+A PostgreSQL backend only has to implement this class.
+"""
+
+from __future__ import annotations
+
+import abc
+from concurrent.futures import Future
+from dataclasses import dataclass, field
+from typing import Any, Callable, Literal
+
+Role = Literal["admin", "writer", "viewer"]
+InputKind = Literal["odometry", "frame"]
+
+
+@dataclass(frozen=True)
+class TokenRecord:
+    """A bearer token (never the secret itself). ``owner``: for viewer tokens, the writer
+    token whose sessions it may read; ``session``: optionally limits a viewer to one session."""
+
+    id: str
+    role: Role
+    owner: str | None = None
+    session: str | None = None
+    label: str = ""
+    created: float = 0.0
+
+
+@dataclass(frozen=True)
+class SessionRecord:
+    """A mapping session: who owns it and the config overrides it was created with."""
+
+    id: str
+    owner: str
+    name: str = ""
+    config: dict[str, Any] = field(default_factory=dict)
+    created: float = 0.0
+
+
+@dataclass(frozen=True)
+class InputRecord:
+    """One stored input: odometry (``data`` = JSON bytes) or a frame (``data`` = the encoded image)."""
+
+    seq: int
+    kind: InputKind
+    t: float
+    data: bytes
+
+
+@dataclass(frozen=True)
+class EventRecord:
+    """One mapper event (``data`` is the event dict); ``id`` numbers a session's events from 0."""
+
+    id: int
+    seq: int
+    type: str
+    t: float | None
+    data: dict[str, Any]
+    ref: int | None = None  # the event's own id in the mapper (e.g. a recognition id), for lookup
+
+
+@dataclass(frozen=True)
+class PlaceFieldRecord:
+    """The place field of one odometry step (``step`` counts odometry inputs from 0)."""
+
+    step: int
+    seq: int
+    t: float
+    data: bytes
+
+
+class Store(abc.ABC):
+    """Durable storage of one server. All methods are thread-safe."""
+
+    # ---------------------------------------------------------------- tokens
+    @abc.abstractmethod
+    def add_token(self, secret_hash: str, token: TokenRecord) -> Future: ...
+
+    @abc.abstractmethod
+    def token_by_hash(self, secret_hash: str) -> TokenRecord | None: ...
+
+    @abc.abstractmethod
+    def list_tokens(self, owner: str) -> list[TokenRecord]:
+        """Tokens created by ``owner`` (and the owner itself)."""
+
+    @abc.abstractmethod
+    def delete_token(self, token_id: str) -> Future: ...
+
+    # -------------------------------------------------------------- sessions
+    @abc.abstractmethod
+    def create_session(self, session: SessionRecord) -> Future: ...
+
+    @abc.abstractmethod
+    def list_sessions(self) -> list[SessionRecord]:
+        """Every stored session (the server filters by owner)."""
+
+    @abc.abstractmethod
+    def delete_session(self, session_id: str) -> Future:
+        """Drop a session with all its inputs, snapshots and derived records."""
+
+    # ---------------------------------------------------------------- inputs
+    @abc.abstractmethod
+    def append_inputs(self, session_id: str, inputs: list[InputRecord],
+                      on_durable: Callable[[], None] | None = None) -> Future:
+        """Store inputs (consecutive ``seq``). ``on_durable`` runs, in submission order, right
+        after the commit and before the future completes."""
+
+    @abc.abstractmethod
+    def last_input(self, session_id: str) -> tuple[int, float] | None:
+        """``(seq, t)`` of the session's last stored input, or None."""
+
+    @abc.abstractmethod
+    def last_times(self, session_id: str) -> dict[str, float]:
+        """The timestamp of the last stored input of each kind (kinds never stored are absent)."""
+
+    @abc.abstractmethod
+    def read_inputs(self, session_id: str, after_seq: int, limit: int, with_data: bool = True) -> list[InputRecord]:
+        """Inputs with ``seq > after_seq`` in order, at most ``limit``."""
+
+    @abc.abstractmethod
+    def input_by_seq(self, session_id: str, seq: int) -> InputRecord | None: ...
+
+    @abc.abstractmethod
+    def frame_at(self, session_id: str, t: float) -> InputRecord | None:
+        """The frame input with timestamp ``t`` exactly, or None."""
+
+    # -------------------------------------------------------------- snapshots
+    @abc.abstractmethod
+    def put_snapshot(self, session_id: str, seq: int, data: bytes, keep: int) -> Future:
+        """Store a mapper snapshot covering inputs up to ``seq``; keep only the ``keep`` newest."""
+
+    @abc.abstractmethod
+    def latest_snapshot(self, session_id: str) -> tuple[int, bytes] | None: ...
+
+    # ------------------------------------------------------- derived records
+    @abc.abstractmethod
+    def append_derived(self, session_id: str, events: list[EventRecord],
+                       fields: list[PlaceFieldRecord]) -> Future: ...
+
+    @abc.abstractmethod
+    def truncate_derived(self, session_id: str, after_seq: int) -> Future:
+        """Delete derived records of inputs with ``seq > after_seq`` (before a replay)."""
+
+    @abc.abstractmethod
+    def derived_counts(self, session_id: str) -> tuple[int, int]:
+        """``(number of events, number of place fields)`` stored for the session."""
+
+    @abc.abstractmethod
+    def query_events(self, session_id: str, types: list[str] | None = None, since_id: int = -1,
+                     t_min: float | None = None, t_max: float | None = None, limit: int = 1000) -> list[EventRecord]: ...
+
+    @abc.abstractmethod
+    def event_by_ref(self, session_id: str, type: str, ref: int) -> EventRecord | None:
+        """The event of ``type`` whose ``ref`` is ``ref`` (e.g. recognition number ``ref``)."""
+
+    @abc.abstractmethod
+    def place_fields(self, session_id: str, since_step: int = -1, limit: int = 1000,
+                     with_data: bool = False) -> list[PlaceFieldRecord]: ...
+
+    @abc.abstractmethod
+    def place_field(self, session_id: str, step: int) -> PlaceFieldRecord | None: ...
+
+    # ------------------------------------------------------------- lifecycle
+    @abc.abstractmethod
+    def flush(self) -> None:
+        """Wait until every submitted write is durable."""
+
+    @abc.abstractmethod
+    def close(self) -> None: ...

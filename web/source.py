@@ -1,0 +1,171 @@
+"""What a session viewer reads: the :class:`SessionSource` interface, and an in-process session.
+
+A session's :class:`~hippomap.mapper.Mapper` is mutated by the session's worker thread. The viewer
+never holds it longer than a copy takes: :meth:`SessionSource.read` runs a function on the
+mapper under the session's lock, and the function only copies arrays (see :mod:`web.snapshot`);
+everything heavier (geometry, colour maps, JPEG) happens afterwards in the viewer's thread.
+
+The mapper keeps no camera images (the visual memory stores fovea patches only), so images come
+from the source too: the service reads them from its store (every frame it received is kept);
+:class:`LocalSession` keeps the latest frame, the key frames and the recognised frames itself.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import OrderedDict
+from dataclasses import dataclass
+from typing import Any, Callable, Iterable, Protocol, TypeVar, runtime_checkable
+
+import numpy as np
+
+from hippomap.config import HippomapConfig
+from hippomap.inputs import Frame, Odometry
+from hippomap.mapper import Mapper
+
+T = TypeVar("T")
+
+
+@dataclass(frozen=True)
+class CameraImage:
+    """A camera frame as received: time stamp and uint8 image (gray or BGR). Not to be mutated."""
+
+    t: float
+    image: np.ndarray
+
+
+@runtime_checkable
+class SessionSource(Protocol):
+    """A mapping session as the viewer sees it (read-only)."""
+
+    @property
+    def session_id(self) -> str: ...
+
+    @property
+    def title(self) -> str:
+        """A human name for the page title and the landing page."""
+
+    @property
+    def closed(self) -> bool:
+        """True once the session is gone (its viewer is then closed)."""
+
+    def read(self, fn: Callable[[Mapper], T]) -> T | None:
+        """Run ``fn(mapper)`` under the lock the worker mutates the mapper under; ``fn`` only copies.
+        None if the session has no mapper yet (e.g. while it is restored)."""
+
+    def latest_frame(self) -> CameraImage | None:
+        """The newest camera frame the session received, or None."""
+
+    def frame_at(self, t: float) -> np.ndarray | None:
+        """The camera frame with time stamp ``t`` (a recognition's query frame), or None."""
+
+    def keyframe_image(self, frame_id: int) -> np.ndarray | None:
+        """The image learned as key frame ``frame_id`` (the visual memory keeps only patches), or None."""
+
+    def lag_s(self) -> float | None:
+        """Seconds between receiving the newest input and the mapper having processed it (None: unknown)."""
+
+
+class _ImageCache:
+    """A bounded, thread-safe map of images (oldest evicted first)."""
+
+    def __init__(self, capacity: int) -> None:
+        self.capacity = capacity
+        self._d: OrderedDict[Any, np.ndarray] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def put(self, key: Any, image: np.ndarray) -> None:
+        with self._lock:
+            self._d[key] = image
+            self._d.move_to_end(key)
+            while len(self._d) > self.capacity:
+                self._d.popitem(last=False)
+
+    def get(self, key: Any) -> np.ndarray | None:
+        with self._lock:
+            return self._d.get(key)
+
+
+class LocalSession:
+    """A mapper fed in-process (tests, benchmarks, the demo): a :class:`SessionSource` that owns its data.
+
+    :meth:`step` and :meth:`observe` feed the mapper under the session lock and keep the images
+    the viewer needs (the latest frame, each learned key frame, each recognition's query frame;
+    at most ``image_capacity`` of the last two kinds).
+    """
+
+    def __init__(self, session_id: str = "local", mapper: Mapper | None = None,
+                 config: HippomapConfig | None = None, title: str = "", image_capacity: int = 2000) -> None:
+        self._id = session_id
+        self._title = title or session_id
+        self.mapper = mapper if mapper is not None else Mapper(config)
+        self.lock = threading.RLock()
+        self._latest: CameraImage | None = None
+        self._keyframes = _ImageCache(image_capacity)
+        self._queries = _ImageCache(image_capacity)
+        self._received = 0.0  # wall time of the newest input handed to step/observe
+        self._processed = 0.0
+        self._closed = False
+
+    @property
+    def session_id(self) -> str:
+        return self._id
+
+    @property
+    def title(self) -> str:
+        return self._title
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    def close(self) -> None:
+        self._closed = True
+
+    def read(self, fn: Callable[[Mapper], T]) -> T:
+        with self.lock:
+            return fn(self.mapper)
+
+    def step(self, odometry: Odometry) -> list[dict[str, Any]]:
+        self._received = time.monotonic()
+        with self.lock:
+            events = self.mapper.step(odometry)
+        self._processed = time.monotonic()
+        return events
+
+    def observe(self, frame: Frame) -> list[dict[str, Any]]:
+        self._received = time.monotonic()
+        with self.lock:
+            events = self.mapper.observe(frame)
+        self._processed = time.monotonic()
+        self._latest = CameraImage(frame.t, frame.image)
+        for e in events:
+            if e.get("type") == "keyframe_learned":
+                self._keyframes.put(int(e["frame"]), frame.image)
+            elif e.get("type") == "recognition":
+                self._queries.put(float(frame.t), frame.image)
+        return events
+
+    def feed(self, items: Iterable[Odometry | Frame]) -> int:
+        """Feed inputs in order; returns how many were fed."""
+        n = 0
+        for item in items:
+            (self.step if isinstance(item, Odometry) else self.observe)(item)
+            n += 1
+        return n
+
+    def latest_frame(self) -> CameraImage | None:
+        return self._latest
+
+    def frame_at(self, t: float) -> np.ndarray | None:
+        return self._queries.get(float(t))
+
+    def keyframe_image(self, frame_id: int) -> np.ndarray | None:
+        return self._keyframes.get(int(frame_id))
+
+    def lag_s(self) -> float | None:
+        """Seconds the input being processed has waited (0 when the mapper is idle)."""
+        if self._received == 0.0:
+            return None
+        return max(0.0, time.monotonic() - self._received) if self._received > self._processed else 0.0
