@@ -38,7 +38,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from .config import MapConfig
-from .errors import InputError
+from .errors import InputError, finite
 from .geometry import between, compose
 from .relaxation import (
     ColourGroups,
@@ -103,16 +103,6 @@ def _vec3(value: Any, name: str) -> tuple[float, float, float]:
     if not np.all(np.isfinite(arr)):
         raise InputError(f"{name} must be finite, got {value!r}")
     return (float(arr[0]), float(arr[1]), float(arr[2]))
-
-
-def _finite(value: Any, name: str) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise InputError(f"{name} must be a number, got {value!r}") from None
-    if not math.isfinite(v):
-        raise InputError(f"{name} must be finite, got {value!r}")
-    return v
 
 
 def _node_id(value: Any, name: str) -> int:
@@ -274,8 +264,8 @@ class LoopHypothesis:
             raise InputError(f"LoopHypothesis.node must be >= 0, got {self.node}")
         if self.transform is not None:
             object.__setattr__(self, "transform", _vec3(self.transform, "LoopHypothesis.transform"))
-        object.__setattr__(self, "evidence", _finite(self.evidence, "LoopHypothesis.evidence"))
-        object.__setattr__(self, "time", _finite(self.time, "LoopHypothesis.time"))
+        object.__setattr__(self, "evidence", finite("LoopHypothesis.evidence", self.evidence))
+        object.__setattr__(self, "time", finite("LoopHypothesis.time", self.time))
         if not isinstance(self.source, str):
             raise InputError(f"LoopHypothesis.source must be a string, got {self.source!r}")
         if not isinstance(self.meta, dict):
@@ -562,7 +552,7 @@ class CognitiveMap:
         """
         inc = _vec3(increment, "odometry increment")
         code = None if place_code is None else _vec3(place_code, "place code")
-        t = _finite(t, "time t")
+        t = finite("time t", t)
         if self._t is not None and t < self._t:
             raise InputError(f"time t={t} is before the previous update's time {self._t}")
         self._t = t
@@ -842,7 +832,7 @@ class CognitiveMap:
         ``exclude_recent`` drops the current node and the last ``N_excl`` nodes (spec §4 set C).
         """
         p = _vec3(place_code, "place code")
-        r = _finite(radius, "radius")
+        r = finite("radius", radius)
         n = self._n
         d = self.cfg.mu_p * np.hypot(self._C[:n, 0] - p[0], self._C[:n, 1] - p[1])
         mask = d < r

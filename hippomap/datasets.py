@@ -124,24 +124,19 @@ def _check_increasing(t: np.ndarray, path: Path, lines: list[int] | None = None)
 
 def read_timestamps(path: str | Path) -> np.ndarray:
     """One timestamp per line (seconds), strictly increasing."""
-    path = Path(path)
-    out: list[float] = []
-    lines: list[int] = []
-    with path.open() as fh:
-        for lineno, line in enumerate(fh, 1):
-            s = line.strip()
-            if not s:
-                continue
-            out.append(_floats([s], path, lineno, line)[0])
-            lines.append(lineno)
-    t = np.array(out, dtype=float)
-    _check_increasing(t, path, lines)
-    return t
+    return _numeric_rows(Path(path), 1, "t", None)[:, 0]
 
 
 def read_groundtruth_csv(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     """``t, x, y, theta`` rows (comma separated, optional header) -> (t (M,), poses (M, 3))."""
-    path = Path(path)
+    arr = _numeric_rows(Path(path), 4, "t,x,y,theta", ",", header_allowed=True)
+    return arr[:, 0], arr[:, 1:4]
+
+
+def _numeric_rows(path: Path, width: int, columns: str, sep: str | None, header_allowed: bool = False) -> np.ndarray:
+    """Rows of ``width`` finite numbers (``#`` comments and blank lines skipped, an optional
+    non-numeric first line taken as a header); timestamps in column 0 must increase.
+    Every error names the file and line."""
     rows: list[list[float]] = []
     lines: list[int] = []
     with path.open() as fh:
@@ -149,18 +144,18 @@ def read_groundtruth_csv(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
             s = line.strip()
             if not s or s.startswith("#"):
                 continue
-            tokens = [t.strip() for t in s.split(",")]
-            if lineno == 1 and not _is_number(tokens[0]):
-                continue  # header
-            if len(tokens) != 4:
-                raise InputError(f"{path}:{lineno}: expected 't,x,y,theta', got {s!r}")
+            tokens = [t.strip() for t in s.split(sep)] if sep else s.replace(",", " ").split()
+            if header_allowed and lineno == 1 and not _is_number(tokens[0]):
+                continue
+            if len(tokens) != width:
+                raise InputError(f"{path}:{lineno}: expected {columns!r}, got {s!r}")
             rows.append(_floats(tokens, path, lineno, line))
             lines.append(lineno)
     if not rows:
-        raise InputError(f"{path}: no ground-truth rows")
+        raise InputError(f"{path}: no rows of {columns!r}")
     arr = np.array(rows, dtype=float)
     _check_increasing(arr[:, 0], path, lines)
-    return arr[:, 0], arr[:, 1:4]
+    return arr
 
 
 def _is_number(s: str) -> bool:
@@ -295,22 +290,7 @@ def read_folder_dataset(folder: str | Path) -> SensorDataset:
 
 def _read_tum_like(path: Path) -> np.ndarray:
     """``t tx ty tz qx qy qz qw`` rows (TUM trajectory files), comments with '#'."""
-    rows, lines = [], []
-    with path.open() as fh:
-        for lineno, line in enumerate(fh, 1):
-            s = line.strip()
-            if not s or s.startswith("#"):
-                continue
-            tokens = s.replace(",", " ").split()
-            if len(tokens) != 8:
-                raise InputError(f"{path}:{lineno}: expected 't tx ty tz qx qy qz qw', got {s!r}")
-            rows.append(_floats(tokens, path, lineno, line))
-            lines.append(lineno)
-    if not rows:
-        raise InputError(f"{path}: no poses")
-    arr = np.array(rows)
-    _check_increasing(arr[:, 0], path, lines)
-    return arr
+    return _numeric_rows(path, 8, "t tx ty tz qx qy qz qw", None)
 
 
 def _tum_to_se2(arr: np.ndarray) -> np.ndarray:

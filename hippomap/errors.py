@@ -7,3 +7,16 @@ class HippomapError(Exception):
 
 class InputError(HippomapError, ValueError):
     """Bad input: NaN/infinite odometry, non-increasing timestamps, malformed files, bad images."""
+
+
+def finite(name: str, value: object) -> float:
+    """``value`` as a float, or an InputError naming ``name`` when it is not a finite number."""
+    import math
+
+    try:
+        f = float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        raise InputError(f"{name} must be a number, got {value!r}") from None
+    if not math.isfinite(f):
+        raise InputError(f"{name} must be finite, got {f}")
+    return f

@@ -13,17 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import InputError
-
-
-def _finite(name: str, value: float) -> float:
-    try:
-        f = float(value)
-    except (TypeError, ValueError):
-        raise InputError(f"{name} must be a number, got {value!r}") from None
-    if not math.isfinite(f):
-        raise InputError(f"{name} must be finite, got {f}")
-    return f
+from .errors import InputError, finite
 
 
 @dataclass(frozen=True)
@@ -36,19 +26,19 @@ class Odometry:
     increment: tuple[float, float, float] | None = None
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "t", _finite("odometry t", self.t))
+        object.__setattr__(self, "t", finite("odometry t", self.t))
         if self.increment is not None:
             if self.v is not None or self.omega is not None:
                 raise InputError("odometry carries either (v, omega) or an increment, not both")
             if len(self.increment) != 3:
                 raise InputError(f"odometry increment must be (dx, dy, dtheta), got {self.increment!r}")
-            inc = tuple(_finite(f"odometry {k}", x) for k, x in zip(("dx", "dy", "dtheta"), self.increment))
+            inc = tuple(finite(f"odometry {k}", x) for k, x in zip(("dx", "dy", "dtheta"), self.increment))
             object.__setattr__(self, "increment", inc)
         else:
             if self.v is None or self.omega is None:
                 raise InputError("odometry needs v and omega (or an increment)")
-            object.__setattr__(self, "v", _finite("odometry v", self.v))
-            object.__setattr__(self, "omega", _finite("odometry omega", self.omega))
+            object.__setattr__(self, "v", finite("odometry v", self.v))
+            object.__setattr__(self, "omega", finite("odometry omega", self.omega))
 
     def as_increment(self, dt: float) -> tuple[float, float, float]:
         """The relative pose increment over ``dt``: the exact arc driven at constant
@@ -72,7 +62,7 @@ class Frame:
     image: np.ndarray
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "t", _finite("frame t", self.t))
+        object.__setattr__(self, "t", finite("frame t", self.t))
         img = self.image
         if not isinstance(img, np.ndarray):
             raise InputError(f"frame image must be a numpy array, got {type(img).__name__}")
