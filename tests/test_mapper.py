@@ -1,0 +1,84 @@
+"""The whole mapper: save -> restore -> continue is indistinguishable from an
+uninterrupted run, and rejected input never changes its state."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from hippomap import sim
+from hippomap.config import HippomapConfig
+from hippomap.errors import InputError
+from hippomap.inputs import Frame, Odometry
+from hippomap.mapper import Mapper
+
+CONFIG = HippomapConfig.with_overrides({"mapper": {"keyframe_interval": 5}})
+
+
+@pytest.fixture(scope="module")
+def inputs():
+    world = sim.loop_world(seed=3, size=(8.0, 5.0))
+    run = sim.simulate(world, None, rate_hz=5.0, seed=1,
+                       odometry_noise=sim.OdometryNoise(sigma_v=0.02, sigma_omega=0.01, omega_bias=0.01))
+    n = min(len(run), 260)
+    out = []
+    for i in range(n):
+        t, v, w = run.odometry[i]
+        out.append(Odometry(float(t), v=float(v), omega=float(w)))
+        out.append(Frame(float(t), run.frame(i)))
+    return out
+
+
+def feed(m: Mapper, items) -> list[str]:
+    events = []
+    for item in items:
+        ev = m.step(item) if isinstance(item, Odometry) else m.observe(item)
+        events.extend(json.dumps(e, sort_keys=True, default=float) for e in ev)
+    return events
+
+
+def test_save_restore_continue_is_identical(inputs):
+    whole = Mapper(CONFIG)
+    events_whole = feed(whole, inputs)
+    assert whole.stats()["keyframes"] > 10 and whole.stats()["nodes"] > 10
+
+    half = len(inputs) // 2 + 1  # cut between an odometry step and its frame
+    first = Mapper(CONFIG)
+    events_first = feed(first, inputs[:half])
+    restored = Mapper.from_bytes(first.to_bytes())
+    events_rest = feed(restored, inputs[half:])
+
+    assert events_first + events_rest == events_whole
+    np.testing.assert_array_equal(restored.corrected_trajectory(), whole.corrected_trajectory())
+    np.testing.assert_array_equal(restored.odometry_trajectory(), whole.odometry_trajectory())
+    assert restored.stats() == whole.stats()
+    assert restored.to_bytes() == whole.to_bytes()
+
+
+def test_rejected_input_leaves_state_untouched(inputs):
+    m = Mapper(CONFIG)
+    feed(m, inputs[:40])
+    before = m.to_bytes()
+    last = inputs[38]
+    with pytest.raises(InputError, match="odometry timestamp"):
+        m.step(Odometry(last.t, v=0.1, omega=0.0))  # not after the previous odometry
+    with pytest.raises(InputError, match="frame timestamp"):
+        m.observe(Frame(inputs[1].t, inputs[1].image))
+    with pytest.raises(InputError):
+        m.observe(Frame(inputs[41].t, np.zeros((4, 4), np.uint8)))  # too small for the fovea
+    with pytest.raises(InputError, match="takes an Odometry"):
+        m.step({"t": 99.0, "v": 1.0})
+    assert m.to_bytes() == before
+
+
+def test_frames_may_share_a_timestamp_with_odometry(inputs):
+    m = Mapper(CONFIG)
+    feed(m, inputs[:4])
+    assert inputs[2].t == inputs[3].t and m.stats()["frames"] == 2
+
+
+def test_snapshot_errors_are_clear():
+    with pytest.raises(InputError, match="not a hippomap mapper snapshot"):
+        Mapper.from_bytes(b"garbage")
