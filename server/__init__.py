@@ -11,11 +11,15 @@ Modules, one concept each:
 * :mod:`server.auth`      — bearer tokens, roles and who sees which session
 * :mod:`server.limits`    — request-rate buckets and the body-size guard
 * :mod:`server.ingest`    — parsing and validating odometry and frames (4xx naming the problem)
+* :mod:`server.images`    — image header sniffing (sizes before decoding) and encoding
 * :mod:`server.protocol`  — the websocket stream's messages and binary frame header
 * :mod:`server.model`     — the only module that touches the mapper (create, load, query)
 * :mod:`server.worker`    — one thread per session feeding its mapper in order, snapshotting
 * :mod:`server.sessions`  — live sessions: ordering, durability, backpressure, restore
 * :mod:`server.views`     — serialisers: GraphML, g2o, TUM, place fields, saccade images
-* :mod:`server.api`       — the FastAPI routes; :mod:`server.app` assembles the app
-* :mod:`server.cli`       — ``hippomap serve``
+* :mod:`server.schemas`   — request/response bodies (the OpenAPI document)
+* :mod:`server.api`       — the FastAPI routes; :mod:`server.app` assembles the app (and mounts the
+  viewer of package ``web`` at ``/viewer/``)
+* :mod:`server.cli`       — ``hippomap serve``; :mod:`server.demo` its simulated robot (``--demo``)
+* :mod:`server.testing`   — a live server in a subprocess and synthetic robot data, for tests and benchmarks
 """

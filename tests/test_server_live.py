@@ -415,6 +415,8 @@ def test_serve_demo_streams_a_simulated_robot_and_prints_the_viewer_url(tmp_path
         m = re.search(r"(http://\S+)/viewer/(s_[0-9a-f]+)/\?token=(hm_\S+)", line)
         assert m and m.group(1) == srv.url
         sid, viewer_token = m.group(2), m.group(3)
+        page = httpx.get(f"{srv.url}/viewer/{sid}/", params={"token": viewer_token}, timeout=30)
+        assert page.status_code == 200 and "text/html" in page.headers["content-type"]
         from hippomap.client import Client
 
         with Client(srv.url, viewer_token) as viewer:  # the printed token reads that session
