@@ -16,7 +16,7 @@ from typing import Callable
 log = logging.getLogger("hippomap.server")
 
 
-async def run_demo(url: str, token: str, rate_hz: float = 10.0, laps: int = 3, seed: int = 1,
+async def run_demo(url: str, token: str, rate_hz: float = 10.0, laps: int = 10, seed: int = 1,
                    stopping: Callable[[], bool] = lambda: False) -> str:
     """Stream one simulated run in real time; returns the session id. ``stopping()`` tells
     whether the server is shutting down (then a closed stream is expected, not an error)."""
@@ -24,7 +24,8 @@ async def run_demo(url: str, token: str, rate_hz: float = 10.0, laps: int = 3, s
     from hippomap.client import AsyncStream, Client, encode_image
     from hippomap.inputs import Odometry
 
-    world = sim.loop_world(seed=seed, laps=laps)
+    # an 8 m x 5 m loop at 0.6 m/s: the first revisit (and loop closure) comes within a minute
+    world = sim.loop_world(seed=seed, laps=laps, size=(8.0, 5.0), speed_mps=0.6)
     run = await asyncio.to_thread(sim.simulate, world, rate_hz=rate_hz, frame_every=1, seed=seed,
                                   odometry_noise=sim.OdometryNoise(sigma_omega=0.02, omega_bias=0.005))
 
