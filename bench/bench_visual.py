@@ -35,24 +35,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from hippomap.config import VisualConfig  # noqa: E402
 from hippomap.visual_memory import VisualMemory  # noqa: E402
+from hippomap.sim.scenes import shapes_scene  # noqa: E402
 
 
-def scene(seed: int, width: int = 320, height: int = 240) -> np.ndarray:
-    """A random scene of filled shapes (the same generator as the unit tests use)."""
-    r = np.random.default_rng(seed)
-    img = np.full((height, width), int(r.integers(60, 200)), np.uint8)
-    for _ in range(40):
-        c = int(r.integers(0, 256))
-        t = int(r.integers(0, 3))
-        if t == 0:
-            cv2.circle(img, (int(r.integers(0, width)), int(r.integers(0, height))), int(r.integers(5, 30)), c, -1)
-        elif t == 1:
-            x, y = int(r.integers(0, width)), int(r.integers(0, height))
-            cv2.rectangle(img, (x, y), (x + int(r.integers(5, 50)), y + int(r.integers(5, 50))), c, -1)
-        else:
-            pts = r.integers(0, [width, height], size=(3, 2)).astype(np.int32)
-            cv2.fillPoly(img, [pts], c)
-    return img
+scene = shapes_scene
 
 
 def perturb(img: np.ndarray, rng: np.random.Generator) -> np.ndarray:

@@ -20,24 +20,10 @@ from hippomap.visual_memory import (
     draw_trace,
     prepare_image,
 )
+from hippomap.sim.scenes import shapes_scene
 
 
-def scene(seed: int, width: int = 320, height: int = 240) -> np.ndarray:
-    """A random gray scene of filled circles, rectangles and triangles."""
-    r = np.random.default_rng(seed)
-    img = np.full((height, width), int(r.integers(60, 200)), np.uint8)
-    for _ in range(40):
-        c = int(r.integers(0, 256))
-        t = int(r.integers(0, 3))
-        if t == 0:
-            cv2.circle(img, (int(r.integers(0, width)), int(r.integers(0, height))), int(r.integers(5, 30)), c, -1)
-        elif t == 1:
-            x, y = int(r.integers(0, width)), int(r.integers(0, height))
-            cv2.rectangle(img, (x, y), (x + int(r.integers(5, 50)), y + int(r.integers(5, 50))), c, -1)
-        else:
-            pts = r.integers(0, [width, height], size=(3, 2)).astype(np.int32)
-            cv2.fillPoly(img, [pts], c)
-    return img
+scene = shapes_scene
 
 
 def perturb(img: np.ndarray, seed: int, noise: float = 8.0, gain: float = 0.85, offset: float = 25.0,
