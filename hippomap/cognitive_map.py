@@ -766,7 +766,8 @@ class CognitiveMap:
             self._events.append(LoopAccepted(c.id, c.node, c.from_node, link, sup, c is reloc, t))
             self._accepted.append(c)
         self._pending = [c for c in self._pending if c.id not in ids]
-        self._set_current(reloc.node, _inv3(reloc.M), t, arrival)
+        if self.cfg.loop_relocalise:
+            self._set_current(reloc.node, _inv3(reloc.M), t, arrival)
         # the remaining pending hypotheses: supported by the accepted group, or contradicted by it
         still = []
         for c in self._pending:

@@ -167,6 +167,10 @@ class MapConfig(_Frozen):
         "graph: literal Eq. 15 merging (None) is an unverified loop closure in a drifted map; 3 m measured best on "
         "Bicocca and the synthetic loop (docs/BENCHMARKS.md) [ours]",
     )
+    loop_relocalise: bool = Field(
+        True, description="on a loop closure the matched node becomes the current node ([ORS] on_set_experience); "
+        "False keeps the current node and only adds the loop link [ours]"
+    )
     loop_min_support: int = Field(
         3, ge=1, description="mutually consistent hypotheses needed before a loop closes (geometric check); 3 is the "
         "smallest that accepted no false proposal of B25b_0.000 (docs/BENCHMARKS.md) [ours]"

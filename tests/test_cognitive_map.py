@@ -480,3 +480,22 @@ def test_measured_transform_gets_the_tight_gate():
     cmap2 = CognitiveMap(cfg)
     drive(cmap2, np.tile([0.1, 0.0, 0.0], (40, 1)))
     assert cmap2.propose_loop(LoopHypothesis(node=1, transform=None, source="visual")).gate_limit > 3.0
+
+
+def test_loop_relocalise_option():
+    """[ORS] jumps to the matched node on a loop closure; with loop_relocalise=False the
+    robot stays on its node and only the loop link is added."""
+    results = {}
+    for reloc in (True, False):
+        cfg = MapConfig(loop_min_support=1, loop_transform_radius_m=3.0, exclude_recent=2, loop_relocalise=reloc)
+        cmap = CognitiveMap(cfg)
+        drive(cmap, np.tile([0.1, 0.0, 0.0], (40, 1)))
+        before = cmap.current
+        rel = between(cmap.robot_pose, cmap.poses[1])
+        d = cmap.propose_loop(LoopHypothesis(node=1, transform=tuple(compose(cmap.robot_offset, rel)), source="test"))
+        assert d.status == "accepted"
+        cmap.update(None, (0.0, 0.0, 0.0), 100.0)
+        assert "loop" in list(cmap.links["kind"])
+        results[reloc] = (before, cmap.current)
+    assert results[True][1] == 1
+    assert results[False][1] == results[False][0]
