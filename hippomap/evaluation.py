@@ -9,6 +9,18 @@ import numpy as np
 from .errors import InputError
 from .exports import to_evo
 
+#: a loop closure is true when ground truth puts its two places closer than this [ours]
+LOOP_TRUTH_DISTANCE_M = 2.0
+
+
+def groundtruth_at(gt: tuple[np.ndarray, np.ndarray], t: float, tol: float = 0.5) -> np.ndarray | None:
+    """The ground-truth pose nearest in time to ``t`` (times sorted), or None when the
+    nearest is more than ``tol`` seconds away (a gap in the ground truth)."""
+    tg, pg = gt
+    k = int(np.clip(np.searchsorted(tg, t), 1, len(tg) - 1))
+    k = k if abs(tg[k] - t) < abs(tg[k - 1] - t) else k - 1
+    return pg[k] if abs(tg[k] - t) <= tol else None
+
 
 def _stats(metric) -> dict[str, float]:
     s = metric.get_all_statistics()

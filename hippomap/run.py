@@ -20,13 +20,11 @@ import numpy as np
 from .config import HippomapConfig
 from .datasets import SensorDataset, read_folder_dataset, read_tum_rgbd
 from .errors import InputError
-from .evaluation import trajectory_metrics
+from .evaluation import LOOP_TRUTH_DISTANCE_M, groundtruth_at, trajectory_metrics
 from .exports import export_map, write_json
 from .inputs import Odometry
 from .mapper import Mapper
 
-#: an accepted loop closure is false when ground truth puts its two places this far apart
-FALSE_LOOP_DISTANCE_M = 2.0
 
 
 def open_dataset(path: str | Path, image_topic: str | None = None, odom_topic: str | None = None) -> SensorDataset:
@@ -82,13 +80,6 @@ def run_dataset(dataset: SensorDataset, config: HippomapConfig | None = None, pr
     return m, {"frame_ms": ms(frame_s), "decode_ms": ms(decode_s), "odometry_ms": ms(odo_s)}
 
 
-def _gt_at(gt: tuple[np.ndarray, np.ndarray], t: float, tol: float = 0.5) -> np.ndarray | None:
-    tg, pg = gt
-    k = int(np.clip(np.searchsorted(tg, t), 1, len(tg) - 1))
-    k = k if abs(tg[k] - t) < abs(tg[k - 1] - t) else k - 1
-    return pg[k] if abs(tg[k] - t) <= tol else None
-
-
 def loop_report(m: Mapper, gt: tuple[np.ndarray, np.ndarray] | None) -> list[dict[str, Any]]:
     """Every loop decision, with the ground-truth distance between its two places."""
     out = []
@@ -97,8 +88,8 @@ def loop_report(m: Mapper, gt: tuple[np.ndarray, np.ndarray] | None) -> list[dic
         row = d.to_dict()
         if gt is not None:
             h = d.hypothesis
-            a = _gt_at(gt, float(h.time))
-            b = _gt_at(gt, float(times[h.node]))
+            a = groundtruth_at(gt, float(h.time))
+            b = groundtruth_at(gt, float(times[h.node]))
             if a is not None and b is not None:
                 row["groundtruth_distance_m"] = float(np.linalg.norm(a[:2] - b[:2]))
         out.append(row)
@@ -119,7 +110,7 @@ def write_run(m: Mapper, dataset: SensorDataset, out_dir: str | Path, timing: di
         metrics["map"] = trajectory_metrics(t, cor, *dataset.groundtruth)
         metrics["map_ate_ratio"] = metrics["map"]["ate"]["rmse"] / max(metrics["odometry"]["ate"]["rmse"], 1e-12)
         judged = [r for r in accepted if "groundtruth_distance_m" in r]
-        metrics["loop_closures"]["accepted_false"] = sum(r["groundtruth_distance_m"] >= FALSE_LOOP_DISTANCE_M for r in judged)
+        metrics["loop_closures"]["accepted_false"] = sum(r["groundtruth_distance_m"] >= LOOP_TRUTH_DISTANCE_M for r in judged)
         metrics["loop_closures"]["max_accepted_distance_m"] = max((r["groundtruth_distance_m"] for r in judged), default=None)
     segs = []
     if len(t):

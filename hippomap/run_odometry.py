@@ -21,13 +21,11 @@ from .cognitive_map import CognitiveMap, LoopHypothesis
 from .config import HippomapConfig
 from .datasets import OdometryDataset, load_odometry_dataset
 from .errors import InputError
-from .evaluation import trajectory_metrics
+from .evaluation import LOOP_TRUTH_DISTANCE_M, groundtruth_at, trajectory_metrics
 from .exports import export_map, write_json
 from .geometry import between, compose, integrate
 from .place_cells import SpatialPathway
 
-#: a loop closure is counted as true when ground truth puts its two poses this close [ours]
-TRUE_LOOP_DISTANCE_M = 2.0
 
 
 @dataclass
@@ -119,16 +117,15 @@ def _loop_truth(run: OdometryRun, gt: tuple[np.ndarray, np.ndarray] | None) -> N
     """Mark each decision with the ground-truth distance between its two poses."""
     if gt is None:
         return
-    tg, pg = gt
     for d in run.decisions:
         poses = d.get("hypothesis", {}).get("meta", {}).get("poses")
         if not poses:
             continue
-        idx = [int(np.argmin(np.abs(tg - run.times[p]))) for p in poses]
-        if all(abs(tg[i] - run.times[p]) < 0.5 for i, p in zip(idx, poses)):
-            dist = float(np.linalg.norm(pg[idx[0], :2] - pg[idx[1], :2]))
+        a, b = (groundtruth_at(gt, float(run.times[p])) for p in poses)
+        if a is not None and b is not None:
+            dist = float(np.linalg.norm(a[:2] - b[:2]))
             d["groundtruth_distance_m"] = dist
-            d["groundtruth_true"] = dist < TRUE_LOOP_DISTANCE_M
+            d["groundtruth_true"] = dist < LOOP_TRUTH_DISTANCE_M
 
 
 def summarise(run: OdometryRun, dataset: OdometryDataset) -> dict[str, Any]:
@@ -166,7 +163,7 @@ def summarise(run: OdometryRun, dataset: OdometryDataset) -> dict[str, Any]:
         judged = [d for d in accepted if "groundtruth_true" in d]
         metrics["loop_closures"]["accepted_true"] = sum(d["groundtruth_true"] for d in judged)
         metrics["loop_closures"]["accepted_false"] = sum(not d["groundtruth_true"] for d in judged)
-        metrics["loop_closures"]["true_distance_m"] = TRUE_LOOP_DISTANCE_M
+        metrics["loop_closures"]["true_distance_m"] = LOOP_TRUTH_DISTANCE_M
     return metrics
 
 
