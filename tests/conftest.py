@@ -6,3 +6,14 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
+
+
+import pytest  # noqa: E402
+
+from server.testing import SERVICE_VARIANTS  # noqa: E402
+
+
+@pytest.fixture(scope="module", params=SERVICE_VARIANTS, ids=lambda v: v.name)
+def variant(request):
+    """The service under test: each backend x store of ``server.testing.SERVICE_VARIANTS``."""
+    return request.param

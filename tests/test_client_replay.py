@@ -16,15 +16,15 @@ import pytest
 from hippomap.client import ServerError
 from hippomap.datasets import read_folder_dataset
 from hippomap.replay import add_parser
-from server.testing import LiveServer, offline_reference, session_state, synthetic_inputs
+from server.testing import offline_reference, session_state, synthetic_inputs
 
 CONFIG = {"mapper": {"keyframe_interval": 5}}
 ITEMS = synthetic_inputs(n_odometry=160, frame_every=3, seed=3)
 
 
 @pytest.fixture(scope="module")
-def server(tmp_path_factory):
-    srv = LiveServer(tmp_path_factory.mktemp("replay")).start()
+def server(tmp_path_factory, variant):
+    srv = variant.server(tmp_path_factory.mktemp("replay")).start()
     yield srv
     srv.stop()
 

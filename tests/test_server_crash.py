@@ -5,11 +5,10 @@ and a session in exactly the state an uninterrupted run reaches."""
 from __future__ import annotations
 
 import asyncio
-import sqlite3
 import time
 
 from hippomap.client import AsyncStream
-from server.testing import LiveServer, offline_reference, session_state, stream_items, synthetic_inputs
+from server.testing import LiveServer, ServiceVariant, offline_reference, session_state, stream_items, synthetic_inputs
 
 CONFIG = {"mapper": {"keyframe_interval": 3}}
 ITEMS = synthetic_inputs(n_odometry=300, frame_every=3)  # loops are closed before and after the crash
@@ -50,9 +49,9 @@ async def _stream_until_killed(server: LiveServer, sid: str, first_part: int, ki
     return acks
 
 
-def test_sigkill_mid_stream_then_restart_restores_exactly(tmp_path):
+def test_sigkill_mid_stream_then_restart_restores_exactly(tmp_path, variant: ServiceVariant):
     data = tmp_path / "data"
-    srv = LiveServer(data, env=ENV).start()
+    srv = variant.server(data, env=ENV).start()
     with srv.client() as c:
         sid = c.create_session("crash", CONFIG)["id"]
     kill_after = int(len(ITEMS) * 0.6)
@@ -60,11 +59,13 @@ def test_sigkill_mid_stream_then_restart_restores_exactly(tmp_path):
     assert srv.proc.poll() is not None, "the server should be dead"
     assert len(acks) >= kill_after and max(a["last_seq"] for a in acks) < len(ITEMS) - 1, "killed mid-stream"
 
-    with sqlite3.connect(data / "hippomap.sqlite3") as db:  # the crash left a snapshot to restore from
-        snaps = db.execute("SELECT seq FROM snapshots WHERE session=?", (sid,)).fetchall()
-    assert snaps, "a snapshot should exist before the crash"
+    store = variant.open_store(data)  # the crash left a snapshot to restore from
+    try:
+        assert store.latest_snapshot(sid) is not None, "a snapshot should exist before the crash"
+    finally:
+        store.close()
 
-    srv2 = LiveServer(data, env=ENV).start()
+    srv2 = variant.server(data, env=ENV).start()
     try:
         with srv2.client() as c:
             stored = c.all_inputs(sid)
@@ -95,7 +96,7 @@ def test_sigkill_mid_stream_then_restart_restores_exactly(tmp_path):
         srv2.stop()
 
     # a graceful restart (final snapshot, nothing to replay) changes nothing either
-    srv3 = LiveServer(data, env=ENV).start()
+    srv3 = variant.server(data, env=ENV).start()
     try:
         with srv3.client() as c:
             st = c.wait_processed(sid)

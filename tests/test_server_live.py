@@ -34,10 +34,10 @@ ITEMS = synthetic_inputs(n_odometry=300, frame_every=3)
 
 
 @pytest.fixture(scope="module")
-def server(tmp_path_factory):
+def server(tmp_path_factory, variant):
     env = {"HIPPOMAP_MAX_BODY_BYTES": "400000", "HIPPOMAP_MAX_FRAME_BYTES": "300000",
            "HIPPOMAP_MAX_IMAGE_SIDE": "2000", "HIPPOMAP_SNAPSHOT_EVERY_INPUTS": "150"}
-    srv = LiveServer(tmp_path_factory.mktemp("live"), env=env).start()
+    srv = variant.server(tmp_path_factory.mktemp("live"), env=env).start()
     yield srv
     srv.stop()
 
@@ -350,14 +350,14 @@ def test_invalid_config_overrides_are_422(client):
         assert code == 422 and text in msg
 
 
-def test_backpressure_and_rate_limit_slow_or_tell_and_lose_nothing(tmp_path):
+def test_backpressure_and_rate_limit_slow_or_tell_and_lose_nothing(tmp_path, variant):
     env = {"HIPPOMAP_MAX_PENDING": "3", "HIPPOMAP_BACKPRESSURE_WAIT_S": "0", "HIPPOMAP_RATE_PER_S": "40",
            "HIPPOMAP_RATE_BURST": "40"}
     config = {"mapper": {"keyframe_interval": 1}}  # every frame is learned: the mapper is the bottleneck
     items = synthetic_inputs(n_odometry=50, frame_every=1, seed=7)
     from hippomap.client import AsyncStream
 
-    with LiveServer(tmp_path / "bp", env=env) as srv, srv.client() as c:
+    with variant.server(tmp_path / "bp", env=env) as srv, srv.client() as c:
         # websocket: the server stops reading when the queue is full and says so; all is acked
         sid = c.create_session("ws", config)["id"]
 
