@@ -31,6 +31,7 @@ from . import model
 from .auth import can_read, can_write
 from .ingest import Accepted, IngestError, check_frame, pydantic_message
 from .limits import TokenBucket
+from .metrics import ServiceMetrics
 from .settings import ServerSettings
 from .store import InputRecord, SessionRecord, Store, TokenRecord
 from .worker import SessionWorker, WorkItem
@@ -185,9 +186,10 @@ class LiveSession:
 class SessionManager:
     """All live sessions of the server."""
 
-    def __init__(self, store: Store, settings: ServerSettings) -> None:
+    def __init__(self, store: Store, settings: ServerSettings, metrics: ServiceMetrics | None = None) -> None:
         self.store = store
         self.settings = settings
+        self.metrics = metrics if metrics is not None else ServiceMetrics()
         self.sessions: dict[str, LiveSession] = {}
         self.loop: asyncio.AbstractEventLoop | None = None
 
@@ -200,6 +202,14 @@ class SessionManager:
             except ValueError:
                 config = HippomapConfig()
             self._open(rec, config)
+
+    def restoring(self) -> list[str]:
+        """Ids of the sessions still being restored (snapshot + replay): the server is not ready until none is."""
+        return [sid for sid, live in list(self.sessions.items()) if not live.worker.ready.is_set()]
+
+    def queue_depths(self) -> dict[str, int]:
+        """Inputs acknowledged but not yet processed, per live session."""
+        return {sid: max(0, live.stored_seq - live.worker.processed_seq) for sid, live in list(self.sessions.items())}
 
     def _open(self, rec: SessionRecord, config: HippomapConfig) -> LiveSession:
         assert self.loop is not None
