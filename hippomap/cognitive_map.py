@@ -335,16 +335,20 @@ class _Candidate:
     odom: tuple[float, float, float]  # robot's dead-reckoned pose at proposal
     step: int
     arrival: int = -1  # when node == from_node: the link by which the robot had reached it
+    measured: bool = False  # the hypothesis carried a measured transform
+    path: float = 0.0  # path travelled by the robot at proposal (m)
 
 
     def to_dict(self) -> dict[str, Any]:
         return {"id": self.id, "node": self.node, "from_node": self.from_node, "link_tr": list(self.link_tr),
-                "M": list(self.M), "odom": list(self.odom), "step": self.step, "arrival": self.arrival}
+                "M": list(self.M), "odom": list(self.odom), "step": self.step, "arrival": self.arrival,
+                "measured": self.measured, "path": self.path}
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "_Candidate":
         return cls(int(d["id"]), int(d["node"]), int(d["from_node"]), tuple(map(float, d["link_tr"])),
-                   tuple(map(float, d["M"])), tuple(map(float, d["odom"])), int(d["step"]), int(d.get("arrival", -1)))
+                   tuple(map(float, d["M"])), tuple(map(float, d["odom"])), int(d["step"]), int(d.get("arrival", -1)),
+                   bool(d.get("measured", False)), float(d.get("path", 0.0)))
 
 
 # --------------------------------------------------------------------------- the map
@@ -669,7 +673,9 @@ class CognitiveMap:
           and b made at different updates, the cycle robot_a → robot_b (dead-reckoned
           odometry) → node_b (hypothesis b) → node_a (the map's current relative pose) →
           robot_a (hypothesis a, inverted) must compose to identity within
-          ``loop_consistency_m`` / ``loop_consistency_rad``. A hypothesis waits (pending) up to
+          ``loop_consistency_m`` / ``loop_consistency_rad`` (when both carry a measured transform:
+          ``loop_transform_consistency_rad`` + ``loop_consistency_rad_per_m`` × the cycle's odometric
+          length). A hypothesis waits (pending) up to
           ``loop_support_window`` updates; with ``loop_min_support`` − 1 consistent pending ones,
           or one consistent accepted in the window, it is accepted; if it contradicts every
           loop accepted in the window it is rejected.
@@ -688,7 +694,7 @@ class CognitiveMap:
         did = len(self._decisions)
         link_tr = self._delta if h.transform is None else h.transform
         cand = _Candidate(did, h.node, self._cur, link_tr, _between3(self._delta, link_tr), self._odom, self._step,
-                          self._arrival if h.node == self._cur else -1)
+                          self._arrival if h.node == self._cur else -1, h.transform is not None, self._path)
         t = self._t if self._t is not None else h.time
         base = LoopDecision(did, "pending", "", h, self._cur, proposed_step=self._step)
         reason = ""
@@ -740,8 +746,14 @@ class CognitiveMap:
         e = compose(between(odom, np.asarray(b.odom)), np.asarray(b.M))
         e = compose(e, between(P[b.node], P[na]))
         e = compose(e, between(Ma, np.zeros(3)))
-        return (np.hypot(e[:, 0], e[:, 1]) < self.cfg.loop_consistency_m) & (
-            np.abs(e[:, 2]) < self.cfg.loop_consistency_rad)
+        # two measured transforms: the cycle's rotation error is their disagreement plus the heading
+        # drift of its odometric parts (robot path between the proposals, map path between the nodes)
+        both_measured = np.array([c.measured for c in older]) & b.measured
+        cycle_m = np.abs(b.path - np.array([c.path for c in older])) + np.abs(self._S[b.node] - self._S[na])
+        cfg = self.cfg
+        rad = np.where(both_measured, cfg.loop_transform_consistency_rad + cfg.loop_consistency_rad_per_m * cycle_m,
+                       cfg.loop_consistency_rad)
+        return (np.hypot(e[:, 0], e[:, 1]) < self.cfg.loop_consistency_m) & (np.abs(e[:, 2]) < rad)
 
     def _reject(self, did: int, reason: str, t: float) -> LoopDecision:
         d = replace(self._decisions[did], status="rejected", reason=reason, decided_step=self._step)

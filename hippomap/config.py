@@ -180,6 +180,16 @@ class MapConfig(_Frozen):
         0.5, gt=0, description="max translation error of a loop cycle [ours: measured on Bicocca, 1.0 let false loops in]"
     )
     loop_consistency_rad: float = Field(0.1, gt=0, description="max rotation error of a loop cycle [ours: as above, was 0.3]")
+    loop_transform_consistency_rad: float = Field(
+        0.02, gt=0, description="max rotation error of a loop cycle between two hypotheses that both carry a measured "
+        "transform: such a cycle is made of two measurements and a short stretch of odometry, so it must close as "
+        "tightly as the measurements do (B25b loop information 600-3800 rad^-2, i.e. sigma 0.016-0.04 rad). 0.1 let "
+        "true closures biased by 0.12 rad bend the Bicocca map below odometry's accuracy (docs/BENCHMARKS.md) [ours]"
+    )
+    loop_consistency_rad_per_m: float = Field(
+        0.005, ge=0, description="heading drift allowed per metre of odometry inside such a cycle (robot path between "
+        "the two proposals plus map path between the two nodes), added to loop_transform_consistency_rad [ours]"
+    )
     solver: Literal["relax", "jacobi", "lsq"] = Field(
         "relax",
         description="map correction after each action: 'relax' = [ORS] per-link relaxation (Eq. 14), vectorised by "

@@ -327,7 +327,20 @@ def relax_ors_reference(poses: np.ndarray, src, dst, transforms, sweeps: int, al
     P[:] = np.asarray(nodes, dtype=float).reshape(P.shape)
 
 
-def _lsq_errors(P, src, dst, T):
+def _sqrt_information(information, m: int) -> np.ndarray:
+    """(M, 3) square roots of the links' diagonal information (ones when None); checked."""
+    if information is None:
+        return np.ones((m, 3))
+    w = np.asarray(information, dtype=float)
+    if w.shape != (m, 3):
+        raise InputError(f"link information must have shape ({m}, 3), got {w.shape}")
+    bad = np.flatnonzero(~np.all(np.isfinite(w) & (w > 0), axis=1))
+    if len(bad):
+        raise InputError(f"link {int(bad[0])} has information {w[bad[0]].tolist()}: every value must be finite and > 0")
+    return np.sqrt(w)
+
+
+def _lsq_errors(P, src, dst, T, sw=None):
     ti = P[src, 2]
     dx = P[dst, 0] - P[src, 0]
     dy = P[dst, 1] - P[src, 1]
@@ -336,13 +349,16 @@ def _lsq_errors(P, src, dst, T):
     e[:, 0] = c * dx + s * dy - T[:, 0]
     e[:, 1] = -s * dx + c * dy - T[:, 1]
     e[:, 2] = _wrap_inplace(P[dst, 2] - ti - T[:, 2])
+    if sw is not None:
+        e *= sw
     return e, c, s, dx, dy
 
 
-def graph_cost(poses, src, dst, transforms) -> float:
-    """Sum of squared link errors in the links' own frames: the objective of :func:`solve_lsq`."""
+def graph_cost(poses, src, dst, transforms, information=None) -> float:
+    """Sum of squared link errors in the links' own frames, weighted by ``information`` (M, 3)
+    when given: the objective of :func:`solve_lsq`."""
     P, src, dst, T = _as_graph(poses, src, dst, transforms)
-    e = _lsq_errors(P, src, dst, T)[0]
+    e = _lsq_errors(P, src, dst, T, _sqrt_information(information, len(src)))[0]
     return float(np.sum(e * e))
 
 
@@ -355,6 +371,7 @@ def solve_lsq(
     anchor: int | None = 0,
     tol: float = 1e-6,
     cost_rtol: float = 1e-9,
+    information=None,
 ) -> RelaxResult:
     """Gauss–Newton on the SE(2) pose graph, **in place**.
 
@@ -363,8 +380,9 @@ def solve_lsq(
     inconsistent graph; the cost settles long before the steps vanish). A step that would
     raise the cost is retried with Levenberg–Marquardt damping; the poses are never left worse.
 
-    Error of link i→j: ``e = (R_iᵀ(t_j − t_i) − t_xy, wrap(θ_j − θ_i − t_θ))``, unit
-    information. The normal equations ``JᵀJ δ = −Jᵀe`` are assembled with ``scipy.sparse``
+    Error of link i→j: ``e = (R_iᵀ(t_j − t_i) − t_xy, wrap(θ_j − θ_i − t_θ))``, weighted by
+    ``information`` (M, 3): the diagonal of each link's information matrix (x, y, θ in the
+    link's frame); None = unit information. The normal equations ``JᵀJ δ = −Jᵀe`` are assembled with ``scipy.sparse``
     and solved by sparse LU with the ``anchor`` node held fixed (``None``: a tiny damping
     fixes the gauge). Nodes without links keep their pose.
     """
@@ -372,6 +390,7 @@ def solve_lsq(
     n, m = len(P), len(src)
     if m == 0 or iterations <= 0:
         return RelaxResult("lsq", 0, 0.0)
+    sw = _sqrt_information(information, m)
     rows = 3 * np.arange(m)
     ci = 3 * src
     cj = 3 * dst
@@ -389,13 +408,13 @@ def solve_lsq(
     done = 0
     lam = 0.0  # Levenberg-Marquardt damping, raised only when a Gauss-Newton step fails
     one = np.ones(m)
-    e, c, s, dx, dy = _lsq_errors(P, src, dst, T)
+    e, c, s, dx, dy = _lsq_errors(P, src, dst, T, sw)
     cost = float(np.sum(e * e))
     while done < iterations and cost > 0:
         vals = np.concatenate([
-            np.column_stack([-c, -s, -s * dx + c * dy, c, s]).ravel(),   # d ex / d(xi, yi, ti, xj, yj)
-            np.column_stack([s, -c, -c * dx - s * dy, -s, c]).ravel(),   # d ey / d(xi, yi, ti, xj, yj)
-            np.column_stack([-one, one]).ravel(),                        # d et / d(ti, tj)
+            (np.column_stack([-c, -s, -s * dx + c * dy, c, s]) * sw[:, :1]).ravel(),  # d ex / d(xi, yi, ti, xj, yj)
+            (np.column_stack([s, -c, -c * dx - s * dy, -s, c]) * sw[:, 1:2]).ravel(),  # d ey / d(xi, yi, ti, xj, yj)
+            (np.column_stack([-one, one]) * sw[:, 2:]).ravel(),                       # d et / d(ti, tj)
         ])
         J = sp.csr_matrix((vals, (r_idx, c_idx)), shape=(3 * m, 3 * n))
         H = (J.T @ J + sp.diags(damp)).tocsc()[idx][:, idx]
@@ -412,7 +431,7 @@ def solve_lsq(
             step = step.reshape(n, 3)
             trial = P + step
             _wrap_inplace(trial[:, 2])
-            e_t, c_t, s_t, dx_t, dy_t = _lsq_errors(trial, src, dst, T)
+            e_t, c_t, s_t, dx_t, dy_t = _lsq_errors(trial, src, dst, T, sw)
             cost_t = float(np.sum(e_t * e_t))
             done += 1
             if np.isfinite(cost_t) and cost_t <= cost:

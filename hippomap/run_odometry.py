@@ -159,7 +159,8 @@ def summarise(run: OdometryRun, dataset: OdometryDataset) -> dict[str, Any]:
                 continue
             rows.append({"pose": int(k), "odometry_ate_rmse": odo_ate, "map_ate_rmse": map_ate})
         metrics["online"] = rows
-        metrics["map_never_worse_than_odometry"] = all(r["map_ate_rmse"] <= r["odometry_ate_rmse"] for r in rows)
+        # 1 µm: before the first correction the two are the same trajectory up to rounding
+        metrics["map_never_worse_than_odometry"] = all(r["map_ate_rmse"] <= r["odometry_ate_rmse"] + 1e-6 for r in rows)
         judged = [d for d in accepted if "groundtruth_true" in d]
         metrics["loop_closures"]["accepted_true"] = sum(d["groundtruth_true"] for d in judged)
         metrics["loop_closures"]["accepted_false"] = sum(not d["groundtruth_true"] for d in judged)

@@ -133,8 +133,10 @@ def test_loop_closure_removes_injected_heading_drift(solver):
     noisy[:, 2] += 0.002 * (inc[:, 0] > 0)  # heading bias on every forward step
     odo = integrate(noisy)
     first_lap = len(inc) // 2
-    # a strong drift (0.02 rad/m): open the gate wide enough for it, support as in [ours] v1
-    cmap = CognitiveMap(MapConfig(solver=solver, prune_online=False, loop_transform_radius_m=3.0, loop_min_support=2))
+    # a strong drift (0.02 rad/m): open the gate and the cycle tolerance wide enough for it (the tolerance of
+    # transform-less hypotheses), support as in [ours] v1
+    cmap = CognitiveMap(MapConfig(solver=solver, prune_online=False, loop_transform_radius_m=3.0, loop_min_support=2,
+                                  loop_transform_consistency_rad=0.1, loop_consistency_rad_per_m=0.0))
     node_at, off, _ = drive(cmap, noisy, hypotheses=true_loops(gt, first_lap))
     cmap.finish(iterations=2000)
     before, after = rms_xy(odo, gt), rms_xy(corrected(cmap, node_at, off), gt)
@@ -189,10 +191,10 @@ def test_random_hypotheses_are_rejected_and_never_move_nodes():
     inc = square_increments()
     gt = integrate(inc)
     noisy = inc.copy()
-    noisy[:, 2] += 0.001 * (inc[:, 0] > 0)
+    noisy[:, 2] += 0.001 * (inc[:, 0] > 0)  # heading drift of 0.01 rad/m: the cycle check must allow for it
     first_lap = len(inc) // 2
     rng = np.random.default_rng(7)
-    cfg = MapConfig(prune_online=False)
+    cfg = MapConfig(prune_online=False, loop_consistency_rad_per_m=0.01)
 
     def random_only(k, cmap, node_at, off):
         if k > first_lap and k % 7 == 0:
@@ -272,6 +274,29 @@ def test_two_consistent_hypotheses_support_each_other():
     assert (cmap.links["kind"] == "loop").sum() == 2
     # consistent with the map as it was: closing these loops moves nothing
     np.testing.assert_allclose(cmap.poses, poses_before, atol=1e-9)
+
+
+@pytest.mark.parametrize("bias", [0.0, 0.05])
+def test_measured_hypotheses_must_agree_as_tightly_as_measurements(bias):
+    """Two measured hypotheses whose headings disagree by 0.05 rad (true closures, one biased):
+    within the loose cycle tolerance meant for transform-less (visual) hypotheses, but not within
+    ``loop_transform_consistency_rad`` — they do not support each other unless the bias is 0."""
+    decisions = {}
+    for tol in (0.02, 0.1):
+        cfg = MapConfig(loop_min_support=2, prune_online=False, loop_transform_consistency_rad=tol)
+        cmap = CognitiveMap(cfg)
+        drive(cmap, square_increments(laps=1))
+        for step in range(2):
+            rel = np.array(between(cmap.robot_pose, cmap.poses[3 + 2 * step]), dtype=float)
+            tr = compose(cmap.robot_offset, rel)
+            if step == 1:
+                tr = compose(tr, (0.0, 0.0, bias))  # the measured node heading is off by `bias`
+            cmap.propose_loop(LoopHypothesis(node=3 + 2 * step, transform=tuple(float(v) for v in tr)))
+            for _ in range(3):
+                cmap.update(None, (0.1, 0.0, 0.0), 1e6 + step)
+        decisions[tol] = [d.status for d in cmap.loop_decisions]
+    assert decisions[0.1] == ["accepted", "accepted"]
+    assert decisions[0.02] == (["accepted", "accepted"] if bias == 0 else ["pending", "pending"])
 
 
 # ----------------------------------------------------------------------------- pruning

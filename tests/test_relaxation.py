@@ -100,6 +100,46 @@ def test_lsq_reaches_a_lower_cost_than_relaxation():
     assert graph_cost(Pl, src, dst, T) < graph_cost(odo, src, dst, T) / 100
 
 
+def test_weighted_lsq_trusts_links_by_their_information():
+    """The closing link of a drifted square measured with an error of 0.1 rad: with unit
+    information the error is spread over the loop; when the odometry links are 1000x more
+    informative, the solution stays near the odometry and the weak link takes the error."""
+    gt, odo, src, dst, T = square_loop(bias=0.0)
+    T = T.copy()
+    T[-1, 2] += 0.1  # the loop link's heading is wrong
+    weak = np.ones((len(src), 3)) * 1000.0
+    weak[-1] = 1.0
+    P_unit, P_weak = odo.copy(), odo.copy()
+    solve_lsq(P_unit, src, dst, T, iterations=50)
+    solve_lsq(P_weak, src, dst, T, iterations=50, information=weak)
+    assert rms_xy(P_weak, gt) < rms_xy(P_unit, gt) / 20
+    r = link_residuals(P_weak, src, dst, T)
+    assert abs(r[-1, 2]) > 0.09 and np.max(np.abs(r[:-1, 2])) < 1e-3
+    # the optimum is the minimum of the weighted cost, not of the unit one
+    assert graph_cost(P_weak, src, dst, T, weak) < graph_cost(P_unit, src, dst, T, weak)
+    assert graph_cost(P_unit, src, dst, T) < graph_cost(P_weak, src, dst, T)
+
+
+@settings(max_examples=20, deadline=None)
+@given(st.integers(0, 10_000), st.floats(0.01, 100.0))
+def test_uniformly_scaled_information_gives_the_unit_solution(seed, scale):
+    rng = np.random.default_rng(seed)
+    true, src, dst, T = random_graph(rng, noise=0.05)
+    start = true + rng.normal(0, 0.05, true.shape)
+    A, B = start.copy(), start.copy()
+    solve_lsq(A, src, dst, T, iterations=30)
+    solve_lsq(B, src, dst, T, iterations=30, information=np.full((len(src), 3), scale))
+    np.testing.assert_allclose(A, B, atol=1e-6)
+
+
+def test_bad_information_raises_input_error():
+    gt, odo, src, dst, T = square_loop()
+    for info, text in ((np.ones((3, 3)), "shape"), (np.full((len(src), 3), -1.0), "finite and > 0"),
+                       (np.full((len(src), 3), np.nan), "finite and > 0")):
+        with pytest.raises(InputError, match=text):
+            solve_lsq(odo.copy(), src, dst, T, information=info)
+
+
 # ----------------------------------------------------------------------------- agreement with [ORS]
 def test_vectorised_relax_matches_ors_on_a_consistent_graph():
     """Perturbed poses, consistent links: both converge to the same (exact) map, up to gauge."""
