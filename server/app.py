@@ -8,15 +8,18 @@ and, on shutdown, lets every worker finish its queue and snapshot before the sto
 from __future__ import annotations
 
 import asyncio
+import hmac
 import json
 import logging
+import os
+import time
 from contextlib import asynccontextmanager
 from typing import Any, AsyncIterator
 
 from fastapi import FastAPI, Request
 from fastapi.encoders import jsonable_encoder
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse
+from fastapi.responses import JSONResponse, Response
 
 from hippomap import __version__
 
@@ -24,6 +27,7 @@ from . import model
 from .api import ingest, queries, sessions, stream, tokens
 from .auth import Authenticator, ensure_admin
 from .limits import BodySizeLimit
+from .metrics import ServiceMetrics
 from .sessions import SessionManager
 from .settings import ServerSettings
 from .sqlite_store import SQLiteStore
@@ -43,6 +47,10 @@ created it (404 for anyone else); viewer tokens (`POST /tokens`) are read-only.
 `/sessions/{id}/stream` (JSON odometry, binary frames with a 16-byte header `<4sId`:
 `b"HMF1"`, message id, timestamp; each message is acknowledged with its sequence numbers
 once durable). See `server/protocol.py`.
+
+**Operations** (no token): `GET /health` (liveness), `GET /ready` (readiness: 503 while sessions
+are being restored after a restart), `GET /metrics` (Prometheus; a token only if
+`HIPPOMAP_METRICS_TOKEN` is set).
 """
 
 
@@ -55,13 +63,24 @@ class SafeJSONResponse(JSONResponse):
 
 
 def open_store(settings: ServerSettings) -> Store:
-    """The store named by the settings: a SQLite file (the embedded default). Other backends
-    (PostgreSQL) implement :class:`~server.store.Store` and are chosen here by URL scheme."""
+    """The store named by ``settings.database``: unset or a file path → SQLite (the embedded
+    default, ``<data_dir>/hippomap.sqlite3`` when unset); ``sqlite:///path`` → that SQLite file;
+    ``postgresql://`` or ``postgres://`` URL → PostgreSQL (several replicas may share it).
+    Errors never repeat the URL (it may hold a password)."""
     location = settings.database or ""
-    if "://" in location and not location.startswith("sqlite://"):
-        raise RuntimeError(f"unsupported database {location!r}: only SQLite files are built in")
-    if location.startswith("sqlite://"):
+    scheme = location.split("://", 1)[0].lower() if "://" in location else ""
+    if scheme in ("postgresql", "postgres"):
+        try:
+            from .postgres_store import PostgresStore
+        except ImportError as exc:
+            raise RuntimeError(f"a PostgreSQL database needs psycopg: pip install 'hippomap[postgres]' ({exc})") from None
+        return PostgresStore(location, settings.durability)
+    if scheme == "sqlite":
         settings = settings.model_copy(update={"database": location[len("sqlite://"):]})
+    elif scheme:
+        raise RuntimeError(f"unsupported database URL scheme {scheme + '://'!r}; accepted: a SQLite file path, "
+                           "sqlite:///path/to/file.sqlite3, or postgresql://user:password@host:port/dbname "
+                           "(postgres:// also accepted)")
     return SQLiteStore(settings.database_path, settings.durability)
 
 
@@ -75,8 +94,32 @@ def _warm_up() -> None:
     from . import views  # noqa: F401
 
 
+async def _log_restores(manager: SessionManager, started: float, poll_s: float = 0.05) -> None:
+    """Log the start of each session's restore after a restart, and when the server became ready
+    (every restore done; ``duration_s`` since the restores began). Each session's worker logs the
+    end of its own restore with its duration."""
+    waiting = set(manager.restoring())
+    if not waiting:
+        log.info("ready: no session to restore")
+        return
+    log.info("restoring %d sessions", len(waiting), extra={"sessions": len(waiting)})
+    for sid in sorted(waiting):
+        log.info("session %s restore started", sid, extra={"session": sid})
+    while waiting:
+        await asyncio.sleep(poll_s)
+        waiting &= set(manager.restoring())
+    log.info("ready: every session restored", extra={"duration_s": round(time.monotonic() - started, 3)})
+
+
+def _metrics_token(settings: ServerSettings) -> str | None:
+    """The bearer token ``GET /metrics`` requires, if any: ``metrics_token`` / ``HIPPOMAP_METRICS_TOKEN``."""
+    return getattr(settings, "metrics_token", None) or os.environ.get("HIPPOMAP_METRICS_TOKEN") or None
+
+
 def create_app(settings: ServerSettings | None = None) -> FastAPI:
     settings = settings or ServerSettings.from_env()
+    metrics = ServiceMetrics()
+    metrics_token = _metrics_token(settings)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
@@ -87,12 +130,18 @@ def create_app(settings: ServerSettings | None = None) -> FastAPI:
         app.state.auth = Authenticator(store)
         app.state.admin_token = secret
         app.state.admin_token_created = created
-        manager = SessionManager(store, settings)
+        manager = SessionManager(store, settings, metrics)
+        metrics.track(manager.queue_depths, lambda: app.state.serving and not manager.restoring())
+        started = time.monotonic()
         manager.start(asyncio.get_running_loop())
         app.state.manager = manager
+        app.state.serving = True
+        restores = asyncio.create_task(_log_restores(manager, started))
         try:
             yield
         finally:
+            app.state.serving = False  # /ready answers 503 while the sessions stop
+            restores.cancel()
             await asyncio.to_thread(app.state.viewer_hub.close_all)
             await asyncio.to_thread(manager.stop)
             store.close()
@@ -100,6 +149,8 @@ def create_app(settings: ServerSettings | None = None) -> FastAPI:
     app = FastAPI(title="hippomap server", version=__version__, description=DESCRIPTION, lifespan=lifespan,
                   default_response_class=SafeJSONResponse)
     app.state.settings = settings
+    app.state.metrics = metrics
+    app.state.serving = False
     app.add_middleware(BodySizeLimit, max_bytes=settings.max_body_bytes)
 
     @app.exception_handler(RequestValidationError)
@@ -109,7 +160,35 @@ def create_app(settings: ServerSettings | None = None) -> FastAPI:
 
     @app.get("/health", tags=["server"], summary="Liveness (no token needed)")
     async def health() -> dict[str, Any]:
-        return {"status": "ok", "version": __version__, "sessions": len(app.state.manager.sessions)}
+        manager = getattr(app.state, "manager", None)  # answers even before the start-up finished
+        return {"status": "ok", "version": __version__, "sessions": 0 if manager is None else len(manager.sessions)}
+
+    @app.get("/ready", tags=["server"], summary="Readiness (no token needed): 503 while sessions are being restored",
+             responses={503: {"description": "not ready: starting, stopping, or sessions still being restored "
+                                             "(`restoring` lists them)"}})
+    async def ready() -> Any:
+        manager: SessionManager | None = getattr(app.state, "manager", None)
+        if manager is None or not app.state.serving:
+            return SafeJSONResponse({"ready": False, "restoring": [],
+                                     "sessions": 0 if manager is None else len(manager.sessions), "reason": "starting" if manager is None else "stopping"}, status_code=503)
+        restoring = sorted(manager.restoring())
+        body = {"ready": not restoring, "restoring": restoring, "sessions": len(manager.sessions)}
+        if restoring:
+            return SafeJSONResponse({**body, "reason": "restoring sessions"}, status_code=503)
+        return body
+
+    @app.get("/metrics", tags=["server"], response_class=Response,
+             summary="Prometheus metrics (text format; a bearer token only if HIPPOMAP_METRICS_TOKEN is set)",
+             responses={200: {"content": {"text/plain": {}}, "description": "Prometheus text exposition format"},
+                        401: {"description": "HIPPOMAP_METRICS_TOKEN is set and the request does not carry it"}})
+    async def prometheus_metrics(request: Request) -> Response:
+        if metrics_token is not None:
+            given = request.headers.get("authorization", "")
+            if not hmac.compare_digest(given.encode(), f"Bearer {metrics_token}".encode()):
+                return SafeJSONResponse({"detail": "GET /metrics needs the metrics token (Authorization: Bearer ...)"},
+                                        status_code=401, headers={"WWW-Authenticate": "Bearer"})
+        body, content_type = await asyncio.to_thread(metrics.render)
+        return Response(body, media_type=content_type)
 
     for module in (sessions, ingest, stream, queries, tokens):
         app.include_router(module.router)

@@ -1,6 +1,7 @@
 """``hippomap serve``: run the server on the embedded database.
 
     hippomap serve [--host H] [--port P] [--data-dir D] [--database FILE] [--demo]
+                   [--backend inprocess|ray] [--ray-address ADDR]
 
 On the first start an admin token is generated, printed and saved in ``D/admin.token``
 (later starts print where it is; ``export HIPPOMAP_TOKEN=$(cat D/admin.token)`` lets the
@@ -37,8 +38,19 @@ async def _serve(args: argparse.Namespace) -> int:
     import uvicorn
 
     from .app import create_app
+    from .logs import configure as configure_logs
 
-    settings = ServerSettings.from_env(data_dir=args.data_dir, database=args.database)
+    configure_logs(args.log_format, args.log_level)
+    settings = ServerSettings.from_env(data_dir=args.data_dir, database=args.database, backend=args.backend,
+                                       ray_address=args.ray_address)
+    if settings.backend == "ray":  # fail now, with the fix, rather than in the app's start-up
+        from .ray_backend import require_ray
+
+        try:
+            require_ray()
+        except RuntimeError as exc:
+            print(f"hippomap serve: {exc}", file=sys.stderr, flush=True)
+            return 2
     sys.setswitchinterval(settings.switch_interval_s)
     app = create_app(settings)
     # proto=IPPROTO_TCP matters: asyncio sets TCP_NODELAY only on sockets that say they are TCP, and
@@ -50,7 +62,7 @@ async def _serve(args: argparse.Namespace) -> int:
     port = sock.getsockname()[1]
     host = f"[{args.host}]" if ":" in args.host else args.host
     url = f"http://{host}:{port}"
-    config = uvicorn.Config(app, log_level=args.log_level, ws_max_size=settings.max_body_bytes + 1024,
+    config = uvicorn.Config(app, log_level=args.log_level, log_config=None, ws_max_size=settings.max_body_bytes + 1024,
                             timeout_graceful_shutdown=10, access_log=args.access_log)
     server = uvicorn.Server(config)
     task = asyncio.create_task(server.serve(sockets=[sock]))
@@ -87,10 +99,19 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--port", type=int, default=8000, help="port (default 8000; 0 = any free port)")
     p.add_argument("--data-dir", default=None, help="data folder (default ./hippomap-data or $HIPPOMAP_DATA_DIR)")
     p.add_argument("--database", default=None, help="SQLite file (default <data-dir>/hippomap.sqlite3)")
+    p.add_argument("--backend", default=None, choices=["inprocess", "ray"],
+                   help="where sessions' mappers run: in this process (default) or one Ray actor per session "
+                        "(needs pip install \"hippomap[ray]\"; $HIPPOMAP_BACKEND)")
+    p.add_argument("--ray-address", default=None,
+                   help="Ray cluster to join with --backend ray (default: start a local Ray on loopback; "
+                        "$HIPPOMAP_RAY_ADDRESS)")
     p.add_argument("--demo", action="store_true", help="also stream a simulated robot into a session")
     p.add_argument("--demo-rate", type=float, default=10.0, help="demo camera frames per second")
     p.add_argument("--log-level", default="warning", choices=["critical", "error", "warning", "info", "debug"])
     p.add_argument("--access-log", action="store_true", help="log every request")
+    p.add_argument("--log-format", default=None, choices=["auto", "json", "text"],
+                   help="log lines as JSON objects or text (default $HIPPOMAP_LOG_FORMAT, else auto: "
+                        "text on a terminal, JSON otherwise)")
     p.set_defaults(func=_cmd)
 
 

@@ -72,6 +72,10 @@ class Stats(BaseModel):
     pending: int = Field(description="inputs stored but not yet consumed by the mapper")
     snapshot_seq: int = Field(description="last input covered by the newest snapshot (-1: none)")
     replaying: bool = Field(description="the session is restoring after a restart")
+    backend: dict[str, Any] = Field(default_factory=dict, description="where the session's mapper runs: 'kind' "
+                                    "(inprocess, ray), for Ray the actor's 'pid' and 'node', and 'restarts'")
+    backend_restarts: int = Field(0, description="times the session's mapper (Ray actor) died and was restored "
+                                  "from its last snapshot plus replay")
     error: str | None = Field(description="why the session's worker stopped, if it did")
     rejected: dict[str, int] = Field(description="rejected inputs by HTTP status")
     mapper: dict[str, Any] = Field(description="Mapper.stats()")

@@ -18,6 +18,7 @@ deletes and, at start-up, restores every stored session.
 from __future__ import annotations
 
 import asyncio
+import logging
 import secrets
 import time
 from collections import Counter
@@ -31,10 +32,13 @@ from . import model
 from .auth import can_read, can_write
 from .ingest import Accepted, IngestError, check_frame, pydantic_message
 from .limits import TokenBucket
+from .mapper_host import HostFactory, inprocess_factory
 from .metrics import ServiceMetrics
 from .settings import ServerSettings
 from .store import InputRecord, SessionRecord, Store, TokenRecord
 from .worker import SessionWorker, WorkItem
+
+log = logging.getLogger("hippomap.server")
 
 
 class NotFound(Exception):
@@ -49,12 +53,14 @@ class LiveSession:
     """A session in memory: its record, config, worker and ingest state."""
 
     def __init__(self, record: SessionRecord, config: HippomapConfig, store: Store, settings: ServerSettings,
-                 loop: asyncio.AbstractEventLoop) -> None:
+                 loop: asyncio.AbstractEventLoop, host_factory: HostFactory | None = None,
+                 metrics: ServiceMetrics | None = None) -> None:
         self.record = record
         self.config = config
         self.store = store
         self.settings = settings
         self.loop = loop
+        self.metrics = metrics
         last = store.last_input(record.id)
         self.next_seq = 0 if last is None else last[0] + 1
         #: timestamp of the last accepted input of each kind: the next one of that kind must exceed it
@@ -68,7 +74,8 @@ class LiveSession:
         self._lock = asyncio.Lock()
         self._room = asyncio.Event()
         self.worker = SessionWorker(record.id, config, store, settings, replay_until=self.next_seq - 1,
-                                    on_processed=self._processed_threadsafe)
+                                    on_processed=self._processed_threadsafe, host_factory=host_factory,
+                                    metrics=metrics)
 
     @property
     def id(self) -> str:
@@ -139,16 +146,21 @@ class LiveSession:
             worker = self.worker
             cfut = self.store.append_inputs(self.id, records, on_durable=lambda: worker.put(work))
         last = seq0 + len(items) - 1
+        kinds = Counter(a.kind for a in items)
         fut = asyncio.wrap_future(cfut, loop=self.loop)
-        fut.add_done_callback(lambda f: self._stored(f, last))
+        fut.add_done_callback(lambda f: self._stored(f, last, kinds))
         return seq0, last, fut
 
-    def _stored(self, fut: asyncio.Future, last: int) -> None:
+    def _stored(self, fut: asyncio.Future, last: int, kinds: Counter[str] | None = None) -> None:
         if fut.cancelled() or fut.exception() is not None:
             # sequence numbers were promised but not stored: refuse further inputs rather than leave a gap
             self.store_error = f"storage failed: {None if fut.cancelled() else fut.exception()}"
+            log.error("session %s: %s", self.id, self.store_error, extra={"session": self.id})
             return
         self.stored_seq = max(self.stored_seq, last)
+        if self.metrics is not None and kinds:
+            for kind, n in kinds.items():  # durable now: the acknowledgement follows
+                self.metrics.inputs_accepted(self.id, kind, n)
 
     def _validate_frame(self, data: bytes, t: Any) -> Accepted:
         accepted = check_frame(data, t, self.settings)
@@ -177,6 +189,8 @@ class LiveSession:
             "pending": max(0, self.stored_seq - w.processed_seq),
             "snapshot_seq": w.snapshot_seq,
             "replaying": w.replaying,
+            "backend": {**w.host_info, "restarts": w.restarts},
+            "backend_restarts": w.restarts,
             "error": self.error,
             "rejected": {str(k): v for k, v in sorted(self.rejected.items())},
             "mapper": mapper_stats,
@@ -192,10 +206,18 @@ class SessionManager:
         self.metrics = metrics if metrics is not None else ServiceMetrics()
         self.sessions: dict[str, LiveSession] = {}
         self.loop: asyncio.AbstractEventLoop | None = None
+        self.backend: Any = None  # the RayBackend when settings.backend == "ray"
+        self.host_factory: HostFactory = inprocess_factory
 
     def start(self, loop: asyncio.AbstractEventLoop) -> None:
-        """Restore every stored session (each worker replays in its own thread)."""
+        """Start the session backend, then restore every stored session (each worker replays in its own thread)."""
         self.loop = loop
+        if self.settings.backend == "ray":
+            from .ray_backend import RayBackend  # Ray is imported only on this path
+
+            self.backend = RayBackend(self.settings)
+            self.backend.start()
+            self.host_factory = self.backend.factory
         for rec in self.store.list_sessions():
             try:
                 config = model.effective_config(rec.config)
@@ -213,7 +235,7 @@ class SessionManager:
 
     def _open(self, rec: SessionRecord, config: HippomapConfig) -> LiveSession:
         assert self.loop is not None
-        live = LiveSession(rec, config, self.store, self.settings, self.loop)
+        live = LiveSession(rec, config, self.store, self.settings, self.loop, self.host_factory, self.metrics)
         self.sessions[rec.id] = live
         live.worker.start()
         return live
@@ -223,6 +245,9 @@ class SessionManager:
             live.closed = True
             live.worker.stop(snapshot=True)
         self.sessions.clear()
+        if self.backend is not None:
+            self.backend.shutdown()
+            self.backend = None
 
     # ------------------------------------------------------------ commands
     async def create(self, token: TokenRecord, name: str, overrides: dict[str, Any]) -> LiveSession:
@@ -242,6 +267,7 @@ class SessionManager:
                             created=time.time())
         await asyncio.wrap_future(self.store.create_session(rec))
         live = self._open(rec, config)
+        log.info("session %s created by token %s", rec.id, token.id, extra={"session": rec.id})
         # answer once the mapper exists: building it (grid-cell tables...) must not delay the first inputs
         await asyncio.to_thread(live.worker.ready.wait, 120)
         return live
@@ -266,3 +292,5 @@ class SessionManager:
         self.sessions.pop(session_id, None)
         await asyncio.to_thread(live.worker.stop, False)
         await asyncio.wrap_future(self.store.delete_session(session_id))
+        self.metrics.forget(session_id)
+        log.info("session %s deleted", session_id, extra={"session": session_id})

@@ -52,6 +52,21 @@ class ServerSettings(BaseModel):
     snapshot_every_inputs: int = Field(2000, ge=1, description="snapshot the mapper after this many inputs...")
     snapshot_every_s: float = Field(60.0, gt=0, description="...or this many seconds, whichever comes first")
     keep_snapshots: int = Field(2, ge=1, description="snapshots kept per session (older ones are deleted)")
+    # ---- session backend (where each session's mapper runs: server/mapper_host.py, server/ray_backend.py) ----
+    backend: Literal["inprocess", "ray"] = Field(
+        "inprocess", description="'inprocess': every session's mapper in this process (a thread each); "
+        "'ray': one Ray actor per session (needs the 'ray' extra: pip install \"hippomap[ray]\")")
+    ray_address: str | None = Field(
+        None, description="Ray cluster to join (e.g. 127.0.0.1:6379 or ray://host:10001); unset: start a local "
+        "Ray on loopback inside this server")
+    ray_max_batch: int = Field(32, ge=1, description="most inputs sent to a session's actor in one call (amortises "
+                               "the call overhead; a query waits at most one batch)")
+    ray_actor_cpus: float = Field(
+        0.0, ge=0, description="CPUs each session's actor reserves in Ray's scheduler (0: no reservation, actors are "
+        "spread over the nodes; 1: at most one session per CPU, further sessions wait for room)")
+    backend_max_restarts: int = Field(
+        5, ge=0, description="a session whose mapper host (actor) dies this many times in a row without "
+        "progress stops with an error instead of being restored again")
     # ---- auth ----
     admin_token: str | None = Field(
         None, description="the admin token; if unset one is generated on first start and saved in <data_dir>/admin.token"

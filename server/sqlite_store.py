@@ -57,6 +57,7 @@ CREATE TABLE IF NOT EXISTS place_fields (
     session TEXT NOT NULL, step INTEGER NOT NULL, seq INTEGER NOT NULL, t REAL NOT NULL, data BLOB NOT NULL,
     PRIMARY KEY (session, step));
 CREATE INDEX IF NOT EXISTS place_fields_seq ON place_fields (session, seq);
+CREATE TABLE IF NOT EXISTS leases (session TEXT PRIMARY KEY, owner TEXT, expires REAL NOT NULL);
 """
 
 
@@ -227,7 +228,7 @@ class SQLiteStore(Store):
 
     def delete_session(self, session_id: str) -> Future:
         def op(c: sqlite3.Connection) -> None:
-            for table in ("inputs", "snapshots", "events", "place_fields"):
+            for table in ("inputs", "snapshots", "events", "place_fields", "leases"):
                 c.execute(f"DELETE FROM {table} WHERE session=?", (session_id,))
             c.execute("DELETE FROM sessions WHERE id=?", (session_id,))
             c.execute("DELETE FROM tokens WHERE session=?", (session_id,))
@@ -349,3 +350,32 @@ class SQLiteStore(Store):
         r = self._read().execute("SELECT step, seq, t, data FROM place_fields WHERE session=? AND step=?",
                                  (session_id, step)).fetchone()
         return None if r is None else PlaceFieldRecord(step=r[0], seq=r[1], t=r[2], data=bytes(r[3]))
+
+    # -------------------------------------------------------------- leases
+    def claim_session(self, session_id: str, replica: str, ttl_s: float) -> str:
+        """Take the lease on running ``session_id``'s mapper for ``ttl_s`` seconds if it is free,
+        expired or already ``replica``'s (then it is renewed); returns the replica holding it
+        after the call. Runs in the writer's transaction (``BEGIN IMMEDIATE``: one writer across
+        every process on the file), so the read-then-write is atomic."""
+        if not ttl_s > 0:
+            raise ValueError(f"ttl_s must be > 0, got {ttl_s!r}")
+
+        def op(c: sqlite3.Connection) -> str:
+            now = time.time()
+            row = c.execute("SELECT owner, expires FROM leases WHERE session=?", (session_id,)).fetchone()
+            if row is None or row[0] is None or row[0] == replica or row[1] < now:
+                c.execute("INSERT OR REPLACE INTO leases VALUES (?,?,?)", (session_id, replica, now + ttl_s))
+                return replica
+            return str(row[0])
+        return self._submit(op).result()
+
+    def release_session(self, session_id: str, replica: str) -> bool:
+        """Give up ``replica``'s lease on ``session_id``; False if it did not hold it."""
+        return bool(self._submit(lambda c: c.execute("UPDATE leases SET owner=NULL WHERE session=? AND owner=?",
+                                                     (session_id, replica)).rowcount).result())
+
+    def session_owner(self, session_id: str) -> str | None:
+        """The replica holding an unexpired lease on ``session_id``, or None."""
+        row = self._read().execute("SELECT owner FROM leases WHERE session=? AND owner IS NOT NULL AND expires>=?",
+                                   (session_id, time.time())).fetchone()
+        return None if row is None else str(row[0])

@@ -12,7 +12,7 @@ Everything the server must not lose goes through a :class:`Store`:
 Writes return a :class:`concurrent.futures.Future` that completes once the write is durable; the
 embedded backend (:mod:`server.sqlite_store`) commits many writes per transaction (group commit).
 Writes of one store complete in submission order. Reads are synchronous and thread-safe.
-A PostgreSQL backend only has to implement this class.
+Implementations: :mod:`server.sqlite_store` (embedded default) and :mod:`server.postgres_store`.
 """
 
 from __future__ import annotations
@@ -109,7 +109,24 @@ class Store(abc.ABC):
 
     @abc.abstractmethod
     def delete_session(self, session_id: str) -> Future:
-        """Drop a session with all its inputs, snapshots and derived records."""
+        """Drop a session with all its inputs, snapshots, derived records and its lease."""
+
+    # ---------------------------------------------------------------- leases
+    # Several server replicas may share one database (PostgreSQL): a session's mapper must run
+    # in one of them only. The replica that runs it holds a lease and renews it.
+    @abc.abstractmethod
+    def claim_session(self, session_id: str, replica: str, ttl_s: float) -> str:
+        """Take (if free or expired) or renew (if ``replica``'s) the lease on running
+        ``session_id``'s mapper for ``ttl_s`` > 0 seconds; returns the replica holding it after
+        the call. Atomic across processes sharing the database."""
+
+    @abc.abstractmethod
+    def release_session(self, session_id: str, replica: str) -> bool:
+        """Give up ``replica``'s lease; False if it did not hold it."""
+
+    @abc.abstractmethod
+    def session_owner(self, session_id: str) -> str | None:
+        """The replica holding an unexpired lease, or None."""
 
     # ---------------------------------------------------------------- inputs
     @abc.abstractmethod

@@ -121,8 +121,367 @@ class ServiceVariant:
         return open_store(ServerSettings(data_dir=Path(data_dir), database=self.env(data_dir).get("HIPPOMAP_DATABASE")))
 
 
+# ------------------------------------------------------------------ PostgreSQL for tests
+#: set to a URL of a role allowed to CREATE DATABASE (``.ci/postgres`` prints one) to use that server;
+#: unset, the tests start a private cluster of their own
+POSTGRES_URL_ENV = "HIPPOMAP_TEST_POSTGRES_URL"
+POSTGRES_LIB = Path("/usr/lib/postgresql")  # Debian's versioned server programs: <version>/bin
+_PG_LOCK = threading.Lock()
+_PG_BASE_URL: str | None = None
+_PG_CREATED: set[str] = set()
+
+
+def postgres_bin_dir() -> Path:
+    """The folder of PostgreSQL's server programs (initdb, pg_ctl): Debian's newest
+    ``/usr/lib/postgresql/<version>/bin``, else wherever ``initdb`` is on the PATH."""
+    import shutil
+
+    found = [p.parent for p in POSTGRES_LIB.glob("*/bin/initdb")]
+    found.sort(key=lambda b: int(b.parent.name) if b.parent.name.isdigit() else 0)
+    if found:
+        return found[-1]
+    initdb = shutil.which("initdb")
+    if initdb:
+        return Path(initdb).parent
+    raise RuntimeError("PostgreSQL server programs (initdb, pg_ctl) not found: install Debian's PostgreSQL "
+                       "(`apt-get install -y postgresql`) or point " + POSTGRES_URL_ENV + " at a server "
+                       "(`eval \"$(bash .ci/postgres)\"` does both)")
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+class PostgresCluster:
+    """A throwaway PostgreSQL server for tests and benchmarks: ``initdb`` in a temporary folder
+    (its unix socket there too), listening on 127.0.0.1 at a free port, password login for TCP.
+    Run as the ``postgres`` user when we are root (initdb refuses root). ``fsync=False`` trades
+    crash safety *of the database server* for speed (tests kill hippomap, not PostgreSQL)."""
+
+    PREFIX = "hippomap-pg-"
+
+    def __init__(self, fsync: bool = False, bin_dir: Path | None = None) -> None:
+        import secrets
+
+        self.bin_dir = bin_dir or postgres_bin_dir()
+        self.fsync = fsync
+        self.password = secrets.token_hex(16)
+        self.root: Path | None = None
+        self.port = 0
+
+    def _as_owner(self) -> list[str]:
+        return ["runuser", "-u", "postgres", "--"] if os.geteuid() == 0 else []
+
+    def _run(self, *cmd: str, timeout: float = 120) -> None:
+        res = subprocess.run([*self._as_owner(), *cmd], capture_output=True, text=True, timeout=timeout)
+        if res.returncode != 0:
+            raise RuntimeError(f"{Path(cmd[0]).name} failed ({res.returncode}):\n{res.stdout}{res.stderr}")
+
+    @classmethod
+    def remove_stale(cls) -> None:
+        """Stop and delete private clusters whose creating process is gone (killed test runs)."""
+        import shutil
+        import tempfile
+
+        for pidfile in Path(tempfile.gettempdir()).glob(cls.PREFIX + "*/creator.pid"):
+            try:
+                pid = int(pidfile.read_text())
+            except (OSError, ValueError):
+                continue
+            if _pid_alive(pid):
+                continue
+            root = pidfile.parent
+            try:
+                bindir = postgres_bin_dir()
+                prefix = ["runuser", "-u", "postgres", "--"] if os.geteuid() == 0 else []
+                subprocess.run([*prefix, str(bindir / "pg_ctl"), "-D", str(root / "data"), "-m", "immediate", "stop"],
+                               capture_output=True, timeout=60)
+            except (RuntimeError, OSError, subprocess.TimeoutExpired):
+                pass
+            shutil.rmtree(root, ignore_errors=True)
+
+    def start(self) -> "PostgresCluster":
+        import atexit
+        import shutil
+        import tempfile
+
+        self.remove_stale()
+        root = self.root = Path(tempfile.mkdtemp(prefix=self.PREFIX))
+        (root / "creator.pid").write_text(str(os.getpid()))
+        pwfile = root / "pw"
+        pwfile.write_text(self.password + "\n")
+        if os.geteuid() == 0:
+            shutil.chown(root, "postgres", "postgres")
+            shutil.chown(pwfile, "postgres", "postgres")
+        pwfile.chmod(0o600)
+        atexit.register(self.stop)
+        self._run(str(self.bin_dir / "initdb"), "-D", str(root / "data"), "-U", "postgres", "-E", "UTF8",
+                  "--auth-local=trust", "--auth-host=scram-sha-256", f"--pwfile={pwfile}", "--no-sync")
+        pwfile.unlink()
+        conf = [f"listen_addresses = '127.0.0.1'", f"unix_socket_directories = '{root}'", "max_connections = 300",
+                f"fsync = {'on' if self.fsync else 'off'}", f"full_page_writes = {'on' if self.fsync else 'off'}"]
+        with open(root / "data" / "postgresql.conf", "a") as f:
+            f.write("\n".join(conf) + "\n")
+        for attempt in range(5):
+            self.port = _free_port()
+            try:
+                self._run(str(self.bin_dir / "pg_ctl"), "-D", str(root / "data"), "-l", str(root / "server.log"),
+                          "-o", f"-p {self.port}", "-w", "-t", "60", "start")
+                return self
+            except RuntimeError:  # the port was taken in between: try another
+                if attempt == 4:
+                    log = (root / "server.log").read_text() if (root / "server.log").exists() else ""
+                    raise RuntimeError(f"PostgreSQL did not start in {root}:\n{log[-3000:]}") from None
+        return self  # pragma: no cover
+
+    def stop(self) -> None:
+        import shutil
+
+        if self.root is None:
+            return
+        root, self.root = self.root, None
+        try:
+            self._run(str(self.bin_dir / "pg_ctl"), "-D", str(root / "data"), "-m", "fast", "-w", "stop", timeout=60)
+        except (RuntimeError, subprocess.TimeoutExpired):
+            pass
+        shutil.rmtree(root, ignore_errors=True)
+
+    def url(self, dbname: str = "postgres") -> str:
+        return f"postgresql://postgres:{self.password}@127.0.0.1:{self.port}/{dbname}"
+
+
+def _with_dbname(url: str, dbname: str) -> str:
+    from urllib.parse import urlsplit, urlunsplit
+
+    parts = urlsplit(url)
+    return urlunsplit(parts._replace(path="/" + dbname))
+
+
+def _drop_created() -> None:
+    import psycopg
+
+    if _PG_BASE_URL is None or not _PG_CREATED:
+        return
+    try:
+        with psycopg.connect(_PG_BASE_URL, autocommit=True, connect_timeout=10) as conn:
+            for name in sorted(_PG_CREATED):
+                conn.execute(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)')
+    except psycopg.Error:
+        pass
+
+
+def postgres_test_url() -> str:
+    """A PostgreSQL URL for tests whose role may create databases: ``$HIPPOMAP_TEST_POSTGRES_URL``
+    if set, otherwise a private :class:`PostgresCluster` started on first use (stopped at exit)."""
+    global _PG_BASE_URL
+    with _PG_LOCK:
+        if _PG_BASE_URL is None:
+            import atexit
+
+            env = os.environ.get(POSTGRES_URL_ENV)
+            if env:
+                if not env.startswith(("postgresql://", "postgres://")):
+                    raise RuntimeError(f"{POSTGRES_URL_ENV} must be a postgresql:// URL")
+                _PG_BASE_URL = env
+                atexit.register(_drop_created)
+            else:
+                _PG_BASE_URL = PostgresCluster().start().url()
+        return _PG_BASE_URL
+
+
+def postgres_database(name: str, fresh: bool = False) -> str:
+    """The URL of database ``name`` on the test server, created if missing (emptied first if
+    ``fresh``). Names: lower-case letters, digits and underscores."""
+    import psycopg
+
+    if not re.fullmatch(r"[a-z_][a-z0-9_]{0,62}", name):
+        raise ValueError(f"bad database name {name!r}")
+    base = postgres_test_url()
+    with psycopg.connect(base, autocommit=True, connect_timeout=10) as conn:
+        if fresh:
+            conn.execute(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)')
+        if conn.execute("SELECT 1 FROM pg_database WHERE datname=%s", (name,)).fetchone() is None:
+            try:
+                conn.execute(f'CREATE DATABASE "{name}"')
+            except psycopg.errors.DuplicateDatabase:  # created concurrently: fine
+                pass
+            except psycopg.errors.UniqueViolation:
+                pass
+    _PG_CREATED.add(name)
+    return _with_dbname(base, name)
+
+
+def postgres_url_for(data_dir: str | Path, fresh: bool = False) -> str:
+    """A database of its own for the server on ``data_dir``: the same folder always maps to the
+    same database, so a restarted server finds its data (``fresh``: emptied first)."""
+    import hashlib
+
+    digest = hashlib.sha1(str(Path(data_dir).resolve()).encode()).hexdigest()[:24]
+    return postgres_database(f"hm_{digest}", fresh=fresh)
+
+
+# ------------------------------------------------------------------ Ray for tests
+_RAY_LOCK = threading.Lock()
+_RAY_HEAD: "LocalRayHead | None" = None
+
+
+class LocalRayHead:
+    """A private Ray head for tests and benchmarks: ``ray start --head --block`` on 127.0.0.1 at a free
+    port, in its own process group and temporary folder, no dashboard, no usage statistics.
+    :meth:`stop` ends the whole group (head services and every worker/actor process they started);
+    heads left by a killed test run are stopped by the next one (:meth:`remove_stale`)."""
+
+    PREFIX = "hippomap-ray-"
+
+    def __init__(self, num_cpus: int = 2, object_store_bytes: int = 200_000_000) -> None:
+        self.num_cpus = num_cpus
+        self.object_store_bytes = object_store_bytes
+        self.root: Path | None = None
+        self.proc: subprocess.Popen | None = None
+        self.address = ""
+        self.env: dict[str, str] = {}  # what a process needs to join: token authentication
+
+    @classmethod
+    def remove_stale(cls) -> None:
+        import shutil
+        import tempfile
+
+        for pidfile in Path(tempfile.gettempdir()).glob(cls.PREFIX + "*/creator.pid"):
+            try:
+                creator, pgid = (int(v) for v in pidfile.read_text().split())
+            except (OSError, ValueError):
+                continue
+            try:
+                os.kill(creator, 0)
+                continue  # its test run is still going
+            except ProcessLookupError:
+                pass
+            except PermissionError:
+                continue
+            try:
+                os.killpg(pgid, signal.SIGKILL)
+            except (ProcessLookupError, PermissionError):
+                pass
+            shutil.rmtree(pidfile.parent, ignore_errors=True)
+
+    def start(self, timeout: float = 120.0) -> "LocalRayHead":
+        import atexit
+        import socket
+        import tempfile
+        import time
+
+        self.remove_stale()
+        # short path: Ray's unix sockets live under it (107-byte limit)
+        self.root = Path(tempfile.mkdtemp(prefix=self.PREFIX))
+        with socket.socket() as sk:
+            sk.bind(("127.0.0.1", 0))
+            port = int(sk.getsockname()[1])
+        import secrets
+
+        token = self.root / "auth_token"  # a private token: only this run's servers may join
+        token.write_text(secrets.token_hex(32))
+        token.chmod(0o600)
+        self.env = {"RAY_AUTH_MODE": "token", "RAY_AUTH_TOKEN_PATH": str(token)}
+        env = {**os.environ, **self.env, "RAY_USAGE_STATS_ENABLED": "0",
+               "PYTHONPATH": os.pathsep.join(p for p in (str(ROOT), os.environ.get("PYTHONPATH", "")) if p)}
+        log = open(self.root / "head.log", "w")
+        self.proc = subprocess.Popen(
+            [str(Path(sys.executable).parent / "ray"), "start", "--head", "--block", "--node-ip-address=127.0.0.1",
+             f"--port={port}", f"--num-cpus={self.num_cpus}", "--include-dashboard=false", "--disable-usage-stats",
+             f"--object-store-memory={self.object_store_bytes}", f"--temp-dir={self.root}"],
+            cwd=ROOT, env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+        (self.root / "creator.pid").write_text(f"{os.getpid()} {self.proc.pid}")
+        atexit.register(self.stop)
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            text = (self.root / "head.log").read_text()
+            if "Ray runtime started" in text:
+                self.address = f"127.0.0.1:{port}"
+                return self
+            if self.proc.poll() is not None:
+                break
+            time.sleep(0.2)
+        out = (self.root / "head.log").read_text()
+        self.stop()
+        raise RuntimeError("Ray head did not start:\n" + out[-3000:])
+
+    def stop(self) -> None:
+        """SIGTERM to the head's process group, SIGKILL to what is left after a few seconds."""
+        import shutil
+        import time
+
+        proc, root, self.proc, self.root = self.proc, self.root, None, None
+        if proc is not None:
+            for sig, wait_s in ((signal.SIGTERM, 5.0), (signal.SIGKILL, 10.0)):
+                try:
+                    os.killpg(proc.pid, sig)
+                except ProcessLookupError:
+                    break
+                try:
+                    proc.wait(wait_s)
+                except subprocess.TimeoutExpired:
+                    pass
+                deadline = time.monotonic() + wait_s
+                while time.monotonic() < deadline and ray_group_alive(proc.pid):
+                    time.sleep(0.1)
+                if not ray_group_alive(proc.pid):
+                    break
+        if root is not None:
+            shutil.rmtree(root, ignore_errors=True)
+
+
+def ray_group_pids(pgid: int) -> list[int]:
+    """Live (not zombie) processes of process group ``pgid``."""
+    out = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[2]) == pgid and fields[0] != "Z":
+            out.append(int(stat.parent.name))
+    return out
+
+
+def ray_group_alive(pgid: int) -> bool:
+    return bool(ray_group_pids(pgid))
+
+
+def local_ray_head() -> LocalRayHead:
+    """The Ray head of this test run: started on first use, stopped at exit."""
+    global _RAY_HEAD
+    with _RAY_LOCK:
+        if _RAY_HEAD is None or _RAY_HEAD.proc is None:
+            _RAY_HEAD = LocalRayHead().start()
+        return _RAY_HEAD
+
+
+def ray_test_env(data_dir: Path) -> dict[str, str]:
+    """Environment of a Ray-backed test server: join the test run's Ray head."""
+    head = local_ray_head()
+    return {"HIPPOMAP_RAY_ADDRESS": head.address, **head.env}
+
+
 #: every backend x store combination the service suite runs against
-SERVICE_VARIANTS: list[ServiceVariant] = [ServiceVariant("inprocess-sqlite")]
+SERVICE_VARIANTS: list[ServiceVariant] = [
+    ServiceVariant("inprocess-sqlite"),
+    ServiceVariant("ray-sqlite", args=("--backend", "ray"), env_for=ray_test_env),
+    ServiceVariant("inprocess-postgres", env_for=lambda d: {"HIPPOMAP_DATABASE": postgres_url_for(d)}),
+]
 
 
 @lru_cache(maxsize=4)

@@ -21,18 +21,29 @@ from server.images import image_dimensions
 from server.ingest import (IngestError, check_frame, check_odometry, odometry_bytes, odometry_from_bytes,
                            parse_odometry_message)
 from server.limits import TokenBucket
+from server.postgres_store import PostgresStore
 from server.protocol import pack_frame, unpack_frame
 from server.schemas import OdometryReading
 from server.settings import ServerSettings
 from server.sqlite_store import SQLiteStore
 from server.store import EventRecord, InputRecord, PlaceFieldRecord, SessionRecord, TokenRecord
+from server.testing import postgres_url_for
 
 
-@pytest.fixture()
-def store(tmp_path):
-    s = SQLiteStore(tmp_path / "db.sqlite3")
+@pytest.fixture(params=["sqlite", "postgres"])
+def store(request, tmp_path):
+    """Each store backend on an empty database of its own (both must pass the same contract)."""
+    if request.param == "sqlite":
+        s = SQLiteStore(tmp_path / "db.sqlite3")
+    else:
+        s = PostgresStore(postgres_url_for(tmp_path, fresh=True))
     yield s
     s.close()
+
+
+def _reopen(store):
+    """A second, independent store on the same database (as another process would open it)."""
+    return SQLiteStore(store.path) if isinstance(store, SQLiteStore) else PostgresStore(store.url)
 
 
 def _jpeg(w: int, h: int, seed: int = 0) -> bytes:
@@ -51,7 +62,7 @@ def test_store_inputs_durable_in_order_and_callbacks_in_commit_order(store, tmp_
         f.result(10)
     assert order == list(range(50))
     # a second connection (another process would see the same) reads everything back
-    other = SQLiteStore(tmp_path / "db.sqlite3")
+    other = _reopen(store)
     try:
         rows = other.read_inputs("s1", -1, 1000)
         assert [r.seq for r in rows] == list(range(50))

@@ -1,0 +1,301 @@
+"""Session backends (server/mapper_host.py, server/ray_backend.py, server/worker.py).
+
+* the in-process and the Ray host give the same results for the same inputs;
+* a session worker whose Ray actor is killed (``ray.kill``) restores a new one from the
+  store and ends in the uninterrupted state; metrics are reported once per live input;
+* with a live server on Ray, SIGKILLing a session's actor process while a robot streams
+  loses no acknowledged input, the restart shows in the stats, and the final state equals
+  the offline reference; a SIGKILLed server leaves no actor process behind;
+* a clear error when Ray is missing, and for a bad backend name; the in-process path never
+  imports Ray.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+from pydantic import ValidationError
+
+from hippomap.client import AsyncStream
+from hippomap.inputs import Odometry
+from server import model
+from server.ingest import odometry_bytes
+from server.mapper_host import InProcessHost
+from server.metrics import ServiceMetrics
+from server.settings import ServerSettings
+from server.sqlite_store import SQLiteStore
+from server.store import InputRecord, SessionRecord
+from server.testing import (ROOT, decoded, local_ray_head, offline_reference, ray_test_env,
+                            session_state, synthetic_inputs)
+from server.worker import SessionWorker, WorkItem
+
+CONFIG = {"mapper": {"keyframe_interval": 3}}
+ITEMS = synthetic_inputs(n_odometry=400, frame_every=3)  # 1.6 laps: loops are closed
+
+
+@pytest.fixture(scope="module")
+def ray_driver():
+    """This test process joined to the test run's Ray head (as a server would)."""
+    head = local_ray_head()
+    saved = {k: os.environ.get(k) for k in head.env}
+    os.environ.update(head.env)  # before Ray is imported: it reads its auth mode then
+    import ray
+
+    from server.ray_backend import RayBackend
+
+    backend = RayBackend(ServerSettings(backend="ray", ray_address=head.address, ray_max_batch=8))
+    backend.start()
+    try:
+        yield backend
+    finally:
+        backend.shutdown()
+        assert not ray.is_initialized()
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
+def _records(items: tuple) -> list[InputRecord]:
+    out = []
+    for seq, it in enumerate(items):
+        if it[0] == "odometry":
+            out.append(InputRecord(seq, "odometry", it[1].t, odometry_bytes(it[1])))
+        else:
+            out.append(InputRecord(seq, "frame", it[1], it[2]))
+    return out
+
+
+def test_inprocess_and_ray_hosts_give_identical_results(ray_driver):
+    values = decoded(ITEMS[:120])
+    config = model.effective_config(CONFIG)
+    local = InProcessHost()
+    remote = ray_driver.factory("unit")
+    try:
+        assert local.restore(None, config) == remote.restore(None, config)
+        assert remote.info()["kind"] == "ray" and remote.info()["pid"] != os.getpid()
+        batch = list(enumerate(values))
+        a, b = local.process(batch), remote.process(batch)
+        assert [r.seq for r in b] == list(range(len(values)))
+        assert [(r.kind, r.t, r.events, r.field) for r in a] == [(r.kind, r.t, r.events, r.field) for r in b]
+        assert any(r.field is not None for r in b) and any(r.events for r in b)
+        assert local.query(model.graph) == remote.query(model.graph)
+        assert remote.query(lambda m: model.trajectory(m, "map"))[0].tolist() == \
+            local.query(lambda m: model.trajectory(m, "map"))[0].tolist()
+        # a snapshot taken remotely restores locally to the same mapper
+        again = InProcessHost()
+        again.restore(remote.snapshot(), config)
+        assert again.query(model.stats) == local.query(model.stats)
+    finally:
+        remote.close()
+
+
+def _run_worker(tmp_path, items, host_factory, kill_at=None, metrics=None):
+    """Feed ``items`` to a SessionWorker the way LiveSession does (durable first); optionally
+    ``kill_at(worker)`` is called once half the inputs are queued. Returns the final state."""
+    store = SQLiteStore(tmp_path / "db.sqlite3", "normal")
+    sid = "s_unit"
+    store.create_session(SessionRecord(id=sid, owner="t", config=CONFIG)).result()
+    settings = ServerSettings(data_dir=tmp_path, snapshot_every_inputs=50, backend_max_restarts=3)
+    processed: list[int] = []
+    w = SessionWorker(sid, model.effective_config(CONFIG), store, settings, replay_until=-1,
+                      on_processed=processed.append, host_factory=host_factory, metrics=metrics)
+    w.start()
+    assert w.ready.wait(120) and w.error is None
+    recs, values = _records(items), decoded(items)
+    half = len(items) // 2
+    for k in range(0, len(items), 10):
+        work = [WorkItem(r.seq, v) for r, v in zip(recs[k:k + 10], values[k:k + 10])]
+        store.append_inputs(sid, recs[k:k + 10], on_durable=lambda work=work: w.put(work)).result()
+        if kill_at is not None and k <= half < k + 10:
+            kill_at(w)
+    deadline = time.monotonic() + 120
+    while w.processed_seq < len(items) - 1 and w.error is None and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert w.error is None
+    state = {"graph": w.query(model.graph), "stats": w.query(model.stats)}
+    w.stop(snapshot=True)
+    events = store.query_events(sid, limit=100_000)
+    fields = store.place_fields(sid, limit=100_000, with_data=True)
+    store.close()
+    return state, processed, w, events, fields
+
+
+def test_worker_replaces_a_killed_actor_and_ends_in_the_uninterrupted_state(tmp_path, ray_driver):
+    import ray
+
+    items = ITEMS
+    ref, processed_ref, _, events_ref, fields_ref = _run_worker(tmp_path / "a", items, lambda sid: InProcessHost())
+    killed = []
+
+    def kill(w):  # once a snapshot exists, so the new actor restores it and replays after it
+        deadline = time.monotonic() + 60
+        while w.snapshot_seq < 0 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert w.snapshot_seq >= 0
+        killed.append(w._host.info()["pid"])
+        ray.kill(w._host.actor, no_restart=True)
+
+    metrics = ServiceMetrics()
+    state, processed, w, events, fields = _run_worker(tmp_path / "b", items, ray_driver.factory, kill, metrics)
+    assert killed and w.restarts >= 1
+    assert state == ref
+    # every input reported exactly once, in order, although some were replayed into the new actor
+    assert processed == processed_ref == list(range(len(items)))
+    # the derived records are those of an uninterrupted run (dropped after the snapshot, then regenerated)
+    assert [(e.id, e.seq, e.type, e.data) for e in events] == [(e.id, e.seq, e.type, e.data) for e in events_ref]
+    assert [(f.step, f.seq, f.data) for f in fields] == [(f.step, f.seq, f.data) for f in fields_ref]
+    # metrics: one step observation per input, loop closures as accepted by the map
+    reg = metrics.registry
+    n_odo = sum(1 for it in items if it[0] == "odometry")
+    assert reg.get_sample_value("hippomap_step_seconds_count", {"session": "s_unit", "kind": "odometry"}) == n_odo
+    assert reg.get_sample_value("hippomap_step_seconds_count",
+                                {"session": "s_unit", "kind": "frame"}) == len(items) - n_odo
+    accepted = state["stats"]["loop_closures_accepted"]
+    assert accepted > 0
+    assert reg.get_sample_value("hippomap_loop_closures_total", {"session": "s_unit"}) == accepted
+    assert reg.get_sample_value("hippomap_restore_seconds", {"session": "s_unit"}) > 0
+
+
+# --------------------------------------------------------------------- live server on Ray
+def _ray_server(tmp_path, env=None):
+    from server.testing import LiveServer
+
+    data = tmp_path / "data"
+    return LiveServer(data, env={**ray_test_env(data), "HIPPOMAP_SNAPSHOT_EVERY_INPUTS": "60", **(env or {})},
+                      args=["--backend", "ray"])
+
+
+def _kind_t(it):
+    return ("odometry", it[1].t) if it[0] == "odometry" else ("frame", it[1])
+
+
+def test_killing_a_sessions_actor_mid_stream_loses_no_acknowledged_input(tmp_path):
+    srv = _ray_server(tmp_path).start()
+    try:
+        with srv.client() as c:
+            sid = c.create_session("actor-kill", CONFIG)["id"]
+            pid0 = c.stats(sid)["backend"]["pid"]
+
+        async def stream() -> list[dict]:
+            acks = []
+            async with AsyncStream(srv.url, srv.token, sid, max_in_flight=32) as st:
+                futs = []
+                for k, it in enumerate(ITEMS):
+                    if k == len(ITEMS) // 2:  # the robot keeps streaming while the actor's process is killed
+                        await asyncio.to_thread(os.kill, pid0, signal.SIGKILL)
+                    futs.append(await (st.send_odometry(it[1]) if it[0] == "odometry"
+                                       else st.send_frame(it[1], it[2])))
+                acks = list(await asyncio.gather(*futs))
+            return acks
+
+        acks = asyncio.run(stream())
+        assert len(acks) == len(ITEMS) and max(a["last_seq"] for a in acks) == len(ITEMS) - 1
+        with srv.client() as c:
+            state = session_state(c, sid)
+            stats = c.stats(sid)
+            stored = c.all_inputs(sid)
+        assert stats["backend_restarts"] >= 1 and stats["backend"]["pid"] != pid0
+        assert stats["error"] is None
+        assert [(r["kind"], r["t"]) for r in stored] == [_kind_t(it) for it in ITEMS]
+        assert state == offline_reference(ITEMS, CONFIG)
+        assert state["stats"]["loop_closures_accepted"] > 0
+    finally:
+        srv.stop()
+
+
+def _ray_process(pid: int) -> str | None:
+    """The command line of live process ``pid`` if it is a Ray worker (zombies count as gone)."""
+    try:
+        stat = open(f"/proc/{pid}/stat").read()
+        cmd = open(f"/proc/{pid}/cmdline").read().replace("\0", " ")
+    except OSError:
+        return None
+    return cmd if stat.rsplit(")", 1)[1].split()[0] != "Z" and cmd.startswith("ray::") else None
+
+
+def test_a_sigkilled_ray_server_leaves_no_actor_behind(tmp_path):
+    srv = _ray_server(tmp_path).start()
+    try:
+        with srv.client() as c:
+            pids = [c.stats(c.create_session(f"s{k}", CONFIG)["id"])["backend"]["pid"] for k in range(2)]
+        assert all("MapperActor" in (_ray_process(p) or "") for p in pids), [_ray_process(p) for p in pids]
+    finally:
+        srv.kill()
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and any(_ray_process(p) for p in pids):
+        time.sleep(0.2)
+    assert not any(_ray_process(p) for p in pids), "actor processes outlived their server"
+
+
+# ---------------------------------------------------------------------------- errors
+def test_missing_ray_is_a_clear_error(monkeypatch, tmp_path, capsys):
+    from server import cli
+    from server.ray_backend import RayBackend, require_ray
+
+    monkeypatch.setitem(sys.modules, "ray", None)  # `import ray` now raises ImportError
+    with pytest.raises(RuntimeError, match=r'pip install "hippomap\[ray\]"'):
+        require_ray()
+    with pytest.raises(RuntimeError, match=r'pip install "hippomap\[ray\]"'):
+        RayBackend(ServerSettings(backend="ray"))
+    assert cli.main(["--backend", "ray", "--port", "0", "--data-dir", str(tmp_path)]) == 2
+    assert 'pip install "hippomap[ray]"' in capsys.readouterr().err
+
+
+def test_bad_backend_is_refused(monkeypatch, capsys):
+    from server import cli
+
+    with pytest.raises(SystemExit) as exc:
+        cli.main(["--backend", "spark"])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert "--backend" in err and "spark" in err and "inprocess" in err
+    monkeypatch.setenv("HIPPOMAP_BACKEND", "spark")
+    with pytest.raises(ValidationError, match="backend"):
+        ServerSettings.from_env()
+
+
+def test_the_inprocess_path_never_imports_ray(tmp_path):
+    code = f"""
+import asyncio, sys
+from server.app import create_app
+from server.settings import ServerSettings
+from fastapi.testclient import TestClient
+app = create_app(ServerSettings(data_dir=r"{tmp_path}", admin_token="hm_x_admin_token"))
+with TestClient(app) as c:
+    sid = c.post("/sessions", json={{"name": "n"}}, headers={{"Authorization": "Bearer hm_x_admin_token"}}).json()["id"]
+    r = c.post(f"/sessions/{{sid}}/odometry", json={{"t": 0.1, "v": 0.1, "omega": 0.0}},
+               headers={{"Authorization": "Bearer hm_x_admin_token"}})
+    assert r.status_code == 200, r.text
+assert "ray" not in sys.modules, "ray was imported"
+print("ok")
+"""
+    res = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120,
+                         env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert res.returncode == 0 and res.stdout.strip().endswith("ok"), res.stdout + res.stderr
+
+
+def test_a_closed_ray_host_is_dead_and_batches_split_over_calls_keep_their_order(ray_driver):
+    from server.mapper_host import HostDied
+
+    config = model.effective_config({})
+    host, local = ray_driver.factory("odo"), InProcessHost()
+    try:
+        host.restore(None, config)
+        local.restore(None, config)
+        batch = [(k, Odometry(0.05 * (k + 1), v=0.4, omega=0.2)) for k in range(40)]
+        res = host.process(batch[:7]) + host.process(batch[7:20]) + host.process(batch[20:])
+        assert [r.seq for r in res] == list(range(40))
+        assert [r.events for r in res] == [r.events for r in local.process(batch)]
+        assert host.query(model.stats) == local.query(model.stats)
+    finally:
+        host.close()
+    with pytest.raises(HostDied):
+        host.query(model.stats)
