@@ -28,7 +28,7 @@ from .api import ingest, queries, sessions, stream, tokens
 from .auth import Authenticator, ensure_admin
 from .limits import BodySizeLimit
 from .metrics import ServiceMetrics
-from .sessions import SessionManager
+from .sessions import ServedElsewhere, SessionManager
 from .settings import ServerSettings
 from .sqlite_store import SQLiteStore
 from .store import Store
@@ -152,6 +152,12 @@ def create_app(settings: ServerSettings | None = None) -> FastAPI:
     app.state.metrics = metrics
     app.state.serving = False
     app.add_middleware(BodySizeLimit, max_bytes=settings.max_body_bytes)
+
+    @app.exception_handler(ServedElsewhere)
+    async def served_elsewhere(request: Request, exc: ServedElsewhere) -> JSONResponse:
+        # 421 Misdirected Request: this replica cannot answer for the session; the one named can
+        return SafeJSONResponse({"detail": str(exc), "replica": exc.replica}, status_code=421,
+                                headers={"X-Hippomap-Replica": exc.replica})
 
     @app.exception_handler(RequestValidationError)
     async def validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:

@@ -38,6 +38,7 @@ FRAME_HEADER = struct.Struct("<4sId")
 CLOSE_UNAUTHORIZED = 4401
 CLOSE_FORBIDDEN = 4403
 CLOSE_NOT_FOUND = 4404
+CLOSE_ELSEWHERE = 4421  # the session is run by another replica (HTTP 421)
 
 
 def pack_frame(message_id: int, t: float, image: bytes) -> bytes:

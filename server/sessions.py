@@ -20,6 +20,8 @@ from __future__ import annotations
 import asyncio
 import logging
 import secrets
+import socket
+import threading
 import time
 from collections import Counter
 from typing import Any, Awaitable, Callable
@@ -47,6 +49,15 @@ class NotFound(Exception):
 
 class Forbidden(Exception):
     """The token may see the session but not change it (a viewer token)."""
+
+
+class ServedElsewhere(Exception):
+    """The session exists, but another replica sharing the database runs it (holds its lease)."""
+
+    def __init__(self, session_id: str, replica: str) -> None:
+        super().__init__(f"session {session_id} is run by replica {replica!r}; send its requests there")
+        self.session_id = session_id
+        self.replica = replica
 
 
 class LiveSession:
@@ -198,7 +209,20 @@ class LiveSession:
 
 
 class SessionManager:
-    """All live sessions of the server."""
+    """All live sessions of the server.
+
+    **Replicas.** Several servers may share one database (PostgreSQL). A session's mapper must
+    run in one of them only, so a server runs a session only while it holds the session's
+    *lease* in the store (:meth:`Store.claim_session`), renewed every ``lease_ttl_s / 3`` by a
+    background thread. At start a server opens the stored sessions it can lease; a request
+    for a session leased by another live replica gets :class:`ServedElsewhere` (HTTP 421,
+    naming the replica); a session whose lease expired (its replica died) is taken over —
+    restored from its snapshot plus replay — on the next request for it or by the renewal
+    thread's scan. A server that finds its lease taken (it stalled past the TTL) stops that
+    session's worker without writing anything more. With one server (the SQLite default) the
+    lease is always its own: the replica id defaults to the host name, so a restarted server
+    takes its sessions back at once.
+    """
 
     def __init__(self, store: Store, settings: ServerSettings, metrics: ServiceMetrics | None = None) -> None:
         self.store = store
@@ -208,6 +232,10 @@ class SessionManager:
         self.loop: asyncio.AbstractEventLoop | None = None
         self.backend: Any = None  # the RayBackend when settings.backend == "ray"
         self.host_factory: HostFactory = inprocess_factory
+        self.replica = settings.replica_id or socket.gethostname()
+        self._stopping = threading.Event()
+        self._lease_thread: threading.Thread | None = None
+        self._open_lock = threading.Lock()  # _open / _drop from the loop and the lease thread
 
     def start(self, loop: asyncio.AbstractEventLoop) -> None:
         """Start the session backend, then restore every stored session (each worker replays in its own thread)."""
@@ -219,11 +247,70 @@ class SessionManager:
             self.backend.start()
             self.host_factory = self.backend.factory
         for rec in self.store.list_sessions():
+            owner = self.store.claim_session(rec.id, self.replica, self.settings.lease_ttl_s)
+            if owner == self.replica:
+                self._open(rec, self._config_of(rec))
+            else:
+                log.info("session %s is run by replica %s", rec.id, owner, extra={"session": rec.id})
+        self._lease_thread = threading.Thread(target=self._lease_loop, name="session-leases", daemon=True)
+        self._lease_thread.start()
+
+    @staticmethod
+    def _config_of(rec: SessionRecord) -> HippomapConfig:
+        try:
+            return model.effective_config(rec.config)
+        except ValueError:
+            return HippomapConfig()
+
+    # ------------------------------------------------------------- leases
+    def _lease_loop(self) -> None:
+        """Renew the leases of the sessions run here; drop those lost; adopt orphans."""
+        period = self.settings.lease_ttl_s / 3
+        while not self._stopping.wait(period):
             try:
-                config = model.effective_config(rec.config)
-            except ValueError:
-                config = HippomapConfig()
-            self._open(rec, config)
+                self._renew_and_adopt()
+            except Exception:  # the database may be briefly unreachable: try again next period
+                log.exception("renewing session leases failed")
+
+    def _renew_and_adopt(self) -> None:
+        ttl = self.settings.lease_ttl_s
+        for sid, live in list(self.sessions.items()):
+            if self._stopping.is_set() or live.closed:
+                continue
+            owner = self.store.claim_session(sid, self.replica, ttl)
+            if owner != self.replica:
+                log.warning("session %s: lease lost to replica %s; stopping it here", sid, owner, extra={"session": sid})
+                self._drop(live)
+        now = time.time()
+        for rec in self.store.list_sessions():
+            # sessions younger than a TTL may still be being opened by the replica that created them
+            if self._stopping.is_set() or rec.id in self.sessions or now - rec.created < ttl:
+                continue
+            if self.store.session_owner(rec.id) is None and self.store.claim_session(rec.id, self.replica, ttl) == self.replica:
+                log.warning("session %s: its replica stopped renewing; taking it over", rec.id, extra={"session": rec.id})
+                self._adopt(rec)
+
+    def _adopt(self, rec: SessionRecord) -> LiveSession:
+        """Open a session whose lease this server has just taken (restore: snapshot + replay)."""
+        assert self.loop is not None
+        with self._open_lock:
+            live = self.sessions.get(rec.id)
+            if live is None:
+                live = self._open(rec, self._config_of(rec))
+        return live
+
+    def _drop(self, live: LiveSession) -> None:
+        """Stop running a session here without writing anything more (another replica has it)."""
+        with self._open_lock:
+            live.closed = True
+            if self.sessions.get(live.id) is live:
+                self.sessions.pop(live.id, None)
+        if self.loop is not None:
+            try:
+                self.loop.call_soon_threadsafe(live._room.set)
+            except RuntimeError:
+                pass
+        live.worker.stop(snapshot=False)
 
     def restoring(self) -> list[str]:
         """Ids of the sessions still being restored (snapshot + replay): the server is not ready until none is."""
@@ -241,9 +328,17 @@ class SessionManager:
         return live
 
     def stop(self) -> None:
+        self._stopping.set()
+        if self._lease_thread is not None:
+            self._lease_thread.join(30)
         for live in list(self.sessions.values()):
             live.closed = True
             live.worker.stop(snapshot=True)
+        for sid in list(self.sessions):  # snapshots are written: another replica may take them now
+            try:
+                self.store.release_session(sid, self.replica)
+            except Exception:
+                log.exception("releasing the lease of session %s failed", sid, extra={"session": sid})
         self.sessions.clear()
         if self.backend is not None:
             self.backend.shutdown()
@@ -265,8 +360,10 @@ class SessionManager:
                                    f"(limit {self.settings.max_sessions_per_token}); delete one first")
         rec = SessionRecord(id="s_" + secrets.token_hex(8), owner=token.id, name=name, config=overrides,
                             created=time.time())
+        await asyncio.to_thread(self.store.claim_session, rec.id, self.replica, self.settings.lease_ttl_s)
         await asyncio.wrap_future(self.store.create_session(rec))
-        live = self._open(rec, config)
+        with self._open_lock:
+            live = self._open(rec, config)
         log.info("session %s created by token %s", rec.id, token.id, extra={"session": rec.id})
         # answer once the mapper exists: building it (grid-cell tables...) must not delay the first inputs
         await asyncio.to_thread(live.worker.ready.wait, 120)
@@ -277,11 +374,27 @@ class SessionManager:
 
     def get(self, token: TokenRecord, session_id: str, write: bool = False) -> LiveSession:
         live = self.sessions.get(session_id)
-        if live is None or live.closed or not can_read(token, live.record):
+        if live is None:
+            live = self._elsewhere(token, session_id)
+        if live.closed or not can_read(token, live.record):
             raise NotFound()
         if write and not can_write(token, live.record):
             raise Forbidden()
         return live
+
+    def _elsewhere(self, token: TokenRecord, session_id: str) -> LiveSession:
+        """A session not run here: stored and visible to the token? Then it is either run by
+        another replica (:class:`ServedElsewhere`) or orphaned, and this server takes it over."""
+        if self._stopping.is_set() or not session_id.startswith("s_"):
+            raise NotFound()
+        rec = next((r for r in self.store.list_sessions() if r.id == session_id), None)
+        if rec is None or not can_read(token, rec):
+            raise NotFound()
+        owner = self.store.claim_session(session_id, self.replica, self.settings.lease_ttl_s)
+        if owner != self.replica:
+            raise ServedElsewhere(session_id, owner)
+        log.warning("session %s: no replica runs it; taking it over", session_id, extra={"session": session_id})
+        return self._adopt(rec)
 
     async def delete(self, token: TokenRecord, session_id: str) -> None:
         live = self.get(token, session_id, write=True)

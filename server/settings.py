@@ -52,6 +52,13 @@ class ServerSettings(BaseModel):
     snapshot_every_inputs: int = Field(2000, ge=1, description="snapshot the mapper after this many inputs...")
     snapshot_every_s: float = Field(60.0, gt=0, description="...or this many seconds, whichever comes first")
     keep_snapshots: int = Field(2, ge=1, description="snapshots kept per session (older ones are deleted)")
+    # ---- replicas sharing one database (PostgreSQL): each session runs in the replica holding its lease ----
+    replica_id: str | None = Field(
+        None, description="this server's name in session leases; unset: the host name (stable across restarts, so a "
+        "restarted server takes its sessions back at once; give replicas on one host distinct ids)")
+    lease_ttl_s: float = Field(
+        15.0, gt=0, description="a session lease lasts this long and is renewed every third of it; a replica that "
+        "stops renewing (crashed) loses its sessions to the others after at most this long")
     # ---- session backend (where each session's mapper runs: server/mapper_host.py, server/ray_backend.py) ----
     backend: Literal["inprocess", "ray"] = Field(
         "inprocess", description="'inprocess': every session's mapper in this process (a thread each); "

@@ -131,14 +131,14 @@ class ServiceAccess:
         return [SessionEntry(s.id, s.record.name or s.id, "error: " + s.error if s.error else "") for s in lives]
 
     def open_session(self, token: str | None, session_id: str) -> ServiceSession | None:
-        from server.sessions import NotFound
+        from server.sessions import NotFound, ServedElsewhere
 
         tok = self._token(token)
         if tok is None:
             return None
         try:
             live = self.app.state.manager.get(tok, session_id)
-        except NotFound:
+        except (NotFound, ServedElsewhere):  # another replica's viewer shows it
             return None
         with self._lock:
             src = self._sources.get(session_id)

@@ -19,8 +19,8 @@ from starlette.websockets import WebSocketState
 from hippomap.errors import InputError
 
 from ..ingest import IngestError, parse_odometry_message
-from ..protocol import CLOSE_FORBIDDEN, CLOSE_NOT_FOUND, CLOSE_UNAUTHORIZED, unpack_frame
-from ..sessions import Forbidden, LiveSession, NotFound
+from ..protocol import CLOSE_ELSEWHERE, CLOSE_FORBIDDEN, CLOSE_NOT_FOUND, CLOSE_UNAUTHORIZED, unpack_frame
+from ..sessions import Forbidden, LiveSession, NotFound, ServedElsewhere
 
 router = APIRouter(tags=["ingest"])
 log = logging.getLogger("hippomap.server")
@@ -114,6 +114,9 @@ async def stream(ws: WebSocket, session_id: str) -> None:
         return
     except Forbidden:
         await ws.close(CLOSE_FORBIDDEN, "this token is read-only")
+        return
+    except ServedElsewhere as exc:
+        await ws.close(CLOSE_ELSEWHERE, str(exc)[:120])
         return
     await ws.send_text(json.dumps({"type": "hello", "session": live.id, "last_seq": live.next_seq - 1,
                                    "last_t": live.last_t, "last_odometry_t": live.last_times.get("odometry"),
