@@ -7,7 +7,8 @@ All model logic stays in :mod:`hippomap`.
 Modules, one concept each:
 
 * :mod:`server.settings`  — limits, paths and intervals (one pydantic model)
-* :mod:`server.store`     — the storage interface; :mod:`server.sqlite_store` its embedded backend
+* :mod:`server.store`     — the storage interface; :mod:`server.sqlite_store` its embedded backend,
+  :mod:`server.postgres_store` the shared one (replicas; session leases)
 * :mod:`server.auth`      — bearer tokens, roles and who sees which session
 * :mod:`server.limits`    — request-rate buckets and the body-size guard
 * :mod:`server.ingest`    — parsing and validating odometry and frames (4xx naming the problem)
@@ -15,6 +16,8 @@ Modules, one concept each:
 * :mod:`server.protocol`  — the websocket stream's messages and binary frame header
 * :mod:`server.model`     — the only module that touches the mapper (create, load, query)
 * :mod:`server.worker`    — one thread per session feeding its mapper in order, snapshotting
+* :mod:`server.mapper_host` — where a session's mapper runs: in process, or a Ray actor (:mod:`server.ray_backend`)
+* :mod:`server.metrics`   — Prometheus metrics; :mod:`server.logs` structured (JSON) logs
 * :mod:`server.sessions`  — live sessions: ordering, durability, backpressure, restore
 * :mod:`server.views`     — serialisers: GraphML, g2o, TUM, place fields, saccade images
 * :mod:`server.schemas`   — request/response bodies (the OpenAPI document)

@@ -22,9 +22,19 @@ from typing import Any
 from .settings import ServerSettings
 
 
+def _data_location(settings: ServerSettings) -> str:
+    """Where the sessions are stored, never with a password (a PostgreSQL URL may carry one)."""
+    db = settings.database or ""
+    if db.startswith(("postgresql://", "postgres://")):
+        from .postgres_store import describe_url
+
+        return f"PostgreSQL {describe_url(db)}"
+    return str(settings.database_path)
+
+
 def _banner(app: Any, settings: ServerSettings, url: str) -> None:
     print(f"hippomap server on {url}  (API docs: {url}/docs)", flush=True)
-    print(f"data: {settings.database_path}", flush=True)
+    print(f"data: {_data_location(settings)}", flush=True)
     if settings.admin_token:
         print("admin token: from HIPPOMAP_ADMIN_TOKEN", flush=True)
     elif app.state.admin_token_created:
@@ -98,7 +108,9 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--host", default="127.0.0.1", help="interface to listen on (default 127.0.0.1)")
     p.add_argument("--port", type=int, default=8000, help="port (default 8000; 0 = any free port)")
     p.add_argument("--data-dir", default=None, help="data folder (default ./hippomap-data or $HIPPOMAP_DATA_DIR)")
-    p.add_argument("--database", default=None, help="SQLite file (default <data-dir>/hippomap.sqlite3)")
+    p.add_argument("--database", default=None,
+                   help="SQLite file (default <data-dir>/hippomap.sqlite3) or a PostgreSQL URL postgresql://user:pw@host/db "
+                        "(replicas sharing sessions; needs the 'postgres' extra)")
     p.add_argument("--backend", default=None, choices=["inprocess", "ray"],
                    help="where sessions' mappers run: in this process (default) or one Ray actor per session "
                         "(needs pip install \"hippomap[ray]\"; $HIPPOMAP_BACKEND)")

@@ -25,11 +25,14 @@ node needs hippomap installed (the same image). Ray is an optional dependency (`
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
+import signal
 import sys
+import threading
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
 from hippomap.config import HippomapConfig
 from hippomap.inputs import Frame, Odometry
@@ -140,6 +143,26 @@ class RayHost(MapperHost):
                       extra={"session": self.session_id})
 
 
+@contextlib.contextmanager
+def _keep_signal_handlers() -> Iterator[None]:
+    """Keep the server's SIGTERM/SIGINT handlers across ``ray.init``.
+
+    A driver that starts a local Ray installs its own SIGTERM handler, which exits at once
+    (``sys.exit(1)``): ``docker stop`` would then skip the graceful shutdown — the last
+    snapshot of every session and the release of its lease. The server's own shutdown calls
+    :meth:`RayBackend.shutdown`, which stops the local Ray, and Ray's atexit hook remains."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    saved = {sig: signal.getsignal(sig) for sig in (signal.SIGTERM, signal.SIGINT)}
+    try:
+        yield
+    finally:
+        for sig, handler in saved.items():
+            if handler is not None:
+                signal.signal(sig, handler)
+
+
 class RayBackend:
     """One per server: joins (or starts) Ray and makes one :class:`RayHost` per session."""
 
@@ -154,12 +177,13 @@ class RayBackend:
         common = dict(include_dashboard=False, log_to_driver=False, logging_level=logging.WARNING,
                       namespace="hippomap")
         if not ray.is_initialized():
-            if self.settings.ray_address:
-                log.info("joining the Ray cluster at %s", self.settings.ray_address)
-                ray.init(address=self.settings.ray_address, **common)
-            else:
-                log.info("starting a local Ray on 127.0.0.1")
-                ray.init(address="local", _node_ip_address="127.0.0.1", **common)
+            with _keep_signal_handlers():
+                if self.settings.ray_address:
+                    log.info("joining the Ray cluster at %s", self.settings.ray_address)
+                    ray.init(address=self.settings.ray_address, **common)
+                else:
+                    log.info("starting a local Ray on 127.0.0.1")
+                    ray.init(address="local", _node_ip_address="127.0.0.1", **common)
             self._owns_ray = True
         self.actor_class = ray.remote(MapperActor)
 

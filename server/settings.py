@@ -22,7 +22,8 @@ class ServerSettings(BaseModel):
 
     data_dir: Path = Field(Path("hippomap-data"), description="folder of the embedded database and the admin token file")
     database: str | None = Field(
-        None, description="database location: a SQLite file path (default <data_dir>/hippomap.sqlite3)"
+        None, description="database location: a SQLite file path (default <data_dir>/hippomap.sqlite3), sqlite:///path, "
+        "or a PostgreSQL URL postgresql://user:password@host:port/db (several replicas may share it)"
     )
     durability: Literal["full", "normal"] = Field(
         "full",

@@ -31,7 +31,7 @@ from server.metrics import ServiceMetrics
 from server.settings import ServerSettings
 from server.sqlite_store import SQLiteStore
 from server.store import InputRecord, SessionRecord
-from server.testing import (ROOT, decoded, local_ray_head, offline_reference, ray_test_env,
+from server.testing import (ROOT, LiveServer, decoded, local_ray_head, offline_reference, ray_test_env, stream_items,
                             session_state, synthetic_inputs)
 from server.worker import SessionWorker, WorkItem
 
@@ -233,6 +233,38 @@ def test_a_sigkilled_ray_server_leaves_no_actor_behind(tmp_path):
     while time.monotonic() < deadline and any(_ray_process(p) for p in pids):
         time.sleep(0.2)
     assert not any(_ray_process(p) for p in pids), "actor processes outlived their server"
+
+
+def test_sigterm_with_a_local_ray_shuts_down_gracefully(tmp_path):
+    """``--backend ray`` without an address starts a local Ray, whose driver-side SIGTERM handler
+    would exit at once; the server keeps its own, so ``docker stop`` still ends with every
+    session's last snapshot written and the local Ray gone."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("HIPPOMAP_RAY")}
+    env["HIPPOMAP_SNAPSHOT_EVERY_INPUTS"] = "100000"  # only the shutdown snapshot can cover the inputs
+    srv = LiveServer(tmp_path / "local", args=["--backend", "ray"], env=env)
+    srv.env.pop("HIPPOMAP_RAY_ADDRESS", None)
+    srv.start(timeout=180)
+    items = ITEMS[:60]
+    try:
+        with srv.client() as c:
+            sid = c.create_session("local-ray", CONFIG)["id"]
+            pid = c.stats(sid)["backend"]["pid"]
+            asyncio.run(stream_items(srv.url, srv.token, sid, items))
+            assert c.wait_processed(sid)["snapshot_seq"] < len(items) - 1
+    finally:
+        srv.stop(timeout=120)
+    # uvicorn re-raises the SIGTERM it handled once its shutdown is done: -15 is a graceful end too
+    assert srv.proc.returncode in (0, -signal.SIGTERM), (srv.proc.returncode, "".join(srv.output[-20:]))
+    store = SQLiteStore(tmp_path / "local" / "hippomap.sqlite3")
+    try:
+        snap = store.latest_snapshot(sid)
+    finally:
+        store.close()
+    assert snap is not None and snap[0] == len(items) - 1
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and _ray_process(pid):
+        time.sleep(0.2)
+    assert not _ray_process(pid), "the local Ray's actor outlived the server"
 
 
 # ---------------------------------------------------------------------------- errors

@@ -106,6 +106,11 @@ def test_a_graceful_stop_hands_sessions_over_at_once(tmp_path):
     b = LiveServer(tmp_path / "b", env={"HIPPOMAP_DATABASE": url, "HIPPOMAP_REPLICA_ID": "b",
                                         "HIPPOMAP_LEASE_TTL_S": str(env_ttl)}).start()
     try:
+        from urllib.parse import urlsplit
+
+        password = urlsplit(url).password
+        banner = "".join(a.output)
+        assert "data: PostgreSQL " in banner and password and password not in banner  # never print the secret
         items = ITEMS[:90]
         with a.client() as ca:
             sid = ca.create_session("handover", CONFIG)["id"]
