@@ -43,7 +43,7 @@ import psycopg
 from psycopg.conninfo import conninfo_to_dict
 from psycopg.pq import TransactionStatus
 
-from .store import EventRecord, InputRecord, PlaceFieldRecord, SessionRecord, Store, TokenRecord
+from .store import EventRecord, InputRecord, PlaceFieldRecord, SessionRecord, Store, TokenRecord, next_batch, settle_batch
 
 SCHEMA_VERSION = 1
 MAX_BATCH = 1024
@@ -252,21 +252,8 @@ class PostgresStore(Store):
         return fut
 
     def _write_loop(self) -> None:
-        while True:
-            item = self._queue.get()
-            if item is None:
-                return
-            batch = [item]
-            stop = False
-            while len(batch) < MAX_BATCH:
-                try:
-                    nxt = self._queue.get_nowait()
-                except queue.Empty:
-                    break
-                if nxt is None:
-                    stop = True
-                    break
-                batch.append(nxt)
+        while (taken := next_batch(self._queue, MAX_BATCH)) is not None:
+            batch, stop = taken
             self._run_batch(batch)
             if stop:
                 return
@@ -354,17 +341,7 @@ class PostgresStore(Store):
             for _, fut, _ in batch:
                 fut.set_exception(err)
             return
-        for (_, fut, cb), (res, err2) in zip(batch, outcomes):
-            if err2 is not None:
-                fut.set_exception(err2)
-                continue
-            if cb is not None:
-                try:
-                    cb()
-                except Exception as exc:  # pragma: no cover - callbacks are the server's own
-                    fut.set_exception(exc)
-                    continue
-            fut.set_result(res)
+        settle_batch(batch, outcomes)
 
     def flush(self) -> None:
         self._submit(lambda conn: None).result()

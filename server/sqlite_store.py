@@ -27,7 +27,7 @@ from concurrent.futures import Future
 from pathlib import Path
 from typing import Any, Callable
 
-from .store import EventRecord, InputRecord, PlaceFieldRecord, SessionRecord, Store, TokenRecord
+from .store import EventRecord, InputRecord, PlaceFieldRecord, SessionRecord, Store, TokenRecord, next_batch, settle_batch
 
 SCHEMA_VERSION = 1
 MAX_BATCH = 1024
@@ -108,21 +108,8 @@ class SQLiteStore(Store):
 
     def _write_loop(self) -> None:
         conn = self._writer_conn
-        while True:
-            item = self._queue.get()
-            if item is None:
-                return
-            batch = [item]
-            stop = False
-            while len(batch) < MAX_BATCH:
-                try:
-                    nxt = self._queue.get_nowait()
-                except queue.Empty:
-                    break
-                if nxt is None:
-                    stop = True
-                    break
-                batch.append(nxt)
+        while (taken := next_batch(self._queue, MAX_BATCH)) is not None:
+            batch, stop = taken
             self._run_batch(conn, batch)
             if stop:
                 return
@@ -151,17 +138,7 @@ class SQLiteStore(Store):
             for _, fut, _ in batch:
                 fut.set_exception(exc)
             return
-        for (_, fut, cb), (res, err) in zip(batch, outcomes):
-            if err is not None:
-                fut.set_exception(err)
-                continue
-            if cb is not None:
-                try:
-                    cb()
-                except Exception as exc:  # pragma: no cover - callbacks are the server's own
-                    fut.set_exception(exc)
-                    continue
-            fut.set_result(res)
+        settle_batch(batch, outcomes)
 
     def _checkpoint_loop(self) -> None:
         conn = self._connect()

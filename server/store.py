@@ -18,6 +18,7 @@ Implementations: :mod:`server.sqlite_store` (embedded default) and :mod:`server.
 from __future__ import annotations
 
 import abc
+import queue
 from concurrent.futures import Future
 from dataclasses import dataclass, field
 from typing import Any, Callable, Literal
@@ -197,3 +198,40 @@ class Store(abc.ABC):
 
     @abc.abstractmethod
     def close(self) -> None: ...
+
+
+def settle_batch(batch: list[tuple[Any, Future, Callable[[], None] | None]],
+                 outcomes: list[tuple[Any, BaseException | None]]) -> None:
+    """Complete the futures of a committed group-commit ``batch`` (``(op, future, on_durable)``
+    triples) in submission order: each with its operation's ``(result, error)``; a successful
+    operation's ``on_durable`` runs first (shared by the store backends)."""
+    for (_, fut, cb), (res, err) in zip(batch, outcomes):
+        if err is not None:
+            fut.set_exception(err)
+            continue
+        if cb is not None:
+            try:
+                cb()
+            except Exception as exc:  # pragma: no cover - callbacks are the server's own
+                fut.set_exception(exc)
+                continue
+        fut.set_result(res)
+
+
+def next_batch(q: "queue.Queue", max_batch: int) -> tuple[list, bool] | None:
+    """The next group-commit batch of a store's writer thread: the first queued write (waiting
+    for it) and whatever else is queued, up to ``max_batch``; ``None`` queued means stop.
+    Returns ``(batch, stop_after)`` or None when the stop comes first."""
+    item = q.get()
+    if item is None:
+        return None
+    batch = [item]
+    while len(batch) < max_batch:
+        try:
+            nxt = q.get_nowait()
+        except queue.Empty:
+            break
+        if nxt is None:
+            return batch, True
+        batch.append(nxt)
+    return batch, False
