@@ -51,7 +51,9 @@ class SessionInfo(BaseModel):
     name: str
     created: float
     config_overrides: dict[str, Any]
-    stats: dict[str, Any] = Field(description="see GET /sessions/{id}/stats")
+    stats: dict[str, Any] | None = Field(
+        description="see GET /sessions/{id}/stats; null for a session another replica runs")
+    replica: str = Field(description="the server replica that runs the session (holds its lease)")
 
 
 class SessionDetail(SessionInfo):

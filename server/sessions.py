@@ -63,6 +63,8 @@ class ServedElsewhere(Exception):
 class LiveSession:
     """A session in memory: its record, config, worker and ingest state."""
 
+    replica: str = ""  #: the replica (server) running it: SessionManager.replica
+
     def __init__(self, record: SessionRecord, config: HippomapConfig, store: Store, settings: ServerSettings,
                  loop: asyncio.AbstractEventLoop, host_factory: HostFactory | None = None,
                  metrics: ServiceMetrics | None = None) -> None:
@@ -323,6 +325,7 @@ class SessionManager:
     def _open(self, rec: SessionRecord, config: HippomapConfig) -> LiveSession:
         assert self.loop is not None
         live = LiveSession(rec, config, self.store, self.settings, self.loop, self.host_factory, self.metrics)
+        live.replica = self.replica
         self.sessions[rec.id] = live
         live.worker.start()
         return live
@@ -371,6 +374,18 @@ class SessionManager:
 
     def visible(self, token: TokenRecord) -> list[LiveSession]:
         return [s for s in self.sessions.values() if can_read(token, s.record)]
+
+    def visible_elsewhere(self, token: TokenRecord) -> list[tuple[SessionRecord, str]]:
+        """``(record, replica)`` of the sessions the token may see that another replica runs
+        (blocking: reads the store)."""
+        out = []
+        for rec in self.store.list_sessions():
+            if rec.id in self.sessions or not can_read(token, rec):
+                continue
+            owner = self.store.session_owner(rec.id)
+            if owner is not None and owner != self.replica:
+                out.append((rec, owner))
+        return out
 
     def get(self, token: TokenRecord, session_id: str, write: bool = False) -> LiveSession:
         live = self.sessions.get(session_id)

@@ -64,6 +64,11 @@ def test_one_replica_runs_a_session_and_the_other_takes_over_when_it_dies(tmp_pa
         code, reason = asyncio.run(_ws_close_code(b, sid))
         assert code == 4421 and "replica-a" in reason
         assert _get(b, "/sessions/s_0000000000000000/stats").status_code == 404  # unknown stays 404
+        # both list it, each naming A as the replica that runs it (stats only where it runs)
+        listed = {x["id"]: x for x in _get(b, "/sessions").json()}
+        assert listed[sid]["replica"] == "replica-a" and listed[sid]["stats"] is None
+        listed = {x["id"]: x for x in _get(a, "/sessions").json()}
+        assert listed[sid]["replica"] == "replica-a" and listed[sid]["stats"]["inputs_stored"] == half
         # A runs it and B's /metrics shows no such session
         assert _get(a, f"/sessions/{sid}/stats").status_code == 200
         assert sid not in _get(b, "/metrics").text

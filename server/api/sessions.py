@@ -9,15 +9,20 @@ from fastapi import APIRouter, HTTPException, Request, Response
 
 from ..ingest import IngestError
 from ..sessions import Forbidden, LiveSession, NotFound
+from ..store import SessionRecord
 from ..schemas import SessionCreate, SessionDetail, SessionInfo, Stats
 from . import deps
 
 router = APIRouter(prefix="/sessions", tags=["sessions"])
 
 
+def _record_info(r: SessionRecord, stats: dict[str, Any] | None, replica: str) -> dict[str, Any]:
+    return {"id": r.id, "name": r.name, "created": r.created, "config_overrides": r.config, "stats": stats,
+            "replica": replica}
+
+
 def _info(live: LiveSession, stats: dict[str, Any]) -> dict[str, Any]:
-    r = live.record
-    return {"id": r.id, "name": r.name, "created": r.created, "config_overrides": r.config, "stats": stats}
+    return _record_info(live.record, stats, live.replica)
 
 
 def _links(request: Request, sid: str) -> dict[str, str]:
@@ -46,9 +51,12 @@ async def create_session(body: SessionCreate, request: Request, tok: deps.Token)
 
 @router.get("", response_model=list[SessionInfo], responses=deps.ERRORS, summary="Sessions visible to this token")
 async def list_sessions(request: Request, tok: deps.Token) -> Any:
-    lives = deps.manager(request).visible(tok)
+    manager = deps.manager(request)
+    lives = manager.visible(tok)
     stats = await asyncio.gather(*(asyncio.to_thread(s.stats) for s in lives))
-    return [_info(s, st) for s, st in zip(lives, stats)]
+    # replicas sharing the database: the token's sessions that other replicas run, without stats
+    elsewhere = await asyncio.to_thread(manager.visible_elsewhere, tok)
+    return [_info(s, st) for s, st in zip(lives, stats)] + [_record_info(r, None, owner) for r, owner in elsewhere]
 
 
 @router.get("/{session_id}", response_model=SessionDetail, responses=deps.ERRORS, summary="One session")
