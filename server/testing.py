@@ -481,6 +481,9 @@ SERVICE_VARIANTS: list[ServiceVariant] = [
     ServiceVariant("inprocess-sqlite"),
     ServiceVariant("ray-sqlite", args=("--backend", "ray"), env_for=ray_test_env),
     ServiceVariant("inprocess-postgres", env_for=lambda d: {"HIPPOMAP_DATABASE": postgres_url_for(d)}),
+    # the scale-out deployment (docker/compose.yml, profile "scale"): Ray actors + the shared store
+    ServiceVariant("ray-postgres", args=("--backend", "ray"),
+                   env_for=lambda d: {**ray_test_env(d), "HIPPOMAP_DATABASE": postgres_url_for(d)}),
 ]
 
 
