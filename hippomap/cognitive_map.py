@@ -637,7 +637,8 @@ class CognitiveMap:
         if cfg.solver == "lsq":
             if not (self._dirty or force):
                 return []
-            res = solve_lsq(P, src, dst, tr, iterations=cfg.lsq_iterations, anchor=0)
+            info = self.link_information() if cfg.lsq_weighted else None
+            res = solve_lsq(P, src, dst, tr, iterations=cfg.lsq_iterations, anchor=0, information=info)
             self._dirty = False
         elif sweeps <= 0:
             return []
@@ -649,6 +650,19 @@ class CognitiveMap:
                 self._groups_key = self._version
             res = relax(P, src, dst, tr, sweeps, cfg.alpha, anchor=0, groups=self._groups)
         return [MapRelaxed(res.solver, res.iterations, res.max_shift, t)]
+
+    def link_information(self) -> np.ndarray:
+        """(M, 3) diagonal information of every link (x, y, θ) for the weighted solver: odometric
+        and prune links ``odometry_information_per_m / length`` (variance grows with the path;
+        lengths below 5 cm count as 5 cm), loop links ``loop_information``."""
+        m = self._m
+        cfg = self.cfg
+        length = np.maximum(np.hypot(self._tr[:m, 0], self._tr[:m, 1]), 0.05)
+        xy, th = cfg.odometry_information_per_m
+        info = np.column_stack([xy / length, xy / length, th / length])
+        loop = self._kind[:m] == LOOP
+        info[loop] = (cfg.loop_information[0], cfg.loop_information[0], cfg.loop_information[1])
+        return info
 
     def finish(self, iterations: int | None = None) -> list[MapEvent]:
         """End of a run: one more correction (``iterations`` sweeps, default ``relax_loops``; an

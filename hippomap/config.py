@@ -12,9 +12,11 @@ or validate a nested override dict with :func:`HippomapConfig.with_overrides`.
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+_Positive = Annotated[float, Field(gt=0, allow_inf_nan=False)]
 
 
 class _Frozen(BaseModel):
@@ -197,6 +199,16 @@ class MapConfig(_Frozen):
         "graph, exact [ours]",
     )
     lsq_iterations: int = Field(10, ge=1, description="max Gauss-Newton iterations per correction when solver='lsq' [ours]")
+    lsq_weighted: bool = Field(
+        True, description="solver='lsq' weights each link by its information (below) instead of alike: odometric "
+        "links by their length, loop links by loop_information [ours]")
+    odometry_information_per_m: tuple[_Positive, _Positive] = Field(
+        (362.0, 3620.0), description="information of 1 m of odometry, (x/y in m^-2, heading in rad^-2); a link of "
+        "length d gets this / d (variance grows with the path). Default: the B25b g2o files' 4000 / 40000 per 0.0905 m "
+        "step [ours, from the data]")
+    loop_information: tuple[_Positive, _Positive] = Field(
+        (100.0, 1000.0), description="information of a loop link (x/y, heading): the middle of the B25b g2o loop "
+        "edges' 60-380 / 600-3800 [ours, from the data]")
 
 
 class MapperConfig(_Frozen):

@@ -145,6 +145,35 @@ def test_loop_closure_removes_injected_heading_drift(solver):
     assert after < before / 4, (before, after)
 
 
+def test_weighted_lsq_trusts_exact_odometry_over_a_biased_loop():
+    """Exact odometry, loop measurements biased by 0.03 rad: weighting links by their information
+    (odometry much more informative than these loops) keeps the map near the truth; treating
+    every link alike lets the biased loops bend it."""
+    inc = square_increments()
+    gt = integrate(inc)
+    first_lap = len(inc) // 2
+    truth = true_loops(gt, first_lap, every=10)
+
+    def biased(k, cmap, node_at, off):
+        return [LoopHypothesis(node=h.node, transform=tuple(compose(h.transform, (0.0, 0.0, 0.03))), source="test",
+                               time=h.time, meta=h.meta) for h in truth(k, cmap, node_at, off)]
+
+    errors = {}
+    for weighted in (True, False):
+        cfg = MapConfig(solver="lsq", lsq_weighted=weighted, prune_online=False, loop_min_support=1,
+                        odometry_information_per_m=(1e4, 1e5), loop_information=(1.0, 10.0))
+        cmap = CognitiveMap(cfg)
+        node_at, off, _ = drive(cmap, inc, hypotheses=biased)
+        cmap.finish()
+        assert sum(d.status == "accepted" for d in cmap.loop_decisions) > 5
+        info = cmap.link_information()
+        kinds = cmap.links["kind"]
+        assert info.shape == (cmap.link_count, 3) and np.all(info[kinds == "loop"] == (1.0, 1.0, 10.0))
+        assert np.all(info[kinds == "odometry"][:, 0] >= 1e4 / 1.0)  # links shorter than 1 m: more informative
+        errors[weighted] = rms_xy(corrected(cmap, node_at, off), gt)
+    assert errors[True] < errors[False] / 5, errors
+
+
 def test_uncorrupted_loop_stays_put():
     inc = square_increments()
     gt = integrate(inc)
