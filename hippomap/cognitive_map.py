@@ -767,7 +767,7 @@ class CognitiveMap:
         cfg = self.cfg
         rad = np.where(both_measured, cfg.loop_transform_consistency_rad + cfg.loop_consistency_rad_per_m * cycle_m,
                        cfg.loop_consistency_rad)
-        return (np.hypot(e[:, 0], e[:, 1]) < self.cfg.loop_consistency_m) & (np.abs(e[:, 2]) < rad)
+        return (np.hypot(e[:, 0], e[:, 1]) < cfg.loop_consistency_m) & (np.abs(e[:, 2]) < rad)
 
     def _reject(self, did: int, reason: str, t: float) -> LoopDecision:
         d = replace(self._decisions[did], status="rejected", reason=reason, decided_step=self._step)

@@ -99,6 +99,11 @@ class LiveSession:
         return self.store_error or self.worker.error
 
     @property
+    def queue_depth(self) -> int:
+        """Inputs acknowledged (durable) but not yet processed by the mapper."""
+        return max(0, self.stored_seq - self.worker.processed_seq)
+
+    @property
     def last_t(self) -> float | None:
         """Timestamp of the newest accepted input of either kind."""
         return max(self.last_times.values()) if self.last_times else None
@@ -199,7 +204,7 @@ class LiveSession:
             "last_odometry_t": self.last_times.get("odometry"),
             "last_frame_t": self.last_times.get("frame"),
             "processed_seq": w.processed_seq,
-            "pending": max(0, self.stored_seq - w.processed_seq),
+            "pending": self.queue_depth,
             "snapshot_seq": w.snapshot_seq,
             "replaying": w.replaying,
             "backend": {**w.host_info, "restarts": w.restarts},
@@ -320,7 +325,7 @@ class SessionManager:
 
     def queue_depths(self) -> dict[str, int]:
         """Inputs acknowledged but not yet processed, per live session."""
-        return {sid: max(0, live.stored_seq - live.worker.processed_seq) for sid, live in list(self.sessions.items())}
+        return {sid: live.queue_depth for sid, live in list(self.sessions.items())}
 
     def _open(self, rec: SessionRecord, config: HippomapConfig) -> LiveSession:
         assert self.loop is not None
