@@ -32,14 +32,44 @@ Every decision is kept in :attr:`CognitiveMap.loop_decisions`.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, fields, replace
-from typing import Any, ClassVar
+from dataclasses import replace
+from typing import Any
 
 import numpy as np
 
 from .config import MapConfig
 from .errors import InputError, finite
-from .geometry import between, compose
+from .geometry import between, compose, wrap_angle
+from .loop_closure import (
+    Candidate,
+    LoopBook,
+    LoopDecision,
+    LoopHypothesis,
+    USED_WEIGHT,
+    align_group,
+    consistent,
+    drift_path,
+    gate_limit,
+    jsonable,
+    node_id,
+    place_of,
+    robust_weight,
+    se2_between,
+    se2_compose,
+    se2_inverse,
+    vec3,
+)
+from .map_events import (
+    FrameAssigned,
+    LoopAccepted,
+    LoopPending,
+    LoopRejected,
+    MapEvent,
+    MapRelaxed,
+    NodeCreated,
+    NodeMerged,
+    NodesPruned,
+)
 from .relaxation import (
     ColourGroups,
     colour_link,
@@ -58,297 +88,8 @@ _TWO_PI = 2.0 * math.pi
 _STATE_VERSION = 1
 
 
-# --------------------------------------------------------------------------- small SE(2) scalars
-def _wrap(a: float) -> float:
-    return (a + math.pi) % _TWO_PI - math.pi
-
-
-def _compose3(a, b) -> tuple[float, float, float]:
-    c, s = math.cos(a[2]), math.sin(a[2])
-    return (a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1], _wrap(a[2] + b[2]))
-
-
-def _inv3(a) -> tuple[float, float, float]:
-    c, s = math.cos(a[2]), math.sin(a[2])
-    return (-c * a[0] - s * a[1], s * a[0] - c * a[1], _wrap(-a[2]))
-
-
-def _between3(a, b) -> tuple[float, float, float]:
-    return _compose3(_inv3(a), b)
-
-
-def _jsonable(x: Any) -> Any:
-    """Plain Python (JSON-ready) copy of numbers, strings, tuples, lists, dicts and numpy values."""
-    if isinstance(x, dict):
-        return {str(k): _jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return _jsonable(x.tolist())
-    if isinstance(x, np.generic):
-        return x.item()
-    return x
-
-
-def _vec3(value: Any, name: str) -> tuple[float, float, float]:
-    """A finite (x, y, θ) triple from a sequence (or an object with x, y, theta), else InputError."""
-    if hasattr(value, "x") and hasattr(value, "y") and hasattr(value, "theta"):
-        value = (value.x, value.y, value.theta)
-    try:
-        arr = np.asarray(value, dtype=float).reshape(-1)
-    except (TypeError, ValueError):
-        raise InputError(f"{name} must be three numbers (x, y, theta), got {value!r}") from None
-    if arr.shape != (3,):
-        raise InputError(f"{name} must be three numbers (x, y, theta), got {value!r}")
-    if not np.all(np.isfinite(arr)):
-        raise InputError(f"{name} must be finite, got {value!r}")
-    return (float(arr[0]), float(arr[1]), float(arr[2]))
-
-
-def _node_id(value: Any, name: str) -> int:
-    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
-        raise InputError(f"{name} must be an integer node id, got {value!r}")
-    return int(value)
-
-
-# --------------------------------------------------------------------------- events
-@dataclass(frozen=True)
-class MapEvent:
-    """Base of the map's events: small, immutable, serialisable with :meth:`to_dict`."""
-
-    type: ClassVar[str] = "event"
-
-    def to_dict(self) -> dict[str, Any]:
-        out = {"type": self.type}
-        out.update({f.name: _jsonable(getattr(self, f.name)) for f in fields(self)})
-        return out
-
-    @staticmethod
-    def from_dict(data: dict[str, Any]) -> "MapEvent":
-        cls = _EVENT_TYPES.get(data.get("type", ""))
-        if cls is None:
-            raise InputError(f"unknown map event type {data.get('type')!r}")
-        kwargs = {}
-        for f in fields(cls):
-            v = data[f.name]
-            kwargs[f.name] = tuple(v) if isinstance(v, list) else v
-        return cls(**kwargs)
-
-
-@dataclass(frozen=True)
-class NodeCreated(MapEvent):
-    """CREATE_NODE (Eq. 12): ``node`` at ``pose``, linked from ``from_node`` by ``link``."""
-
-    type: ClassVar[str] = "node_created"
-    node: int
-    from_node: int
-    link: int
-    pose: tuple[float, float, float]
-    place_code: tuple[float, float, float]
-    time: float
-
-
-@dataclass(frozen=True)
-class NodeMerged(MapEvent):
-    """Online pruning (Eq. 15, Fig. 7): the would-be node fell in the block of older ``node``,
-    which became current; ``link`` (-1 if that pair was already linked) joins ``from_node`` to it;
-    ``offset`` is the robot's pose in the frame of ``node``."""
-
-    type: ClassVar[str] = "node_merged"
-    node: int
-    from_node: int
-    link: int
-    offset: tuple[float, float, float]
-    time: float
-
-
-@dataclass(frozen=True)
-class LoopPending(MapEvent):
-    """Hypothesis ``decision`` passed the gate and waits for consistent support."""
-
-    type: ClassVar[str] = "loop_pending"
-    decision: int
-    node: int
-    from_node: int
-    support: int
-    time: float
-
-
-@dataclass(frozen=True)
-class LoopAccepted(MapEvent):
-    """Hypothesis ``decision`` closed a loop: ``link`` from ``from_node`` to ``node``.
-    ``relocalised``: the robot's current node became ``node``."""
-
-    type: ClassVar[str] = "loop_accepted"
-    decision: int
-    node: int
-    from_node: int
-    link: int
-    support: tuple[int, ...]
-    relocalised: bool
-    time: float
-
-
-@dataclass(frozen=True)
-class LoopRejected(MapEvent):
-    """Hypothesis ``decision`` was rejected for ``reason``; node poses were not touched."""
-
-    type: ClassVar[str] = "loop_rejected"
-    decision: int
-    node: int
-    from_node: int
-    reason: str
-    time: float
-
-
-@dataclass(frozen=True)
-class MapRelaxed(MapEvent):
-    """The map's node poses were corrected by ``solver``."""
-
-    type: ClassVar[str] = "map_relaxed"
-    solver: str
-    iterations: int
-    max_shift: float
-    time: float
-
-
-@dataclass(frozen=True)
-class NodesPruned(MapEvent):
-    """Batch pruning pass: ``removed`` nodes merged into their block's oldest node."""
-
-    type: ClassVar[str] = "nodes_pruned"
-    removed: int
-    nodes: int
-    links: int
-    frames_dropped: int
-    time: float
-
-
-@dataclass(frozen=True)
-class FrameAssigned(MapEvent):
-    """Key frame ``frame`` was attached to ``node`` (its ``V``)."""
-
-    type: ClassVar[str] = "frame_assigned"
-    node: int
-    frame: int
-    time: float
-
-
-_EVENT_TYPES: dict[str, type[MapEvent]] = {
-    c.type: c for c in (NodeCreated, NodeMerged, LoopPending, LoopAccepted, LoopRejected, MapRelaxed,
-                        NodesPruned, FrameAssigned)
-}
-
-
-# --------------------------------------------------------------------------- loop closure records
-@dataclass(frozen=True)
-class LoopHypothesis:
-    """A proposed loop closure: the robot is back near earlier ``node``.
-
-    ``transform``: pose of ``node`` in the frame of the CURRENT node (at the time of the
-    proposal), or ``None`` for "same place" (the node is at the robot's pose), as a visual
-    recognition gives. ``evidence``: the proposer's score (kept, not weighted). ``source``:
-    who proposed it ('dataset', 'visual', ...). ``meta``: free-form, JSON-able.
-    """
-
-    node: int
-    transform: tuple[float, float, float] | None = None
-    evidence: float = 1.0
-    source: str = "visual"
-    time: float = 0.0
-    meta: dict[str, Any] = field(default_factory=dict)
-
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "node", _node_id(self.node, "LoopHypothesis.node"))
-        if self.node < 0:
-            raise InputError(f"LoopHypothesis.node must be >= 0, got {self.node}")
-        if self.transform is not None:
-            object.__setattr__(self, "transform", _vec3(self.transform, "LoopHypothesis.transform"))
-        object.__setattr__(self, "evidence", finite("LoopHypothesis.evidence", self.evidence))
-        object.__setattr__(self, "time", finite("LoopHypothesis.time", self.time))
-        if not isinstance(self.source, str):
-            raise InputError(f"LoopHypothesis.source must be a string, got {self.source!r}")
-        if not isinstance(self.meta, dict):
-            raise InputError(f"LoopHypothesis.meta must be a dict, got {self.meta!r}")
-
-    def to_dict(self) -> dict[str, Any]:
-        return {"node": self.node, "transform": None if self.transform is None else list(self.transform),
-                "evidence": self.evidence, "source": self.source, "time": self.time, "meta": _jsonable(self.meta)}
-
-    @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> "LoopHypothesis":
-        t = d.get("transform")
-        return cls(node=d["node"], transform=None if t is None else tuple(t), evidence=d.get("evidence", 1.0),
-                   source=d.get("source", "visual"), time=d.get("time", 0.0), meta=dict(d.get("meta", {})))
-
-
-@dataclass(frozen=True)
-class LoopDecision:
-    """The map's verdict on one hypothesis: ``status`` 'pending' | 'accepted' | 'rejected'.
-
-    ``id`` indexes :attr:`CognitiveMap.loop_decisions`; ``from_node`` was the current node
-    at proposal; ``support`` the ids of the consistent hypotheses that backed it;
-    ``gate_distance``/``gate_limit`` the place-code gate (m); ``link`` the loop link created
-    (-1 if none); ``proposed_step``/``decided_step`` count :meth:`CognitiveMap.update` calls.
-    """
-
-    id: int
-    status: str
-    reason: str
-    hypothesis: LoopHypothesis
-    from_node: int
-    support: tuple[int, ...] = ()
-    gate_distance: float = float("nan")
-    gate_limit: float = float("nan")
-    link: int = -1
-    proposed_step: int = 0
-    decided_step: int = -1
-
-    def to_dict(self) -> dict[str, Any]:
-        return {"id": self.id, "status": self.status, "reason": self.reason, "hypothesis": self.hypothesis.to_dict(),
-                "from_node": self.from_node, "support": list(self.support),
-                "gate_distance_m": None if math.isnan(self.gate_distance) else self.gate_distance,
-                "gate_limit_m": None if math.isnan(self.gate_limit) else self.gate_limit,
-                "link": self.link, "proposed_step": self.proposed_step, "decided_step": self.decided_step}
-
-    @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> "LoopDecision":
-        nan = float("nan")
-        return cls(id=int(d["id"]), status=d["status"], reason=d["reason"],
-                   hypothesis=LoopHypothesis.from_dict(d["hypothesis"]), from_node=int(d["from_node"]),
-                   support=tuple(int(s) for s in d.get("support", ())),
-                   gate_distance=nan if d.get("gate_distance_m") is None else float(d["gate_distance_m"]),
-                   gate_limit=nan if d.get("gate_limit_m") is None else float(d["gate_limit_m"]),
-                   link=int(d.get("link", -1)), proposed_step=int(d.get("proposed_step", 0)),
-                   decided_step=int(d.get("decided_step", -1)))
-
-
-@dataclass(frozen=True)
-class _Candidate:
-    """What the consistency check needs of a gated hypothesis (internal)."""
-
-    id: int
-    node: int
-    from_node: int
-    link_tr: tuple[float, float, float]  # node in the frame of from_node
-    M: tuple[float, float, float]  # node in the frame of the robot at proposal
-    odom: tuple[float, float, float]  # robot's dead-reckoned pose at proposal
-    step: int
-    arrival: int = -1  # when node == from_node: the link by which the robot had reached it
-    measured: bool = False  # the hypothesis carried a measured transform
-    path: float = 0.0  # path travelled by the robot at proposal (m)
-
-
-    def to_dict(self) -> dict[str, Any]:
-        return {"id": self.id, "node": self.node, "from_node": self.from_node, "link_tr": list(self.link_tr),
-                "M": list(self.M), "odom": list(self.odom), "step": self.step, "arrival": self.arrival,
-                "measured": self.measured, "path": self.path}
-
-    @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> "_Candidate":
-        return cls(int(d["id"]), int(d["node"]), int(d["from_node"]), tuple(map(float, d["link_tr"])),
-                   tuple(map(float, d["M"])), tuple(map(float, d["odom"])), int(d["step"]), int(d.get("arrival", -1)),
-                   bool(d.get("measured", False)), float(d.get("path", 0.0)))
+_compose3, _inv3, _between3 = se2_compose, se2_inverse, se2_between
+_vec3, _node_id, _jsonable = vec3, node_id, jsonable
 
 
 # --------------------------------------------------------------------------- the map
@@ -380,6 +121,9 @@ class CognitiveMap:
         self._dt = np.zeros(cap)
         self._kind = np.zeros(cap, dtype=np.int8)
         self._col = np.zeros(cap, dtype=np.int64)
+        self._w = np.ones(cap)  # robust weight of each link (loop links: revised, see _reweight)
+        self._linfo = np.zeros((cap, 2))  # information (x/y, heading) of loop links
+        self._lkw = np.ones(cap)  # robust kernel width of loop links (standard deviations)
         self._pairs: set[tuple[int, int]] = set()
         self._groups: ColourGroups | None = None
         self._groups_key = -1
@@ -398,9 +142,7 @@ class CognitiveMap:
         self._code_odom = self._odom
         self._anchor: tuple[float, float, float] | None = None  # place code of the current node, re-anchored
         self._events: list[MapEvent] = []
-        self._decisions: list[LoopDecision] = []
-        self._pending: list[_Candidate] = []
-        self._accepted: list[_Candidate] = []
+        self._loops = LoopBook()
         self._add_node(self._odom, (np.nan, np.nan, np.nan), 0.0)
 
     # ------------------------------------------------------------------ read-only views
@@ -470,11 +212,11 @@ class CognitiveMap:
     @property
     def loop_decisions(self) -> list[LoopDecision]:
         """One decision per proposed hypothesis (index = decision id), latest status."""
-        return list(self._decisions)
+        return list(self._loops.decisions)
 
     @property
     def pending_count(self) -> int:
-        return len(self._pending)
+        return len(self._loops.pending)
 
     # ------------------------------------------------------------------ storage
     def _grow_nodes(self) -> None:
@@ -488,7 +230,7 @@ class CognitiveMap:
 
     def _grow_links(self) -> None:
         cap = 2 * len(self._src)
-        for name in ("_src", "_dst", "_tr", "_dt", "_kind", "_col"):
+        for name in ("_src", "_dst", "_tr", "_dt", "_kind", "_col", "_w", "_linfo", "_lkw"):
             old = getattr(self, name)
             new = np.zeros((cap,) + old.shape[1:], dtype=old.dtype)
             new[: len(old)] = old
@@ -507,7 +249,8 @@ class CognitiveMap:
         self._n += 1
         return i
 
-    def _add_link(self, a: int, b: int, tr, kind: int, dt: float, allow_duplicate: bool = False) -> int:
+    def _add_link(self, a: int, b: int, tr, kind: int, dt: float, allow_duplicate: bool = False,
+                  info: tuple[float, float] | None = None, kernel_width: float | None = None) -> int:
         """Append link a→b (ORS ``on_create_link``); -1 if the pair is already linked (either way)."""
         key = (min(a, b), max(a, b))
         if key in self._pairs and not allow_duplicate:
@@ -519,13 +262,18 @@ class CognitiveMap:
         self._tr[k] = tr
         self._dt[k] = dt
         self._kind[k] = kind
+        self._w[k] = 1.0
+        self._linfo[k] = self.cfg.loop_information if info is None else info
+        self._lkw[k] = self.cfg.loop_kernel_width if kernel_width is None else kernel_width
         self._col[k] = colour_link(self._mask, a, b)
         self._pairs.add(key)
         self._m += 1
         self._version += 1
-        r = link_residuals(self._P[: self._n], [a], [b], np.asarray(tr, dtype=float).reshape(1, 3))[0]
+        r = link_residuals(self._P[: self._n], [a], [b], np.asarray(tr, dtype=float).reshape(1, 3))
         if np.max(np.abs(r)) > 1e-9:
             self._dirty = True
+        if kind == LOOP and self.cfg.loop_weight_init == "kernel":
+            self._w[k] = self._kernel_weights(r, self._linfo[k: k + 1], self._lkw[k: k + 1])[0]
         return k
 
     def _set_current(self, node: int, delta, t: float, arrival: int = -1) -> None:
@@ -577,7 +325,7 @@ class CognitiveMap:
                 events.append(self._create_or_merge(code, t))
                 changed = True
         events.extend(self._expire())
-        if changed:
+        if changed or self._dirty:
             events.extend(self._optimise(t))
         return events
 
@@ -626,30 +374,95 @@ class CognitiveMap:
         return dijkstra(g, directed=False, indices=source, limit=limit)
 
     def _optimise(self, t: float, force: bool = False, sweeps: int | None = None) -> list[MapEvent]:
-        """Correct node poses after a change of the graph (``MapConfig.solver``)."""
+        """Correct node poses while the graph disagrees with itself (``MapConfig.solver``).
+
+        Nothing is done while the map is consistent (every link added since the last
+        correction agreed with the poses, as a new node's odometric link does): between loop
+        closures the cost per step does not grow with the map. After a closure, 'relax' runs
+        ``relax_loops`` sweeps per step until the largest shift of a sweep falls below
+        ``relax_tolerance_m``; 'lsq' and 'gtsam' solve at once. Once converged, the loop links'
+        robust weights are revised (:meth:`_reweight`); a change of weight starts it again.
+        """
         m, n = self._m, self._n
-        if m == 0:
+        if m == 0 or not (self._dirty or force):
             return []
         P = self._P[:n]
         src, dst, tr = self._src[:m], self._dst[:m], self._tr[:m]
         cfg = self.cfg
         sweeps = cfg.relax_loops if sweeps is None else int(sweeps)
+        w = self._w[:m]
         if cfg.solver == "lsq":
-            if not (self._dirty or force):
-                return []
-            info = self.link_information() if cfg.lsq_weighted else None
-            res = solve_lsq(P, src, dst, tr, iterations=cfg.lsq_iterations, anchor=0, information=info)
-            self._dirty = False
+            info = self.link_information() if cfg.lsq_weighted else np.ones((m, 3))
+            res = solve_lsq(P, src, dst, tr, iterations=cfg.lsq_iterations, anchor=0, information=info * w[:, None])
+            converged = True
         elif sweeps <= 0:
             return []
         elif cfg.solver == "jacobi":
             res = relax_jacobi(P, src, dst, tr, sweeps, cfg.alpha, anchor=0)
+            converged = res.max_shift < cfg.relax_tolerance_m
         else:
             if self._groups_key != self._version:
-                self._groups = ColourGroups(src, dst, tr, self._col[:m], n, check=False)
+                self._groups = ColourGroups(src, dst, tr, self._col[:m], n, check=False, weights=w)
                 self._groups_key = self._version
             res = relax(P, src, dst, tr, sweeps, cfg.alpha, anchor=0, groups=self._groups)
+            converged = res.max_shift < cfg.relax_tolerance_m
+        self._dirty = not converged or self._reweight()
         return [MapRelaxed(res.solver, res.iterations, res.max_shift, t)]
+
+    def _reweight(self) -> bool:
+        """Revise the robust weights of the loop links from their residuals on the converged
+        map (iteratively reweighted relaxation): each link's residual is whitened by
+        ``loop_information`` and the kernel width, and ``loop_kernel`` turns it into a weight in
+        (0, 1]. Returns whether a weight changed by more than ``reweight_tolerance``."""
+        cfg = self.cfg
+        if cfg.loop_kernel == "none":
+            return False
+        m = self._m
+        loop = np.flatnonzero(self._kind[:m] == LOOP)
+        if not len(loop):
+            return False
+        new = self._kernel_weights(link_residuals(self._P[: self._n], self._src[loop], self._dst[loop], self._tr[loop]),
+                                   self._linfo[loop], self._lkw[loop])
+        changed = np.abs(new - self._w[loop]) > cfg.reweight_tolerance
+        if not changed.any():
+            return False
+        self._w[loop] = new
+        self._version += 1  # rebuild the relaxation groups with the new gains
+        return True
+
+    def _trust(self, k: int) -> None:
+        """A verified loop link: weight 1, and (``trust_verified``) out of the kernel's reach,
+        so that a true closure is applied fully even where it strains an odometry model that
+        claims more precision than it has; only unverified links are weighted down."""
+        self._w[k] = 1.0
+        if self.cfg.trust_verified:
+            self._lkw[k] = np.inf
+
+    def _kernel_weights(self, e: np.ndarray, info: np.ndarray, width: np.ndarray) -> np.ndarray:
+        """Kernel weights of loop links with residuals ``e`` (K, 3), information ``info`` (K, 2)
+        and kernel widths ``width`` (K,): whitened by both (isotropic in x/y, so the residual's
+        frame does not matter), floored so that no link is divided away entirely."""
+        cfg = self.cfg
+        chi2 = ((e[:, 0] ** 2 + e[:, 1] ** 2) * info[:, 0] + e[:, 2] ** 2 * info[:, 1]) / width ** 2
+        return np.maximum(robust_weight(chi2, cfg.loop_kernel), 1e-4)
+
+    def loop_rows(self) -> list[dict[str, Any]]:
+        """Every loop decision as a JSON-ready dict, with the current robust ``weight`` of its
+        link (absent without a link) and ``used``: accepted with weight >= ``USED_WEIGHT``."""
+        w = self._w[: self._m]
+        rows = []
+        for d in self._loops.decisions:
+            row = d.to_dict()
+            if 0 <= d.link < len(w):
+                row["weight"] = float(w[d.link])
+            row["used"] = d.status == "accepted" and row.get("weight", 1.0) >= USED_WEIGHT
+            rows.append(row)
+        return rows
+
+    def link_weights(self) -> np.ndarray:
+        """(M,) robust weight of every link: 1 for odometric and prune links, the revised kernel
+        weight for loop links (0 < w ≤ 1; a false closure fades towards 0)."""
+        return self._w[: self._m].copy()
 
     def link_information(self) -> np.ndarray:
         """(M, 3) diagonal information of every link (x, y, θ) for the weighted solver: odometric
@@ -661,7 +474,8 @@ class CognitiveMap:
         xy, th = cfg.odometry_information_per_m
         info = np.column_stack([xy / length, xy / length, th / length])
         loop = self._kind[:m] == LOOP
-        info[loop] = (cfg.loop_information[0], cfg.loop_information[0], cfg.loop_information[1])
+        li = self._linfo[:m][loop]
+        info[loop] = np.column_stack([li[:, 0], li[:, 0], li[:, 1]])
         return info
 
     def finish(self, iterations: int | None = None) -> list[MapEvent]:
@@ -672,32 +486,45 @@ class CognitiveMap:
         return events
 
     # ------------------------------------------------------------------ loop closure
+    def robot_map_pose(self) -> tuple[float, float, float]:
+        """The robot's pose on the map: the current node's pose composed with the offset."""
+        return _compose3(self._P[self._cur], self._delta)
+
+    def loop_candidates(self, limit: int | None = None) -> np.ndarray:
+        """Ids of the nodes a visual hypothesis made now could name and pass the gate with:
+        within :func:`~hippomap.loop_closure.gate_limit` of the robot (unmeasured hypothesis, no
+        offset), not current nor among the last ``N_excl`` nodes; nearest first."""
+        n = self._n
+        r = self.robot_map_pose()
+        d = np.hypot(self._P[:n, 0] - r[0], self._P[:n, 1] - r[1])
+        lim = gate_limit(self.cfg, False, drift_path(self._path, self._S[:n], self._loops.last_verified_path))
+        mask = d < lim
+        mask[max(0, n - self.cfg.exclude_recent):] = False
+        mask[self._cur] = False
+        ids = np.flatnonzero(mask)
+        ids = ids[np.argsort(d[ids], kind="stable")]
+        return ids if limit is None else ids[:limit]
+
     def propose_loop(self, h: LoopHypothesis) -> LoopDecision:
         """Offer a loop closure; returns the decision (its events come out of the next :meth:`update`).
 
-        Checks, in order:
+        Checks, in order (see :mod:`hippomap.loop_closure`):
 
         * ``node`` must be an existing node, not the current one nor among the last ``N_excl``.
-        * (a) place-code gate: the node's place code must lie within
-          ``loop_radius_m + loop_radius_per_m × (path travelled since the node was created)``
-          (``loop_transform_radius_m`` instead of ``loop_radius_m`` when the hypothesis carries a
-          measured transform: then only odometric drift separates the two) of where the hypothesis puts it (``p_robot ⊕`` the node's pose in the robot's frame;
-          for ``transform=None`` simply ``‖p_node − p_robot‖``, Eq. 13).
-        * (b) with ``loop_min_support`` ≥ 2, cycle consistency: for two hypotheses a (older)
-          and b made at different updates, the cycle robot_a → robot_b (dead-reckoned
-          odometry) → node_b (hypothesis b) → node_a (the map's current relative pose) →
-          robot_a (hypothesis a, inverted) must compose to identity within
-          ``loop_consistency_m`` / ``loop_consistency_rad`` (when both carry a measured transform:
-          ``loop_transform_consistency_rad`` + ``loop_consistency_rad_per_m`` × the cycle's odometric
-          length). A hypothesis waits (pending) up to
-          ``loop_support_window`` updates; with ``loop_min_support`` − 1 consistent pending ones,
-          or one consistent accepted in the window, it is accepted; if it contradicts every
-          loop accepted in the window it is rejected.
+        * (a) gate: where the hypothesis puts the node (the robot's map pose ⊕ the node's pose in
+          the robot's frame) must lie within :func:`~hippomap.loop_closure.gate_limit` of the
+          node's map pose (``loop_gate = 'map'``), or of its place code from the robot's place
+          code (``'place_code'``, Eq. 13 as in [S]).
+        * (b) with ``loop_min_support`` ≥ 2, cycle consistency with the other hypotheses made
+          within ``loop_support_window_m`` metres of path: with ``loop_min_support`` − 1
+          consistent pending ones, or one consistent accepted one, it is accepted; if it
+          contradicts every loop accepted in the window it is rejected; else it waits.
 
-        Accepting adds a ``loop`` link (measured transform) from the node that was current at the
-        proposal to ``node``; the newest accepted hypothesis relocalises the robot (current =
-        its node, the robot's residual offset kept); then the map is corrected. Rejected
-        hypotheses never touch node poses.
+        Accepting a group of visual hypotheses first fits their relative pose together
+        (:func:`~hippomap.loop_closure.align_group`), then adds a ``loop`` link per hypothesis
+        from the node that was current at the proposal to ``node``; the newest relocalises the
+        robot (current = its node, the robot's offset kept); then the map is corrected.
+        Rejected hypotheses never touch node poses.
         """
         if not isinstance(h, LoopHypothesis):
             raise InputError(f"propose_loop needs a LoopHypothesis, got {type(h).__name__}")
@@ -705,116 +532,192 @@ class CognitiveMap:
         if not 0 <= h.node < n:
             raise InputError(f"LoopHypothesis.node {h.node} is not a node id of this map [0, {n})")
         cfg = self.cfg
-        did = len(self._decisions)
-        link_tr = self._delta if h.transform is None else h.transform
-        cand = _Candidate(did, h.node, self._cur, link_tr, _between3(self._delta, link_tr), self._odom, self._step,
-                          self._arrival if h.node == self._cur else -1, h.transform is not None, self._path)
+        book = self._loops
+        did = len(book.decisions)
+        if h.transform is not None:
+            link_tr = h.transform
+        else:
+            link_tr = self._delta if h.offset is None else _compose3(self._delta, _inv3(h.offset))
+        info = h.information or (cfg.loop_information if h.transform is not None else cfg.visual_loop_information)
+        cand = Candidate(did, h.node, self._cur, link_tr, _between3(self._delta, link_tr), self._odom, self._step,
+                         self._arrival if h.node == self._cur else -1, h.transform is not None, self._path,
+                         tuple(float(v) for v in info),
+                         cfg.loop_kernel_width if h.transform is not None else cfg.visual_kernel_width)
         t = self._t if self._t is not None else h.time
         base = LoopDecision(did, "pending", "", h, self._cur, proposed_step=self._step)
         reason = ""
         if h.node != self._cur and h.node >= n - cfg.exclude_recent:
             reason = f"node {h.node} is among the {cfg.exclude_recent} most recent nodes"
         else:
-            code = self._robot_code()
-            if code is None or np.isnan(self._C[h.node, 0]):
+            dist, limit, what = self._gate(cand)
+            if dist is None:
                 reason = "no place code yet to gate the hypothesis"
             else:
-                pred = _compose3(code, cand.M)
-                dist = cfg.mu_p * math.hypot(pred[0] - self._C[h.node, 0], pred[1] - self._C[h.node, 1])
-                radius = cfg.loop_radius_m if h.transform is None else cfg.loop_transform_radius_m
-                limit = radius + cfg.loop_radius_per_m * (self._path - self._S[h.node])
                 base = replace(base, gate_distance=dist, gate_limit=limit)
                 if not dist < limit:
-                    reason = f"place-code distance {dist:.3f} m exceeds the gate {limit:.3f} m"
-        self._decisions.append(base)
+                    reason = f"{what} distance {dist:.3f} m exceeds the gate {limit:.3f} m"
+        book.decisions.append(base)
         if reason:
             return self._reject(did, reason, t)
+        if cfg.loop_accept == "robust":
+            return self._accept_robust(cand, t)
         if cfg.loop_min_support <= 1:
             self._accept([cand], cand, t)
-            return self._decisions[did]
-        pend = [c for c in self._pending if c.step != cand.step]
-        acc = [c for c in self._accepted if c.step != cand.step]
-        ok_pend = [c for c, ok in zip(pend, self._consistent(pend, cand)) if ok]
-        ok_acc = [c for c, ok in zip(acc, self._consistent(acc, cand)) if ok]
+            return book.decisions[did]
+        P, S = self._P, self._S
+        pend = [c for c in book.pending if c.step != cand.step]
+        acc = [c for c in book.accepted if c.step != cand.step]
+        ok_pend = [c for c, ok in zip(pend, consistent(cfg, pend, cand, P, S)) if ok]
+        ok_acc = [c for c, ok in zip(acc, consistent(cfg, acc, cand, P, S)) if ok]
         if ok_acc or (not acc and 1 + len(ok_pend) >= cfg.loop_min_support):
             support = tuple(c.id for c in ok_pend + ok_acc)
-            self._accept(ok_pend + [cand], cand, t, support)
-            return self._decisions[did]
+            self._accept(ok_pend + [cand], cand, t, support, ok_acc)
+            return book.decisions[did]
         if acc:
             ids = ", ".join(str(c.id) for c in acc)
             return self._reject(did, f"contradicts the loop closure(s) accepted within the window: {ids}", t)
-        self._pending.append(cand)
-        self._decisions[did] = replace(base, support=tuple(c.id for c in ok_pend))
+        book.pending.append(cand)
+        book.decisions[did] = replace(base, support=tuple(c.id for c in ok_pend))
         self._events.append(LoopPending(did, h.node, cand.from_node, len(ok_pend), t))
-        return self._decisions[did]
+        return book.decisions[did]
 
-    def _consistent(self, older: list[_Candidate], b: _Candidate) -> np.ndarray:
-        """Cycle-consistency of ``b`` with each of ``older`` (vectorised over them)."""
-        if not older:
-            return np.zeros(0, dtype=bool)
-        odom = np.array([c.odom for c in older])
-        Ma = np.array([c.M for c in older])
-        na = np.array([c.node for c in older])
-        P = self._P
-        # robot_a -> robot_b -> node_b -> node_a -> robot_a
-        e = compose(between(odom, np.asarray(b.odom)), np.asarray(b.M))
-        e = compose(e, between(P[b.node], P[na]))
-        e = compose(e, between(Ma, np.zeros(3)))
-        # two measured transforms: the cycle's rotation error is their disagreement plus the heading
-        # drift of its odometric parts (robot path between the proposals, map path between the nodes)
-        both_measured = np.array([c.measured for c in older]) & b.measured
-        cycle_m = np.abs(b.path - np.array([c.path for c in older])) + np.abs(self._S[b.node] - self._S[na])
+    def _gate(self, c: Candidate) -> tuple[float | None, float, str]:
+        """(distance, limit, what) of the gate for candidate ``c``; distance None: cannot gate."""
         cfg = self.cfg
-        rad = np.where(both_measured, cfg.loop_transform_consistency_rad + cfg.loop_consistency_rad_per_m * cycle_m,
-                       cfg.loop_consistency_rad)
-        return (np.hypot(e[:, 0], e[:, 1]) < cfg.loop_consistency_m) & (np.abs(e[:, 2]) < rad)
+        drift = float(drift_path(self._path, self._S[c.node], None if c.measured else self._loops.last_verified_path))
+        limit = float(gate_limit(cfg, c.measured, drift))
+        if cfg.loop_gate == "map":
+            pred = _compose3(self.robot_map_pose(), c.M)
+            return math.hypot(pred[0] - self._P[c.node, 0], pred[1] - self._P[c.node, 1]), limit, "map"
+        code = self._robot_code()
+        if code is None or np.isnan(self._C[c.node, 0]):
+            return None, limit, "place-code"
+        pred = _compose3(code, c.M)
+        return cfg.mu_p * math.hypot(pred[0] - self._C[c.node, 0], pred[1] - self._C[c.node, 1]), limit, "place-code"
 
     def _reject(self, did: int, reason: str, t: float) -> LoopDecision:
-        d = replace(self._decisions[did], status="rejected", reason=reason, decided_step=self._step)
-        self._decisions[did] = d
+        book = self._loops
+        d = replace(book.decisions[did], status="rejected", reason=reason, decided_step=self._step)
+        book.decisions[did] = d
         self._events.append(LoopRejected(did, d.hypothesis.node, d.from_node, reason, t))
         return d
 
-    def _accept(self, group: list[_Candidate], reloc: _Candidate, t: float, support: tuple[int, ...] = ()) -> None:
+    def _fit_group(self, group: list[Candidate], anchors: list[Candidate]) -> list[Candidate] | None:
+        """The group's visual candidates with the offsets of one SE(2) fit of the robot's
+        dead-reckoned poses onto the places they name (``anchors``: accepted candidates of the
+        window that back the fit but keep their links). ``None`` when the fit does not hold:
+        a member lies more than ``loop_consistency_m`` from where the fit puts it, or the fit
+        turns the robot more than ``loop_view_rad`` away from the way a member's key frame
+        looked (recognising a view means facing roughly as it was learned)."""
+        vis = [c for c in group + anchors if not c.measured]
+        if len(vis) < 2:
+            return group
+        P, cfg = self._P, self.cfg
+        odom = np.array([c.odom for c in vis])
+        targets = np.array([place_of(c, P) for c in vis])
+        T = align_group(odom, targets, cfg.loop_fit_min_spread_m)
+        fitted = compose(T, odom)
+        if (np.max(np.hypot(*(fitted[:, :2] - targets[:, :2]).T)) > cfg.loop_consistency_m
+                or np.max(np.abs(wrap_angle(fitted[:, 2] - targets[:, 2]))) > cfg.loop_view_rad):
+            return None
+        out = []
+        for c in group:
+            if c.measured:
+                out.append(c)
+                continue
+            robot = _compose3(T, c.odom)  # where the fit puts the robot on the map at the proposal
+            out.append(c.with_offset(_between3(P[c.node], robot)))
+        return out
+
+    def _accept(self, group: list[Candidate], reloc: Candidate, t: float, support: tuple[int, ...] = (),
+                anchors: list[Candidate] | None = None) -> None:
+        book = self._loops
         ids = {c.id for c in group}
-        group = sorted(group, key=lambda c: c.id)
+        group = sorted(self._fit_group(group, anchors or []) or group, key=lambda c: c.id)
+        reloc = next(c for c in group if c.id == reloc.id)
         arrival = -1
         for c in group:
             link = self._add_loop_link(c)
+            if link >= 0:
+                self._trust(link)
             if c is reloc:
                 arrival = link
             sup = tuple(sorted((set(support) | ids) - {c.id}))
-            reason = "place-code gate" if self.cfg.loop_min_support <= 1 else "place-code gate and cycle consistency"
+            reason = "gate" if self.cfg.loop_min_support <= 1 else "gate and cycle consistency"
             if link < 0:
                 reason += "; names the node it was proposed from: robot offset corrected, no link"
-            self._decisions[c.id] = replace(self._decisions[c.id], status="accepted", reason=reason, link=link,
-                                            support=sup, decided_step=self._step)
+            book.decisions[c.id] = replace(book.decisions[c.id], status="accepted", reason=reason, link=link,
+                                           support=sup, decided_step=self._step, transform=c.link_tr)
             self._events.append(LoopAccepted(c.id, c.node, c.from_node, link, sup, c is reloc, t))
-            self._accepted.append(c)
-        self._pending = [c for c in self._pending if c.id not in ids]
+            book.accepted.append(c)
+        book.pending = [c for c in book.pending if c.id not in ids]
+        book.last_verified_path = self._path
         if self.cfg.loop_relocalise:
             self._set_current(reloc.node, _inv3(reloc.M), t, arrival)
         # the remaining pending hypotheses: supported by the accepted group, or contradicted by it
         still = []
-        for c in self._pending:
+        for c in book.pending:
             others = [g for g in group if g.step != c.step]
             if not others:
                 still.append(c)
                 continue
-            if np.any(self._consistent(others, c)):  # the cycle test is symmetric in the pair
+            if np.any(consistent(self.cfg, others, c, self._P, self._S)):  # the cycle test is symmetric in the pair
                 link = self._add_loop_link(c)
                 sup = tuple(sorted(ids))
-                self._decisions[c.id] = replace(self._decisions[c.id], status="accepted",
-                                                reason="supported by an accepted loop closure", link=link,
-                                                support=sup, decided_step=self._step)
+                book.decisions[c.id] = replace(book.decisions[c.id], status="accepted",
+                                               reason="supported by an accepted loop closure", link=link,
+                                               support=sup, decided_step=self._step, transform=c.link_tr)
                 self._events.append(LoopAccepted(c.id, c.node, c.from_node, link, sup, False, t))
-                self._accepted.append(c)
+                book.accepted.append(c)
             else:
                 self._reject(c.id, "contradicted by the accepted loop closure(s) " + ", ".join(map(str, sorted(ids))), t)
-        self._pending = still
+        book.pending = still
         self._events.extend(self._optimise(t))
 
-    def _add_loop_link(self, c: _Candidate) -> int:
+    def _accept_robust(self, cand: Candidate, t: float) -> LoopDecision:
+        """``loop_accept = 'robust'``: a hypothesis that passed the gate becomes a loop link at
+        once, with the kernel weight of its residual (:meth:`_kernel_weights`), revised as the map
+        converges. Cycle consistency no longer decides whether a link exists, only whether it is
+        *verified*: a verified group has its relative pose fitted, its weights set to 1 and
+        relocalises the robot; unverified links can only pull as far as their weight lets them."""
+        cfg, book = self.cfg, self._loops
+        link = self._add_loop_link(cand)
+        P, S = self._P, self._S
+        pend = [c for c in book.pending if c.step != cand.step]
+        acc = [c for c in book.accepted if c.step != cand.step]
+        ok_pend = [c for c, ok in zip(pend, consistent(cfg, pend, cand, P, S)) if ok]
+        ok_acc = [c for c, ok in zip(acc, consistent(cfg, acc, cand, P, S)) if ok]
+        verified = bool(ok_acc) or 1 + len(ok_pend) >= cfg.loop_min_support
+        group = self._fit_group(ok_pend + [cand], ok_acc) if verified else None
+        verified = group is not None
+        support = tuple(c.id for c in ok_pend + ok_acc)
+        reason = "gate; weighted by the robust kernel" + ("; verified by cycle consistency" if verified else "")
+        book.decisions[cand.id] = replace(book.decisions[cand.id], status="accepted", reason=reason, link=link,
+                                          support=support, decided_step=self._step, transform=cand.link_tr)
+        reloc = verified and cfg.loop_relocalise
+        self._events.append(LoopAccepted(cand.id, cand.node, cand.from_node, link, support, reloc, t))
+        if not verified:
+            book.pending.append(cand)
+        else:
+            for c in group:
+                k = book.decisions[c.id].link
+                if k >= 0 and c.node != c.from_node:
+                    self._tr[k] = c.link_tr
+                    self._trust(k)
+                    book.decisions[c.id] = replace(book.decisions[c.id], transform=c.link_tr)
+            self._version += 1
+            self._dirty = True
+            ids = {c.id for c in group}
+            book.pending = [c for c in book.pending if c.id not in ids]
+            book.accepted.extend(group)
+            book.last_verified_path = self._path
+            if reloc:
+                c = group[-1]
+                self._set_current(c.node, _inv3(c.M), t, link)
+        self._events.extend(self._optimise(t))
+        return book.decisions[cand.id]
+
+    def _add_loop_link(self, c: Candidate) -> int:
         """The loop link of an accepted hypothesis ``from_node → node`` with the measured transform.
 
         A hypothesis may name the node it was proposed from: the robot had already reached that
@@ -825,7 +728,8 @@ class CognitiveMap:
         only corrects the robot's offset when it relocalises.
         """
         if c.node != c.from_node:
-            return self._add_link(c.from_node, c.node, c.link_tr, LOOP, 0.0, allow_duplicate=True)
+            return self._add_link(c.from_node, c.node, c.link_tr, LOOP, 0.0, allow_duplicate=True, info=c.info,
+                                  kernel_width=c.kernel_width)
         k = c.arrival
         if k < 0 or k >= self._m or self._dst[k] != c.node:
             return -1
@@ -833,22 +737,21 @@ class CognitiveMap:
         if self._kind[k] == PRUNE:
             self._tr[k] = tr
             self._kind[k] = LOOP
+            self._w[k] = 1.0
+            self._linfo[k] = c.info
+            self._lkw[k] = c.kernel_width
             self._version += 1
             self._dirty = True
             return k
-        return self._add_link(int(self._src[k]), c.node, tr, LOOP, 0.0, allow_duplicate=True)
+        return self._add_link(int(self._src[k]), c.node, tr, LOOP, 0.0, allow_duplicate=True, info=c.info,
+                                  kernel_width=c.kernel_width)
 
     def _expire(self) -> list[MapEvent]:
-        w = self.cfg.loop_support_window
+        w = self.cfg.loop_support_window_m
         t = self._t if self._t is not None else 0.0
-        keep = []
-        for c in self._pending:
-            if self._step - c.step > w:
-                self._reject(c.id, f"expired: no consistent support within {w} updates", t)
-            else:
-                keep.append(c)
-        self._pending = keep
-        self._accepted = [c for c in self._accepted if self._step - c.step <= w]
+        for c in self._loops.expired(self._path, w):
+            if self.cfg.loop_accept == "verified":
+                self._reject(c.id, f"expired: no consistent support within {w:g} m of path", t)
         out, self._events = self._events, []
         return out
 
@@ -947,6 +850,9 @@ class CognitiveMap:
         s_new, d_new = old_to_new[src[kl]], old_to_new[dst[kl]]
         self._tr[:ml] = new_tr[kl]
         self._dt[:ml] = self._dt[:m][kl]
+        self._w[:ml] = self._w[:m][kl]
+        self._linfo[:ml] = self._linfo[:m][kl]
+        self._lkw[:ml] = self._lkw[:m][kl]
         self._kind[:ml] = self._kind[:m][kl]
         self._src[:ml], self._dst[:ml] = s_new, d_new
         self._m = ml
@@ -961,11 +867,12 @@ class CognitiveMap:
         self._arrival = -1
         remap = lambda c: replace(c, node=int(old_to_new[c.node]), from_node=int(old_to_new[c.from_node]),  # noqa: E731
                                   arrival=-1)
-        for c in self._pending:
+        book = self._loops
+        for c in book.pending:
             if old_to_new[c.node] == old_to_new[c.from_node]:
                 self._reject(c.id, "prune() merged its node into the node it was proposed from", t)
-        self._pending = [remap(c) for c in self._pending if old_to_new[c.node] != old_to_new[c.from_node]]
-        self._accepted = [remap(c) for c in self._accepted]
+        book.pending = [remap(c) for c in book.pending if old_to_new[c.node] != old_to_new[c.from_node]]
+        book.accepted = [remap(c) for c in book.accepted]
         self._events.append(NodesPruned(n - kn, kn, ml, frames_dropped, t))
         self._events.extend(self._optimise(t, force=True))
         return old_to_new
@@ -991,14 +898,14 @@ class CognitiveMap:
                       "time": self._Tn[:n].copy(), "path": self._S[:n].copy()},
             "links": {"source": self._src[:m].copy(), "target": self._dst[:m].copy(),
                       "transform": self._tr[:m].copy(), "dt": self._dt[:m].copy(),
-                      "kind": self._kind[:m].astype(np.int64), "colour": self._col[:m].copy()},
+                      "kind": self._kind[:m].astype(np.int64), "colour": self._col[:m].copy(),
+                      "weight": self._w[:m].copy(), "information": self._linfo[:m].copy(),
+                      "kernel_width": self._lkw[:m].copy()},
             "robot": {"current": self._cur, "delta": list(self._delta), "odom": list(self._odom), "path": self._path,
                       "step": self._step, "t": self._t, "t_arrive": self._t_arrive, "arrival": self._arrival,
                       "code": None if self._code is None else list(self._code), "code_odom": list(self._code_odom),
                       "anchor": None if self._anchor is None else list(self._anchor), "dirty": self._dirty},
-            "loop": {"decisions": [d.to_dict() for d in self._decisions],
-                     "pending": [c.to_dict() for c in self._pending],
-                     "accepted": [c.to_dict() for c in self._accepted]},
+            "loop": self._loops.state_dict(),
             "events": [e.to_dict() for e in self._events],
         }
 
@@ -1024,6 +931,11 @@ class CognitiveMap:
             cmap._tr[:m] = np.asarray(links["transform"], dtype=float).reshape(m, 3)
             cmap._dt[:m] = np.asarray(links["dt"], dtype=float)
             cmap._kind[:m] = np.asarray(links["kind"], dtype=np.int8)
+            cmap._w[:m] = np.asarray(links.get("weight", np.ones(m)), dtype=float)
+            li = links.get("information")
+            cmap._linfo[:m] = (np.tile(cfg.loop_information, (m, 1)) if li is None
+                               else np.asarray(li, dtype=float).reshape(m, 2))
+            cmap._lkw[:m] = np.asarray(links.get("kernel_width", np.full(m, cfg.loop_kernel_width)), dtype=float)
             if n == 0 or not np.all(np.isfinite(cmap._P[:n])):
                 raise InputError("cognitive-map state: node poses missing or not finite")
             if m and (cmap._src[:m].max() >= n or cmap._dst[:m].max() >= n or min(cmap._src[:m].min(), cmap._dst[:m].min()) < 0):
@@ -1043,9 +955,7 @@ class CognitiveMap:
             cmap._code_odom = _vec3(robot["code_odom"], "state robot.code_odom")
             cmap._anchor = None if robot["anchor"] is None else _vec3(robot["anchor"], "state robot.anchor")
             cmap._dirty = bool(robot["dirty"])
-            cmap._decisions = [LoopDecision.from_dict(d) for d in loop["decisions"]]
-            cmap._pending = [_Candidate.from_dict(d) for d in loop["pending"]]
-            cmap._accepted = [_Candidate.from_dict(d) for d in loop["accepted"]]
+            cmap._loops = LoopBook.from_state(loop)
             cmap._events = [MapEvent.from_dict(e) for e in state.get("events", [])]
             cmap._version += 1
             return cmap

@@ -74,9 +74,10 @@ class VisualConfig(_Frozen):
     fixation_mode: Literal["corners", "random"] = Field("corners", description="top-K Shi-Tomasi corners, or random points as in [S] [spec §6.1]")
     min_fixations: int = Field(3, ge=1, description="skip a frame with fewer corners [spec §2]")
     n_std: float = Field(
-        2.8, ge=0,
+        3.3, ge=0,
         description="N_std, FLC pruning threshold (0.8 for 10 images, 2.8 for 99) [BBc]; at scale the survivors are "
-        "capped by max_survivors instead of raising it (spec §6.4)",
+        "capped by max_survivors instead of raising it (spec §6.4). 3.3 with the retina front end: contrast-normalised "
+        "patches are more alike than grey-level ones, so the evidence test must be stricter (eval-vpr, both sets) [ours]",
     )
     max_survivors: int = Field(
         5, ge=0, description="at most this many FLCs survive the N_std pruning (the strongest); 0 = no cap "
@@ -87,7 +88,9 @@ class VisualConfig(_Frozen):
     prediction_bias: float = Field(2.0, ge=1, description="bias on the predicted FLC [BBc]")
     decision_threshold: float = Field(0.9, gt=0, le=1, description="theta_dec, frame accepted above it [S §3.2], [BBc]")
     tolerance_px: int = Field(
-        8, ge=0, description="tol, vector tolerance and microsaccade radius: [BBc] 4; 8 for revisits from another viewpoint [ours]"
+        8, ge=0, description="tol, vector tolerance and microsaccade radius: [BBc] 4; 8 for revisits from another "
+        "viewpoint [ours]. 10 recalled slightly more on eval-vpr (rtabmap 0.83 vs 0.82, corridor 0.03 vs 0.01, with "
+        "verify_saccades 1) but let a recognition >= 2 m from the truth into a simulated mapper run"
     )
     max_prediction_errors: int = Field(2, ge=0, description="reset when wrong predictions exceed it [BBc]")
     max_total_activity: float = Field(5.0, gt=0, description="reset if sum of frame activity exceeds it [BBc]")
@@ -101,6 +104,23 @@ class VisualConfig(_Frozen):
     )
     seed: int = Field(0, description="seed for fixation order, weight jitter and random saccade/start choices [ours]")
     contrast_clip: float = Field(0.01, ge=0, lt=0.5, description="imadjust: fraction saturated in each tail [BBc]")
+    retina_mode: Literal["dog", "none"] = Field(
+        "dog", description="front end of the sensory cells (hippomap.retina): 'dog' = light adaptation, centre-surround "
+        "(difference of Gaussians) and divisive contrast normalisation, so sensory cells tune to local contrast and "
+        "survive lighting change; 'none' = grey levels stretched by imadjust as in [S]/[BBc] [ours]"
+    )
+    retina_center_sigma: float = Field(2.0, ge=0, description="ganglion receptive-field centre sigma, working px [ours]")
+    retina_surround_sigma: float = Field(6.0, gt=0, description="ganglion receptive-field surround sigma, working px [ours]")
+    retina_norm_sigma: float = Field(8.0, gt=0, description="pool of the divisive contrast normalisation, working px [ours]")
+    retina_semisaturation: float = Field(
+        0.5, ge=0, description="semi-saturation constant of the normalisation as a fraction of the frame's median "
+        "local contrast: keeps flat, noisy regions near zero [ours]"
+    )
+    retina_gain: float = Field(1.0, gt=0, description="gain of the tanh that codes the response as a grey level [ours]")
+    corner_source: Literal["gray", "retina"] = Field(
+        "gray", description="image whose Shi-Tomasi corners become fixation points: the contrast-stretched grey image "
+        "or the retina's output; corners of the retina image are noise-amplified (rtabmap recall 0.42) [ours]"
+    )
     corner_quality: float = Field(0.01, gt=0, le=1, description="Shi-Tomasi quality level of fixation points [ours]")
     corner_block: int = Field(3, ge=3, description="Shi-Tomasi block size [ours]")
     min_distance: int = Field(0, ge=0, description="min separation of fixation points; 0 = h, half the fovea [spec §2]")
@@ -136,7 +156,14 @@ class VisualConfig(_Frozen):
     verify_saccades: int = Field(
         2, ge=0, description="after the threshold, the accepted frame must predict this many more features correctly "
         "([S] §3.2: 'once ... the recognition threshold [is reached], it will continue to scan'); a failure resets. "
-        "[BBc] has none (0); 2 gave 100 % precision on both eval-vpr sets over 5 seeds [ours]"
+        "[BBc] has none (0); 2 gave 100 % precision on both eval-vpr sets over 5 seeds, and no recognition >= 2 m from "
+        "the truth in simulated mapper runs (1 + verify_per_reset 0.5 recalled as much on eval-vpr but let such "
+        "near misses through) [ours]"
+    )
+    verify_per_reset: float = Field(
+        0.0, ge=0, description="extra verification saccades per reset before the accepting attempt (floor of resets x "
+        "this): each new attempt is one more chance for a wrong frame to pass, so later attempts may be made to verify "
+        "more; 0 = off [ours]"
     )
     out_of_view: Literal["reset", "skip"] = Field(
         "reset", description="a saccade whose fovea leaves the frame resets the attempt [BBc] or picks another feature [ours]"
@@ -177,7 +204,20 @@ class MapConfig(_Frozen):
         3, ge=1, description="mutually consistent hypotheses needed before a loop closes (geometric check); 3 is the "
         "smallest that accepted no false proposal of B25b_0.000 (docs/BENCHMARKS.md) [ours]"
     )
-    loop_support_window: int = Field(50, ge=1, description="steps a hypothesis waits for support [ours]")
+    loop_support_window_m: float = Field(
+        5.0, gt=0, description="metres of path a hypothesis waits for support, and an accepted one backs newer ones; "
+        "in metres, not steps or frames, so that it means the same at any speed, frame rate and key-frame spacing "
+        "(B25b: the former 50 steps of 0.09 m) [ours]")
+    loop_gate: Literal["map", "place_code"] = Field(
+        "map", description="what the gate compares: the robot's map pose with the node's ('map': the map learns from "
+        "loop closures, the place code does not) or the two place codes (Eq. 13 [S]); docs/MODEL.md [ours]")
+    loop_view_rad: float = Field(
+        0.4, gt=0, description="a verified group's fit may turn the robot at most this far from the heading of the "
+        "key frames it recognised (a recognised view is seen from roughly the same direction; half of a 60-70 "
+        "degree field of view) [ours]")
+    loop_fit_min_spread_m: float = Field(
+        0.5, gt=0, description="a group of visual hypotheses whose robot positions spread over at least this fits "
+        "its rotation from the positions, else from the headings (relative-pose fit, hippomap.loop_closure) [ours]")
     loop_consistency_m: float = Field(
         0.5, gt=0, description="max translation error of a loop cycle [ours: measured on Bicocca, 1.0 let false loops in]"
     )
@@ -192,11 +232,36 @@ class MapConfig(_Frozen):
         0.005, ge=0, description="heading drift allowed per metre of odometry inside such a cycle (robot path between "
         "the two proposals plus map path between the two nodes), added to loop_transform_consistency_rad [ours]"
     )
+    relax_tolerance_m: float = Field(
+        1e-4, gt=0, description="relaxation runs relax_loops sweeps per step until a sweep moves no node more than "
+        "this; then it stops until the graph changes (no work between closures) [ours]")
+    loop_kernel: Literal["cauchy", "dcs", "none"] = Field(
+        "cauchy", description="robust kernel that sets each loop link's weight from its residual on the converged "
+        "map (iteratively reweighted relaxation); 'none' keeps every accepted link at weight 1 [ours]")
+    loop_kernel_width: float = Field(
+        1.0, gt=0, description="kernel width of a measured loop link, in standard deviations of its information: a "
+        "link whose residual is this many sigmas keeps half its weight (Cauchy) [ours: Bicocca proposals]")
+    visual_kernel_width: float = Field(
+        3.0, gt=0, description="kernel width of a visual loop link: its relative pose is fitted from recognitions, "
+        "not measured, so its errors reach about three times a measured link's (docs/MODEL.md) [ours]")
+    loop_accept: Literal["robust", "verified"] = Field(
+        "robust", description="'robust': every hypothesis that passes the gate becomes a loop link weighted by the "
+        "robust kernel, and cycle consistency only decides which are verified (fitted, relocalising); 'verified': "
+        "only verified hypotheses become links, the rest are rejected [ours, docs/MODEL.md]")
+    loop_weight_init: Literal["one", "kernel"] = Field(
+        "kernel", description="weight of a new loop link: 1 (applied fully, then revised on the converged map) or the "
+        "kernel weight of its residual on the map as it stands [ours]")
+    trust_verified: bool = Field(
+        False, description="verified loop links (cycle consistency) keep weight 1; the kernel weighs only unverified "
+        "ones. False (default): the kernel revises every loop link; measured better on Bicocca and the simulated "
+        "worlds (biased true closures fade too) [ours, docs/MODEL.md]")
+    reweight_tolerance: float = Field(0.05, gt=0, lt=1, description="a weight change above this relaxes again [ours]")
     solver: Literal["relax", "jacobi", "lsq"] = Field(
-        "relax",
+        "lsq",
         description="map correction after each action: 'relax' = [ORS] per-link relaxation (Eq. 14), vectorised by "
         "edge colour; 'jacobi' = simultaneous Eq. 14 with degree-normalised alpha; 'lsq' = Gauss-Newton SE(2) pose "
-        "graph, exact [ours]",
+        "graph, exact, the default: relaxation needs O(N^2) sweeps to spread a closure around an N-node loop "
+        "(docs/MODEL.md) [ours]",
     )
     lsq_iterations: int = Field(10, ge=1, description="max Gauss-Newton iterations per correction when solver='lsq' [ours]")
     lsq_weighted: bool = Field(
@@ -206,6 +271,9 @@ class MapConfig(_Frozen):
         (362.0, 3620.0), description="information of 1 m of odometry, (x/y in m^-2, heading in rad^-2); a link of "
         "length d gets this / d (variance grows with the path). Default: the B25b g2o files' 4000 / 40000 per 0.0905 m "
         "step [ours, from the data]")
+    visual_loop_information: tuple[_Positive, _Positive] = Field(
+        (100.0, 1000.0), description="information of a visual loop link (x/y, heading), as for a measured one: "
+        "softer visual links left loops partly open on the simulated worlds (docs/MODEL.md) [ours]")
     loop_information: tuple[_Positive, _Positive] = Field(
         (100.0, 1000.0), description="information of a loop link (x/y, heading): the middle of the B25b g2o loop "
         "edges' 60-380 / 600-3800 [ours, from the data]")
@@ -214,8 +282,18 @@ class MapConfig(_Frozen):
 class MapperConfig(_Frozen):
     """Glue between the pathways (paper Fig. 1)."""
 
-    keyframe_interval: int = Field(100, ge=1, description="raw frames per learned key frame [S §3.2]")
-    keyframe_distance_m: float | None = Field(None, gt=0, description="alternatively learn a key frame every so many metres [ours]")
+    keyframe_interval: int | None = Field(
+        None, ge=1, description="learn a key frame every so many raw frames ([S] §3.2: 100) instead of by distance "
+        "and turn; None = by distance and turn, which means the same at any frame rate and speed [ours]")
+    keyframe_distance_m: float = Field(
+        0.5, gt=0, description="learn a key frame after this many metres of odometric path [ours: chosen on simulated "
+        "worlds, docs/MODEL.md]")
+    keyframe_turn_rad: float = Field(
+        0.35, gt=0, description="... or after turning this much (a robot turning on the spot sees new views) [ours]")
+    camera_hfov_deg: float | None = Field(
+        None, gt=0, lt=180, description="horizontal field of view of the camera; when known, the image shift of a "
+        "recognition's saccade correspondences turns into the robot's heading relative to the matched key frame "
+        "[ours]")
 
 
 class HippomapConfig(_Frozen):

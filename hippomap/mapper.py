@@ -1,11 +1,14 @@
 """The whole mapper of the paper's Fig. 1: one object per mapping session.
 
-Odometry drives the place code (grid cells -> place cells); every ``keyframe_interval``
-frames (or every ``keyframe_distance_m`` metres) a frame is first recognised against
-the key frames of nodes near the current place code (Eq. 13 gate) and then learned into
-the visual memory; an accepted recognition becomes a
-:class:`~hippomap.cognitive_map.LoopHypothesis` that the cognitive map verifies before
-closing the loop and relaxing.
+Odometry drives the place code (grid cells -> place cells). A frame becomes a key frame after
+``keyframe_distance_m`` metres of path or ``keyframe_turn_rad`` of turn (or every
+``keyframe_interval`` frames, [S]'s rule, when that is set): it is first recognised against the
+key frames of the nodes the map's loop gate admits (:meth:`CognitiveMap.loop_candidates`) and
+then learned into the visual memory, together with where it was taken relative to its node.
+An accepted recognition becomes a :class:`~hippomap.loop_closure.LoopHypothesis` whose offset
+is that pose (turned by the image shift of the saccade correspondences when the camera's field
+of view is known), which the loop closing (:mod:`hippomap.loop_closure`) verifies and fits
+before the map closes the loop and relaxes.
 
 Inputs must come in time order; every call returns a list of events (plain dicts with a
 ``type`` key, JSON-ready) and never mutates state when it raises ``InputError``.
@@ -22,7 +25,8 @@ from typing import Any
 
 import numpy as np
 
-from .cognitive_map import CognitiveMap, LoopHypothesis
+from .cognitive_map import CognitiveMap
+from .loop_closure import LoopHypothesis
 from .config import HippomapConfig
 from .errors import InputError
 from .geometry import compose
@@ -72,6 +76,10 @@ class Mapper:
         self.frames_seen = 0
         self.distance = 0.0  # odometric path length, metres
         self.distance_at_keyframe = -math.inf
+        self.turn = 0.0  # odometric turn, |radians| summed
+        self.turn_at_keyframe = 0.0
+        self._frame_distance = self._frame_turn = 0.0  # distance and turn at the previous frame
+        self.frame_offset: dict[int, tuple[float, float, float]] = {}  # key frame -> its pose in its node's frame
         self.frame_node: dict[int, int] = {}  # key-frame id -> node id
         self.recognitions: list[dict[str, Any]] = []
         self.place: tuple[float, float, float] | None = None  # latest place code p
@@ -100,6 +108,7 @@ class Mapper:
         self.last_t = self.last_odometry_t = t
         code = self.pathway.step_increment(*inc)
         self.distance += math.hypot(inc[0], inc[1])
+        self.turn += abs(inc[2])
         events = [e.to_dict() for e in self.cmap.update(
             None if code is None else (code.x, code.y, code.theta), inc, t)]
         if code is not None:
@@ -122,9 +131,7 @@ class Mapper:
             return []
         events: list[dict[str, Any]] = []
         if self.place is not None and self.memory.frame_count:
-            near = self.cmap.nodes_near(self.place, self.config.map.loop_radius_m
-                                        + self.config.map.loop_radius_per_m * self.distance)
-            frames = self.cmap.frames[near]
+            frames = self.cmap.frames[self.cmap.loop_candidates()]
             candidates = sorted(set(int(f) for f in frames[frames >= 0]))
             if candidates:
                 rec = self.memory.recognise(gray, candidates=candidates)
@@ -135,7 +142,8 @@ class Mapper:
                 if rec.frame is not None:
                     hyp = LoopHypothesis(node=self.frame_node[int(rec.frame)], transform=None,
                                          evidence=float(rec.evidence), source="visual", time=frame.t,
-                                         meta={"recognition": rec_id, "frame": int(rec.frame)})
+                                         meta={"recognition": rec_id, "frame": int(rec.frame)},
+                                         offset=self._visual_offset(rec, gray.shape[1]))
                     decision = self.cmap.propose_loop(hyp)
                     events.append({"type": "loop_decision", **decision.to_dict()})
         fid = self.memory.learn(gray)
@@ -143,15 +151,35 @@ class Mapper:
             node = int(self.cmap.current)
             self.cmap.set_frame(node, fid)
             self.frame_node[int(fid)] = node
+            self.frame_offset[int(fid)] = tuple(float(v) for v in self.cmap.robot_offset)
             self.distance_at_keyframe = self.distance
+            self.turn_at_keyframe = self.turn
             events.append({"type": "keyframe_learned", "t": frame.t, "frame": int(fid), "node": node})
         return events
 
     def _is_keyframe(self) -> bool:
         m = self.config.mapper
-        if m.keyframe_distance_m is not None:
-            return self.distance - self.distance_at_keyframe >= m.keyframe_distance_m
-        return (self.frames_seen - 1) % m.keyframe_interval == 0
+        if m.keyframe_interval is not None:
+            return (self.frames_seen - 1) % m.keyframe_interval == 0
+        # the frame nearest to the threshold: it may fall short by half the motion since the
+        # previous frame, so that the spacing does not depend on the frame rate
+        moved, turned = self.distance - self._frame_distance, self.turn - self._frame_turn
+        self._frame_distance, self._frame_turn = self.distance, self.turn
+        return (self.distance - self.distance_at_keyframe >= m.keyframe_distance_m - moved / 2
+                or self.turn - self.turn_at_keyframe >= m.keyframe_turn_rad - turned / 2)
+
+    def _visual_offset(self, rec: Any, width: int) -> tuple[float, float, float]:
+        """The robot's pose in the matched node's frame as recognition tells it: where the
+        matched key frame was taken, turned by the heading the horizontal image shift of the
+        saccade correspondences implies (a feature further right in the query than in memory
+        means the robot has turned left), when the camera's field of view is known."""
+        off = self.frame_offset.get(int(rec.frame), (0.0, 0.0, 0.0))
+        hfov = self.config.mapper.camera_hfov_deg
+        shift = getattr(rec, "shift", None)
+        if hfov is None or not shift or shift.get("n", 0) < 2:
+            return off
+        focal = 0.5 * width / math.tan(math.radians(hfov) / 2)
+        return (off[0], off[1], off[2] + math.atan2(float(shift["x"]), focal))
 
     # ----------------------------------------------------------------- queries
     @property
@@ -207,6 +235,11 @@ class Mapper:
             "distance": self.distance,
             "distance_at_keyframe": None if math.isinf(self.distance_at_keyframe) else self.distance_at_keyframe,
             "frame_node": [[k, v] for k, v in self.frame_node.items()],
+            "frame_offset": [[k, list(v)] for k, v in self.frame_offset.items()],
+            "turn": self.turn,
+            "turn_at_keyframe": self.turn_at_keyframe,
+            "frame_distance": self._frame_distance,
+            "frame_turn": self._frame_turn,
             "recognitions": self.recognitions,
             "place": self.place,
         }
@@ -238,6 +271,11 @@ class Mapper:
         dk = meta["distance_at_keyframe"]
         self.distance_at_keyframe = -math.inf if dk is None else dk
         self.frame_node = {int(k): int(v) for k, v in meta["frame_node"]}
+        self.frame_offset = {int(k): tuple(float(x) for x in v) for k, v in meta.get("frame_offset", [])}
+        self.turn = float(meta.get("turn", 0.0))
+        self.turn_at_keyframe = float(meta.get("turn_at_keyframe", 0.0))
+        self._frame_distance = float(meta.get("frame_distance", self.distance))
+        self._frame_turn = float(meta.get("frame_turn", self.turn))
         self.recognitions = meta["recognitions"]
         self.place = None if meta["place"] is None else tuple(meta["place"])
         self.place_field = None

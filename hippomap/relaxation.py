@@ -164,8 +164,15 @@ class ColourGroups:
     """Links grouped by colour, ready for :func:`relax` (build once, reuse while links are unchanged)."""
 
     def __init__(self, src: np.ndarray, dst: np.ndarray, transforms: np.ndarray, colours: np.ndarray, n: int,
-                 check: bool = True):
+                 check: bool = True, weights: np.ndarray | None = None):
+        """``weights`` (M,) in (0, 1] scale each link's correction (robust loop weights); None = 1."""
         colours = np.asarray(colours, dtype=np.int64)
+        if weights is not None:
+            weights = np.asarray(weights, dtype=float)
+            if weights.shape != src.shape or not np.all((weights > 0) & (weights <= 1)):
+                raise InputError("link weights must be (M,) values in (0, 1]")
+            if np.all(weights == 1.0):
+                weights = None
         if colours.shape != src.shape:
             raise InputError(f"colours {colours.shape} must match links {src.shape}")
         small = len(colours) == 0 or (colours.min() >= -128 and colours.max() < 128)
@@ -180,7 +187,7 @@ class ColourGroups:
                 continue
             s, d = src[g], dst[g]
             item = (s, d, np.ascontiguousarray(transforms[g, 0]), np.ascontiguousarray(transforms[g, 1]),
-                    np.ascontiguousarray(transforms[g, 2]))
+                    np.ascontiguousarray(transforms[g, 2]), 1.0 if weights is None else weights[g])
             if colours[g[0]] < 0:
                 self.overflow = item
             else:
@@ -225,13 +232,14 @@ def relax(
     for sweep in range(sweeps):
         if sweep == sweeps - 1:
             start[:] = P[:, :2]
-        for s_, d_, tx, ty, tt in groups.groups:
+        for s_, d_, tx, ty, tt, w in groups.groups:
             ts = th[s_]
             c = np.cos(ts)
             s = np.sin(ts)
-            ex = (x[d_] - x[s_] - (c * tx - s * ty)) * alpha
-            ey = (y[d_] - y[s_] - (s * tx + c * ty)) * alpha
-            et = _wrap_inplace(th[d_] - ts - tt) * alpha
+            a = alpha * w
+            ex = (x[d_] - x[s_] - (c * tx - s * ty)) * a
+            ey = (y[d_] - y[s_] - (s * tx + c * ty)) * a
+            et = _wrap_inplace(th[d_] - ts - tt) * a
             x[s_] += ex
             y[s_] += ey
             th[s_] += et
@@ -239,20 +247,21 @@ def relax(
             y[d_] -= ey
             th[d_] -= et
         if groups.overflow is not None:
-            _jacobi_step(x, y, th, *groups.overflow, alpha * groups.overflow_gain, n)
+            s_, d_, tx, ty, tt, w = groups.overflow
+            _jacobi_step(x, y, th, s_, d_, tx, ty, tt, alpha * groups.overflow_gain, n, w)
         _wrap_inplace(th)
     shift = float(np.sqrt(np.max(np.sum((P[:, :2] - start) ** 2, axis=1))))
     _gauge_fix(P, anchor, before)
     return RelaxResult("relax", int(sweeps), shift)
 
 
-def _jacobi_step(x, y, th, src, dst, tx, ty, tt, gain, n):
+def _jacobi_step(x, y, th, src, dst, tx, ty, tt, gain, n, w=1.0):
     ts = th[src]
     c = np.cos(ts)
     s = np.sin(ts)
-    rx = x[dst] - x[src] - (c * tx - s * ty)
-    ry = y[dst] - y[src] - (s * tx + c * ty)
-    rt = _wrap_inplace(th[dst] - ts - tt)
+    rx = (x[dst] - x[src] - (c * tx - s * ty)) * w
+    ry = (y[dst] - y[src] - (s * tx + c * ty)) * w
+    rt = _wrap_inplace(th[dst] - ts - tt) * w
     cx = (np.bincount(src, rx, n) - np.bincount(dst, rx, n)) * gain
     cy = (np.bincount(src, ry, n) - np.bincount(dst, ry, n)) * gain
     ct = (np.bincount(src, rt, n) - np.bincount(dst, rt, n)) * gain

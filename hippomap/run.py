@@ -22,6 +22,7 @@ from .datasets import SensorDataset, read_folder_dataset, read_tum_rgbd
 from .errors import InputError
 from .evaluation import LOOP_TRUTH_DISTANCE_M, groundtruth_at, trajectory_metrics
 from .exports import export_map, write_json
+from .geometry import between
 from .inputs import Odometry
 from .mapper import Mapper
 
@@ -81,19 +82,32 @@ def run_dataset(dataset: SensorDataset, config: HippomapConfig | None = None, pr
 
 
 def loop_report(m: Mapper, gt: tuple[np.ndarray, np.ndarray] | None) -> list[dict[str, Any]]:
-    """Every loop decision, with the ground-truth distance between its two places."""
+    """Every loop decision, with the ground-truth distance between its two places and, for an
+    accepted one, the error of its link against ground truth (see :func:`link_error`)."""
     out = []
     times = m.cmap.times
-    for d in m.cmap.loop_decisions:
-        row = d.to_dict()
+    for d, row in zip(m.cmap.loop_decisions, m.cmap.loop_rows()):
         if gt is not None:
             h = d.hypothesis
             a = groundtruth_at(gt, float(h.time))
             b = groundtruth_at(gt, float(times[h.node]))
             if a is not None and b is not None:
                 row["groundtruth_distance_m"] = float(np.linalg.norm(a[:2] - b[:2]))
+            if d.status == "accepted" and d.transform is not None:
+                row.update(link_error(gt, float(times[d.from_node]), float(times[h.node]), d.transform))
         out.append(row)
     return out
+
+
+def link_error(gt: tuple[np.ndarray, np.ndarray], t_from: float, t_to: float, transform) -> dict[str, float]:
+    """Error of a loop link against ground truth: the link says where node ``to`` lies in the
+    frame of node ``from``; ground truth says it from the robot's true poses when the two nodes
+    were made (a node is made at the robot's pose). Empty when ground truth misses a time."""
+    a, b = groundtruth_at(gt, t_from), groundtruth_at(gt, t_to)
+    if a is None or b is None:
+        return {}
+    e = between(np.asarray(transform, dtype=float), between(a, b))
+    return {"link_error_m": float(np.hypot(e[0], e[1])), "link_error_rad": float(abs(e[2]))}
 
 
 def write_run(m: Mapper, dataset: SensorDataset, out_dir: str | Path, timing: dict[str, Any] | None = None) -> dict[str, Any]:
@@ -104,17 +118,25 @@ def write_run(m: Mapper, dataset: SensorDataset, out_dir: str | Path, timing: di
     loops = loop_report(m, dataset.groundtruth)
     accepted = [r for r in loops if r["status"] == "accepted"]
     metrics: dict[str, Any] = {"data": str(dataset.source), "stats": m.stats(), "timing": timing or {}}
-    metrics["loop_closures"] = {"accepted": len(accepted), "rejected": sum(r["status"] == "rejected" for r in loops)}
+    used = [r for r in loops if r["used"]]
+    metrics["loop_closures"] = {"accepted": len(accepted), "used": len(used),
+                                "rejected": sum(r["status"] == "rejected" for r in loops)}
     if dataset.groundtruth is not None and len(t) > 3:
         metrics["odometry"] = trajectory_metrics(t, odo, *dataset.groundtruth)
         metrics["map"] = trajectory_metrics(t, cor, *dataset.groundtruth)
         metrics["map_ate_ratio"] = metrics["map"]["ate"]["rmse"] / max(metrics["odometry"]["ate"]["rmse"], 1e-12)
         judged = [r for r in accepted if "groundtruth_distance_m" in r]
         metrics["loop_closures"]["accepted_false"] = sum(r["groundtruth_distance_m"] >= LOOP_TRUTH_DISTANCE_M for r in judged)
+        metrics["loop_closures"]["used_false"] = sum(r["groundtruth_distance_m"] >= LOOP_TRUTH_DISTANCE_M
+                                                     for r in judged if r["used"])
         metrics["loop_closures"]["max_accepted_distance_m"] = max((r["groundtruth_distance_m"] for r in judged), default=None)
+        errs = [r["link_error_m"] for r in used if "link_error_m" in r]
+        if errs:
+            metrics["loop_closures"]["link_error_m"] = {"mean": float(np.mean(errs)), "median": float(np.median(errs)),
+                                                        "max": float(np.max(errs))}
     segs = []
     if len(t):
-        for r in accepted:
+        for r in used:
             h = r["hypothesis"]
             k = int(np.clip(np.searchsorted(t, h["time"]), 0, len(t) - 1))
             segs.append([cor[k, :2], m.cmap.poses[h["node"], :2]])
@@ -131,8 +153,9 @@ def _cmd(args: argparse.Namespace) -> int:
     m, timing = run_dataset(dataset, HippomapConfig.from_file(args.config), progress=not args.quiet)
     metrics = write_run(m, dataset, args.out, timing)
     s = metrics["stats"]
-    line = (f"{s['nodes']} nodes, {s['keyframes']} key frames, loop closures accepted "
-            f"{metrics['loop_closures']['accepted']} / rejected {metrics['loop_closures']['rejected']}")
+    lc = metrics["loop_closures"]
+    line = (f"{s['nodes']} nodes, {s['keyframes']} key frames, loop closures accepted {lc['accepted']} "
+            f"(used {lc['used']}) / rejected {lc['rejected']}")
     if "map" in metrics:
         line += f"; ATE rmse odometry {metrics['odometry']['ate']['rmse']:.3f} m -> map {metrics['map']['ate']['rmse']:.3f} m"
     print(line)

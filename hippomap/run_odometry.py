@@ -106,8 +106,7 @@ def run_odometry(dataset: OdometryDataset, config: HippomapConfig | None = None,
         bar.close()
     seconds = time.perf_counter() - t0
     corrected = compose(cmap.poses[node_at_pose], offset_at_pose)
-    for d in cmap.loop_decisions:
-        decisions.append(d.to_dict())
+    decisions.extend(cmap.loop_rows())
     odometry = integrate(inc, cfg.map.initial_pose)
     snaps.append((n - 1, corrected))
     return OdometryRun(times, odometry, corrected, node_at_pose, cmap, decisions, no_field, seconds, snaps)
@@ -143,6 +142,7 @@ def summarise(run: OdometryRun, dataset: OdometryDataset) -> dict[str, Any]:
         "loop_closures": {
             "proposed": int(sum(len(v) for v in _loops_by_pose(dataset).values())),
             "accepted": status.count("accepted"),
+            "used": sum(bool(d.get("used")) for d in run.decisions),
             "rejected": status.count("rejected"),
             "pending_at_end": status.count("pending"),
         },
@@ -164,6 +164,7 @@ def summarise(run: OdometryRun, dataset: OdometryDataset) -> dict[str, Any]:
         judged = [d for d in accepted if "groundtruth_true" in d]
         metrics["loop_closures"]["accepted_true"] = sum(d["groundtruth_true"] for d in judged)
         metrics["loop_closures"]["accepted_false"] = sum(not d["groundtruth_true"] for d in judged)
+        metrics["loop_closures"]["used_false"] = sum(not d["groundtruth_true"] for d in judged if d["used"])
         metrics["loop_closures"]["true_distance_m"] = LOOP_TRUTH_DISTANCE_M
     return metrics
 
@@ -171,7 +172,7 @@ def summarise(run: OdometryRun, dataset: OdometryDataset) -> dict[str, Any]:
 def write_outputs(run: OdometryRun, dataset: OdometryDataset, out_dir: str | Path) -> dict[str, Any]:
     """Write the exports (see :func:`hippomap.exports.export_map`) and metrics.json."""
     metrics = summarise(run, dataset)
-    accepted = [d["hypothesis"]["meta"]["poses"] for d in run.decisions if d["status"] == "accepted"]
+    accepted = [d["hypothesis"]["meta"]["poses"] for d in run.decisions if d["used"]]
     segs = [[run.corrected[a, :2], run.corrected[b, :2]] for a, b in accepted]
     ate = {k: metrics.get(k, {}).get("ate", {}).get("rmse", float("nan")) for k in ("odometry", "map")}
     out = export_map(out_dir, run.cmap, run.times, run.odometry, run.corrected, run.decisions, dataset.groundtruth,
@@ -186,7 +187,8 @@ def _cmd(args: argparse.Namespace) -> int:
     run = run_odometry(dataset, HippomapConfig.from_file(args.config), progress=not args.quiet)
     metrics = write_outputs(run, dataset, args.out)
     lc = metrics["loop_closures"]
-    line = f"{metrics['nodes']} nodes, loop closures accepted {lc['accepted']} / rejected {lc['rejected']}"
+    line = (f"{metrics['nodes']} nodes, loop closures accepted {lc['accepted']} (used {lc['used']}, "
+            f"false used {lc.get('used_false', 'n/a')}) / rejected {lc['rejected']}")
     if "map" in metrics:
         line += f"; ATE rmse odometry {metrics['odometry']['ate']['rmse']:.3f} m -> map {metrics['map']['ate']['rmse']:.3f} m"
     print(line)

@@ -3,9 +3,12 @@
 After Bicanski & Burgess (2019, [BBc]), adapted to robot key frames:
 
 * **Learning** (one shot, :meth:`VisualMemory.learn`). The frame is converted to gray,
-  resized to ``working_width`` and contrast-stretched (``imadjust``: 1 % tails saturated).
-  ``n_fixations`` fixation points are chosen (top Shi-Tomasi corners, or random points as
-  in [S]) and learned in random order. Each becomes a *local feature unit* (feature label
+  resized to ``working_width`` and passed through the retina (:mod:`hippomap.retina`:
+  light adaptation, centre-surround, divisive contrast normalisation), so the sensory
+  cells see local contrast rather than grey levels ([S]/[BBc]: grey levels stretched by
+  ``imadjust``, still available as ``retina_mode="none"``). ``n_fixations`` fixation
+  points are chosen (top Shi-Tomasi corners of the stretched grey image, or random points
+  as in [S]) and learned in random order. Each becomes a *local feature unit* (feature label
   cell, FLC) whose sensory weights are the Gaussian-tuned response of the sensory cells to
   the *blurred* fovea patch ([S]: "preferred value derived from the blurred image"), whose
   grid-cell weights are the visual-grid-cell code of the fixation point
@@ -19,7 +22,8 @@ After Bicanski & Burgess (2019, [BBc]), adapted to robot key frames:
   microsaccade snaps the fovea to the best match of the predicted patch within
   ``tolerance_px``; the feature found there (or not) updates the evidence; a frame is
   accepted above ``decision_threshold`` (0.9) once it has also predicted
-  ``verify_saccades`` further features correctly ([S] §3.2: "it will continue to scan");
+  ``verify_saccades`` further features correctly (optionally more after resets,
+  ``verify_per_reset``; [S] §3.2: "it will continue to scan");
   an attempt resets after ``max_prediction_errors`` wrong predictions and the query is
   rejected after ``max_resets`` resets.
 
@@ -27,6 +31,10 @@ After Bicanski & Burgess (2019, [BBc]), adapted to robot key frames:
   remapping" for displaced stimuli) and onto every predicted feature, so saccades are the
   *vectors between features* of the learned frame and a revisit seen from a shifted
   viewpoint is still followed (``anchor="none"``: absolute image coordinates, spec §2).
+
+An accepted recognition also reports its image correspondences (query fixation and
+matched learned feature, input px) and their robust shift (median, MAD): what the
+cognitive map needs to turn a recognition into a relative heading.
 
 Sensory cells: 256 per fovea pixel, ``s_{p,v} = exp(-((I_p - v) / sigma)^2)``, zeroed
 below ``sensory_cutoff``. Because an FLC's weights are ``s(I~_k) / sum s(I~_k)``, its drive
@@ -46,8 +54,9 @@ the whole library (the sensory layer is global; the candidates gate the frame no
 Project choices that differ from [BBc]/spec (each a :class:`~hippomap.config.VisualConfig`
 field; measured by ``python bench/bench_visual.py --ablation``): ``max_survivors`` 5,
 ``tolerance_px`` 8, ``next_target="nearest"``, ``prediction_tolerance`` 0.9,
-``start_order="strongest"``, ``verify_saccades`` 2, ``anchor="start"``; plus the FLC
-index (``index_*``, ``stats_sample``) for scale.
+``start_order="strongest"``, ``verify_saccades`` 2, ``anchor="start"``, the retina front
+end (``retina_*``) with ``n_std`` 3.3; plus the FLC index (``index_*``, ``stats_sample``)
+for scale.
 """
 
 from __future__ import annotations
@@ -61,13 +70,17 @@ import numpy as np
 
 from .config import VisualConfig
 from .errors import InputError
+from .retina import Retina
+from .retina import imadjust as _imadjust  # noqa: F401  (kept importable from here)
 from .visual_grid_cells import SpatialViewCells, VisualGridCells
 
 __all__ = [
     "VisualMemory",
     "Recognition",
+    "shift_summary",
     "SaccadeStep",
     "prepare_image",
+    "prepare_views",
     "draw_trace",
     "draw_frame_features",
 ]
@@ -96,26 +109,23 @@ def _check_image(image: Any, name: str = "image") -> np.ndarray:
     raise InputError(f"{name} must be H x W or H x W x 3/4, got shape {image.shape}")
 
 
-def _imadjust(gray: np.ndarray, clip: float) -> np.ndarray:
-    """MATLAB ``imadjust``: saturate ``clip`` of each tail, map linearly to 0..255."""
-    hist = np.bincount(gray.ravel(), minlength=256).astype(np.float64)
-    cdf = np.cumsum(hist) / hist.sum()
-    lo = int(np.searchsorted(cdf, clip, side="left"))
-    hi = int(np.searchsorted(cdf, 1.0 - clip, side="left"))
-    if hi <= lo:
-        return gray.copy()
-    lut = np.clip((np.arange(256) - lo) * (255.0 / (hi - lo)), 0, 255).round().astype(np.uint8)
-    return lut[gray]
-
-
 def prepare_image(image: Any, config: VisualConfig | None = None, name: str = "image") -> tuple[np.ndarray, float]:
-    """Validate and convert a frame to the memory's working image.
+    """Validate and convert a frame to the memory's working image (what the sensory cells see).
 
-    Gray (BGR/BGRA converted), resized to ``working_width`` (aspect kept), contrast
-    stretched like ``imadjust`` (spec §2 learning step 1). Returns ``(work, scale)`` where
+    Gray (BGR/BGRA converted), resized to ``working_width`` (aspect kept), then passed
+    through the :class:`~hippomap.retina.Retina` (``retina_mode="none"``: contrast
+    stretched like ``imadjust``, spec §2 learning step 1). Returns ``(work, scale)`` where
     ``scale`` = original px per working px. Raises :class:`InputError` for non-arrays,
     empty images, dtypes other than uint8, bad shapes and images too small for the fovea.
     """
+    gray, work, scale = prepare_views(image, config, name)
+    return work, scale
+
+
+def prepare_views(image: Any, config: VisualConfig | None = None,
+                  name: str = "image") -> tuple[np.ndarray, np.ndarray, float]:
+    """Like :func:`prepare_image`, also returning the working-size grey image before the retina:
+    ``(gray, work, scale)``; fixation points are chosen on ``gray`` or ``work`` (``corner_source``)."""
     cfg = config or VisualConfig()
     gray = _check_image(image, name)
     h0, w0 = gray.shape
@@ -131,8 +141,7 @@ def prepare_image(image: Any, config: VisualConfig | None = None, name: str = "i
         )
     interp = cv2.INTER_AREA if width < w0 else cv2.INTER_LINEAR
     work = cv2.resize(gray, (width, height), interpolation=interp) if (width, height) != (w0, h0) else gray.copy()
-    work = _imadjust(work, cfg.contrast_clip)
-    return work, w0 / float(width)
+    return work, Retina(cfg)(work), w0 / float(width)
 
 
 # ---------------------------------------------------------------------------------------
@@ -140,6 +149,19 @@ def prepare_image(image: Any, config: VisualConfig | None = None, name: str = "i
 # ---------------------------------------------------------------------------------------
 def _pt(p: Any) -> list[float] | None:
     return None if p is None else [float(p[0]), float(p[1])]
+
+
+def shift_summary(correspondences: list[dict[str, Any]]) -> dict[str, Any] | None:
+    """Robust image shift of correspondences ``{"query": [x, y], "memory": [x, y]}``:
+    ``{"x", "y"}`` = median of query - memory, ``{"mad_x", "mad_y"}`` = median absolute
+    deviation from it, ``n`` = count; ``None`` for no correspondences."""
+    if not correspondences:
+        return None
+    d = np.array([[c["query"][0] - c["memory"][0], c["query"][1] - c["memory"][1]] for c in correspondences], float)
+    med = np.median(d, axis=0)
+    mad = np.median(np.abs(d - med), axis=0)
+    return {"x": float(med[0]), "y": float(med[1]), "mad_x": float(mad[0]), "mad_y": float(mad[1]),
+            "n": int(len(d))}
 
 
 @dataclass
@@ -181,6 +203,15 @@ class Recognition:
     order, each with the evidence of the leading hypotheses after it (``evidence``).
     ``confidence`` in [0, 1]: the fraction of confirmed predictions in the accepting
     attempt, discounted by the resets needed (0 when rejected); used for PR curves.
+
+    ``correspondences`` (accepted only): for the start fixation and every confirmed
+    fixation of the accepting attempt whose feature belongs to the accepted frame,
+    ``{"query": [x, y], "memory": [x, y], "feature": k, "outcome": ...}`` — the fixation on
+    the query and the matched feature's position in the learned frame, both in input-image
+    px. ``shift``: their robust summary (:func:`shift_summary`): ``x``, ``y`` = median of
+    query - memory, ``mad_x``, ``mad_y`` = median absolute deviations, ``n`` = count; ``None``
+    without correspondences. A positive ``x`` means the scene appears further right in
+    the query than when it was learned.
     """
 
     frame_id: int | None
@@ -190,6 +221,8 @@ class Recognition:
     confidence: float = 0.0
     image_size: tuple[int, int] = (0, 0)
     reason: str = ""
+    correspondences: list[dict[str, Any]] = field(default_factory=list)
+    shift: dict[str, Any] | None = None
 
     @property
     def accepted(self) -> bool:
@@ -234,6 +267,14 @@ class Recognition:
                 evidence=float(d.get("evidence") or 0.0), steps=steps, n_resets=int(d.get("n_resets", 0)),
                 confidence=float(d.get("confidence") or 0.0), image_size=tuple(d.get("image_size", (0, 0))),
                 reason=str(d.get("reason", "")),
+                correspondences=[
+                    {"query": [float(c["query"][0]), float(c["query"][1])],
+                     "memory": [float(c["memory"][0]), float(c["memory"][1])],
+                     "feature": int(c.get("feature", -1)), "outcome": str(c.get("outcome", ""))}
+                    for c in d.get("correspondences") or []
+                ],
+                shift=None if not d.get("shift") else {str(k): (int(v) if k == "n" else float(v))
+                                                       for k, v in d["shift"].items()},
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise InputError(f"malformed recognition dict: {exc!r}") from exc
@@ -249,6 +290,13 @@ class Recognition:
             "image_size": [int(self.image_size[0]), int(self.image_size[1])],
             "reason": self.reason,
             "steps": [s.to_dict() for s in self.steps],
+            "correspondences": [
+                {"query": [float(c["query"][0]), float(c["query"][1])],
+                 "memory": [float(c["memory"][0]), float(c["memory"][1])],
+                 "feature": int(c["feature"]), "outcome": str(c["outcome"])} for c in self.correspondences
+            ],
+            "shift": None if self.shift is None else {k: (int(v) if k == "n" else float(v))
+                                                      for k, v in self.shift.items()},
         }
 
 
@@ -343,6 +391,7 @@ class VisualMemory:
         self._fstart = np.zeros(fcap, np.int64)
         self._fcount = np.zeros(fcap, np.int64)
         self._fsize = np.zeros((fcap, 2), np.int32)
+        self._fscale = np.ones(fcap, np.float32)  # input px per working px of each learned frame
         self._nframes = 0
 
     # -- sizes ------------------------------------------------------------------------
@@ -370,7 +419,7 @@ class VisualMemory:
         """Bytes held per the stored arrays (used part, not the preallocated capacity)."""
         n, f = self._nf, self._nframes
         per_flc = self.P + self.D * 4 + 4 + 8 + 4 + 4  # patch, descriptor, Z, position, frame, W_FLC->ID
-        return n * per_flc + f * (8 + 8 + 8)
+        return n * per_flc + f * (8 + 8 + 8 + 4)
 
     def frame_features(self, frame_id: int) -> dict[str, np.ndarray]:
         """The learned fixation points (working px, learning order) and FLC ids of a frame."""
@@ -459,7 +508,7 @@ class VisualMemory:
                 setattr(self, name, b)
         if n_frames > self._fstart.shape[0]:
             cap = max(n_frames, 2 * self._fstart.shape[0])
-            for name in ("_fstart", "_fcount", "_fsize"):
+            for name in ("_fstart", "_fcount", "_fsize", "_fscale"):
                 a = getattr(self, name)
                 b = np.zeros((cap,) + a.shape[1:], a.dtype)
                 b[: self._nframes] = a[: self._nframes]
@@ -470,9 +519,10 @@ class VisualMemory:
         """Learn a key frame one-shot; returns its frame id, or ``None`` when fewer than
         ``min_fixations`` fixation points were found (textureless frame, spec §2)."""
         cfg = self.config
-        work, _ = prepare_image(image, cfg)
+        gray, work, in_scale = prepare_views(image, cfg)
+        cimg = work if cfg.corner_source == "retina" else _imadjust(gray, cfg.contrast_clip)
         if cfg.fixation_mode == "corners":
-            pts = self._corners(work, cfg.n_fixations, cfg.min_distance if cfg.min_distance else self.h)
+            pts = self._corners(cimg, cfg.n_fixations, cfg.min_distance if cfg.min_distance else self.h)
         else:
             pts = self._random_points(work.shape, cfg.n_fixations)
         if len(pts) < cfg.min_fixations:
@@ -494,6 +544,7 @@ class VisualMemory:
         self._fstart[fid] = s
         self._fcount[fid] = k
         self._fsize[fid] = (work.shape[1], work.shape[0])
+        self._fscale[fid] = in_scale
         self._nf += k
         self._nframes += 1
         return fid
@@ -619,7 +670,7 @@ class VisualMemory:
         the frames of nodes near the current place code); ``None`` = all frames.
         """
         cfg = self.config
-        work, scale = prepare_image(image, cfg)
+        gray, work, scale = prepare_views(image, cfg)
         H, W = work.shape
         size = (int(round(W * scale)), int(round(H * scale)))
         if candidates is None:
@@ -630,7 +681,8 @@ class VisualMemory:
         if sub.n == 0:
             return Recognition(None, 0.0, [], 0, 0.0, size, "no stored frames")
         sense_img = self._blur(work) if cfg.query_blur else work
-        starts = self._corners(work, cfg.query_keypoints, self.h)
+        cimg = work if cfg.corner_source == "retina" else _imadjust(gray, cfg.contrast_clip)
+        starts = self._corners(cimg, cfg.query_keypoints, self.h)
         if len(starts) == 0:
             return Recognition(None, 0.0, [], 0, 0.0, size, "no keypoints in the query")
         rng = self._rng
@@ -716,7 +768,8 @@ class VisualMemory:
                         reset_reason = "verification saccade failed"
                 if reset_reason is None and verify_left < 0 and a.max() > cfg.decision_threshold:
                     accepted_frame = int(np.argmax(a))
-                    verify_left = cfg.verify_saccades
+                    # every reset is another chance for a wrong frame: later attempts must verify more
+                    verify_left = cfg.verify_saccades + int(resets * cfg.verify_per_reset)
                     if verify_left > 0:
                         steps[-1].event = "threshold"
                 if reset_reason is None and verify_left == 0:
@@ -724,7 +777,8 @@ class VisualMemory:
                     steps[-1].event = "accept"
                     n_att = sum(1 for st in steps if st.attempt == resets)
                     conf = (confirmed + 1) / max(1, n_att) / (1.0 + resets)
-                    return Recognition(fid, float(a[fid]), steps, resets, float(conf), size, "accepted")
+                    corr, shift = self._correspondences(steps, resets, fid)
+                    return Recognition(fid, float(a[fid]), steps, resets, float(conf), size, "accepted", corr, shift)
                 # ---- choose the next target (the most active frame chooses) ---------------
                 if reset_reason is None:
                     cur = int(sub.idx[s.top]) if s.evidence else predicted
@@ -754,6 +808,32 @@ class VisualMemory:
                     return Recognition(None, float(a.max()) if a.size else 0.0, steps, resets - 1, 0.0, size,
                                        f"no match after {cfg.max_resets} resets")
                 break
+
+    def _correspondences(self, steps: list[SaccadeStep], attempt: int,
+                         fid: int) -> tuple[list[dict[str, Any]], dict[str, Any] | None]:
+        """Image correspondences of the accepting attempt and their robust shift summary.
+
+        One per fixation of ``attempt`` whose feature belongs to the accepted frame ``fid``:
+        the start fixation with the feature that won it, every confirmed fixation with the
+        predicted feature (the microsaccade has snapped the fovea onto it). ``query`` is the
+        fixation, ``memory`` the feature's learned position, both in input-image px."""
+        corr: list[dict[str, Any]] = []
+        for st in steps:
+            if st.attempt != attempt:
+                continue
+            if st.outcome == "start":
+                k = st.found_feature
+            elif st.outcome == "confirmed":
+                k = st.predicted_feature
+            else:
+                continue
+            if k is None or int(self._frame[k]) != fid:
+                continue
+            sc = float(self._fscale[fid])
+            mx, my = (float(v) * sc for v in self._pos[k])
+            corr.append({"query": [float(st.fixation[0]), float(st.fixation[1])], "memory": [mx, my],
+                         "feature": int(k), "outcome": st.outcome})
+        return corr, shift_summary(corr)
 
     def _choose_target(self, a: np.ndarray, e: np.ndarray, m: np.ndarray, visited: list[int],
                        rng: np.random.Generator, img: np.ndarray, frame: int = -1) -> tuple[int, Any, Any, str]:
@@ -815,6 +895,7 @@ class VisualMemory:
             "fstart": self._fstart[:f].copy(),
             "fcount": self._fcount[:f].copy(),
             "fsize": self._fsize[:f].copy(),
+            "fscale": self._fscale[:f].copy(),
             "rng": self._rng.bit_generator.state,
         }
 
@@ -843,6 +924,8 @@ class VisualMemory:
             mem._fstart[:f] = np.asarray(state["fstart"], np.int64)
             mem._fcount[:f] = np.asarray(state["fcount"], np.int64)
             mem._fsize[:f] = np.asarray(state["fsize"], np.int32).reshape(f, 2)
+            # older states lack the input scale of each frame: assume the working size (scale 1)
+            mem._fscale[:f] = np.asarray(state.get("fscale", np.ones(f)), np.float32).reshape(f)
             if int(mem._fcount[:f].sum()) != n:
                 raise InputError("state frame table does not add up to the stored features")
             mem._nf, mem._nframes = n, f

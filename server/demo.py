@@ -31,7 +31,7 @@ async def run_demo(url: str, token: str, rate_hz: float = 10.0, laps: int = 10, 
 
     def setup() -> tuple[str, str]:
         with Client(url, token) as c:
-            s = c.create_session(name="demo robot", config={"mapper": {"keyframe_interval": max(1, int(rate_hz))}})
+            s = c.create_session(name="demo robot")  # the model's default config
             viewer = c.create_token("viewer", session=s["id"], label="demo viewer")
             return s["id"], viewer["token"]
 
@@ -49,7 +49,8 @@ async def run_demo(url: str, token: str, rate_hz: float = 10.0, laps: int = 10, 
                 if delay > 0:
                     await asyncio.sleep(delay)
                 _, v, omega = (float(x) for x in run.odometry[k])
-                await stream.send_odometry(Odometry(t, v=v, omega=omega))
+                gt = tuple(float(x) for x in run.groundtruth[k])  # drawn by the viewer, unused by the mapper
+                await stream.send_odometry(Odometry(t, v=v, omega=omega, gt=gt))
                 i = frame_at.get(k)
                 if i is not None:
                     img = await asyncio.to_thread(lambda: encode_image(run.frame(i)))

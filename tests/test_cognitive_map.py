@@ -124,6 +124,10 @@ def test_links_expose_ors_fields_consistent_with_the_transform():
         cmap.poses[0, 0] = 5.0  # read-only views
 
 
+#: the verification mechanics on their own: only verified hypotheses become links, at weight 1
+VERIFIED = dict(loop_accept="verified", loop_weight_init="one", loop_kernel="none")
+
+
 # ----------------------------------------------------------------------------- loop closure and relaxation
 @pytest.mark.parametrize("solver", ["relax", "jacobi", "lsq"])
 def test_loop_closure_removes_injected_heading_drift(solver):
@@ -135,7 +139,7 @@ def test_loop_closure_removes_injected_heading_drift(solver):
     first_lap = len(inc) // 2
     # a strong drift (0.02 rad/m): open the gate and the cycle tolerance wide enough for it (the tolerance of
     # transform-less hypotheses), support as in [ours] v1
-    cmap = CognitiveMap(MapConfig(solver=solver, prune_online=False, loop_transform_radius_m=3.0, loop_min_support=2,
+    cmap = CognitiveMap(MapConfig(**VERIFIED, solver=solver, prune_online=False, loop_transform_radius_m=3.0, loop_min_support=2,
                                   loop_transform_consistency_rad=0.1, loop_consistency_rad_per_m=0.0))
     node_at, off, _ = drive(cmap, noisy, hypotheses=true_loops(gt, first_lap))
     cmap.finish(iterations=2000)
@@ -223,7 +227,7 @@ def test_random_hypotheses_are_rejected_and_never_move_nodes():
     noisy[:, 2] += 0.001 * (inc[:, 0] > 0)  # heading drift of 0.01 rad/m: the cycle check must allow for it
     first_lap = len(inc) // 2
     rng = np.random.default_rng(7)
-    cfg = MapConfig(prune_online=False, loop_consistency_rad_per_m=0.01)
+    cfg = MapConfig(**VERIFIED, prune_online=False, loop_consistency_rad_per_m=0.01)
 
     def random_only(k, cmap, node_at, off):
         if k > first_lap and k % 7 == 0:
@@ -270,7 +274,7 @@ def test_min_support_one_accepts_after_the_gate_and_relocalises():
 
 
 def test_isolated_hypothesis_waits_then_expires():
-    cfg = MapConfig(loop_min_support=2, loop_support_window=10, prune_online=False)
+    cfg = MapConfig(**VERIFIED, loop_min_support=2, loop_support_window_m=1e-3, prune_online=False)
     cmap = CognitiveMap(cfg)
     drive(cmap, square_increments(laps=1))
     poses = cmap.poses.copy()
@@ -278,7 +282,9 @@ def test_isolated_hypothesis_waits_then_expires():
     assert d.status == "pending" and cmap.pending_count == 1
     events = []
     for k in range(11):
-        events += cmap.update(None, (0.0, 0.0, 0.0), 1e6 + k)
+        events += cmap.update(None, (0.002 * (k == 10), 0.0, 0.0), 1e6 + k)
+        if k < 10:
+            assert cmap.loop_decisions[d.id].status == "pending"  # the window counts metres, not steps
     assert cmap.loop_decisions[d.id].status == "rejected"
     assert "expired" in cmap.loop_decisions[d.id].reason
     assert any(isinstance(e, LoopRejected) and e.decision == d.id for e in events)
@@ -286,7 +292,7 @@ def test_isolated_hypothesis_waits_then_expires():
 
 
 def test_two_consistent_hypotheses_support_each_other():
-    cfg = MapConfig(loop_min_support=2, prune_online=False)
+    cfg = MapConfig(**VERIFIED, loop_min_support=2, prune_online=False)
     cmap = CognitiveMap(cfg)
     drive(cmap, square_increments(laps=1))
     poses_before = cmap.poses.copy()
@@ -312,7 +318,7 @@ def test_measured_hypotheses_must_agree_as_tightly_as_measurements(bias):
     ``loop_transform_consistency_rad`` — they do not support each other unless the bias is 0."""
     decisions = {}
     for tol in (0.02, 0.1):
-        cfg = MapConfig(loop_min_support=2, prune_online=False, loop_transform_consistency_rad=tol)
+        cfg = MapConfig(**VERIFIED, loop_min_support=2, prune_online=False, loop_transform_consistency_rad=tol)
         cmap = CognitiveMap(cfg)
         drive(cmap, square_increments(laps=1))
         for step in range(2):
@@ -364,7 +370,7 @@ def test_graph_gated_pruning_avoids_merging_across_a_drifted_loop():
     noisy[:, 2] += 0.002 * (inc[:, 0] > 0)
     first_lap = len(inc) // 2
     errors, nodes = {}, {}
-    common = dict(solver="lsq", loop_transform_radius_m=3.0, loop_min_support=2)
+    common = dict(VERIFIED, solver="lsq", loop_transform_radius_m=3.0, loop_min_support=2)
     for name, over in {"none": dict(prune_online=False), "literal": dict(prune_graph_radius_m=None),
                        "gated": dict(prune_graph_radius_m=3.0)}.items():
         cmap = CognitiveMap(MapConfig(**common, **over))
@@ -398,7 +404,7 @@ def test_hypothesis_on_a_node_reached_by_pruning_replaces_the_prune_link():
 
 
 def test_finish_corrects_and_keeps_pending_hypotheses():
-    cmap = CognitiveMap(MapConfig(loop_min_support=3, prune_online=False))
+    cmap = CognitiveMap(MapConfig(**VERIFIED, loop_min_support=3, prune_online=False))
     drive(cmap, square_increments(laps=1))
     cmap.propose_loop(LoopHypothesis(node=1, transform=None))
     events = cmap.finish(iterations=5)

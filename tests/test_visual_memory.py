@@ -295,3 +295,99 @@ def test_from_state_rejects_malformed_states():
     del bad["pos"]
     with pytest.raises(InputError):
         VisualMemory.from_state(None, bad)
+
+
+# -- correspondences and image shift (what a recognition knows about relative pose) ----
+@pytest.mark.parametrize("width,dx,dy", [(320, 20, 0), (320, -13, 0), (640, 40, 0), (640, -24, 6)])
+def test_shift_of_a_shifted_copy_is_reported_within_two_pixels(width, dx, dy):
+    """The frame is learned from a crop of a wider scene; the query is the same scene
+    cropped ``dx`` px further right (and ``dy`` down), so the content appears ``-dx`` px
+    (``-dy``) away in the query. The reported robust shift must say so in input pixels."""
+    height = width * 3 // 4
+    margin = 48 * width // 320
+    big = shapes_scene(7 + width + dx, width=width + 2 * margin, height=height + 2 * margin)
+    mem = VisualMemory(VisualConfig())
+    for k in range(4):  # distractors
+        mem.learn(shapes_scene(500 + k, width, height))
+    fid = mem.learn(big[margin:margin + height, margin:margin + width])
+    query = big[margin + dy:margin + dy + height, margin + dx:margin + dx + width]
+    rec = mem.recognise(query)
+    assert rec.frame_id == fid
+    assert rec.shift is not None and rec.shift["n"] >= 2
+    assert abs(rec.shift["x"] - (-dx)) <= 2.0
+    assert abs(rec.shift["y"] - (-dy)) <= 2.0
+    assert rec.shift["mad_x"] <= 2.0
+    for c in rec.correspondences:
+        assert mem._frame[c["feature"]] == fid
+        assert c["outcome"] in ("start", "confirmed")
+        # every query point sees the learned feature displaced by the true shift
+        assert abs(c["query"][0] - c["memory"][0] + dx) <= 3.0
+        assert abs(c["query"][1] - c["memory"][1] + dy) <= 3.0
+
+
+def test_correspondences_use_the_learned_frames_own_pixels():
+    """A frame learned at 640 px and recognised from a 320 px copy: memory points are in
+    the learned frame's pixels, query points in the query's, so query ~= memory / 2."""
+    big = shapes_scene(31, width=640, height=480)
+    mem = VisualMemory(VisualConfig())
+    for k in range(4):  # distractors
+        mem.learn(shapes_scene(600 + k, 640, 480))
+    fid = mem.learn(big)
+    small = cv2.resize(big, (320, 240), interpolation=cv2.INTER_AREA)
+    rec = mem.recognise(small)
+    assert rec.frame_id == fid and rec.correspondences
+    for c in rec.correspondences:
+        assert abs(c["query"][0] - c["memory"][0] / 2) <= 2.0
+        assert abs(c["query"][1] - c["memory"][1] / 2) <= 2.0
+
+
+def test_correspondences_roundtrip_and_old_dicts_still_load(memory):
+    rec = memory.recognise(perturb(SCENES[2], 3))
+    assert rec.accepted and rec.correspondences and rec.shift is not None
+    d = json.loads(json.dumps(rec.to_dict()))
+    back = Recognition.from_dict(d)
+    assert back.correspondences == rec.correspondences
+    assert back.shift == rec.shift and isinstance(back.shift["n"], int)
+    # a dict written before correspondences existed
+    old = {k: v for k, v in d.items() if k not in ("correspondences", "shift")}
+    legacy = Recognition.from_dict(old)
+    assert legacy.frame_id == rec.frame_id and legacy.correspondences == [] and legacy.shift is None
+    # a rejection carries none
+    rej = memory.recognise(scene(9999))
+    assert not rej.accepted and rej.correspondences == [] and rej.shift is None
+    assert rej.to_dict()["shift"] is None
+
+
+def test_shift_summary_is_median_and_mad():
+    from hippomap.visual_memory import shift_summary
+
+    assert shift_summary([]) is None
+    corr = [{"query": [10.0 + d, 5.0], "memory": [0.0, 0.0]} for d in (0.0, 1.0, -1.0, 2.0, 100.0)]
+    s = shift_summary(corr)
+    assert s["x"] == 11.0 and s["y"] == 5.0 and s["n"] == 5
+    assert s["mad_x"] == 1.0 and s["mad_y"] == 0.0  # the outlier does not move either
+
+
+def test_later_attempts_must_verify_more():
+    """verify_per_reset: an acceptance after r resets is preceded, past the threshold, by
+    verify_saccades + floor(r * verify_per_reset) confirmed predictions of the accepted frame."""
+    cfg = VisualConfig(verify_saccades=1, verify_per_reset=1.0)
+    mem = VisualMemory(cfg)
+    for s in range(N_FRAMES):
+        mem.learn(SCENES[s])
+    rng = np.random.default_rng(0)
+    seen_resets = set()
+    for i in range(N_FRAMES):
+        noisy = np.clip(SCENES[i].astype(float) + rng.normal(0, 30, SCENES[i].shape), 0, 255).astype(np.uint8)
+        rec = mem.recognise(noisy)
+        if not rec.accepted:
+            continue
+        last = [s for s in rec.steps if s.attempt == rec.n_resets]
+        need = cfg.verify_saccades + int(rec.n_resets * cfg.verify_per_reset)
+        th = [k for k, s in enumerate(last) if s.event == "threshold"]
+        assert th, "an acceptance with verification saccades passes the threshold first"
+        after = last[th[0] + 1:]
+        assert len(after) == need
+        assert all(s.outcome == "confirmed" and s.predicted_frame == rec.frame_id for s in after)
+        seen_resets.add(rec.n_resets)
+    assert max(seen_resets) >= 1  # the rule was exercised

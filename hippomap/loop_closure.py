@@ -1,0 +1,402 @@
+"""Loop closing: hypotheses, their relative pose, verification and robust weighting.
+
+The cognitive map (:mod:`hippomap.cognitive_map`) keeps nodes, links, relaxation and pruning;
+this module holds what decides which loop links it gets and how much it trusts them:
+
+* :class:`LoopHypothesis` — a proposal "the robot is back near node ``node``", with a measured
+  transform (a data set's loop edge) or, for a visual recognition, the robot's estimated
+  offset from the node (where the matched key frame was learned, turned by the image shift
+  of the saccade correspondences).
+* :class:`Candidate` — what verification needs of a gated hypothesis: the robot's
+  dead-reckoned pose and path at the proposal, the node's pose in the robot's frame.
+* :func:`gate_limit` — the radius a hypothesis must fall within: a base radius plus an
+  allowance for odometric drift that grows with the path travelled since the node was made or
+  since the last verified closure, whichever is shorter.
+* :func:`cycle_errors` / :func:`consistent` — geometric verification: two hypotheses made at
+  different times and the odometry between them form a cycle through the map, which must
+  compose to identity.
+* :func:`align_group` — the relative pose of a group of consistent visual hypotheses: one SE(2)
+  transform that puts the robot's recent dead-reckoned path onto the matched nodes (a 2-D
+  Procrustes fit); each hypothesis' offset is then where the fit puts the robot relative to
+  its node. Single matches are off along the track by up to the key-frame spacing; the fit
+  averages that out, and the heading comes from the shape of the path.
+* :func:`robust_weight` — the Cauchy weight of a loop link from its whitened residual, which
+  the map revises as the map converges (iteratively reweighted relaxation), so a true closure
+  is applied fully and a false one fades.
+* :class:`LoopBook` — the decisions, pending and recently accepted candidates, and their
+  serialisation.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+
+from .config import MapConfig
+from .errors import InputError, finite
+from .geometry import between, compose, wrap_angle
+
+__all__ = ["USED_WEIGHT", "LoopHypothesis", "LoopDecision", "Candidate", "LoopBook", "gate_limit", "cycle_errors", "consistent",
+           "align_group", "robust_weight", "se2_compose", "se2_inverse", "se2_between", "vec3", "node_id", "jsonable"]
+
+
+#: a loop link whose robust weight is at least this counts as used (applied); below, it has faded
+USED_WEIGHT = 0.5
+
+# --------------------------------------------------------------------------- small SE(2) scalars
+def _wrap(a: float) -> float:
+    return (a + math.pi) % (2.0 * math.pi) - math.pi
+
+
+def se2_compose(a, b) -> tuple[float, float, float]:
+    """a (+) b for single poses (plain floats: cheaper than numpy for one pose)."""
+    c, s = math.cos(a[2]), math.sin(a[2])
+    return (a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1], _wrap(a[2] + b[2]))
+
+
+def se2_inverse(a) -> tuple[float, float, float]:
+    c, s = math.cos(a[2]), math.sin(a[2])
+    return (-c * a[0] - s * a[1], s * a[0] - c * a[1], _wrap(-a[2]))
+
+
+def se2_between(a, b) -> tuple[float, float, float]:
+    """Pose of b in the frame of a."""
+    return se2_compose(se2_inverse(a), b)
+
+
+def jsonable(x: Any) -> Any:
+    """Plain Python (JSON-ready) copy of numbers, strings, tuples, lists, dicts and numpy values."""
+    if isinstance(x, dict):
+        return {str(k): jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [jsonable(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return jsonable(x.tolist())
+    if isinstance(x, np.generic):
+        return x.item()
+    return x
+
+
+def vec3(value: Any, name: str) -> tuple[float, float, float]:
+    """A finite (x, y, θ) triple from a sequence (or an object with x, y, theta), else InputError."""
+    if hasattr(value, "x") and hasattr(value, "y") and hasattr(value, "theta"):
+        value = (value.x, value.y, value.theta)
+    try:
+        arr = np.asarray(value, dtype=float).reshape(-1)
+    except (TypeError, ValueError):
+        raise InputError(f"{name} must be three numbers (x, y, theta), got {value!r}") from None
+    if arr.shape != (3,):
+        raise InputError(f"{name} must be three numbers (x, y, theta), got {value!r}")
+    if not np.all(np.isfinite(arr)):
+        raise InputError(f"{name} must be finite, got {value!r}")
+    return (float(arr[0]), float(arr[1]), float(arr[2]))
+
+
+def node_id(value: Any, name: str) -> int:
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
+        raise InputError(f"{name} must be an integer node id, got {value!r}")
+    return int(value)
+
+
+# --------------------------------------------------------------------------- records
+@dataclass(frozen=True)
+class LoopHypothesis:
+    """A proposed loop closure: the robot is back near earlier ``node``.
+
+    ``transform``: a *measured* pose of ``node`` in the frame of the CURRENT node (at the time of
+    the proposal), as a data set's loop edge gives; or ``None`` for a visual recognition, which
+    says "same place": then ``offset`` is the proposer's estimate of the robot's pose in the
+    node's frame (where the matched key frame was taken, turned by the image shift), ``None``
+    meaning "exactly on the node". ``information``: (x/y in m⁻², heading in rad⁻²) of the
+    estimate, ``None`` for the map's default of its kind (``loop_information`` for a measured
+    transform, ``visual_loop_information`` for a visual one). ``evidence``: the proposer's score. ``source``: who proposed
+    it ('dataset', 'visual', ...). ``meta``: free-form, JSON-able.
+    """
+
+    node: int
+    transform: tuple[float, float, float] | None = None
+    evidence: float = 1.0
+    source: str = "visual"
+    time: float = 0.0
+    meta: dict[str, Any] = field(default_factory=dict)
+    offset: tuple[float, float, float] | None = None
+    information: tuple[float, float] | None = None
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "node", node_id(self.node, "LoopHypothesis.node"))
+        if self.node < 0:
+            raise InputError(f"LoopHypothesis.node must be >= 0, got {self.node}")
+        if self.transform is not None:
+            object.__setattr__(self, "transform", vec3(self.transform, "LoopHypothesis.transform"))
+        if self.offset is not None:
+            if self.transform is not None:
+                raise InputError("LoopHypothesis: give a measured transform or an offset, not both")
+            object.__setattr__(self, "offset", vec3(self.offset, "LoopHypothesis.offset"))
+        if self.information is not None:
+            info = tuple(finite("LoopHypothesis.information", v) for v in self.information)
+            if len(info) != 2 or min(info) <= 0:
+                raise InputError(f"LoopHypothesis.information must be two positive numbers, got {self.information!r}")
+            object.__setattr__(self, "information", info)
+        object.__setattr__(self, "evidence", finite("LoopHypothesis.evidence", self.evidence))
+        object.__setattr__(self, "time", finite("LoopHypothesis.time", self.time))
+        if not isinstance(self.source, str):
+            raise InputError(f"LoopHypothesis.source must be a string, got {self.source!r}")
+        if not isinstance(self.meta, dict):
+            raise InputError(f"LoopHypothesis.meta must be a dict, got {self.meta!r}")
+
+    @property
+    def measured(self) -> bool:
+        return self.transform is not None
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"node": self.node, "transform": None if self.transform is None else list(self.transform),
+                "offset": None if self.offset is None else list(self.offset),
+                "information": None if self.information is None else list(self.information),
+                "evidence": self.evidence, "source": self.source, "time": self.time, "meta": jsonable(self.meta)}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> "LoopHypothesis":
+        t, o, i = d.get("transform"), d.get("offset"), d.get("information")
+        return cls(node=d["node"], transform=None if t is None else tuple(t), evidence=d.get("evidence", 1.0),
+                   source=d.get("source", "visual"), time=d.get("time", 0.0), meta=dict(d.get("meta", {})),
+                   offset=None if o is None else tuple(o), information=None if i is None else tuple(i))
+
+
+@dataclass(frozen=True)
+class LoopDecision:
+    """The map's verdict on one hypothesis: ``status`` 'pending' | 'accepted' | 'rejected'.
+
+    ``id`` indexes :attr:`CognitiveMap.loop_decisions`; ``from_node`` was the current node at
+    proposal; ``support`` the ids of the consistent hypotheses that backed it;
+    ``gate_distance``/``gate_limit`` the gate (m); ``link`` the loop link created (-1 if none);
+    ``transform`` the link's transform as applied (node in the frame of ``from_node``, after the
+    group's relative-pose fit); ``proposed_step``/``decided_step`` count map updates.
+    """
+
+    id: int
+    status: str
+    reason: str
+    hypothesis: LoopHypothesis
+    from_node: int
+    support: tuple[int, ...] = ()
+    gate_distance: float = float("nan")
+    gate_limit: float = float("nan")
+    link: int = -1
+    proposed_step: int = 0
+    decided_step: int = -1
+    transform: tuple[float, float, float] | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"id": self.id, "status": self.status, "reason": self.reason, "hypothesis": self.hypothesis.to_dict(),
+                "from_node": self.from_node, "support": list(self.support),
+                "gate_distance_m": None if math.isnan(self.gate_distance) else self.gate_distance,
+                "gate_limit_m": None if math.isnan(self.gate_limit) else self.gate_limit,
+                "link": self.link, "proposed_step": self.proposed_step, "decided_step": self.decided_step,
+                "transform": None if self.transform is None else list(self.transform)}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> "LoopDecision":
+        nan = float("nan")
+        tr = d.get("transform")
+        return cls(id=int(d["id"]), status=d["status"], reason=d["reason"],
+                   hypothesis=LoopHypothesis.from_dict(d["hypothesis"]), from_node=int(d["from_node"]),
+                   support=tuple(int(s) for s in d.get("support", ())),
+                   gate_distance=nan if d.get("gate_distance_m") is None else float(d["gate_distance_m"]),
+                   gate_limit=nan if d.get("gate_limit_m") is None else float(d["gate_limit_m"]),
+                   link=int(d.get("link", -1)), proposed_step=int(d.get("proposed_step", 0)),
+                   decided_step=int(d.get("decided_step", -1)),
+                   transform=None if tr is None else tuple(float(v) for v in tr))
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """What verification needs of a gated hypothesis."""
+
+    id: int
+    node: int
+    from_node: int
+    link_tr: tuple[float, float, float]  # node in the frame of from_node
+    M: tuple[float, float, float]  # node in the frame of the robot at proposal
+    odom: tuple[float, float, float]  # robot's dead-reckoned pose at proposal
+    step: int
+    arrival: int = -1  # when node == from_node: the link by which the robot had reached it
+    measured: bool = False  # the hypothesis carried a measured transform
+    path: float = 0.0  # path travelled by the robot at proposal (m)
+    info: tuple[float, float] = (100.0, 1000.0)  # information of the link (x/y, heading)
+    kernel_width: float = 1.0  # robust kernel width of the link, in its standard deviations
+
+    @property
+    def delta(self) -> tuple[float, float, float]:
+        """The robot's pose in the frame of ``from_node`` at the proposal."""
+        return se2_compose(self.link_tr, se2_inverse(self.M))
+
+    def with_offset(self, offset) -> "Candidate":
+        """The same candidate with the robot at ``offset`` in the node's frame."""
+        M = se2_inverse(offset)
+        return replace(self, link_tr=se2_compose(self.delta, M), M=M)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"id": self.id, "node": self.node, "from_node": self.from_node, "link_tr": list(self.link_tr),
+                "M": list(self.M), "odom": list(self.odom), "step": self.step, "arrival": self.arrival,
+                "measured": self.measured, "path": self.path, "info": list(self.info),
+                "kernel_width": self.kernel_width}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> "Candidate":
+        return cls(int(d["id"]), int(d["node"]), int(d["from_node"]), tuple(map(float, d["link_tr"])),
+                   tuple(map(float, d["M"])), tuple(map(float, d["odom"])), int(d["step"]), int(d.get("arrival", -1)),
+                   bool(d.get("measured", False)), float(d.get("path", 0.0)),
+                   tuple(float(v) for v in d.get("info", (100.0, 1000.0))), float(d.get("kernel_width", 1.0)))
+
+
+# --------------------------------------------------------------------------- verification
+def drift_path(path: float, node_path, last_verified_path: float | None = None):
+    """Odometric path over which drift may separate the robot's map pose from a node's: the
+    path travelled since the node was made, or since the last verified closure if that is
+    shorter (that closure re-anchored the robot on the corrected map). The map passes
+    ``last_verified_path`` for visual hypotheses only: a measured transform's gate is tight
+    (``loop_transform_radius_m``), and measured on Bicocca the reset made it reject true
+    closures while the map was still absorbing the last ones."""
+    d = path - np.asarray(node_path, dtype=float)
+    if last_verified_path is not None:
+        d = np.minimum(d, path - last_verified_path)
+    return np.maximum(d, 0.0)
+
+
+def gate_limit(cfg: MapConfig, measured: bool, drift) -> Any:
+    """Gate radius (m): base radius (smaller for a measured transform, which says where the
+    node is) plus ``loop_radius_per_m`` per metre of drift path."""
+    base = cfg.loop_transform_radius_m if measured else cfg.loop_radius_m
+    return base + cfg.loop_radius_per_m * np.asarray(drift, dtype=float)
+
+
+def cycle_errors(older: list[Candidate], b: Candidate, P: np.ndarray) -> np.ndarray:
+    """(K, 3) error of the cycle robot_a → robot_b (dead-reckoned odometry) → node_b (hypothesis
+    b) → node_a (the map's current relative pose) → robot_a (hypothesis a, inverted), one row
+    per older candidate a."""
+    odom = np.array([c.odom for c in older])
+    Ma = np.array([c.M for c in older])
+    na = np.array([c.node for c in older])
+    e = compose(between(odom, np.asarray(b.odom)), np.asarray(b.M))
+    e = compose(e, between(P[b.node], P[na]))
+    return compose(e, between(Ma, np.zeros(3)))
+
+
+def place_of(c: Candidate, P: np.ndarray) -> np.ndarray:
+    """Where candidate ``c`` puts the robot on the map: the node's pose ⊕ the robot's offset."""
+    return compose(P[c.node], between(np.asarray(c.M), np.zeros(3)))
+
+
+def consistent(cfg: MapConfig, older: list[Candidate], b: Candidate, P: np.ndarray, S: np.ndarray) -> np.ndarray:
+    """Consistency of ``b`` with each of ``older`` (vectorised over them).
+
+    Two measured hypotheses: their cycle (:func:`cycle_errors`) must close, in translation within
+    ``loop_consistency_m``, in rotation within ``loop_transform_consistency_rad`` plus
+    ``loop_consistency_rad_per_m`` × the cycle's odometric length (robot path between the
+    proposals plus map path between the nodes).
+
+    Otherwise (a visual hypothesis says where the robot is, not which way it faces): the
+    distance the robot drove between the two proposals (dead reckoning) must equal the distance
+    between the two places they name on the map, within ``loop_consistency_m``. This test needs
+    no heading, so the robot's unknown heading relative to the key frame cannot fail a true pair;
+    the group's rotation is fitted when it is accepted (:func:`align_group`).
+    """
+    if not older:
+        return np.zeros(0, dtype=bool)
+    both_measured = np.array([c.measured for c in older]) & b.measured
+    ok = np.zeros(len(older), dtype=bool)
+    if both_measured.any():
+        sel = [c for c, m in zip(older, both_measured) if m]
+        e = cycle_errors(sel, b, P)
+        na = np.array([c.node for c in sel])
+        cycle_m = np.abs(b.path - np.array([c.path for c in sel])) + np.abs(S[b.node] - S[na])
+        rad = cfg.loop_transform_consistency_rad + cfg.loop_consistency_rad_per_m * cycle_m
+        ok[both_measured] = (np.hypot(e[:, 0], e[:, 1]) < cfg.loop_consistency_m) & (np.abs(e[:, 2]) < rad)
+    if not both_measured.all():
+        sel = [c for c, m in zip(older, both_measured) if not m]
+        odom = np.array([c.odom for c in sel])
+        places = np.array([place_of(c, P) for c in sel])
+        d_odom = np.hypot(odom[:, 0] - b.odom[0], odom[:, 1] - b.odom[1])
+        pb = place_of(b, P)
+        d_map = np.hypot(places[:, 0] - pb[0], places[:, 1] - pb[1])
+        ok[~both_measured] = np.abs(d_odom - d_map) < cfg.loop_consistency_m
+    return ok
+
+
+# --------------------------------------------------------------------------- relative pose
+def align_group(odom: np.ndarray, targets: np.ndarray, min_spread_m: float) -> np.ndarray:
+    """The SE(2) pose ``T`` of the odometry frame in the map that best puts the robot's
+    dead-reckoned poses ``odom`` (K, 3) onto ``targets`` (K, 3), the places the hypotheses name.
+
+    Translation and rotation by least squares on the positions (2-D Procrustes) when the
+    positions spread over at least ``min_spread_m``; otherwise the rotation is the circular mean
+    of the heading differences (a short or bunched path says little about direction).
+    """
+    odom = np.asarray(odom, dtype=float).reshape(-1, 3)
+    targets = np.asarray(targets, dtype=float).reshape(-1, 3)
+    a, b = odom[:, :2], targets[:, :2]
+    ca, cb = a.mean(axis=0), b.mean(axis=0)
+    A, B = a - ca, b - cb
+    spread = float(np.sqrt((A ** 2).sum(axis=1).max())) * 2 if len(a) > 1 else 0.0
+    if spread >= min_spread_m:
+        num = float(np.sum(A[:, 0] * B[:, 1] - A[:, 1] * B[:, 0]))
+        den = float(np.sum(A[:, 0] * B[:, 0] + A[:, 1] * B[:, 1]))
+        phi = math.atan2(num, den)
+    else:
+        d = wrap_angle(targets[:, 2] - odom[:, 2])
+        phi = math.atan2(float(np.sin(d).sum()), float(np.cos(d).sum()))
+    c, s = math.cos(phi), math.sin(phi)
+    t = cb - np.array([c * ca[0] - s * ca[1], s * ca[0] + c * ca[1]])
+    return np.array([t[0], t[1], phi])
+
+
+# --------------------------------------------------------------------------- robust weighting
+def robust_weight(whitened_sq, kernel: str = "cauchy"):
+    """Weight of a link from its squared whitened residual χ² (IRLS): ``cauchy`` 1 / (1 + χ²),
+    ``dcs`` min(1, 2Φ / (Φ + χ²)) with Φ = 1, ``none`` 1."""
+    r2 = np.asarray(whitened_sq, dtype=float)
+    if kernel == "cauchy":
+        return 1.0 / (1.0 + r2)
+    if kernel == "dcs":
+        return np.minimum(1.0, 2.0 / (1.0 + r2))
+    if kernel == "none":
+        return np.ones_like(r2)
+    raise InputError(f"unknown robust kernel {kernel!r}")
+
+
+# --------------------------------------------------------------------------- bookkeeping
+class LoopBook:
+    """Every decision, the pending candidates and the recently accepted ones."""
+
+    def __init__(self) -> None:
+        self.decisions: list[LoopDecision] = []
+        self.pending: list[Candidate] = []
+        self.accepted: list[Candidate] = []
+        self.last_verified_path: float | None = None
+
+    def expired(self, path: float, window_m: float) -> list[Candidate]:
+        """Drop pending candidates older than ``window_m`` metres of path (returned, to be
+        rejected) and forget accepted ones as old."""
+        old = [c for c in self.pending if path - c.path > window_m]
+        if old:
+            self.pending = [c for c in self.pending if path - c.path <= window_m]
+        self.accepted = [c for c in self.accepted if path - c.path <= window_m]
+        return old
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"decisions": [d.to_dict() for d in self.decisions], "pending": [c.to_dict() for c in self.pending],
+                "accepted": [c.to_dict() for c in self.accepted],
+                "last_verified_path": self.last_verified_path}
+
+    @classmethod
+    def from_state(cls, d: dict[str, Any]) -> "LoopBook":
+        book = cls()
+        book.decisions = [LoopDecision.from_dict(x) for x in d["decisions"]]
+        book.pending = [Candidate.from_dict(x) for x in d["pending"]]
+        book.accepted = [Candidate.from_dict(x) for x in d["accepted"]]
+        lv = d.get("last_verified_path")
+        book.last_verified_path = None if lv is None else float(lv)
+        return book
