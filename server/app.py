@@ -14,19 +14,23 @@ import logging
 import os
 import time
 from contextlib import asynccontextmanager
+from pathlib import Path
 from typing import Any, AsyncIterator
 
 from fastapi import FastAPI, Request
 from fastapi.encoders import jsonable_encoder
+from fastapi.exception_handlers import http_exception_handler
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, Response
+from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.routing import Match
 
 from hippomap import __version__
 
 from . import model
 from .api import ingest, queries, sessions, stream, tokens
-from .auth import Authenticator, ensure_admin
-from .limits import BodySizeLimit
+from .auth import Authenticator, CloseOnRevoke, adopt_orphans, ensure_admin
+from .limits import BodySizeLimit, KeyedBuckets, OriginCheck
 from .metrics import ServiceMetrics
 from .sessions import ServedElsewhere, SessionManager
 from .settings import ServerSettings
@@ -48,9 +52,13 @@ created it (404 for anyone else); viewer tokens (`POST /tokens`) are read-only.
 `b"HMF1"`, message id, timestamp; each message is acknowledged with its sequence numbers
 once durable). See `server/protocol.py`.
 
-**Operations** (no token): `GET /health` (liveness), `GET /ready` (readiness: 503 while sessions
-are being restored after a restart), `GET /metrics` (Prometheus; a token only if
-`HIPPOMAP_METRICS_TOKEN` is set).
+**Operations**: `GET /health` (liveness) and `GET /ready` (readiness: 503 while sessions are
+being restored after a restart) need no token; `GET /metrics` (Prometheus) needs the metrics token
+(`HIPPOMAP_METRICS_TOKEN`), or the admin token when none is set, unless the operator opts out
+(`HIPPOMAP_METRICS_PUBLIC=true`): it names every session.
+
+**Browsers**: websockets opened by a web page are accepted only from the server's own origin or
+those listed in `HIPPOMAP_ALLOWED_ORIGINS`.
 """
 
 
@@ -112,8 +120,85 @@ async def _log_restores(manager: SessionManager, started: float, poll_s: float =
 
 
 def _metrics_token(settings: ServerSettings) -> str | None:
-    """The bearer token ``GET /metrics`` requires, if any: ``metrics_token`` / ``HIPPOMAP_METRICS_TOKEN``."""
-    return getattr(settings, "metrics_token", None) or os.environ.get("HIPPOMAP_METRICS_TOKEN") or None
+    """The bearer token ``GET /metrics`` requires if one is configured: ``metrics_token`` /
+    ``HIPPOMAP_METRICS_TOKEN`` (else the admin token, unless ``metrics_public``)."""
+    return settings.metrics_token or os.environ.get("HIPPOMAP_METRICS_TOKEN") or None
+
+
+def _sqlite_file(settings: ServerSettings) -> Path | None:
+    """The SQLite database file ``open_store`` will open (None for PostgreSQL)."""
+    location = settings.database or ""
+    scheme = location.split("://", 1)[0].lower() if "://" in location else ""
+    if scheme == "sqlite":
+        return Path(location[len("sqlite://"):])
+    return None if scheme else settings.database_path
+
+
+def secure_data_files(settings: ServerSettings) -> None:
+    """Keep the service's data private to its user: the data folder 0700 (created so, or tightened
+    with a warning), the admin token file and the SQLite files 0600 (an older server's files are
+    tightened), and the SQLite database created 0600 before SQLite opens it (SQLite gives its -wal
+    and -shm files the database file's mode)."""
+    db = _sqlite_file(settings)
+    data_dir = Path(settings.data_dir)
+    folders = [data_dir] if (not settings.admin_token or (db is not None and db.parent == data_dir)) else []
+    if db is not None and db.parent not in folders and not db.parent.exists():
+        folders.append(db.parent)  # a folder this server creates for its database is private too
+    for folder in folders:
+        folder.mkdir(mode=0o700, parents=True, exist_ok=True)
+        if folder.stat().st_mode & 0o077:
+            log.warning("data folder %s was open to other users: now 0700", folder)
+            os.chmod(folder, 0o700)
+    files = [settings.token_file] + ([] if db is None else [db] + [db.with_name(db.name + x)
+                                                                   for x in ("-wal", "-shm", "-journal")])
+    for f in files:
+        if f.is_file() and not f.is_symlink() and f.stat().st_mode & 0o077:
+            log.warning("data file %s was open to other users: now 0600", f)
+            os.chmod(f, 0o600)
+    if db is not None and not db.exists():
+        db.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
+        os.close(os.open(db, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
+
+
+#: FastAPI's answer (400) to a JSON body it cannot even decode; the service answers 422 like any invalid body
+BODY_PARSE_ERROR = "There was an error parsing the body"
+
+
+def allowed_methods(app: FastAPI, scope: dict[str, Any]) -> list[str]:
+    """The methods of every route matching ``scope``'s path (for ``Allow``: Starlette names only the
+    first matching route's methods when several routes share a path)."""
+    methods = []
+    for method in ("DELETE", "GET", "HEAD", "OPTIONS", "PATCH", "POST", "PUT"):
+        probe = {**scope, "type": "http", "method": method}
+        if any(route.matches(probe)[0] == Match.FULL for route in app.router.routes):
+            methods.append(method)
+    return methods
+
+
+def document_input_bounds(schema: dict[str, Any], settings: ServerSettings) -> None:
+    """Write this server's physical bounds on inputs (settings ``max_abs_t``, ``max_speed_mps``...)
+    into its OpenAPI document as minimum/maximum, so that the document states what is accepted."""
+    def bound(prop: dict[str, Any] | None, limit: float | None) -> None:
+        if prop is None or limit is None:
+            return
+        for branch in (prop, *prop.get("anyOf", [])):
+            if branch.get("type") == "number":
+                branch["minimum"], branch["maximum"] = -float(limit), float(limit)
+
+    limits = {name: getattr(settings, name, None) for name in ("max_abs_t", "max_speed_mps", "max_turn_rate_rad_s",
+                                                                 "max_increment_m", "max_increment_rad")}
+    odo = schema.get("components", {}).get("schemas", {}).get("OdometryReading", {}).get("properties", {})
+    bound(odo.get("t"), limits["max_abs_t"])
+    bound(odo.get("v"), limits["max_speed_mps"])
+    bound(odo.get("omega"), limits["max_turn_rate_rad_s"])
+    for branch in (odo.get("increment") or {}).get("anyOf", []):
+        items = branch.get("prefixItems") or []
+        for item, name in zip(items, ("max_increment_m", "max_increment_m", "max_increment_rad")):
+            bound(item, limits[name])
+    for op in schema.get("paths", {}).get("/sessions/{session_id}/frames", {}).values():
+        for param in op.get("parameters", []):
+            if param.get("name") == "t":
+                bound(param.get("schema"), limits["max_abs_t"])
 
 
 def create_app(settings: ServerSettings | None = None) -> FastAPI:
@@ -124,8 +209,11 @@ def create_app(settings: ServerSettings | None = None) -> FastAPI:
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         await asyncio.to_thread(_warm_up)
+        secure_data_files(settings)
         store = open_store(settings)
         secret, created = ensure_admin(store, settings.token_file, settings.admin_token)
+        for owner, sids in adopt_orphans(store).items():
+            log.warning("the sessions of the revoked token %s now belong to the admin: %s", owner, ", ".join(sids))
         app.state.store = store
         app.state.auth = Authenticator(store)
         app.state.admin_token = secret
@@ -151,7 +239,10 @@ def create_app(settings: ServerSettings | None = None) -> FastAPI:
     app.state.settings = settings
     app.state.metrics = metrics
     app.state.serving = False
+    app.state.read_limits = KeyedBuckets(settings.read_rate_per_s, settings.read_rate_burst)
     app.add_middleware(BodySizeLimit, max_bytes=settings.max_body_bytes)
+    app.add_middleware(OriginCheck, allowed=settings.allowed_origins)
+    app.add_middleware(CloseOnRevoke)
 
     @app.exception_handler(ServedElsewhere)
     async def served_elsewhere(request: Request, exc: ServedElsewhere) -> JSONResponse:
@@ -159,14 +250,28 @@ def create_app(settings: ServerSettings | None = None) -> FastAPI:
         return SafeJSONResponse({"detail": str(exc), "replica": exc.replica}, status_code=421,
                                 headers={"X-Hippomap-Replica": exc.replica})
 
+    @app.exception_handler(StarletteHTTPException)
+    async def http_error(request: Request, exc: StarletteHTTPException) -> Response:
+        if exc.status_code == 405:  # Allow: every method of the path, not only the first route's (Starlette's)
+            allowed = allowed_methods(app, request.scope)
+            return SafeJSONResponse({"detail": "Method Not Allowed", "allow": allowed}, status_code=405,
+                                    headers={"Allow": ", ".join(allowed)})
+        if exc.status_code == 400 and exc.detail == BODY_PARSE_ERROR:  # bytes that are not UTF-8 JSON at all
+            return SafeJSONResponse({"detail": "the request body is not valid JSON (UTF-8)"}, status_code=422)
+        return await http_exception_handler(request, exc)
+
     @app.exception_handler(RequestValidationError)
     async def validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:
         errors = model.json_safe(jsonable_encoder(exc.errors(), custom_encoder={bytes: lambda b: f"<{len(b)} bytes>"}))
         return SafeJSONResponse({"detail": errors}, status_code=422)
 
-    @app.get("/health", tags=["server"], summary="Liveness (no token needed)")
+    @app.get("/health", tags=["server"], summary="Liveness (no token needed)",
+             responses={503: {"description": "the store's writer died: the process exits for a restart"}})
     async def health() -> dict[str, Any]:
         manager = getattr(app.state, "manager", None)  # answers even before the start-up finished
+        if manager is not None and manager.fatal:  # the store's writer died: the process is about to exit
+            return SafeJSONResponse({"status": "failed", "version": __version__, "detail": f"storage stopped: "
+                                     f"{manager.fatal}"}, status_code=503)
         return {"status": "ok", "version": __version__, "sessions": 0 if manager is None else len(manager.sessions)}
 
     @app.get("/ready", tags=["server"], summary="Readiness (no token needed): 503 while sessions are being restored",
@@ -177,6 +282,9 @@ def create_app(settings: ServerSettings | None = None) -> FastAPI:
         if manager is None or not app.state.serving:
             return SafeJSONResponse({"ready": False, "restoring": [],
                                      "sessions": 0 if manager is None else len(manager.sessions), "reason": "starting" if manager is None else "stopping"}, status_code=503)
+        if manager.fatal:
+            return SafeJSONResponse({"ready": False, "restoring": [], "sessions": len(manager.sessions),
+                                     "reason": f"storage stopped: {manager.fatal}"}, status_code=503)
         restoring = sorted(manager.restoring())
         body = {"ready": not restoring, "restoring": restoring, "sessions": len(manager.sessions)}
         if restoring:
@@ -184,20 +292,32 @@ def create_app(settings: ServerSettings | None = None) -> FastAPI:
         return body
 
     @app.get("/metrics", tags=["server"], response_class=Response,
-             summary="Prometheus metrics (text format; a bearer token only if HIPPOMAP_METRICS_TOKEN is set)",
+             summary="Prometheus metrics (text format): needs the metrics token (HIPPOMAP_METRICS_TOKEN), else the "
+                     "admin token, unless HIPPOMAP_METRICS_PUBLIC is set",
              responses={200: {"content": {"text/plain": {}}, "description": "Prometheus text exposition format"},
-                        401: {"description": "HIPPOMAP_METRICS_TOKEN is set and the request does not carry it"}})
+                        401: {"description": "the request does not carry the metrics token (or, if none is set, the "
+                                             "admin token)"}})
     async def prometheus_metrics(request: Request) -> Response:
-        if metrics_token is not None:
+        if not settings.metrics_public:
+            required = metrics_token or getattr(app.state, "admin_token", None)
             given = request.headers.get("authorization", "")
-            if not hmac.compare_digest(given.encode(), f"Bearer {metrics_token}".encode()):
-                return SafeJSONResponse({"detail": "GET /metrics needs the metrics token (Authorization: Bearer ...)"},
+            if required is None or not hmac.compare_digest(given.encode(), f"Bearer {required}".encode()):
+                which = "metrics token" if metrics_token else "admin token (or set HIPPOMAP_METRICS_TOKEN)"
+                return SafeJSONResponse({"detail": f"GET /metrics needs the {which}: Authorization: Bearer ..."},
                                         status_code=401, headers={"WWW-Authenticate": "Bearer"})
         body, content_type = await asyncio.to_thread(metrics.render)
         return Response(body, media_type=content_type)
 
     for module in (sessions, ingest, stream, queries, tokens):
         app.include_router(module.router)
+    default_openapi = app.openapi
+
+    def openapi() -> dict[str, Any]:
+        if app.openapi_schema is None:
+            document_input_bounds(default_openapi(), settings)
+        return app.openapi_schema
+
+    app.openapi = openapi  # type: ignore[method-assign]
     from web.service import viewer_router  # the live 3D viewer: /viewer/ (web/routes.py)
 
     app.include_router(viewer_router(app))

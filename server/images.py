@@ -73,6 +73,34 @@ def is_truncated(data: bytes) -> bool:
     return False
 
 
+def check_jpeg_strict(data: bytes) -> None:
+    """Decode a JPEG fully and strictly: InputError on any corruption the decoder notices.
+
+    OpenCV's decoder (like most) turns libjpeg's "corrupt data" *warnings* into gray or garbled
+    blocks and returns an image anyway, so a frame whose middle was overwritten would be stored
+    and learned. libjpeg-turbo's strict mode (through ``simplejpeg``) raises on them instead;
+    without ``simplejpeg`` Pillow's full decode is the (weaker) fallback."""
+    if image_kind(data) != "jpeg":
+        return
+    try:
+        import simplejpeg
+    except ImportError:  # pragma: no cover - simplejpeg is a server dependency
+        import io
+
+        from PIL import Image
+
+        try:
+            with Image.open(io.BytesIO(data)) as im:
+                im.load()
+        except Exception as exc:  # noqa: BLE001 - any decoder complaint means a corrupt frame
+            raise InputError(f"corrupt JPEG: {exc}") from None
+        return
+    try:
+        simplejpeg.decode_jpeg(data, colorspace="GRAY", strict=True)
+    except (ValueError, RuntimeError) as exc:
+        raise InputError(f"corrupt JPEG: {exc}") from None
+
+
 def encode_jpeg(image: np.ndarray, quality: int = 90) -> bytes:
     import cv2
 

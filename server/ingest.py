@@ -5,7 +5,10 @@ Checks run cheapest first (sizes and magic bytes before decoding). Status codes:
 
 * 413 — too large (body, encoded frame, image dimensions, batch length);
 * 415 — a frame that is not a JPEG or PNG;
-* 422 — malformed or non-finite numbers, corrupt images, images the model cannot use;
+* 422 — malformed or non-finite numbers, numbers given as strings or booleans, readings outside the
+  physical bounds of the server settings (speed, turn rate, increment, |t|, a timestamp more than
+  ``max_time_jump_s`` ahead of the session's newest input), corrupt images (decoded fully and
+  strictly before the acknowledgement), images the model cannot use;
 * 409 — timestamps that do not increase (checked against the session in :mod:`server.sessions`).
 
 The per-reading checks themselves are :class:`hippomap.inputs.Odometry`, :class:`~hippomap.inputs.Frame`
@@ -24,7 +27,7 @@ from pydantic import ValidationError
 from hippomap.errors import InputError
 from hippomap.inputs import Frame, Odometry, decode_jpeg
 
-from .images import image_dimensions, image_kind, is_truncated
+from .images import check_jpeg_strict, image_dimensions, image_kind, is_truncated
 from .schemas import OdometryReading
 from .settings import ServerSettings
 
@@ -60,19 +63,54 @@ def pydantic_message(exc: ValidationError) -> str:
 # ------------------------------------------------------------------ odometry
 def odometry_bytes(o: Odometry) -> bytes:
     """The stored form of a reading (compact JSON; floats round-trip exactly)."""
-    if o.increment is not None:
-        return json.dumps({"t": o.t, "increment": list(o.increment)}, separators=(",", ":")).encode()
-    return json.dumps({"t": o.t, "v": o.v, "omega": o.omega}, separators=(",", ":")).encode()
+    d: dict[str, Any] = ({"t": o.t, "increment": list(o.increment)} if o.increment is not None
+                         else {"t": o.t, "v": o.v, "omega": o.omega})
+    if o.gt is not None:
+        d["gt"] = list(o.gt)
+    return json.dumps(d, separators=(",", ":")).encode()
 
 
 def odometry_from_bytes(data: bytes) -> Odometry:
     d = json.loads(data)
     inc = d.get("increment")
-    return Odometry(d["t"], v=d.get("v"), omega=d.get("omega"), increment=None if inc is None else tuple(inc))
+    gt = d.get("gt")
+    return Odometry(d["t"], v=d.get("v"), omega=d.get("omega"), increment=None if inc is None else tuple(inc),
+                    gt=None if gt is None else tuple(gt))
 
 
-def check_odometry(readings: list[OdometryReading], max_batch: int) -> list[Accepted]:
-    """Validate a batch: each reading finite and well-formed, timestamps increasing within it."""
+def check_bounds(o: Odometry, limits: ServerSettings) -> None:
+    """The physical bounds of a reading (server settings): IngestError 422 naming the field."""
+    if not abs(o.t) <= limits.max_abs_t:
+        raise IngestError(422, f"odometry t={o.t!r} is out of range (|t| <= {limits.max_abs_t:g} s)")
+    if o.increment is not None:
+        dx, dy, dth = o.increment
+        for name, x in (("dx", dx), ("dy", dy)):
+            if not abs(x) <= limits.max_increment_m:
+                raise IngestError(422, f"odometry increment {name}={x!r} exceeds the limit of "
+                                       f"{limits.max_increment_m:g} m (max_increment_m)")
+        if not abs(dth) <= limits.max_increment_rad:
+            raise IngestError(422, f"odometry increment dtheta={dth!r} exceeds the limit of "
+                                   f"{limits.max_increment_rad:g} rad (max_increment_rad)")
+        return
+    assert o.v is not None and o.omega is not None
+    if not abs(o.v) <= limits.max_speed_mps:
+        raise IngestError(422, f"odometry v={o.v!r} exceeds the limit of {limits.max_speed_mps:g} m/s (max_speed_mps)")
+    if not abs(o.omega) <= limits.max_turn_rate_rad_s:
+        raise IngestError(422, f"odometry omega={o.omega!r} exceeds the limit of {limits.max_turn_rate_rad_s:g} "
+                               "rad/s (max_turn_rate_rad_s)")
+
+
+def check_time_jump(kind: str, t: float, previous: float | None, limits: ServerSettings, where: str = "") -> None:
+    """``t`` may lie at most ``max_time_jump_s`` after ``previous`` (the session's clock): 422 otherwise."""
+    if previous is not None and t - previous > limits.max_time_jump_s:
+        raise IngestError(422, f"{where}{kind} t={t!r} jumps {t - previous:g} s ahead of {previous!r}, more than "
+                               f"the limit of {limits.max_time_jump_s:g} s (max_time_jump_s)")
+
+
+def check_odometry(readings: list[OdometryReading], max_batch: int,
+                   limits: ServerSettings | None = None) -> list[Accepted]:
+    """Validate a batch: each reading finite and well-formed (and within ``limits``' physical
+    bounds if given), timestamps increasing within it."""
     if len(readings) > max_batch:
         raise IngestError(413, f"odometry batch of {len(readings)} readings exceeds the limit of {max_batch}")
     if not readings:
@@ -81,17 +119,24 @@ def check_odometry(readings: list[OdometryReading], max_batch: int) -> list[Acce
     prefix = (lambda i: f"readings[{i}]: ") if len(readings) > 1 else (lambda i: "")
     for i, r in enumerate(readings):
         try:
-            o = Odometry(r.t, v=r.v, omega=r.omega, increment=r.increment)
+            o = Odometry(r.t, v=r.v, omega=r.omega, increment=r.increment, gt=r.gt)
         except InputError as exc:
             raise IngestError(422, f"{prefix(i)}{exc}") from None
+        if limits is not None:
+            try:
+                check_bounds(o, limits)
+            except IngestError as exc:
+                raise IngestError(exc.status, f"{prefix(i)}{exc.detail}") from None
         if out and not o.t > out[-1].t:
             raise IngestError(409, f"{prefix(i)}odometry timestamp {o.t!r} does not follow the previous reading "
                                    f"at {out[-1].t!r}")
+        if out and limits is not None:
+            check_time_jump("odometry", o.t, out[-1].t, limits, prefix(i))
         out.append(Accepted("odometry", o.t, odometry_bytes(o), o))
     return out
 
 
-def parse_odometry_message(msg: dict[str, Any], max_batch: int) -> list[Accepted]:
+def parse_odometry_message(msg: dict[str, Any], max_batch: int, limits: ServerSettings | None = None) -> list[Accepted]:
     """The odometry of a websocket text message: inline fields or ``readings``."""
     body = {k: v for k, v in msg.items() if k not in ("type", "id")}
     try:
@@ -107,7 +152,7 @@ def parse_odometry_message(msg: dict[str, Any], max_batch: int) -> list[Accepted
             readings = [OdometryReading.model_validate(body)]
     except ValidationError as exc:
         raise IngestError(422, f"bad odometry message: {pydantic_message(exc)}") from None
-    return check_odometry(readings, max_batch)
+    return check_odometry(readings, max_batch, limits)
 
 
 # -------------------------------------------------------------------- frames
@@ -119,6 +164,8 @@ def check_frame(data: bytes, t: Any, settings: ServerSettings) -> Accepted:
         raise IngestError(422, f"frame t must be a number, got {t!r}") from None
     if not math.isfinite(tf):
         raise IngestError(422, f"frame t must be finite, got {tf}")
+    if not abs(tf) <= settings.max_abs_t:
+        raise IngestError(422, f"frame t={tf!r} is out of range (|t| <= {settings.max_abs_t:g} s)")
     if not data:
         raise IngestError(422, "empty image payload")
     if len(data) > settings.max_frame_bytes:
@@ -137,6 +184,7 @@ def check_frame(data: bytes, t: Any, settings: ServerSettings) -> Accepted:
         raise IngestError(413, f"image of {w}x{h} px exceeds the limit ({settings.max_image_side} px a side, "
                                f"{settings.max_image_pixels} px in all)")
     try:
+        check_jpeg_strict(data)
         gray = decode_jpeg(data)
         frame = Frame(tf, gray)
     except InputError as exc:

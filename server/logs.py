@@ -12,6 +12,11 @@ does); any other ``extra`` fields (e.g. ``duration_s``); ``exc`` with the traceb
 record carries an exception; and for uvicorn's access lines ``client``, ``method``, ``path``,
 ``status``.
 
+No line shows a secret: a filter on the handler (:class:`RedactSecrets`) replaces ``token=...``
+query values, ``Authorization`` credentials and anything shaped like a hippomap token by
+``[REDACTED]`` in every record (uvicorn's access lines included), and the formatters redact their
+output again (tracebacks).
+
 The format: ``--log-format`` of ``hippomap serve``, else ``HIPPOMAP_LOG_FORMAT``, else ``auto``:
 text when stderr is a terminal (someone is reading it), JSON otherwise (a container, systemd, a
 pipe: something is collecting it).
@@ -22,6 +27,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import re
 import sys
 import time
 from typing import Any, TextIO
@@ -36,6 +42,58 @@ _STANDARD = frozenset(vars(logging.LogRecord("x", logging.INFO, "x", 0, "x", Non
                                                                                               "color_message", "taskName"}
 #: the loggers set to the chosen level (everything else stays at WARNING)
 OWN_LOGGERS = ("hippomap", "web")
+
+
+#: secrets in log text: a ``token=`` query parameter, an Authorization header's credentials (``Bearer ...``)
+#: and anything shaped like a hippomap token (``hm_`` + base64url)
+_SECRETS = (
+    (re.compile(r"(?i)(\btoken=)[^&\s\"'#,;)]+"), r"\1[REDACTED]"),
+    (re.compile(r"(?i)(\b(?:bearer|basic)\s+)[^\s\"',;)]+"), r"\1[REDACTED]"),
+    (re.compile(r"(?i)(\bauthorization[\"']?\s*[:=]\s*[\"']?)(?!bearer\b|basic\b|\[REDACTED)[^\s\"',;)]+"),
+     r"\1[REDACTED]"),
+    (re.compile(r"\bhm_[A-Za-z0-9_\-]{8,}"), "hm_[REDACTED]"),
+)
+REDACTED = "[REDACTED]"
+
+
+def redact(text: str) -> str:
+    """``text`` with every secret it shows replaced by ``[REDACTED]`` (see :data:`_SECRETS`)."""
+    if "token" not in text.lower() and "hm_" not in text and "auth" not in text.lower() \
+            and "bearer" not in text.lower() and "basic" not in text.lower():
+        return text
+    for pattern, repl in _SECRETS:
+        text = pattern.sub(repl, text)
+    return text
+
+
+def _redact_value(value: Any) -> Any:
+    if isinstance(value, str):
+        return redact(value)
+    if isinstance(value, bytes):
+        return redact(value.decode("utf-8", "replace"))
+    return value
+
+
+class RedactSecrets(logging.Filter):
+    """Removes tokens from a record before any handler formats it: in the message, its arguments
+    (uvicorn's access line carries the request path with its query as an argument) and ``extra``
+    fields. Installed on the server's log handler, so it applies to every logger's lines."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if isinstance(record.args, tuple):  # each argument alone (uvicorn's access fields stay usable)...
+            record.args = tuple(_redact_value(a) for a in record.args)
+        elif isinstance(record.args, dict):
+            record.args = {k: _redact_value(v) for k, v in record.args.items()}
+        try:
+            message = record.getMessage()
+        except Exception:  # a broken format string: the formatter reports it as usual
+            message = None
+        if message is not None and redact(message) != message:  # ...then the whole line ("token=%s" % secret)
+            record.msg, record.args = redact(message), None
+        for k, v in _extras(record).items():
+            if isinstance(v, (str, bytes)):
+                setattr(record, k, _redact_value(v))
+        return True
 
 
 def _utc(created: float) -> str:
@@ -72,7 +130,7 @@ class JSONFormatter(logging.Formatter):
             out["exc"] = record.exc_text
         if record.stack_info:
             out["stack"] = self.formatStack(record.stack_info)
-        return json.dumps(out, ensure_ascii=False, default=str)
+        return redact(json.dumps(out, ensure_ascii=False, default=str))  # tracebacks too
 
 
 class TextFormatter(logging.Formatter):
@@ -92,7 +150,7 @@ class TextFormatter(logging.Formatter):
             if extras:
                 message += " " + " ".join(f"{k}={v}" for k, v in extras.items())
             record.msg, record.args = message, None
-            return super().format(record)
+            return redact(super().format(record))  # tracebacks too
         finally:
             record.msg, record.args = saved
 
@@ -124,6 +182,7 @@ def configure(fmt: str | None = None, level: str | int = "warning", stream: Text
     handler = logging.StreamHandler(stream)
     handler.setFormatter(JSONFormatter() if used == "json" else TextFormatter())
     handler.set_name("hippomap")
+    handler.addFilter(RedactSecrets())
     root = logging.getLogger()
     for old in [h for h in root.handlers if h.get_name() == "hippomap"]:
         root.removeHandler(old)

@@ -22,6 +22,7 @@ restores it from the store. Nothing here imports Ray.
 from __future__ import annotations
 
 import abc
+import logging
 import threading
 import time
 from dataclasses import dataclass
@@ -32,6 +33,12 @@ from hippomap.errors import InputError
 from hippomap.inputs import Frame, Odometry
 
 from . import model
+
+
+log = logging.getLogger("hippomap.server")
+
+#: event type of an input the mapper raised on (recorded, skipped; the session goes on)
+INPUT_FAILED = "input_failed"
 
 
 class HostDied(RuntimeError):
@@ -110,6 +117,11 @@ class InProcessHost(MapperHost):
                 events = self.mapper.step(value) if odometry else self.mapper.observe(value)
             except InputError as exc:  # validated at ingest, so only a model-side rule can get here
                 events = [{"type": "input_rejected", "t": value.t, "seq": seq, "detail": str(exc)}]
+            except Exception as exc:  # noqa: BLE001 - an input the model cannot take must not stop the session
+                # (deterministic: a replay of the same inputs fails, and is skipped, the same way)
+                log.exception("input seq %d (t=%r) failed in the mapper (skipped): %s: %s", seq, value.t,
+                              type(exc).__name__, exc)
+                events = [{"type": INPUT_FAILED, "t": value.t, "seq": seq, "detail": f"{type(exc).__name__}: {exc}"}]
             seconds = time.perf_counter() - t0
             field = self.mapper.place_field if odometry else None
         blob = None

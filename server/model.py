@@ -76,8 +76,13 @@ def graph(m: Any) -> dict[str, Any]:
 
     cm = m.cmap
     links = cm.links
-    return graph_dict(cm.poses, cm.place_codes, cm.frames, cm.times, links["source"], links["target"],
-                      links["transform"], links["kind"])
+    codes = np.asarray(cm.place_codes, dtype=float).reshape(-1, 3)
+    known = np.isfinite(codes).all(axis=1)  # a node made before the first odometry step has no place code yet
+    g = graph_dict(cm.poses, np.where(known[:, None], codes, 0.0), cm.frames, cm.times, links["source"],
+                   links["target"], links["transform"], links["kind"])
+    for i in np.flatnonzero(~known):
+        g["nodes"][i]["place_code"] = None
+    return g
 
 
 def graph_arrays(m: Any) -> dict[str, np.ndarray]:

@@ -43,7 +43,8 @@ import psycopg
 from psycopg.conninfo import conninfo_to_dict
 from psycopg.pq import TransactionStatus
 
-from .store import EventRecord, InputRecord, PlaceFieldRecord, SessionRecord, Store, TokenRecord, next_batch, settle_batch
+from .store import (EventRecord, InputRecord, PlaceFieldRecord, SessionRecord, Store, TokenRecord, WriterState,
+                    fail_batch, settle_batch)
 
 SCHEMA_VERSION = 1
 MAX_BATCH = 1024
@@ -155,6 +156,7 @@ class PostgresStore(Store):
         self._options = {k: v for k, v in _CONNECT_OPTIONS.items() if k not in given}
         self._sync = "on" if durability == "full" else "off"
         self._queue: queue.Queue = queue.Queue()
+        self.writer = WriterState("postgres-writer")
         self._closed = False
         self._pool_size = pool_size
         self._idle: list[psycopg.Connection] = []
@@ -247,16 +249,18 @@ class PostgresStore(Store):
     def _submit(self, fn: Callable[[psycopg.Connection], Any], on_durable: Callable[[], None] | None = None) -> Future:
         if self._closed:
             raise RuntimeError("store is closed")
-        fut: Future = Future()
-        self._queue.put((fn, fut, on_durable))
-        return fut
+        return self._enqueue(self._queue, (fn, Future(), on_durable))
 
     def _write_loop(self) -> None:
-        while (taken := next_batch(self._queue, MAX_BATCH)) is not None:
-            batch, stop = taken
+        self.writer.run(self._queue, MAX_BATCH, self._write_batch)
+
+    def _write_batch(self, batch: list) -> None:
+        try:
             self._run_batch(batch)
-            if stop:
-                return
+        except Exception:  # left half-way: no transaction may stay open for the next batch
+            if self._writer_conn is not None:
+                self._rollback(self._writer_conn)
+            raise
 
     def _writer(self) -> psycopg.Connection:
         conn = self._writer_conn
@@ -338,8 +342,7 @@ class PostgresStore(Store):
             if isinstance(exc, psycopg.OperationalError):
                 err = StoreConnectionError(f"PostgreSQL database {self.location}: "
                                            f"{_scrub(str(exc).strip(), self._url)}")
-            for _, fut, _ in batch:
-                fut.set_exception(err)
+            fail_batch(batch, err)
             return
         settle_batch(batch, outcomes)
 
@@ -384,6 +387,14 @@ class PostgresStore(Store):
 
     def delete_token(self, token_id: str) -> Future:
         return self._submit(lambda c: c.execute("DELETE FROM tokens WHERE id=%s", (token_id,)).rowcount)
+
+    def revoke_token(self, token_id: str, heir: str) -> Future:
+        def op(c: psycopg.Connection) -> list[str]:
+            sessions = [r[0] for r in c.execute("SELECT id FROM sessions WHERE owner=%s", (token_id,)).fetchall()]
+            c.execute("UPDATE sessions SET owner=%s WHERE owner=%s", (heir, token_id))
+            c.execute("DELETE FROM tokens WHERE id=%s OR owner=%s", (token_id, token_id))
+            return sessions
+        return self._submit(op)
 
     # ------------------------------------------------------------ sessions
     def create_session(self, session: SessionRecord) -> Future:

@@ -22,13 +22,22 @@ Server to client (all JSON text):
   stops reading until there is room again (the robot is slowed, never dropped);
 * ``{"type": "pong", "id": 9}``.
 
+Every text message is parsed with bounded cost: longer than ``max_text_message_bytes`` or nested
+deeper than ``max_json_depth`` (checked by a linear scan before any parsing) and it is refused
+with a 413 / 422 error naming the problem; the stream stays open.
+
 The connection is closed with code 4401 (no or bad token), 4403 (read-only token) or 4404 (no such
 session).
 """
 
 from __future__ import annotations
 
+import json
+import re
 import struct
+from typing import Any
+
+import numpy as np
 
 from hippomap.errors import InputError
 
@@ -54,3 +63,45 @@ def unpack_frame(data: bytes) -> tuple[int, float, bytes]:
     if magic != FRAME_MAGIC:
         raise InputError(f"binary message does not start with the frame magic {FRAME_MAGIC!r} (got {magic!r})")
     return int(mid), float(t), data[FRAME_HEADER.size:]
+
+
+_STEP = np.zeros(256, dtype=np.int32)
+_STEP[[0x5B, 0x7B]] = 1  # [ {
+_STEP[[0x5D, 0x7D]] = -1  # ] }
+_STRING = re.compile(r'"(?:[^"\\]|\\.)*"?', re.DOTALL)
+
+
+def json_depth(text: str) -> int:
+    """Deepest nesting of ``[``/``{`` in a JSON text, ignoring brackets inside strings: one linear
+    pass in C (regex + numpy), so a hostile message costs no more than its length."""
+    if text.count("[") + text.count("{") <= 1:
+        return text.count("[") + text.count("{")
+    data = _STRING.sub("", text).encode("utf-8", "surrogatepass")
+    if not data:
+        return 0
+    step = _STEP[np.frombuffer(data, dtype=np.uint8)]
+    return int(np.cumsum(step, dtype=np.int32).max(initial=0))
+
+
+def parse_text_message(text: str, max_chars: int, max_depth: int) -> Any:
+    """The JSON value of a websocket text message, with bounded cost. Raises :class:`MessageError`
+    (status 413 or 422, a message naming the problem) for a message too long, nested too deep or
+    not JSON; never anything else."""
+    if len(text) > max_chars:
+        raise MessageError(413, f"text message of {len(text)} characters exceeds the limit of {max_chars}")
+    depth = json_depth(text)
+    if depth > max_depth:
+        raise MessageError(422, f"text message nested {depth} levels deep exceeds the limit of {max_depth}")
+    try:
+        return json.loads(text)
+    except (ValueError, RecursionError) as exc:
+        raise MessageError(422, f"text message is not JSON: {exc}") from None
+
+
+class MessageError(ValueError):
+    """A websocket message refused before interpretation: ``status`` (413, 422) and why."""
+
+    def __init__(self, status: int, detail: str) -> None:
+        super().__init__(detail)
+        self.status = status
+        self.detail = detail

@@ -4,7 +4,9 @@ from __future__ import annotations
 
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, StrictFloat
+
+from hippomap.config import HippomapConfig
 
 
 class _In(BaseModel):
@@ -16,13 +18,22 @@ class OdometryReading(_In):
     """One odometry reading: velocities held since the previous reading, or a pose increment."""
 
     model_config = ConfigDict(extra="forbid", json_schema_extra={
-        "oneOf": [{"required": ["t", "v", "omega"]}, {"required": ["t", "increment"]}]})
+        "oneOf": [{"required": ["t", "v", "omega"], "properties": {"v": {"type": "number"}, "omega": {"type": "number"},
+                                                                  "increment": {"type": "null"}}},
+                  {"required": ["t", "increment"], "properties": {"increment": {"type": "array"},
+                                                                  "v": {"type": "null"}, "omega": {"type": "null"}}}]})
 
-    t: float = Field(description="timestamp, seconds; must exceed the session's previous input")
-    v: float | None = Field(None, description="forward velocity, m/s")
-    omega: float | None = Field(None, description="turn rate, rad/s")
-    increment: tuple[float, float, float] | None = Field(
-        None, description="relative pose (dx, dy, dtheta) in the previous pose's frame, instead of v/omega")
+    # strict numbers: a JSON string ("0.1") or boolean (true) is refused, not coerced
+    t: StrictFloat = Field(description="timestamp, seconds; must exceed the session's previous input and lie "
+                           "at most max_time_jump_s (30 days) after the session's newest input")
+    v: StrictFloat | None = Field(None, description="forward velocity, m/s (|v| <= max_speed_mps, 100)")
+    omega: StrictFloat | None = Field(None, description="turn rate, rad/s (|omega| <= max_turn_rate_rad_s, 100)")
+    increment: tuple[StrictFloat, StrictFloat, StrictFloat] | None = Field(
+        None, description="relative pose (dx, dy, dtheta) in the previous pose's frame, instead of v/omega "
+        "(|dx|, |dy| <= max_increment_m, 100; |dtheta| <= max_increment_rad, 2 pi)")
+    gt: tuple[StrictFloat, StrictFloat, StrictFloat] | None = Field(
+        None, description="optional ground-truth pose (x, y, theta) at t in the ground truth's own frame (simulated "
+        "runs, data sets): stored with the reading and drawn by the viewer; the mapper never uses it")
 
 
 class OdometryBatch(_In):
@@ -43,7 +54,11 @@ class SessionCreate(_In):
     name: str = Field("", max_length=200, description="free label")
     config: dict[str, dict[str, Any]] = Field(
         default_factory=dict,
-        description="overrides of the model config by section, e.g. {\"mapper\": {\"keyframe_interval\": 10}}")
+        description="overrides of the model config by section, e.g. {\"mapper\": {\"keyframe_interval\": 10}}; the "
+        "fields of each section, their ranges and defaults: GET /sessions/{id} shows a session's full config",
+        json_schema_extra={"properties": {name: {"type": "object", "description": f"overrides of the {name!r} section"}
+                                          for name in HippomapConfig.model_fields},
+                           "additionalProperties": False})
 
 
 class SessionInfo(BaseModel):
@@ -79,6 +94,9 @@ class Stats(BaseModel):
     backend_restarts: int = Field(0, description="times the session's mapper (Ray actor) died and was restored "
                                   "from its last snapshot plus replay")
     error: str | None = Field(description="why the session's worker stopped, if it did")
+    input_errors: int = Field(0, description="stored inputs the mapper could not process since this server started "
+                              "(skipped; each is an 'input_failed' event)")
+    last_input_error: str | None = Field(None, description="the latest of them: its seq and the error")
     rejected: dict[str, int] = Field(description="rejected inputs by HTTP status")
     mapper: dict[str, Any] = Field(description="Mapper.stats()")
 
@@ -87,7 +105,8 @@ class Stats(BaseModel):
 class Node(BaseModel):
     id: int
     pose: list[float] = Field(description="map pose (x, y, theta) after relaxation")
-    place_code: list[float] = Field(description="global place code p (x, y, theta), Eq. 11")
+    place_code: list[float] | None = Field(description="global place code p (x, y, theta), Eq. 11; null before "
+                                           "the first odometry step")
     frame: int | None = Field(description="key frame learned at the node")
     t: float | None
 
@@ -156,6 +175,11 @@ class PlaceField(PlaceFieldInfo):
 
 # ------------------------------------------------------------------ tokens
 class TokenCreate(_In):
+    # a writer token is never limited to one session
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"anyOf": [
+        {"properties": {"role": {"const": "viewer"}}},
+        {"required": ["role"], "properties": {"role": {"const": "writer"}, "session": {"type": "null"}}}]})
+
     role: Literal["viewer", "writer"] = "viewer"
     session: str | None = Field(None, description="viewer only: limit the token to this session")
     label: str = Field("", max_length=200)

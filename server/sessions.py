@@ -18,7 +18,11 @@ deletes and, at start-up, restores every stored session.
 from __future__ import annotations
 
 import asyncio
+import ctypes
+import gc
+import json
 import logging
+import os
 import secrets
 import socket
 import threading
@@ -32,15 +36,26 @@ from hippomap.config import HippomapConfig
 
 from . import model
 from .auth import can_read, can_write
-from .ingest import Accepted, IngestError, check_frame, pydantic_message
+from .ingest import Accepted, IngestError, check_frame, check_time_jump, pydantic_message
 from .limits import TokenBucket
 from .mapper_host import HostFactory, inprocess_factory
+from .quotas import MAX_OVERRIDES_CHARS, ConfigRejected, check_config, check_token_quota
 from .metrics import ServiceMetrics
 from .settings import ServerSettings
-from .store import InputRecord, SessionRecord, Store, TokenRecord
+from .store import InputRecord, SessionRecord, Store, StoreDead, TokenRecord
 from .worker import SessionWorker, WorkItem
 
 log = logging.getLogger("hippomap.server")
+
+
+#: exit status of a server whose store's writer died (EX_SOFTWARE)
+EXIT_STORE_DEAD = 70
+
+
+def exit_process(code: int) -> None:
+    """End the process at once (no graceful shutdown: it would wait for writes that cannot happen)."""
+    logging.shutdown()
+    os._exit(code)
 
 
 class NotFound(Exception):
@@ -58,6 +73,22 @@ class ServedElsewhere(Exception):
         super().__init__(f"session {session_id} is run by replica {replica!r}; send its requests there")
         self.session_id = session_id
         self.replica = replica
+
+
+def release_memory() -> None:
+    """Give freed memory back to the operating system (after a session is deleted): collect
+    cycles, then ask glibc to return its free heap pages (a no-op elsewhere)."""
+    gc.collect()
+    try:
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
+
+
+def input_bytes(a: Accepted) -> int:
+    """Memory an accepted input holds until the mapper has it: the decoded image of a frame."""
+    image = getattr(a.value, "image", None)
+    return 0 if image is None else int(image.nbytes)
 
 
 class LiveSession:
@@ -80,6 +111,8 @@ class LiveSession:
         self.last_times: dict[str, float] = store.last_times(record.id)
         self.stored_seq = self.next_seq - 1  # last durable input
         self.pending = 0
+        self.pending_bytes = 0  # decoded image bytes of the pending inputs (frames)
+        self._pending_sizes: dict[int, int] = {}  # seq -> bytes, for the frames among them
         self.closed = False
         self.store_error: str | None = None
         self.rejected: Counter[int] = Counter()
@@ -111,16 +144,24 @@ class LiveSession:
     # --------------------------------------------------------------- ingest
     def _processed_threadsafe(self, seq: int) -> None:
         try:
-            self.loop.call_soon_threadsafe(self._processed)
+            self.loop.call_soon_threadsafe(self._processed, seq)
         except RuntimeError:  # loop closed during shutdown
             pass
 
-    def _processed(self) -> None:
+    def _processed(self, seq: int | None = None) -> None:
         self.pending = max(0, self.pending - 1)
+        if seq is not None:
+            self.pending_bytes = max(0, self.pending_bytes - self._pending_sizes.pop(seq, 0))
         self._room.set()
 
-    def _has_room(self, n: int) -> bool:
-        return self.pending == 0 or self.pending + n <= self.settings.max_pending
+    def _has_room(self, n: int, nbytes: int = 0) -> bool:
+        """Room in the mapper queue for ``n`` more inputs of ``nbytes``: both the count
+        (``max_pending``) and the bytes (``max_pending_bytes``) must fit; an empty queue always
+        takes one message, however large (it was validated against the frame limits)."""
+        if self.pending == 0:
+            return True
+        return (self.pending + n <= self.settings.max_pending
+                and self.pending_bytes + nbytes <= self.settings.max_pending_bytes)
 
     async def submit(self, items: list[Accepted], wait_s: float | None,
                      on_busy: Callable[[], Awaitable[None]] | None = None) -> tuple[int, int, asyncio.Future]:
@@ -138,18 +179,24 @@ class LiveSession:
             if not model.follows(last_t, first.t):
                 raise IngestError(409, f"{first.kind} timestamp {first.t!r} does not follow the session's previous "
                                        f"{first.kind} at {last_t!r}")
-            if not self._has_room(len(items)):
+            check_time_jump(first.kind, first.t, self.last_t, self.settings)
+            sizes = [input_bytes(a) for a in items]
+            nbytes = sum(sizes)
+            if not self._has_room(len(items), nbytes):
                 if wait_s is None and on_busy is not None:
                     await on_busy()
                 deadline = None if wait_s is None else self.loop.time() + wait_s
-                while not self._has_room(len(items)):
+                while not self._has_room(len(items), nbytes):
                     if self.closed:
                         raise NotFound()
                     self._room.clear()
                     remaining = None if deadline is None else deadline - self.loop.time()
                     if remaining is not None and remaining <= 0:
-                        raise IngestError(429, f"session {self.id} is busy: {self.pending} inputs wait for the mapper "
-                                               f"(limit {self.settings.max_pending}); retry later", retry_after=1)
+                        raise IngestError(429, f"session {self.id} is busy: {self.pending} inputs "
+                                               f"({self.pending_bytes / 1e6:.1f} MB of images) wait for the mapper "
+                                               f"(limits {self.settings.max_pending} inputs, "
+                                               f"{self.settings.max_pending_bytes / 1e6:.0f} MB); retry later",
+                                          retry_after=1)
                     try:
                         await asyncio.wait_for(self._room.wait(), remaining)
                     except asyncio.TimeoutError:
@@ -157,17 +204,26 @@ class LiveSession:
             seq0 = self.next_seq
             records = [InputRecord(seq=seq0 + k, kind=a.kind, t=a.t, data=a.data) for k, a in enumerate(items)]
             work = [WorkItem(seq0 + k, a.value) for k, a in enumerate(items)]
+            worker = self.worker
+            try:
+                cfut = self.store.append_inputs(self.id, records, on_durable=lambda: worker.put(work))
+            except StoreDead as exc:
+                raise IngestError(503, f"inputs cannot be stored: {exc}") from None
             self.next_seq += len(items)
             for a in items:
                 self.last_times[a.kind] = a.t
             self.pending += len(items)
-            worker = self.worker
-            cfut = self.store.append_inputs(self.id, records, on_durable=lambda: worker.put(work))
+            self.pending_bytes += nbytes
+            for k, size in enumerate(sizes):
+                if size:
+                    self._pending_sizes[seq0 + k] = size
         last = seq0 + len(items) - 1
         kinds = Counter(a.kind for a in items)
-        fut = asyncio.wrap_future(cfut, loop=self.loop)
-        fut.add_done_callback(lambda f: self._stored(f, last, kinds))
-        return seq0, last, fut
+        inner = asyncio.wrap_future(cfut, loop=self.loop)
+        inner.add_done_callback(lambda f: self._stored(f, last, kinds))
+        # a caller that stops waiting (a websocket closed mid-ack) cancels only its own view of the
+        # write: the write itself, its bookkeeping above and the store's writer go on untouched
+        return seq0, last, asyncio.shield(inner)
 
     def _stored(self, fut: asyncio.Future, last: int, kinds: Counter[str] | None = None) -> None:
         if fut.cancelled() or fut.exception() is not None:
@@ -210,6 +266,8 @@ class LiveSession:
             "backend": {**w.host_info, "restarts": w.restarts},
             "backend_restarts": w.restarts,
             "error": self.error,
+            "input_errors": w.input_errors,
+            "last_input_error": w.last_input_error,
             "rejected": {str(k): v for k, v in sorted(self.rejected.items())},
             "mapper": mapper_stats,
         }
@@ -243,10 +301,27 @@ class SessionManager:
         self._stopping = threading.Event()
         self._lease_thread: threading.Thread | None = None
         self._open_lock = threading.Lock()  # _open / _drop from the loop and the lease thread
+        self._deleting: set[str] = set()  # sessions being deleted here: never adopted meanwhile
+
+    @property
+    def fatal(self) -> str | None:
+        """Why this server can no longer store anything (its store's writer died), else None.
+        ``/health`` and ``/ready`` answer 503 and the process exits (see :func:`exit_process`)."""
+        return self.store.fatal
+
+    def _on_store_fatal(self, reason: str) -> None:
+        """The store's writer died (called from its thread): exit after ``fatal_exit_s`` so a
+        supervisor restarts the server; every acknowledged input is durable, nothing is lost."""
+        log.critical("the store's writer died (%s): exiting in %.1f s so a supervisor restarts the server",
+                     reason, self.settings.fatal_exit_s)
+        timer = threading.Timer(self.settings.fatal_exit_s, exit_process, args=(EXIT_STORE_DEAD,))
+        timer.daemon = True
+        timer.start()
 
     def start(self, loop: asyncio.AbstractEventLoop) -> None:
         """Start the session backend, then restore every stored session (each worker replays in its own thread)."""
         self.loop = loop
+        self.store.on_fatal(self._on_store_fatal)
         if self.settings.backend == "ray":
             from .ray_backend import RayBackend  # Ray is imported only on this path
 
@@ -291,7 +366,7 @@ class SessionManager:
         now = time.time()
         for rec in self.store.list_sessions():
             # sessions younger than a TTL may still be being opened by the replica that created them
-            if self._stopping.is_set() or rec.id in self.sessions or now - rec.created < ttl:
+            if self._stopping.is_set() or rec.id in self.sessions or rec.id in self._deleting or now - rec.created < ttl:
                 continue
             if self.store.session_owner(rec.id) is None and self.store.claim_session(rec.id, self.replica, ttl) == self.replica:
                 log.warning("session %s: its replica stopped renewing; taking it over", rec.id, extra={"session": rec.id})
@@ -362,10 +437,17 @@ class SessionManager:
             raise IngestError(422, f"invalid config: {pydantic_message(exc)}") from None
         except (ValueError, TypeError) as exc:
             raise IngestError(422, f"invalid config: {exc}") from None
-        owned = sum(1 for s in self.sessions.values() if s.record.owner == token.id)
-        if owned >= self.settings.max_sessions_per_token:
-            raise IngestError(429, f"token {token.id} already owns {owned} sessions "
+        if len(json.dumps(overrides)) > MAX_OVERRIDES_CHARS:
+            raise IngestError(422, f"config overrides longer than {MAX_OVERRIDES_CHARS} characters")
+        owned = [s for s in self.sessions.values() if s.record.owner == token.id and not s.closed]
+        if len(owned) >= self.settings.max_sessions_per_token:
+            raise IngestError(429, f"token {token.id} already owns {len(owned)} sessions "
                                    f"(limit {self.settings.max_sessions_per_token}); delete one first")
+        try:
+            check_config(config, self.settings)
+            check_token_quota(config, [s.config for s in owned], self.settings)
+        except ConfigRejected as exc:
+            raise IngestError(exc.status, exc.detail) from None
         rec = SessionRecord(id="s_" + secrets.token_hex(8), owner=token.id, name=name, config=overrides,
                             created=time.time())
         await asyncio.to_thread(self.store.claim_session, rec.id, self.replica, self.settings.lease_ttl_s)
@@ -405,7 +487,7 @@ class SessionManager:
     def _elsewhere(self, token: TokenRecord, session_id: str) -> LiveSession:
         """A session not run here: stored and visible to the token? Then it is either run by
         another replica (:class:`ServedElsewhere`) or orphaned, and this server takes it over."""
-        if self._stopping.is_set() or not session_id.startswith("s_"):
+        if self._stopping.is_set() or not session_id.startswith("s_") or session_id in self._deleting:
             raise NotFound()
         rec = next((r for r in self.store.list_sessions() if r.id == session_id), None)
         if rec is None or not can_read(token, rec):
@@ -418,6 +500,14 @@ class SessionManager:
 
     async def delete(self, token: TokenRecord, session_id: str) -> None:
         live = self.get(token, session_id, write=True)
+        self._deleting.add(session_id)  # the lease scan must not adopt it while it goes away
+        try:
+            await self._delete(live)
+        finally:
+            self._deleting.discard(session_id)
+
+    async def _delete(self, live: LiveSession) -> None:
+        session_id = live.id
         live.closed = True
         live._room.set()  # wakes an ingest waiting for room; it sees `closed` and gives up
         async with live._lock:  # no submit is half-way through after this
@@ -426,4 +516,5 @@ class SessionManager:
         await asyncio.to_thread(live.worker.stop, False)
         await asyncio.wrap_future(self.store.delete_session(session_id))
         self.metrics.forget(session_id)
+        await asyncio.to_thread(release_memory)
         log.info("session %s deleted", session_id, extra={"session": session_id})

@@ -45,10 +45,41 @@ class ServerSettings(BaseModel):
         2.0, ge=0, description="how long an HTTP ingest waits for queue room before answering 429"
     )
     max_sessions_per_token: int = Field(100, ge=1, description="live sessions one token may own")
+    max_text_message_bytes: int = Field(
+        2 << 20, ge=1024, description="longest websocket text message, characters (an odometry batch of 10,000 "
+        "readings is about 0.7 MB)")
+    max_json_depth: int = Field(16, ge=4, description="deepest nesting of a websocket JSON message (an odometry "
+                                "batch needs 4); checked by a linear scan before parsing")
+    max_pending_bytes: int = Field(
+        256 << 20, ge=1 << 20, description="decoded image bytes accepted but not yet processed by the mapper, per "
+        "session, before backpressure starts (as max_pending, which counts inputs)")
+    # ---- physical bounds on inputs (any real robot fits; a reading outside is refused with 422) ----
+    max_speed_mps: float = Field(100.0, gt=0, description="largest |v| of an odometry reading, m/s (360 km/h)")
+    max_turn_rate_rad_s: float = Field(100.0, gt=0, description="largest |omega| of an odometry reading, rad/s "
+                                       "(16 turns a second)")
+    max_increment_m: float = Field(100.0, gt=0, description="largest |dx|, |dy| of an odometry increment, metres")
+    max_increment_rad: float = Field(6.2832, gt=0, description="largest |dtheta| of an odometry increment, rad "
+                                     "(one full turn)")
+    max_time_jump_s: float = Field(
+        2_592_000.0, gt=0, description="largest step of an input's timestamp ahead of the session's newest input "
+        "(either kind), seconds: 30 days (a robot parked for a month resumes its session; a clock error "
+        "of years is refused instead of wedging the session with 409s)")
+    max_abs_t: float = Field(1e10, gt=0, description="largest |t| of any timestamp, seconds (Unix time fits until "
+                             "the year 2286)")
+    # ---- session config overrides (see server/quotas.py for the safe ranges and the memory cost) ----
+    max_session_grid_bytes: int = Field(
+        512 << 20, ge=1 << 20, description="largest grid-cell rate tables one session's config may need, bytes "
+        "(132 MB at the defaults; sessions with the same spatial geometry and seed share one copy)")
+    max_token_grid_bytes: int = Field(
+        1 << 30, ge=1 << 20, description="grid-cell tables all the live sessions of one token may need together, "
+        "bytes (each distinct spatial geometry/seed counted once)")
     switch_interval_s: float = Field(
         0.0005, gt=0, le=0.1,
         description="Python's GIL switch interval in the server process: short, so the event loop (acks) is not "
         "held up for long behind a mapper thread (Python's default is 5 ms)")
+    fatal_exit_s: float = Field(
+        1.0, ge=0, description="if the store's writer thread dies, /health and /ready answer 503 and the process "
+        "exits (status 70) this many seconds later, so a supervisor restarts it (acknowledged inputs are durable)")
     # ---- persistence ----
     snapshot_every_inputs: int = Field(2000, ge=1, description="snapshot the mapper after this many inputs...")
     snapshot_every_s: float = Field(60.0, gt=0, description="...or this many seconds, whichever comes first")
@@ -79,6 +110,18 @@ class ServerSettings(BaseModel):
     admin_token: str | None = Field(
         None, description="the admin token; if unset one is generated on first start and saved in <data_dir>/admin.token"
     )
+    metrics_token: str | None = Field(
+        None, description="the bearer token GET /metrics requires; unset: the admin token (see metrics_public)")
+    metrics_public: bool = Field(
+        False, description="serve GET /metrics without a token (it names every session: only where the network is "
+        "trusted)")
+    allowed_origins: str = Field(
+        "", description="comma-separated origins (scheme://host[:port]) whose web pages may open the websockets, "
+        "besides the server's own host; clients that send no Origin (robots, scripts) are always allowed; '*': any")
+    read_rate_per_s: float = Field(
+        500.0, gt=0, description="read requests (queries) per second per session and token, a budget apart from "
+        "rate_per_s (ingest): a reader flooding queries cannot use up the robot's ingest budget")
+    read_rate_burst: float = Field(1000.0, ge=1, description="burst allowance of the read rate limit")
 
     @property
     def database_path(self) -> Path:

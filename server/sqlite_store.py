@@ -27,7 +27,8 @@ from concurrent.futures import Future
 from pathlib import Path
 from typing import Any, Callable
 
-from .store import EventRecord, InputRecord, PlaceFieldRecord, SessionRecord, Store, TokenRecord, next_batch, settle_batch
+from .store import (EventRecord, InputRecord, PlaceFieldRecord, SessionRecord, Store, TokenRecord, WriterState,
+                    fail_batch, settle_batch)
 
 SCHEMA_VERSION = 1
 MAX_BATCH = 1024
@@ -70,6 +71,7 @@ class SQLiteStore(Store):
         self._sync = "FULL" if durability == "full" else "NORMAL"
         self._local = threading.local()
         self._queue: queue.Queue = queue.Queue()
+        self.writer = WriterState("sqlite-writer")
         self._closed = False
         self._writer_conn = self._connect()
         self._writer_conn.execute("PRAGMA journal_mode=WAL")
@@ -102,17 +104,22 @@ class SQLiteStore(Store):
     def _submit(self, fn: Callable[[sqlite3.Connection], Any], on_durable: Callable[[], None] | None = None) -> Future:
         if self._closed:
             raise RuntimeError("store is closed")
-        fut: Future = Future()
-        self._queue.put((fn, fut, on_durable))
-        return fut
+        return self._enqueue(self._queue, (fn, Future(), on_durable))
 
     def _write_loop(self) -> None:
+        self.writer.run(self._queue, MAX_BATCH, self._write_batch)
+
+    def _write_batch(self, batch: list) -> None:
         conn = self._writer_conn
-        while (taken := next_batch(self._queue, MAX_BATCH)) is not None:
-            batch, stop = taken
+        try:
             self._run_batch(conn, batch)
-            if stop:
-                return
+        except Exception:  # left half-way: no transaction may stay open for the next batch
+            if conn.in_transaction:
+                try:
+                    conn.execute("ROLLBACK")
+                except sqlite3.Error:
+                    pass
+            raise
 
     @staticmethod
     def _run_batch(conn: sqlite3.Connection, batch: list) -> None:
@@ -135,8 +142,7 @@ class SQLiteStore(Store):
                 conn.execute("ROLLBACK")
             except sqlite3.Error:
                 pass
-            for _, fut, _ in batch:
-                fut.set_exception(exc)
+            fail_batch(batch, exc)
             return
         settle_batch(batch, outcomes)
 
@@ -191,6 +197,14 @@ class SQLiteStore(Store):
 
     def delete_token(self, token_id: str) -> Future:
         return self._submit(lambda c: c.execute("DELETE FROM tokens WHERE id=?", (token_id,)).rowcount)
+
+    def revoke_token(self, token_id: str, heir: str) -> Future:
+        def op(c: sqlite3.Connection) -> list[str]:
+            sessions = [r[0] for r in c.execute("SELECT id FROM sessions WHERE owner=?", (token_id,))]
+            c.execute("UPDATE sessions SET owner=? WHERE owner=?", (heir, token_id))
+            c.execute("DELETE FROM tokens WHERE id=? OR owner=?", (token_id, token_id))
+            return sessions
+        return self._submit(op)
 
     # ------------------------------------------------------------ sessions
     def create_session(self, session: SessionRecord) -> Future:

@@ -18,13 +18,17 @@ Implementations: :mod:`server.sqlite_store` (embedded default) and :mod:`server.
 from __future__ import annotations
 
 import abc
+import logging
 import queue
-from concurrent.futures import Future
+import threading
+from concurrent.futures import Future, InvalidStateError
 from dataclasses import dataclass, field
 from typing import Any, Callable, Literal
 
 Role = Literal["admin", "writer", "viewer"]
 InputKind = Literal["odometry", "frame"]
+
+log = logging.getLogger("hippomap.server")
 
 
 @dataclass(frozen=True)
@@ -99,6 +103,12 @@ class Store(abc.ABC):
 
     @abc.abstractmethod
     def delete_token(self, token_id: str) -> Future: ...
+
+    @abc.abstractmethod
+    def revoke_token(self, token_id: str, heir: str) -> Future:
+        """In one transaction: delete the token and every token it minted (its viewer tokens), and
+        give the sessions it owns to ``heir`` (the token that minted it). Result: the ids of those
+        sessions."""
 
     # -------------------------------------------------------------- sessions
     @abc.abstractmethod
@@ -192,6 +202,28 @@ class Store(abc.ABC):
     def place_field(self, session_id: str, step: int) -> PlaceFieldRecord | None: ...
 
     # ------------------------------------------------------------- lifecycle
+    #: the writer thread's state (backends with a writer thread set it)
+    writer: "WriterState | None" = None
+
+    @property
+    def fatal(self) -> str | None:
+        """Why the store's writer thread died (None while it runs): nothing more can be stored."""
+        return None if self.writer is None else self.writer.fatal
+
+    def on_fatal(self, callback: Callable[[str], None]) -> None:
+        """Call ``callback(reason)`` if the writer thread dies."""
+        if self.writer is not None:
+            self.writer.on_fatal(callback)
+
+    def _enqueue(self, q: "queue.Queue", item: tuple[Any, Future, Any]) -> Future:
+        """Queue a write for the writer thread (:class:`StoreDead` if it has died)."""
+        if self.writer is not None:
+            self.writer.check()
+        q.put(item)
+        if self.writer is not None and self.writer.fatal is not None:  # died meanwhile: it may not see this one
+            _complete(item[1], error=StoreDead(f"the store's writer stopped ({self.writer.fatal})"))
+        return item[1]
+
     @abc.abstractmethod
     def flush(self) -> None:
         """Wait until every submitted write is durable."""
@@ -200,22 +232,49 @@ class Store(abc.ABC):
     def close(self) -> None: ...
 
 
+class StoreDead(RuntimeError):
+    """The store's writer thread has stopped: nothing more can be made durable in this process."""
+
+
+def _complete(fut: Future, result: Any = None, error: BaseException | None = None) -> None:
+    """Complete ``fut`` unless it is already done (a waiter may have cancelled it: the write
+    itself still happened, or failed, and that must never stop the writer)."""
+    if fut.done():
+        return
+    try:
+        if error is not None:
+            fut.set_exception(error)
+        else:
+            fut.set_result(result)
+    except InvalidStateError:  # cancelled between the check and the call
+        pass
+
+
+def fail_batch(batch: list[tuple[Any, Future, Callable[[], None] | None]], error: BaseException) -> None:
+    """Fail every not-yet-done future of ``batch`` with ``error`` (nothing of it is durable)."""
+    for _, fut, _ in batch:
+        _complete(fut, error=error)
+
+
 def settle_batch(batch: list[tuple[Any, Future, Callable[[], None] | None]],
                  outcomes: list[tuple[Any, BaseException | None]]) -> None:
     """Complete the futures of a committed group-commit ``batch`` (``(op, future, on_durable)``
     triples) in submission order: each with its operation's ``(result, error)``; a successful
-    operation's ``on_durable`` runs first (shared by the store backends)."""
+    operation's ``on_durable`` runs first (shared by the store backends). A future a waiter
+    cancelled is skipped, but its ``on_durable`` still runs: the write is durable whether or
+    not anyone still waits for it (the session's mapper must get the input)."""
     for (_, fut, cb), (res, err) in zip(batch, outcomes):
         if err is not None:
-            fut.set_exception(err)
+            _complete(fut, error=err)
             continue
         if cb is not None:
             try:
                 cb()
-            except Exception as exc:  # pragma: no cover - callbacks are the server's own
-                fut.set_exception(exc)
+            except Exception as exc:  # the server's own callbacks; never let one stop the writer
+                log.exception("an on_durable callback failed")
+                _complete(fut, error=exc)
                 continue
-        fut.set_result(res)
+        _complete(fut, res)
 
 
 def next_batch(q: "queue.Queue", max_batch: int) -> tuple[list, bool] | None:
@@ -235,3 +294,72 @@ def next_batch(q: "queue.Queue", max_batch: int) -> tuple[list, bool] | None:
             return batch, True
         batch.append(nxt)
     return batch, False
+
+
+class WriterState:
+    """The life of a store's writer thread, shared by the backends.
+
+    :meth:`run` drives the loop: each batch runs through ``run_batch``; an exception out of a
+    batch (a bug, or anything a request could provoke) fails that batch's futures and the
+    loop goes on. Only if the loop itself dies (an error outside any batch, or a
+    non-``Exception`` such as ``MemoryError``... ``BaseException``) is the writer *dead*:
+    :attr:`fatal` names why, every queued write fails at once, every later submit raises
+    :class:`StoreDead`, and ``on_fatal`` callbacks run (the server turns ``/health`` and
+    ``/ready`` to 503 and exits so a supervisor restarts it: acknowledged inputs are durable)."""
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+        self.fatal: str | None = None
+        self._callbacks: list[Callable[[str], None]] = []
+        self._lock = threading.Lock()
+
+    def on_fatal(self, callback: Callable[[str], None]) -> None:
+        """Call ``callback(reason)`` when the writer dies (at once if it already has)."""
+        with self._lock:
+            if self.fatal is None:
+                self._callbacks.append(callback)
+                return
+            reason = self.fatal
+        callback(reason)
+
+    def check(self) -> None:
+        """Raise :class:`StoreDead` if the writer has died."""
+        if self.fatal is not None:
+            raise StoreDead(f"the store's writer stopped ({self.fatal}); the server must restart")
+
+    def run(self, q: "queue.Queue", max_batch: int, run_batch: Callable[[list], None]) -> None:
+        """The writer thread's body: batches from ``q`` through ``run_batch`` until a stop."""
+        batch: list = []
+        try:
+            while (taken := next_batch(q, max_batch)) is not None:
+                batch, stop = taken
+                try:
+                    run_batch(batch)
+                except Exception as exc:  # one batch's trouble must not stop every later write
+                    log.exception("%s: a write batch failed", self.name)
+                    fail_batch(batch, exc)
+                batch = []
+                if stop:
+                    return
+        except BaseException as exc:  # noqa: BLE001 - the thread ends here whatever it was
+            self._die(q, batch, f"{type(exc).__name__}: {exc}")
+
+    def _die(self, q: "queue.Queue", batch: list, reason: str) -> None:
+        log.critical("%s thread died: %s", self.name, reason)
+        with self._lock:
+            self.fatal = reason
+            callbacks, self._callbacks = self._callbacks, []
+        error = StoreDead(f"the store's writer stopped ({reason})")
+        fail_batch(batch, error)  # its outcome is unknown: not acknowledged (a restart replays what was committed)
+        while True:  # nothing queued will ever be written: fail it now rather than let callers hang
+            try:
+                item = q.get_nowait()
+            except queue.Empty:
+                break
+            if item is not None:
+                _complete(item[1], error=error)
+        for cb in callbacks:
+            try:
+                cb(reason)
+            except Exception:
+                log.exception("%s: an on_fatal callback failed", self.name)

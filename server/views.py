@@ -7,6 +7,7 @@ worker threads (never on the event loop) because some encode images.
 from __future__ import annotations
 
 import io
+import math
 import tempfile
 from pathlib import Path
 from typing import Any
@@ -18,13 +19,16 @@ from .images import encode_jpeg, encode_png
 
 
 def graphml(arrays: dict[str, np.ndarray]) -> str:
-    """The map as GraphML (networkx writer): node pose/place code/frame/time, link transform/kind."""
+    """The map as GraphML (networkx writer): node pose/place code/frame/time, link transform/kind.
+    A value that is not a finite number (e.g. the place code of a node made before the first
+    odometry step) is left out of that node: GraphML's "no data", never ``nan``."""
     import networkx as nx
 
     g = nx.MultiDiGraph()
     for i, (p, c, f, t) in enumerate(zip(arrays["poses"], arrays["place_codes"], arrays["frames"], arrays["times"])):
-        g.add_node(i, x=float(p[0]), y=float(p[1]), theta=float(p[2]), place_x=float(c[0]), place_y=float(c[1]),
-                   place_theta=float(c[2]), frame=int(f), t=float(t))
+        attrs = {"x": float(p[0]), "y": float(p[1]), "theta": float(p[2]), "place_x": float(c[0]),
+                 "place_y": float(c[1]), "place_theta": float(c[2]), "frame": int(f), "t": float(t)}
+        g.add_node(i, **{k: v for k, v in attrs.items() if not isinstance(v, float) or math.isfinite(v)})
     for a, b, tr, kind in zip(arrays["source"], arrays["target"], arrays["transform"], arrays["kind"]):
         g.add_edge(int(a), int(b), dx=float(tr[0]), dy=float(tr[1]), dtheta=float(tr[2]), kind=str(kind))
     return "\n".join(nx.generate_graphml(g)) + "\n"
@@ -63,9 +67,21 @@ def place_field_npy(rec: Any) -> bytes:
     return buf.getvalue()
 
 
-def place_field_png(rec: Any) -> bytes:
-    """The position matrix as a PNG (white = field), y up like the map."""
+def place_field_png(rec: Any, spatial: Any = None) -> bytes:
+    """The place cells' iteration that formed the field, drawn like the paper's Fig. 8
+    (:mod:`hippomap.place_field_figure`), given the session's ``SpatialConfig``; without it, the
+    position matrix alone (white = field, y up like the map)."""
     meta, idx = model.place_field_from_blob(rec.data)
+    if spatial is not None:
+        from hippomap.grid_cells import GridCells
+        from hippomap.place_cells import record_stored_field
+        from hippomap.place_field_figure import place_field_png as figure_png
+
+        record = record_stored_field(GridCells(spatial).tables, spatial, idx)
+        x, y, _ = meta.get("place_code", (0.0, 0.0, 0.0))
+        title = (f"Place field of odometry step {rec.step} (t = {rec.t:.2f} s): place code ({x:.3f}, {y:.3f}) m"
+                 " — grid-cell windows multiplied until one field remains (Eq. 9-10, Fig. 8)")
+        return figure_png(record, title=title)
     return encode_png(np.flipud(model.place_field_dense(meta, idx)) * np.uint8(255))
 
 

@@ -41,7 +41,7 @@ from hippomap.config import HippomapConfig
 from hippomap.inputs import Frame, Odometry
 
 from .ingest import frame_from_bytes, odometry_from_bytes
-from .mapper_host import HostDied, HostFactory, MapperHost, StepResult, inprocess_factory
+from .mapper_host import INPUT_FAILED, HostDied, HostFactory, MapperHost, StepResult, inprocess_factory
 from .settings import ServerSettings
 from .store import EventRecord, PlaceFieldRecord, Store
 
@@ -90,6 +90,8 @@ class SessionWorker:
         self.ready = threading.Event()  # set once the restore (snapshot + replay) is done
         self.error: str | None = None
         self.restarts = 0  # hosts replaced after they died
+        self.input_errors = 0  # inputs the mapper raised on (skipped, recorded as input_failed events)
+        self.last_input_error: str | None = None
         self.host_info: dict[str, Any] = {}
         self._host: MapperHost | None = None
         self._gen = 0  # bumped each time a host is installed
@@ -128,6 +130,12 @@ class SessionWorker:
         """Finish the inputs already queued, take a last snapshot, and end the thread
         (``snapshot=False``: drop the queue, no snapshot — the session is being deleted)."""
         self._stop = not snapshot
+        if not snapshot:  # the session is being deleted: free the queued inputs (decoded frames) now
+            while True:
+                try:
+                    self._inbox.get_nowait()
+                except queue.Empty:
+                    break
         self._inbox.put(None)
         self._thread.join(timeout)
         if not self._thread.is_alive():
@@ -309,6 +317,9 @@ class SessionWorker:
                     self._fields.append(PlaceFieldRecord(step=self._next_step, seq=r.seq, t=r.t, data=r.field))
                 self._next_step += 1
             for ev in r.events:
+                if ev.get("type") == INPUT_FAILED and r.seq > self._reported:
+                    self.input_errors += 1
+                    self.last_input_error = f"seq {r.seq}: {ev.get('detail')}"
                 t = ev.get("t", ev.get("time"))
                 ref = ev.get("id") if isinstance(ev.get("id"), int) else None
                 etype = str(ev.get("type", "event"))

@@ -78,25 +78,26 @@ def test_ready_is_false_before_start_while_restoring_and_when_stopping(app):
         r = c.get("/ready")
         assert r.status_code == 503
         assert r.json()["ready"] is False and r.json()["restoring"] == ["s_a", "s_b"]
-        assert value(samples(c.get("/metrics").text), "hippomap_ready") == 0.0
+        assert value(samples(c.get("/metrics", headers=AUTH).text), "hippomap_ready") == 0.0
         del manager.restoring
         assert c.get("/ready").status_code == 200
-        assert value(samples(c.get("/metrics").text), "hippomap_ready") == 1.0
+        assert value(samples(c.get("/metrics", headers=AUTH).text), "hippomap_ready") == 1.0
     r = TestClient(app).get("/ready")  # the lifespan has ended: shutting down
     assert r.status_code == 503 and r.json()["reason"] == "stopping"
 
 
-def test_metrics_open_by_default(app):
+def test_metrics_need_the_admin_token_by_default(app):
     with TestClient(app) as c:
         sid = c.post("/sessions", json={"name": "m"}, headers=AUTH).json()["id"]
-        r = c.get("/metrics")
+        assert c.get("/metrics").status_code == 401  # it names every session
+        r = c.get("/metrics", headers=AUTH)
         assert r.status_code == 200 and r.headers["content-type"].startswith("text/plain")
         parsed = samples(r.text)
         assert value(parsed, "hippomap_queue_depth", session=sid) == 0.0
         assert value(parsed, "hippomap_sessions") == 1.0
         assert value(parsed, "hippomap_ready") == 1.0
         c.delete(f"/sessions/{sid}", headers=AUTH)
-        parsed = samples(c.get("/metrics").text)
+        parsed = samples(c.get("/metrics", headers=AUTH).text)
         assert value(parsed, "hippomap_queue_depth", session=sid) is None
         assert value(parsed, "hippomap_sessions") == 0.0
 
@@ -237,7 +238,7 @@ def test_restart_readiness_metrics_and_json_logs(tmp_path):
             acks = asyncio.run(stream_items(srv.url, TOKEN, sid, LONG))
             assert len(acks) == len(LONG)
             stats = c.wait_processed(sid)
-        parsed = samples(httpx.get(f"{srv.url}/metrics").text)  # no token needed
+        parsed = samples(httpx.get(f"{srv.url}/metrics", headers=AUTH).text)
         assert value(parsed, "hippomap_inputs_total", session=sid, kind="odometry") == n_odo
         assert value(parsed, "hippomap_inputs_total", session=sid, kind="frame") == n_frames
         assert total(parsed, "hippomap_step_seconds_count", session=sid) == len(LONG)
@@ -262,7 +263,7 @@ def test_restart_readiness_metrics_and_json_logs(tmp_path):
                 if r.status_code == 503:
                     seen_restoring = r.json()
                     health_while_restoring = http.get("/health").status_code
-                    metrics_while_restoring = samples(http.get("/metrics").text)
+                    metrics_while_restoring = samples(http.get("/metrics", headers=AUTH).text)
                 elif r.status_code == 200:
                     ready = r.json()
                     break
@@ -272,7 +273,7 @@ def test_restart_readiness_metrics_and_json_logs(tmp_path):
             assert health_while_restoring == 200  # alive, not ready
             assert value(metrics_while_restoring, "hippomap_ready") == 0
             assert ready == {"ready": True, "restoring": [], "sessions": 1}
-            parsed = samples(http.get("/metrics").text)
+            parsed = samples(http.get("/metrics", headers=AUTH).text)
             restore_s = value(parsed, "hippomap_restore_seconds", session=sid)
             assert restore_s is not None and restore_s > 0
             assert value(parsed, "hippomap_ready") == 1

@@ -16,12 +16,13 @@ from ..store import Store, TokenRecord
 
 bearer = HTTPBearer(auto_error=False, description="a hippomap token (admin, writer or viewer)")
 
-SessionId = Annotated[str, Path(description="session id", max_length=64)]
+SessionId = Annotated[str, Path(description="session id")]  # any other string is simply not found (404)
 
 ERRORS: dict[int | str, dict[str, Any]] = {
     401: {"description": "missing or unknown bearer token"},
     404: {"description": "no such session, or one this token may not see"},
-    429: {"description": "request rate limit of the session exceeded (see Retry-After)"},
+    429: {"description": "rate limit exceeded (see Retry-After): the session's ingest budget, or for queries the "
+                         "token's read budget on the session"},
 }
 WRITE_ERRORS: dict[int | str, dict[str, Any]] = {**ERRORS, 403: {"description": "read-only (viewer) token"}}
 
@@ -40,8 +41,8 @@ def settings(request: Request) -> ServerSettings:
 
 def token(request: Request,
           credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(bearer)] = None,
-          query_token: Annotated[str | None, Query(alias="token", max_length=512,
-                                                   description="token for browsers (GET only)")] = None) -> TokenRecord:
+          query_token: Annotated[str | None, Query(alias="token", description="token for browsers (GET only; "
+                                                   "one longer than 512 characters is unknown)")] = None) -> TokenRecord:
     """The caller's token, from ``Authorization: Bearer`` (or ``?token=`` on GET requests)."""
     auth: Authenticator = request.app.state.auth
     secret = credentials.credentials if credentials is not None else None
@@ -63,11 +64,15 @@ def _session(request: Request, tok: TokenRecord, session_id: str, write: bool) -
         raise HTTPException(404, f"session {session_id!r} not found") from None
     except Forbidden:
         raise HTTPException(403, "this token is read-only") from None
-    wait = live.bucket.take()
+    if write:  # ingest (and delete): the session's budget
+        wait, what = live.bucket.take(), f"request rate limit of {live.settings.rate_per_s:g}/s"
+    else:  # queries: this token's own read budget on the session, apart from ingest
+        limits = request.app.state.read_limits
+        wait, what = limits.take((live.id, tok.id)), f"read rate limit of {limits.rate:g}/s (per token)"
     if wait > 0:
         live.rejected[429] += 1
-        raise HTTPException(429, f"request rate limit of {live.settings.rate_per_s:g}/s exceeded for session "
-                                 f"{session_id}", headers={"Retry-After": str(max(1, math.ceil(wait)))})
+        raise HTTPException(429, f"{what} exceeded for session {session_id}",
+                            headers={"Retry-After": str(max(1, math.ceil(wait)))})
     return live
 
 

@@ -47,7 +47,7 @@ async def accept(live: LiveSession, items: list[Accepted], wait_s: float) -> dic
 async def post_odometry(live: deps.WriteSession, request: Request, body: OdometryBatch | OdometryReading) -> Any:
     readings = body.readings if isinstance(body, OdometryBatch) else [body]
     try:
-        items = check_odometry(readings, live.settings.max_odometry_batch)
+        items = check_odometry(readings, live.settings.max_odometry_batch, live.settings)
     except IngestError as exc:
         live.rejected[exc.status] += 1
         raise HTTPException(exc.status, exc.detail) from None

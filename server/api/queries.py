@@ -16,8 +16,10 @@ from . import deps
 
 router = APIRouter(prefix="/sessions/{session_id}", tags=["queries"])
 
+#: the largest id, step or sequence number a query accepts: ids are 64-bit signed integers in the store
+MAX_ID = 2**62
 Limit = Annotated[int, Query(ge=1, le=10_000, description="most items returned")]
-SinceId = Annotated[int, Query(ge=-1, description="only items with a larger id (-1: from the start)")]
+SinceId = Annotated[int, Query(ge=-1, le=MAX_ID, description="only items with a larger id (-1: from the start)")]
 TMin = Annotated[float | None, Query(description="only items at or after this time", allow_inf_nan=False)]
 TMax = Annotated[float | None, Query(description="only items at or before this time", allow_inf_nan=False)]
 
@@ -103,7 +105,7 @@ async def get_recognitions(live: deps.ReadSession, request: Request, since_id: S
              "saccades": f"{base}{r['id']}", "image": f"{base}{r['id']}/image"} for r in recs]
 
 
-RecId = Annotated[int, Path(ge=0, description="recognition id")]
+RecId = Annotated[int, Path(ge=0, le=MAX_ID, description="recognition id")]
 
 
 @router.get("/saccades/{recognition_id}", responses=deps.ERRORS,
@@ -132,12 +134,12 @@ async def get_saccade_image(live: deps.ReadSession, recognition_id: RecId,
 
 
 # ------------------------------------------------------------- place fields
-def _pf_response(rec: Any, fmt: str) -> Any:
+def _pf_response(rec: Any, fmt: str, spatial: Any = None) -> Any:
     if fmt == "npy":
         return Response(views.place_field_npy(rec), media_type="application/octet-stream",
                         headers={"Content-Disposition": f'attachment; filename="place-field-{rec.step}.npy"'})
     if fmt == "png":
-        return Response(views.place_field_png(rec), media_type="image/png")
+        return Response(views.place_field_png(rec, spatial), media_type="image/png")
     return views.place_field_json(rec)
 
 
@@ -166,9 +168,10 @@ async def get_place_field_npy(live: deps.ReadSession) -> Response:
 
 
 @router.get("/place-field/png", response_class=Response, responses=_binary("image/png"),
-            summary="The current position matrix as PNG (white = field, y up)")
+            summary="The current place field's iteration as PNG: the grid cells' binarised matrices and the "
+                    "position matrix shrinking to one field (the paper's Fig. 8), axes in metres")
 async def get_place_field_png(live: deps.ReadSession) -> Response:
-    return await asyncio.to_thread(_pf_response, await _current_field(live), "png")
+    return await asyncio.to_thread(_pf_response, await _current_field(live), "png", live.config.spatial)
 
 
 @router.get("/place-fields", response_model=list[PlaceFieldInfo], responses=deps.ERRORS,
@@ -178,7 +181,7 @@ async def list_place_fields(live: deps.ReadSession, since_step: SinceId = -1, li
     return [{"step": r.step, "seq": r.seq, "t": r.t} for r in rows]
 
 
-Step = Annotated[int, Path(ge=0, description="odometry step")]
+Step = Annotated[int, Path(ge=0, le=MAX_ID, description="odometry step")]
 
 
 async def _field(live: LiveSession, step: int) -> Any:
@@ -200,9 +203,9 @@ async def get_past_field_npy(live: deps.ReadSession, step: Step) -> Response:
 
 
 @router.get("/place-fields/{step}/png", response_class=Response, responses=_binary("image/png"),
-            summary="A past position matrix as PNG")
+            summary="A past place field's iteration as PNG (as /place-field/png)")
 async def get_past_field_png(live: deps.ReadSession, step: Step) -> Response:
-    return await asyncio.to_thread(_pf_response, await _field(live, step), "png")
+    return await asyncio.to_thread(_pf_response, await _field(live, step), "png", live.config.spatial)
 
 
 # ------------------------------------------------------------ events, inputs
@@ -230,7 +233,8 @@ async def get_inputs(live: deps.ReadSession, since_seq: SinceId = -1, limit: Lim
 
 @router.get("/frames/{seq}", response_class=Response, responses=_binary("image/jpeg"),
             summary="A stored frame, exactly as it was received")
-async def get_frame(live: deps.ReadSession, seq: Annotated[int, Path(ge=0)]) -> Response:
+async def get_frame(live: deps.ReadSession,
+                    seq: Annotated[int, Path(ge=0, le=MAX_ID, description="sequence number of the input")]) -> Response:
     rec = await asyncio.to_thread(live.store.input_by_seq, live.id, seq)
     if rec is None or rec.kind != "frame":
         raise _not_found(f"frame {seq}")

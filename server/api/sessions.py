@@ -36,7 +36,9 @@ def _links(request: Request, sid: str) -> dict[str, str]:
 
 
 @router.post("", status_code=201, response_model=SessionDetail, responses={**deps.ERRORS, 403: {"description":
-             "read-only token"}, 422: {"description": "invalid config overrides"}},
+             "read-only token, or the token's grid-cell memory quota is used up"}, 422: {"description":
+             "invalid config overrides, or outside the server's safe ranges"},
+             429: {"description": "the token owns max_sessions_per_token sessions already"}},
              summary="Create a session (its own mapper, configured by overrides)")
 async def create_session(body: SessionCreate, request: Request, tok: deps.Token) -> Any:
     try:

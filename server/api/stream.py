@@ -11,6 +11,7 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
+import math
 from typing import Any
 
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
@@ -19,7 +20,8 @@ from starlette.websockets import WebSocketState
 from hippomap.errors import InputError
 
 from ..ingest import IngestError, parse_odometry_message
-from ..protocol import CLOSE_ELSEWHERE, CLOSE_FORBIDDEN, CLOSE_NOT_FOUND, CLOSE_UNAUTHORIZED, unpack_frame
+from ..protocol import (CLOSE_ELSEWHERE, CLOSE_FORBIDDEN, CLOSE_NOT_FOUND, CLOSE_UNAUTHORIZED, MessageError,
+                        parse_text_message, unpack_frame)
 from ..sessions import Forbidden, LiveSession, NotFound, ServedElsewhere
 
 router = APIRouter(tags=["ingest"])
@@ -70,15 +72,17 @@ async def _handle(live: LiveSession, message: dict[str, Any], out: asyncio.Queue
             items = [await live.validate_frame(image, t)]
         else:
             text = message.get("text") or ""
-            if len(text) > settings.max_body_bytes:
-                raise IngestError(413, f"message of {len(text)} bytes exceeds the limit of {settings.max_body_bytes}")
             try:
-                d = json.loads(text)
-            except ValueError as exc:
-                raise IngestError(422, f"text message is not JSON: {exc}") from None
+                d = parse_text_message(text, settings.max_text_message_bytes, settings.max_json_depth)
+            except MessageError as exc:
+                raise IngestError(exc.status, exc.detail) from None
             if not isinstance(d, dict):
                 raise IngestError(422, "text message must be a JSON object with a 'type'")
             mid = d.get("id")
+            if not (mid is None or (isinstance(mid, int) and not isinstance(mid, bool))
+                    or (isinstance(mid, float) and math.isfinite(mid)) or (isinstance(mid, str) and len(mid) <= 128)):
+                mid = None  # echoed back only if it is a plain id
+                raise IngestError(422, "message id must be a number or a string of at most 128 characters")
             kind = d.get("type")
             if kind == "ping":
                 await out.put({"type": "pong", "id": mid})
@@ -86,7 +90,7 @@ async def _handle(live: LiveSession, message: dict[str, Any], out: asyncio.Queue
             if kind != "odometry":
                 raise IngestError(422, f"unknown message type {kind!r}: expected 'odometry' or 'ping' "
                                        "(frames are binary messages)")
-            items = parse_odometry_message(d, settings.max_odometry_batch)
+            items = parse_odometry_message(d, settings.max_odometry_batch, settings)
 
         async def busy() -> None:
             await out.put({"type": "busy", "pending": live.pending, "max_pending": settings.max_pending})
@@ -96,6 +100,13 @@ async def _handle(live: LiveSession, message: dict[str, Any], out: asyncio.Queue
     except IngestError as exc:
         live.rejected[exc.status] += 1
         await out.put({"type": "error", "id": mid, "status": exc.status, "detail": exc.detail})
+    except NotFound:
+        raise
+    except Exception as exc:  # a bug must cost this message only, never the stream or the server
+        log.exception("session %s: websocket message failed", live.id, extra={"session": live.id})
+        live.rejected[500] += 1
+        await out.put({"type": "error", "id": mid, "status": 500,
+                       "detail": f"internal error on this message ({type(exc).__name__}); it was not stored"})
 
 
 @router.websocket("/sessions/{session_id}/stream")

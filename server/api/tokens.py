@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import asyncio
+import dataclasses
+import logging
 from typing import Annotated, Any
 
 from fastapi import APIRouter, HTTPException, Path, Request, Response
@@ -12,6 +14,14 @@ from ..sessions import NotFound
 from . import deps
 
 router = APIRouter(prefix="/tokens", tags=["tokens"])
+log = logging.getLogger("hippomap.server")
+
+
+def _rehome(manager: Any, old_owner: str, heir: str) -> None:
+    """The sessions this replica runs for ``old_owner`` now belong to ``heir`` (as in the store)."""
+    for live in list(manager.sessions.values()):
+        if live.record.owner == old_owner:
+            live.record = dataclasses.replace(live.record, owner=heir)
 
 
 def _info(t: Any) -> dict[str, Any]:
@@ -48,12 +58,18 @@ async def list_tokens(request: Request, tok: deps.Token) -> Any:
 
 
 @router.delete("/{token_id}", status_code=204, responses={**deps.ERRORS, 404: {"description": "no such token minted "
-               "by this token"}}, summary="Revoke a token this token minted")
+               "by this token"}}, summary="Revoke a token this token minted",
+               description="Revoking a writer token also revokes every viewer token it minted, and gives its "
+                           "sessions to the caller (the admin), who can then read, list and delete them.")
 async def delete_token(request: Request, tok: deps.Token,
                        token_id: Annotated[str, Path(max_length=64)]) -> Response:
     rows = await asyncio.to_thread(deps.store(request).list_tokens, tok.id)
-    if tok.role == "viewer" or not any(t.id == token_id and t.owner == tok.id for t in rows):
+    if tok.role == "viewer" or token_id == tok.id or not any(t.id == token_id and t.owner == tok.id for t in rows):
         raise HTTPException(404, f"token {token_id!r} not found")
-    await asyncio.wrap_future(deps.store(request).delete_token(token_id))
+    inherited = await asyncio.wrap_future(deps.store(request).revoke_token(token_id, tok.id))
     request.app.state.auth.forget()
+    _rehome(deps.manager(request), token_id, tok.id)
+    if inherited:
+        log.info("token %s revoked: its viewer tokens too; its %d sessions now belong to %s", token_id,
+                 len(inherited), tok.id, extra={"sessions": inherited})
     return Response(status_code=204)
