@@ -50,9 +50,11 @@ def odometry_reading(o: Odometry | dict[str, Any]) -> dict[str, Any]:
     """The JSON form of one odometry reading."""
     if isinstance(o, dict):
         return o
-    if o.increment is not None:
-        return {"t": o.t, "increment": list(o.increment)}
-    return {"t": o.t, "v": o.v, "omega": o.omega}
+    d: dict[str, Any] = ({"t": o.t, "increment": list(o.increment)} if o.increment is not None
+                         else {"t": o.t, "v": o.v, "omega": o.omega})
+    if getattr(o, "gt", None) is not None:
+        d["gt"] = list(o.gt)
+    return d
 
 
 def encode_image(image: bytes | np.ndarray, quality: int = 90) -> bytes:

@@ -18,12 +18,17 @@ from .errors import InputError, finite
 
 @dataclass(frozen=True)
 class Odometry:
-    """One odometry reading at time ``t``: velocities (``v``, ``omega``) or an increment."""
+    """One odometry reading at time ``t``: velocities (``v``, ``omega``) or an increment.
+
+    ``gt`` optionally carries the true pose (x, y, theta) at ``t`` in the ground truth's own frame
+    (simulated runs, data sets with ground truth): stored with the input and drawn by the viewer,
+    never used by the mapper."""
 
     t: float
     v: float | None = None
     omega: float | None = None
     increment: tuple[float, float, float] | None = None
+    gt: tuple[float, float, float] | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "t", finite("odometry t", self.t))
@@ -39,6 +44,11 @@ class Odometry:
                 raise InputError("odometry needs v and omega (or an increment)")
             object.__setattr__(self, "v", finite("odometry v", self.v))
             object.__setattr__(self, "omega", finite("odometry omega", self.omega))
+        if self.gt is not None:
+            if len(self.gt) != 3:
+                raise InputError(f"odometry gt must be a pose (x, y, theta), got {self.gt!r}")
+            gt = tuple(finite(f"odometry gt {k}", x) for k, x in zip(("x", "y", "theta"), self.gt))
+            object.__setattr__(self, "gt", gt)
 
     def as_increment(self, dt: float) -> tuple[float, float, float]:
         """The relative pose increment over ``dt``: the exact arc driven at constant

@@ -9,12 +9,16 @@ has (odometry and frames up to the session's last timestamp of each), so an inte
 replay can be restarted.
 The token comes from ``--token``, ``$HIPPOMAP_TOKEN``, or a local server's
 ``hippomap-data/admin.token``.
+A data set with ground truth sends it along: each odometry reading within the ground truth's
+time span carries the true pose at its time (``gt``, linearly interpolated) for the viewer;
+the mapper never uses it.
 """
 
 from __future__ import annotations
 
 import argparse
 import asyncio
+import dataclasses
 import json
 import time
 from pathlib import Path
@@ -25,6 +29,28 @@ from .inputs import Odometry
 
 #: consecutive odometry readings sent as one message when not replaying in real time
 FAST_BATCH = 200
+
+
+def ground_truth_at(groundtruth: Any) -> Any:
+    """``t -> (x, y, theta)`` interpolating a data set's ground truth ``(times, poses)`` (heading
+    unwrapped first), or None outside its time span; None if there is no ground truth."""
+    if groundtruth is None:
+        return None
+    import numpy as np
+
+    gt_t, gt_p = (np.asarray(a, float) for a in groundtruth)
+    if len(gt_t) < 2:
+        return None
+    th = np.unwrap(gt_p[:, 2])
+
+    def at(t: float) -> tuple[float, float, float] | None:
+        if not gt_t[0] <= t <= gt_t[-1]:
+            return None
+        a = float(np.interp(t, gt_t, th))
+        return (float(np.interp(t, gt_t, gt_p[:, 0])), float(np.interp(t, gt_t, gt_p[:, 1])),
+                float((a + np.pi) % (2 * np.pi) - np.pi))
+
+    return at
 
 
 def _frame_bytes(ref: Any) -> bytes:
@@ -58,6 +84,7 @@ async def replay(dataset: Any, url: str, token: str | None, session_id: str, spe
                 bar.update(n)
         fut.add_done_callback(done)
 
+    gt_at = ground_truth_at(getattr(dataset, "groundtruth", None))
     start = time.perf_counter()
     async with AsyncStream(url, token, session_id, max_in_flight=window) as stream:
         last = ({"odometry": stream.hello.get("last_odometry_t"), "frame": stream.hello.get("last_frame_t")}
@@ -86,7 +113,8 @@ async def replay(dataset: Any, url: str, token: str | None, session_id: str, spe
                     await asyncio.sleep(delay)
             if isinstance(item, Odometry):
                 counts["odometry"] += 1
-                batch.append(item)
+                pose = gt_at(item.t) if gt_at is not None and item.gt is None else None
+                batch.append(item if pose is None else dataclasses.replace(item, gt=pose))
                 if speed is not None or len(batch) >= FAST_BATCH:
                     await flush()
                 continue

@@ -291,7 +291,14 @@ def test_viewer_mirrors_the_mapper_and_sends_only_changes(fed_session):
         assert accepted, "the simulated loop should close"
         assert viewer.loops.accepted.tracker.n == len(accepted)
         assert viewer.loops.rejected.tracker.n == len(rejected)
-        assert not viewer.loops.rejected.visible and viewer.loops.accepted.visible
+        # the shared scene holds both; each browser hides the rejected ones by default (web.panel_layers)
+        assert viewer.loops.rejected.visible and viewer.loops.accepted.visible
+        defaults = {sp.key: sp.visible for sp in viewer.layer_specs}
+        assert defaults["rejected"] is False and defaults["accepted"] is True
+        # loop closures are thin lines; their end dots are smaller than nodes
+        assert viewer.loops.accepted.style == viewer.loops.rejected.style == "thin"
+        assert viewer.loops.accepted_ends.point_size <= viewer.map.nodes.point_size
+        assert viewer.loops.accepted_ends.tracker.n == 2 * len(accepted)
         # trajectories: one sample per spacing of raw path, raw and corrected alike
         n_samples = len(viewer.trajectories.sampler.samples)
         assert viewer.trajectories.odometry.tracker.n == n_samples - 1
@@ -441,3 +448,242 @@ def test_websocket_proxy_forwards_the_viser_protocol(client):
         with client.websocket_connect("/viewer/s1", subprotocols=["viser-v0.0.1"]) as ws:
             ws.receive_bytes()
     assert exc.value.code == 1002
+
+
+# ------------------------------------------------- readable views: camera, ground truth, replay, layers
+from web.camera_fit import fit_camera, map_bounds  # noqa: E402
+from web.panel_layers import ClientLayers, layer_specs, legend_html  # noqa: E402
+from web.scene_ground_truth import GroundTruthLayer, origin_alignment  # noqa: E402
+from web.scene_replay import replay_at  # noqa: E402
+
+
+def _project(points, pos, look, fov, aspect):
+    """Pinhole projection (+z up) of world points to normalised screen coordinates in [-1, 1]."""
+    f = (look - pos) / np.linalg.norm(look - pos)
+    r = np.cross(f, [0.0, 0.0, 1.0])
+    r /= np.linalg.norm(r)
+    u = np.cross(r, f)
+    d = np.asarray(points, float) - pos
+    zc = d @ f
+    t = math.tan(fov / 2)
+    return np.column_stack([(d @ r) / (zc * t * aspect), (d @ u) / (zc * t)])
+
+
+@settings(max_examples=60, deadline=None)
+@given(cx=st.floats(-50, 50), cy=st.floats(-50, 50), w=st.floats(0.5, 200), h=st.floats(0.5, 200),
+       aspect=st.floats(0.6, 2.5), covered=st.floats(0.0, 0.4), left=st.floats(0.0, 0.3),
+       fov=st.floats(0.5, 1.6))
+def test_fitted_camera_shows_the_whole_map_in_the_free_canvas_and_fills_it(cx, cy, w, h, aspect, covered, left, fov):
+    lo, hi = np.array([cx - w / 2, cy - h / 2]), np.array([cx + w / 2, cy + h / 2])
+    pos, look = fit_camera(lo, hi, fov, aspect, margin=1.15, covered=covered, covered_left=left)
+    corners = np.array([[x, y, 0.0] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])])
+    uv = _project(corners, pos, look, fov, aspect)
+    x_lo, x_hi = -1 + 2 * left, 1 - 2 * covered
+    assert np.all(uv[:, 0] >= x_lo - 1e-9) and np.all(uv[:, 0] <= x_hi + 1e-9)
+    assert np.all(np.abs(uv[:, 1]) <= 1 + 1e-9)
+    # it fills the free area along at least one axis (within the margin and the tilt's perspective)
+    fill_x = (uv[:, 0].max() - uv[:, 0].min()) / (x_hi - x_lo)
+    fill_y = (uv[:, 1].max() - uv[:, 1].min()) / 2
+    assert max(fill_x, fill_y) > 0.7
+
+
+def test_map_bounds_and_bad_camera_parameters():
+    assert map_bounds(np.empty((0, 3)), None) is None
+    lo, hi = map_bounds(np.array([[0.0, 0.0, 0.0], [10.0, 0.5, 0.0]]), np.array([[2.0, -4.0]]))
+    assert np.allclose(lo, [0.0, -4.0]) and np.allclose(hi, [10.0, 0.5])
+    lo, hi = map_bounds(np.zeros((1, 3)))  # one node: a minimum box around it
+    assert np.allclose(hi - lo, 2.0)
+    with pytest.raises(ValueError):
+        fit_camera(np.zeros(2), np.ones(2), fov=0.0, aspect=1.0)
+    with pytest.raises(ValueError):
+        fit_camera(np.zeros(2), np.ones(2), fov=1.0, aspect=1.0, covered=0.5, covered_left=0.5)
+
+
+class _Handle:
+    def __init__(self, scene, name, kind, **kw):
+        self.scene, self.name, self.kind, self.kw = scene, name, kind, kw
+        self.visible = kw.get("visible", True)
+
+    def remove(self):
+        self.scene.nodes.pop(self.name, None)
+
+
+class _Scene:
+    """Records scene nodes by name, like viser's scene API (re-adding a name replaces it)."""
+
+    def __init__(self):
+        self.nodes = {}
+
+    def _add(self, kind, name, **kw):
+        h = _Handle(self, name, kind, **kw)
+        self.nodes[name] = h
+        return h
+
+    def add_frame(self, name, **kw):
+        return self._add("frame", name, **kw)
+
+    def add_mesh_simple(self, name, vertices, faces, **kw):
+        return self._add("mesh", name, vertices=vertices, faces=faces, **kw)
+
+    def add_point_cloud(self, name, points, colors, **kw):
+        return self._add("points", name, points=points, colors=colors, **kw)
+
+    def add_line_segments(self, name, points, colors, **kw):
+        return self._add("segments", name, points=points, colors=colors, **kw)
+
+
+class _Box:
+    def __init__(self, value):
+        self.value = value
+        self.callbacks = []
+
+    def on_update(self, fn):
+        self.callbacks.append(fn)
+
+
+class _Gui:
+    def add_checkbox(self, label, initial_value):
+        return _Box(initial_value)
+
+
+class _Client:
+    def __init__(self):
+        self.scene, self.gui = _Scene(), _Gui()
+
+
+def test_ground_truth_is_carried_into_the_map_frame_at_the_first_pose():
+    t = np.arange(200) * 0.25
+    gt_world = np.column_stack([5.0 + np.cos(t / 5) * 3, -2.0 + np.sin(t / 5) * 3, t / 5 + np.pi / 2])
+    raw0 = np.array([0.0, 0.0, 0.0])
+    rows = np.column_stack([t, gt_world])
+    first_row = np.r_[t[0], raw0, 0, 0, 0, 0]
+    A = origin_alignment(rows, first_row)
+    from hippomap.geometry import compose
+
+    assert np.allclose(compose(A, gt_world[0]), raw0, atol=1e-12)
+    # rigid: distances along the path are kept
+    mapped = compose(A, gt_world)
+    assert np.allclose(np.hypot(*np.diff(mapped[:, :2], axis=0).T), np.hypot(*np.diff(gt_world[:, :2], axis=0).T))
+    assert origin_alignment(rows, np.r_[t[-1] + 5.0, raw0, 0, 0, 0, 0]) is None  # no overlap in time
+    # the layer: waits for the map's first row, then draws incrementally, append-only
+    layer = GroundTruthLayer(_Scene(), ViewerSettings(trajectory_spacing_m=0.1))
+    assert layer.update(rows[:50], None) is None and not layer.present
+    assert layer.seen == 50
+    layer.update(rows[50:120], first_row)
+    n1 = len(layer.samples)
+    layer.update(rows[120:], first_row)
+    assert layer.present and len(layer.samples) > n1 and layer.seen == 200
+    assert np.allclose(layer.samples[0, 1:4], raw0, atol=1e-9)
+    d = np.hypot(*np.diff(layer.samples[:, 1:3], axis=0).T)
+    assert d.min() > 0.05  # sampled by path length, not every pose
+
+
+def test_replay_cuts_the_map_back_in_time(fed_session):
+    session, run, half = fed_session
+    viewer = SessionViewer(session, ViewerSettings(), start=False)
+    try:
+        snap = viewer._snapshot
+        samples = viewer.trajectories.sampler.samples
+        t0, t1 = samples[0, 0], samples[-1, 0]
+        frames = [replay_at(snap, samples, None, t0 + f * (t1 - t0)) for f in (0.0, 0.3, 0.6, 1.0)]
+        counts = [fr.n_nodes for fr in frames]
+        assert counts == sorted(counts) and counts[-1] == len(snap.node_poses) and counts[0] < counts[-1]
+        n_links = [len(fr.links) + len(fr.loop_links) for fr in frames]
+        assert n_links == sorted(n_links) and n_links[-1] == len(snap.link_source)
+        mid = frames[1]
+        # every drawn link joins two drawn nodes
+        drawn = {tuple(np.round(p[:2], 4)) for p in mid.nodes}
+        for seg in np.concatenate([mid.links, mid.loop_links]):
+            assert tuple(np.round(seg[0, :2], 4)) in drawn and tuple(np.round(seg[1, :2], 4)) in drawn
+        assert len(mid.corrected) < len(frames[-1].corrected)
+        thin = replay_at(snap, samples, None, t1, max_nodes=10)
+        assert len(thin.nodes) <= 10 and thin.n_nodes == len(snap.node_poses)
+    finally:
+        viewer.close()
+
+
+def test_legend_names_every_layer_and_ground_truth_only_when_present():
+    specs = layer_specs(ViewerSettings())
+    with_gt, without = legend_html(specs, True), legend_html(specs, False)
+    for sp in specs:
+        if sp.key not in ("ground_truth", "place_field"):
+            assert sp.label in with_gt and sp.label in without
+    assert "ground truth" in with_gt and "ground truth" not in without
+    assert "linear-gradient" in with_gt  # the place field's colour scale
+    hidden = legend_html(specs, True, {"odometry": False})
+    assert 'line-through" data-layer="odometry"' in hidden and 'line-through" data-layer="nodes"' not in hidden
+
+
+def test_layer_toggles_shadow_groups_for_one_browser_only():
+    specs = layer_specs(ViewerSettings())
+    a, b = _Client(), _Client()
+    la, lb = ClientLayers(a, specs), ClientLayers(b, specs)
+    # rejected loop closures start hidden in every browser, nothing else
+    assert set(a.scene.nodes) == {"/loops/rejected"} and not a.scene.nodes["/loops/rejected"].visible
+    la.set("ground_truth", False)
+    la.set("links", False)
+    assert {"/ground_truth", "/map/links", "/map/loop_links"} <= set(a.scene.nodes)
+    assert set(b.scene.nodes) == {"/loops/rejected"}  # the other browser is untouched
+    la.set("rejected", True)
+    assert "/loops/rejected" not in a.scene.nodes
+    # the replay hides every live layer, and afterwards each is back as toggled
+    la.set_replaying(True)
+    groups = {g for sp in specs for g in sp.groups}
+    assert groups == set(a.scene.nodes)
+    la.set_replaying(False)
+    assert set(a.scene.nodes) == {"/ground_truth", "/map/links", "/map/loop_links"}
+    la.set("ground_truth", True)
+    assert la.shown("ground_truth") and "/ground_truth" not in a.scene.nodes
+    assert lb.shown("ground_truth") and not lb.shown("rejected")
+
+
+def test_ground_truth_travels_with_odometry_and_never_reaches_the_mapper():
+    from hippomap.client import odometry_reading
+    from hippomap.errors import InputError
+    from hippomap.inputs import Odometry
+    from server.ingest import odometry_bytes, odometry_from_bytes
+
+    o = Odometry(1.5, v=0.2, omega=0.1, gt=(1.0, -2.0, 0.5))
+    assert odometry_from_bytes(odometry_bytes(o)) == o
+    assert odometry_reading(o)["gt"] == [1.0, -2.0, 0.5]
+    plain = Odometry(1.5, v=0.2, omega=0.1)
+    assert b"gt" not in odometry_bytes(plain) and "gt" not in odometry_reading(plain)
+    for bad in ((1.0, 2.0), (1.0, float("nan"), 0.0)):
+        with pytest.raises(InputError):
+            Odometry(1.0, v=0.0, omega=0.0, gt=bad)
+    # the mapper's result does not depend on the ground truth
+    run = _small_run()
+    a, b = LocalSession("a"), LocalSession("b")
+    for item in sim_inputs(run, 0, 60):
+        if hasattr(item, "gt"):
+            a.step(item)
+            b.step(Odometry(item.t, v=item.v, omega=item.omega))
+    assert np.array_equal(a.mapper.cmap.poses, b.mapper.cmap.poses)
+    assert len(a.ground_truth()) == 60 and b.ground_truth() is None
+    assert np.allclose(a.ground_truth()[:, 1:], run.groundtruth[:60])
+
+
+def test_replay_interpolates_a_data_sets_ground_truth_for_each_reading():
+    from hippomap.replay import ground_truth_at
+
+    assert ground_truth_at(None) is None
+    t = np.array([0.0, 1.0, 2.0])
+    poses = np.array([[0.0, 0.0, 3.0], [1.0, 2.0, -3.0], [3.0, 2.0, -2.0]])  # heading crosses +-pi
+    at = ground_truth_at((t, poses))
+    assert at(-0.1) is None and at(2.1) is None
+    assert np.allclose(at(1.0), poses[1]) and np.allclose(at(0.5)[:2], [0.5, 1.0])
+    # half way from 3.0 to -3.0 (= 3.28 unwrapped) is pi +- a little, not 0
+    assert abs(abs(at(0.5)[2]) - math.pi) < 0.2
+
+
+def test_fitting_the_points_of_a_round_map_fills_more_than_its_box():
+    th = np.linspace(0, 2 * np.pi, 400)
+    pts = np.column_stack([10 * np.cos(th), 10 * np.sin(th)])
+    lo, hi = pts.min(0), pts.max(0)
+    fov, aspect = math.radians(75), 1.0  # with a panel over 30 % of the width: the width limits the fit
+    box_pos, box_look = fit_camera(lo, hi, fov, aspect, covered=0.3)
+    pts_pos, pts_look = fit_camera(lo, hi, fov, aspect, covered=0.3, points=pts)
+    floor = np.column_stack([pts, np.zeros(len(pts))])
+    uv = _project(floor, pts_pos, pts_look, fov, aspect)
+    assert np.abs(uv[:, 1]).max() <= 1 + 1e-9 and uv[:, 0].min() >= -1 - 1e-9 and uv[:, 0].max() <= 0.4 + 1e-9
+    assert np.linalg.norm(pts_pos - pts_look) < np.linalg.norm(box_pos - box_look)  # closer: the circle fills more

@@ -78,12 +78,15 @@ def test_viewer_shows_the_live_map_and_saccades_in_chromium(streamed):
             page.wait_for_url(f"{server.url}/viewer/{sid}/")
             page.wait_for_function("() => !document.body.innerText.includes('Connecting...')", timeout=60_000)
             for node in ("/map/nodes/0", "/map/links/0", "/trajectories/odometry/0", "/trajectories/map/0",
-                         "/loops/accepted/0", "/place_field", "/robot"):
+                         "/loops/accepted/0", "/place_field", "/robot", "/ground_truth/0"):
                 page.wait_for_function("n => !!window.__viserSceneTree?.getState()[n]", arg=node, timeout=60_000)
             # the panel: stats of this session, the saccade trace of the last recognition
             page.wait_for_function("n => document.body.innerText.includes(n)", arg="loop closures", timeout=30_000)
             text = page.inner_text("body")
             assert "nodes" in text and "key frames" in text
+            # the on-canvas legend, with the ground truth the simulated robot streamed with its odometry
+            page.wait_for_function("() => document.body.innerText.includes('ground truth')", timeout=30_000)
+            assert page.locator(".hippomap-legend").first.is_visible()
             page.wait_for_function(
                 "() => Array.from(document.images).filter(i => i.complete && i.naturalWidth === 484).length >= 1",
                 timeout=30_000)
@@ -104,6 +107,33 @@ def test_viewer_shows_the_live_map_and_saccades_in_chromium(streamed):
     sacc = cv2.imdecode(np.frombuffer(trace_png, np.uint8), cv2.IMREAD_COLOR)
     assert sacc.shape[1] > 200 and sacc.std() > 10.0
     assert _colourful_pixels(sacc) > 30, "the saccade trace (coloured fixations) is not drawn"
+
+
+def test_place_field_png_draws_the_iteration_like_fig_8(streamed):
+    """GET /sessions/{id}/place-field/png: the grid cells' binarised matrices and the product shrinking
+    to one field, with axes and a colour scale — not a black matrix with one white pixel."""
+    import httpx
+
+    server, sid, _, _ = streamed
+    r = httpx.get(f"{server.url}/sessions/{sid}/place-field/png", headers={"Authorization": f"Bearer {server.token}"},
+                  timeout=60)
+    assert r.status_code == 200 and r.headers["content-type"] == "image/png"
+    img = cv2.imdecode(np.frombuffer(r.content, np.uint8), cv2.IMREAD_COLOR)
+    ARTIFACTS.mkdir(exist_ok=True)
+    (ARTIFACTS / "place-field.png").write_bytes(r.content)
+    h, w = img.shape[:2]
+    assert w > 1000 and h > 400  # a multi-panel figure, not the 801 x 801 position matrix
+    white = (img.min(axis=2) > 245).mean()
+    assert 0.3 < white < 0.95  # a white figure background with panels on it
+    b, g, r_ = (img[:, :, i].astype(int) for i in range(3))
+    assert ((r_ > 230) & (g > 190) & (b < 90)).sum() > 1000  # binarised grid-cell windows (MB = 1)
+    assert ((r_ < 90) & (g > 200) & (b > 230)).sum() > 100  # the position matrix (POS = 1)
+    meta = httpx.get(f"{server.url}/sessions/{sid}/place-field", headers={"Authorization": f"Bearer {server.token}"},
+                     timeout=60).json()
+    step = meta["step"]
+    past = httpx.get(f"{server.url}/sessions/{sid}/place-fields/{step}/png",
+                     headers={"Authorization": f"Bearer {server.token}"}, timeout=60)
+    assert past.status_code == 200 and past.content[:4] == b"\x89PNG"
 
 
 def test_viewer_refuses_other_tokens_and_unknown_sessions(streamed):

@@ -58,7 +58,22 @@ def recognition_from_dict(d: Mapping[str, Any]) -> Recognition:
     size = d.get("image_size") or (0, 0)
     return Recognition(frame_id=d.get("frame_id"), evidence=float(d.get("evidence", 0.0)), steps=steps,
                        n_resets=int(d.get("n_resets", 0)), confidence=float(d.get("confidence", 0.0)),
-                       image_size=(int(size[0]), int(size[1])), reason=str(d.get("reason", "")))
+                       image_size=(int(size[0]), int(size[1])), reason=str(d.get("reason", "")),
+                       **_optional(d))
+
+
+def _optional(d: Mapping[str, Any]) -> dict[str, Any]:
+    """Fields newer recognitions carry (image correspondences and their shift), when present and
+    known to this version's :class:`Recognition`."""
+    import dataclasses
+
+    known = {f.name for f in dataclasses.fields(Recognition)}
+    out: dict[str, Any] = {}
+    if "correspondences" in known and d.get("correspondences") is not None:
+        out["correspondences"] = [dict(c) for c in d["correspondences"]]
+    if "shift" in known and d.get("shift") is not None:
+        out["shift"] = dict(d["shift"])
+    return out
 
 
 def _label(img: np.ndarray, text: str, y: int = 14) -> None:

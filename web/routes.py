@@ -6,7 +6,9 @@
 * ``WS /viewer/{session}`` — the browser derives its websocket URL from the page URL (minus the
   query and the trailing slash) and offers the subprotocol ``viser-v<version>``; this route
   accepts with that subprotocol and pipes frames both ways to the session's viser server on
-  127.0.0.1. viser's ports are never exposed; authentication stays here.
+  127.0.0.1. viser's ports are never exposed, and answer only connections carrying the viewer's
+  random key (sent by this proxy alone: other local users cannot read the scene); authentication
+  stays here.
 
 Authentication: the service's bearer tokens, read from ``Authorization: Bearer``, a ``token``
 query parameter, or the ``hippomap_viewer`` cookie. A browser cannot set headers on a page
@@ -37,7 +39,7 @@ from fastapi.responses import HTMLResponse, RedirectResponse, Response
 from starlette.concurrency import run_in_threadpool
 from starlette.websockets import WebSocketDisconnect, WebSocketState
 
-from .session_viewer import ViewerHub
+from .session_viewer import KEY_HEADER, ViewerHub
 from .settings import ViewerSettings
 from .source import SessionSource
 
@@ -124,7 +126,9 @@ def make_router(access: ViewerAccess, hub: ViewerHub | None = None,
         q = f"?{request.url.query}" if request.url.query else ""
         return RedirectResponse(f"{PREFIX}/{q}", status_code=307)
 
-    @router.get(f"{PREFIX}/", response_class=HTMLResponse, summary="Sessions you may view")
+    @router.get(f"{PREFIX}/", response_class=HTMLResponse, summary="Sessions you may view",
+                responses={401: {"content": {"text/html": {}}, "description": "no token, or not a valid one: a "
+                                 "login form"}})
     async def landing(request: Request) -> Response:
         token = token_from(request.headers, request.query_params, request.cookies)
         sessions = await run_in_threadpool(access.list_sessions, token)
@@ -148,7 +152,9 @@ def make_router(access: ViewerAccess, hub: ViewerHub | None = None,
         q = f"?{request.url.query}" if request.url.query else ""
         return RedirectResponse(f"{PREFIX}/{quote(session_id, safe='')}/{q}", status_code=307)
 
-    @router.get(PREFIX + "/{session_id}/", summary="Live 3D viewer of a session")
+    @router.get(PREFIX + "/{session_id}/", response_class=HTMLResponse, summary="Live 3D viewer of a session",
+                responses={404: {"content": {"text/html": {}}, "description": "no such session, or one the token "
+                                 "may not see: a login form"}})
     async def viewer_page(session_id: str, request: Request) -> Response:
         token = token_from(request.headers, request.query_params, request.cookies)
         source = await run_in_threadpool(access.open_session, token, session_id)
@@ -175,6 +181,7 @@ def make_router(access: ViewerAccess, hub: ViewerHub | None = None,
         try:
             upstream = await websockets.connect(
                 f"ws://127.0.0.1:{viewer.port}", subprotocols=wanted or None, max_size=None,
+                additional_headers={KEY_HEADER: viewer.access_key},
                 compression=None, open_timeout=10, ping_interval=None)
         except (OSError, websockets.WebSocketException, asyncio.TimeoutError) as exc:
             log.warning("viewer %s: cannot reach its viser server: %s", session_id, exc)

@@ -2,9 +2,12 @@
 
 A loop decision joins the node that was current when the hypothesis was made
 (``LoopDecision.from_node``) and the recognised node (``hypothesis.node``); it is drawn between
-their map poses, above the map so it stays visible. Accepted closures are always shown (the
-layer toggle can hide them), rejected ones are hidden by default (their toggle shows them), and
-pending ones are not drawn. The loop chosen in the panel's list gets a thick marker and labels.
+their map poses, above the map so it stays visible. Both are thin native lines (one pixel, in the
+layer's colour) so that ten laps of closures do not bury the map, and an accepted closure's two
+ends are marked by dots no larger than a node (a closed loop pulls its nodes together, so its
+segment may be very short). Accepted closures are shown, rejected ones are hidden by default in
+each browser (:mod:`web.panel_layers`), pending ones are not drawn. The loop chosen in the panel's
+list gets a thick marker and labels.
 """
 
 from __future__ import annotations
@@ -50,12 +53,15 @@ class LoopLayer:
         s = settings
         self.scene, self.settings = scene, s
         self.accepted = ChunkedSegments(scene, "/loops/accepted", s.chunk_size, s.move_tolerance_m,
-                                        s.loop_thickness_m, tail_size=s.tail_size)
-        # a closed loop pulls its two nodes together, so its segment is short: mark its ends too
+                                        s.loop_thickness_m, style="thin", color=s.color_loop_accepted,
+                                        tail_size=s.tail_size)
+        # a closed loop pulls its two nodes together, so its segment is short: mark its ends too,
+        # with dots smaller than a node (the node stays visible around its loop mark)
         self.accepted_ends = ChunkedPoints(scene, "/loops/accepted/ends", s.chunk_size, s.move_tolerance_m,
-                                           4 * s.node_size_m, tail_size=s.tail_size)
+                                           0.6 * s.node_size_m, tail_size=s.tail_size)
         self.rejected = ChunkedSegments(scene, "/loops/rejected", s.chunk_size, s.move_tolerance_m,
-                                        0.6 * s.loop_thickness_m, visible=False, tail_size=s.tail_size)
+                                        s.loop_thickness_m, style="thin", color=s.color_loop_rejected,
+                                        tail_size=s.tail_size)
         self._selected: list[Any] = []
         self._selected_key: tuple | None = None
 
@@ -90,9 +96,9 @@ class LoopLayer:
         self._selected = [
             self.scene.add_line_segments("/loops/selected/segment", seg, np.uint8(color),
                                          thickness=3 * s.loop_thickness_m),
-            self.scene.add_label(f"/loops/selected/now", f"loop {decision.id}: node {decision.from_node}",
+            self.scene.add_label("/loops/selected/now", f"loop {decision.id}: node {decision.from_node}",
                                  position=(float(a[0]), float(a[1]), 0.3)),
-            self.scene.add_label(f"/loops/selected/then", f"node {decision.hypothesis.node}",
+            self.scene.add_label("/loops/selected/then", f"node {decision.hypothesis.node}",
                                  position=(float(b[0]), float(b[1]), 0.3)),
         ]
 

@@ -30,6 +30,7 @@ from .source import CameraImage
 T = TypeVar("T")
 
 LOOKBACK = 32  # inputs searched backwards for the newest processed frame
+GT_BATCH = 2000  # stored inputs scanned for ground-truth poses per viewer update
 
 
 def _decode(t: float, data: bytes) -> np.ndarray | None:
@@ -52,6 +53,8 @@ class ServiceSession:
         self._latest_seq = -1
         self._keyframe_t: dict[int, float] = {}
         self._events_seen = -1
+        self._gt: list[tuple[float, float, float, float]] = []  # (t, x, y, theta) of odometry readings with gt
+        self._gt_seq = -1  # inputs scanned for ground truth so far
 
     @property
     def session_id(self) -> str:
@@ -101,6 +104,25 @@ class ServiceSession:
                     self._events_seen = evs[-1].id
             t = self._keyframe_t.get(int(frame_id))
         return None if t is None else self.frame_at(t)
+
+    def ground_truth(self, start: int = 0) -> np.ndarray | None:
+        """Ground-truth rows ``start:`` (t, x, y, theta) from the stored odometry readings that carry a
+        ``gt`` pose (read incrementally, at most GT_BATCH inputs per call), or None if none has."""
+        import json
+
+        with self._lock:
+            recs = self.store.read_inputs(self.session_id, self._gt_seq, GT_BATCH, with_data=True)
+            for r in recs:
+                if r.kind == "odometry" and b'"gt"' in r.data:
+                    d = json.loads(r.data)
+                    g = d.get("gt")
+                    if g is not None and len(g) == 3:
+                        self._gt.append((float(d["t"]), float(g[0]), float(g[1]), float(g[2])))
+            if recs:
+                self._gt_seq = recs[-1].seq
+            if not self._gt:
+                return None
+            return np.array(self._gt[max(0, int(start)):], dtype=float).reshape(-1, 4)
 
     def lag_s(self) -> float | None:
         """Stream seconds between the newest input received and the newest the mapper processed."""

@@ -1,7 +1,8 @@
 """One live viewer per mapping session, and the hub that creates them on demand and closes idle ones.
 
 A :class:`SessionViewer` owns a ``viser.ViserServer`` bound to 127.0.0.1 on a free port (never
-exposed: the browser reaches it only through the FastAPI proxy of :mod:`web.routes`), the scene
+exposed: the browser reaches it only through the FastAPI proxy of :mod:`web.routes`, and it answers
+403 to any connection without the viewer's random key, which only the proxy sends), the scene
 layers and panels, and one update thread. The thread pushes, inside ``server.atomic()``:
 
 * the camera image at ``camera_hz``;
@@ -16,7 +17,9 @@ view and closes it after ``idle_timeout_s`` without a connection.
 from __future__ import annotations
 
 import contextlib
+import hmac
 import logging
+import secrets
 import threading
 import time
 from dataclasses import dataclass
@@ -31,17 +34,21 @@ from .chunks import ChunkUpdate
 from .images import pair_panel, placeholder
 from .panel_camera import CameraPanel
 from .panel_evidence import EvidencePanel
-from .panel_layers import Layer, LayersPanel
+from .camera_fit import fit_camera, map_bounds
+from .panel_layers import layer_specs, legend_html
+from .panel_place_cells import PlaceCellsPanel
+from .panel_view import ClientViews
 from .panel_loops import LoopsPanel
 from .panel_stats import StatsPanel
 from .scene_loops import LoopLayer, LoopUpdate
 from .scene_map import MapGraphLayer, MapUpdate
 from .scene_place_field import PlaceFieldLayer
+from .scene_ground_truth import GroundTruthLayer
 from .scene_pose import RobotMarker
 from .scene_trajectories import TrajectoryLayer, TrajectoryUpdate
 from .settings import ViewerSettings
 from .snapshot import Cursor, MapSnapshot, take_snapshot
-from .source import SessionSource
+from .source import SessionSource, ground_truth_rows
 
 log = logging.getLogger(__name__)
 _QUIET_LOCK = threading.Lock()
@@ -60,6 +67,43 @@ def _quiet_viser() -> Iterator[None]:
             yield
         finally:
             console.quiet = quiet
+
+
+#: the header the proxy (:mod:`web.routes`) sends with each session viewer's secret key
+KEY_HEADER = "X-Hippomap-Viewer-Key"
+
+
+def require_key(server: viser.ViserServer, key: str) -> None:
+    """Make ``server`` refuse (HTTP 403) every request and websocket that does not carry ``key`` in
+    :data:`KEY_HEADER`: its loopback port is open to every local user, the key only to the proxy.
+
+    viser has no hook for this: its websockets server checks each opening handshake with the
+    server's ``process_request`` attribute (read per connection), which is wrapped here. Clients
+    that connected before the wrap (the first milliseconds) are disconnected; the scene is still
+    empty then. Raises RuntimeError if viser's server cannot be found (a viser upgrade changed it)."""
+    import gc
+    from http import HTTPStatus
+
+    from websockets.asyncio.server import Server
+
+    infra = server._websock_server
+    loop, port = infra._background_event_loop, server.get_port()
+    found = [o for o in gc.get_objects() if type(o) is Server and o.loop is loop
+             and any(sock.getsockname()[1] == port for sock in (o.server.sockets if o.server else ()))]
+    if len(found) != 1:
+        raise RuntimeError(f"cannot secure the viewer's viser server on port {port}: found {len(found)} servers")
+    ws_server = found[0]
+    viser_http = ws_server.process_request
+    expected = key.encode()
+
+    def process_request(connection, request):  # noqa: ANN001, ANN202 (websockets' signature)
+        given = request.headers.get(KEY_HEADER, "")
+        if not hmac.compare_digest(given.encode("utf-8", "replace"), expected):
+            return connection.respond(HTTPStatus.FORBIDDEN, "forbidden: connect through the hippomap service\n")
+        return None if viser_http is None else viser_http(connection, request)
+
+    ws_server.process_request = process_request
+    infra.disconnect_all_clients()
 
 
 _NOTHING = ChunkUpdate((), 0)
@@ -95,6 +139,14 @@ class SessionViewer:
         with _quiet_viser():
             self.server = viser.ViserServer(host="127.0.0.1", port=0, label=f"hippomap · {source.title}",
                                             verbose=False)
+        #: the secret the proxy sends in KEY_HEADER: without it the loopback server answers 403
+        self.access_key = secrets.token_urlsafe(32)
+        try:
+            require_key(self.server, self.access_key)
+        except Exception:
+            with _quiet_viser():
+                self.server.stop()
+            raise
         self.server.scene.set_up_direction("+z")
         # Lighting, measured in headless Chromium (software WebGL): viser's default environment map
         # costs two thirds of the frame time of a 10k-node map, shadows buy nothing on a flat map.
@@ -118,25 +170,25 @@ class SessionViewer:
             self.loops = LoopLayer(scene, s)
             self.place_field = PlaceFieldLayer(scene, s)
             self.robot = RobotMarker(scene, s)
+            self.ground_truth = GroundTruthLayer(scene, s)
+            self.layer_specs = layer_specs(s)
+            # the legend floats on the canvas, always visible (bottom left; the controls float top right)
+            self.legend_panel = gui.add_panel()
+            with self.legend_panel.add_tab("Legend"):
+                self.legend = gui.add_html(legend_html(self.layer_specs, ground_truth=False))
+            self.legend_panel.float(x=12, y=-12, width=250)
             with gui.add_folder("Camera"):
                 self.camera = CameraPanel(gui, s)
             with gui.add_folder("Evidence"):
                 self.evidence = EvidencePanel(gui, self._decision_threshold())
             with gui.add_folder("Session"):
                 self.stats = StatsPanel(gui)
-            with gui.add_folder("Layers", expand_by_default=False):
-                self.layers = LayersPanel(gui, [
-                    Layer("map nodes", True, lambda v: self.map.set_visible(nodes=v)),
-                    Layer("map links", True, lambda v: self.map.set_visible(links=v)),
-                    Layer("odometry trajectory (orange)", True, lambda v: self.trajectories.set_visible(odometry=v)),
-                    Layer("map trajectory (blue)", True, lambda v: self.trajectories.set_visible(corrected=v)),
-                    Layer("accepted loop closures", True, lambda v: self.loops.set_visible(accepted=v)),
-                    Layer("rejected loop closures", False, lambda v: self.loops.set_visible(rejected=v)),
-                    Layer("place field", True, lambda v: setattr(self.place_field, "visible", v)),
-                    Layer("robot", True, lambda v: setattr(self.robot, "visible", v)),
-                ])
+            with gui.add_folder("Place cells (Fig. 8)"):
+                self.place_cells = PlaceCellsPanel(gui, self._record_place_cells)
             with gui.add_folder("Loop closures"):
                 self.loop_list = LoopsPanel(gui, self._select_loop, s.max_loops_listed, s.thumbnail_width)
+        # per browser: layer toggles, time slider, camera fitted to the map (web.panel_view)
+        self.views = ClientViews(self.server, self.layer_specs, s, self._view_state)
         self.created = time.monotonic()
         self.last_seen = self.created
         self.connections = 0
@@ -184,7 +236,10 @@ class SessionViewer:
             if snap is None:
                 return None
             t1 = time.perf_counter()
-            if snap.same_scene_as(self._snapshot) and not self.place_field.pending(snap.place_field):
+            gt_rows = ground_truth_rows(self.source, self.ground_truth.seen)
+            new_gt = gt_rows is not None and len(gt_rows) > 0
+            if (snap.same_scene_as(self._snapshot) and not self.place_field.pending(snap.place_field)
+                    and not new_gt):
                 with self.server.atomic():
                     self.stats.update(snap.stats, self.source.lag_s())
                 update = GraphUpdate(_NO_MAP, _NO_TRAJECTORY, _NO_LOOPS, False, t1 - t0, time.perf_counter() - t1)
@@ -205,9 +260,17 @@ class SessionViewer:
                     self.camera.update_recognition(rec, query, key)
                 self.stats.update(snap.stats, self.source.lag_s())
                 self.loop_list.update(snap.decisions)
+                had_gt = self.ground_truth.present
+                samples = self.trajectories.sampler.samples
+                self.ground_truth.update(gt_rows, samples[0] if len(samples) else None)
+                if self.ground_truth.present and not had_gt:
+                    self.legend.content = legend_html(self.layer_specs, ground_truth=True)
                 self._frame_view(snap)
             self._cursor = snap.cursor
             self._snapshot = snap
+            self.views.after_update()
+            if not self.place_cells.drawn and snap.place_field is not None:
+                self.place_cells.request()
             selected = self.loop_list.selected_id
             if selected is not None and selected < len(snap.decisions):
                 self.loops.select(snap.decisions[selected], snap.node_poses)
@@ -222,19 +285,30 @@ class SessionViewer:
         return self.camera.update_live(frame)
 
     def _frame_view(self, snap: MapSnapshot) -> None:
-        """Point the initial ('reset view') camera at the map when it has grown noticeably."""
-        if not len(snap.node_poses):
+        """Fit the initial ('reset view') camera to the map when it has grown noticeably (each browser's
+        own camera is fitted by :mod:`web.panel_view`)."""
+        box = map_bounds(snap.node_poses, self.ground_truth.samples[:, 1:3])
+        if box is None:
             return
-        xy = snap.node_poses[:, :2]
-        lo, hi = xy.min(axis=0), xy.max(axis=0)
-        extent = float(max(np.max(hi - lo), 2.0))
+        lo, hi = box
+        extent = float(np.max(hi - lo))
         if extent <= 1.25 * self._view_extent:
             return
         self._view_extent = extent
-        c = 0.5 * (lo + hi)
         cam = self.server.initial_camera
-        cam.look_at = (float(c[0]), float(c[1]), 0.0)
-        cam.position = (float(c[0]), float(c[1] - 0.6 * extent), float(1.1 * extent))
+        pos, look = fit_camera(lo, hi, float(cam.fov), 1.6, self.settings.fit_margin, covered=0.3, covered_left=0.18)
+        cam.position = tuple(float(v) for v in pos)  # position first: viser may carry look_at along with it
+        cam.look_at = tuple(float(v) for v in look)
+
+    def _view_state(self) -> tuple[MapSnapshot | None, np.ndarray, np.ndarray | None]:
+        """What a browser's view needs: the latest snapshot, the sampled trajectory, the ground truth
+        in the map frame (None if the session has none)."""
+        gt = self.ground_truth.samples if self.ground_truth.present else None
+        return self._snapshot, self.trajectories.sampler.samples.copy(), None if gt is None else gt[:, :4].copy()
+
+    def _record_place_cells(self):
+        """The current step's place-cell iteration, recorded (None before the first odometry step)."""
+        return self.source.read(lambda m: m.pathway.record() if m.place_field is not None else None)
 
     def _select_loop(self, decision_id: int | None) -> None:
         """Panel callback: show a loop closure's frames and trace, and mark it in the scene."""
@@ -291,6 +365,7 @@ class SessionViewer:
         if self._stop.is_set():
             return
         self._stop.set()
+        self.place_cells.closed = True
         if self._thread is not None and self._thread is not threading.current_thread():
             self._thread.join(timeout=5.0)
         with _quiet_viser():

@@ -51,11 +51,19 @@ class ViewerSettings:
     color_keyframe_node: RGB = (0, 120, 255)
     color_link: RGB = (150, 150, 150)
     color_loop_link: RGB = (0, 190, 60)
-    color_odometry: RGB = (240, 120, 0)
+    color_odometry: RGB = (248, 200, 150)
+    """Raw odometry: a faded orange, so its drift stays readable under the map without dominating it."""
     color_corrected: RGB = (30, 90, 220)
+    color_ground_truth: RGB = (0, 165, 165)
     color_loop_accepted: RGB = (0, 200, 70)
     color_loop_rejected: RGB = (220, 40, 40)
     color_robot: RGB = (200, 0, 160)
+    show_odometry: bool = True
+    """Whether the raw odometry layer starts shown (each viewer can toggle it)."""
+    fit_margin: float = 1.15
+    """The camera is fitted so that the map's bounding box times this margin fills the view."""
+    replay_max_nodes: int = 100000
+    """The time slider's replay draws at most this many nodes (every k-th beyond it)."""
 
     def __post_init__(self) -> None:
         for name in ("graph_hz", "camera_hz", "place_field_hz", "idle_timeout_s", "move_tolerance_m",
@@ -63,9 +71,11 @@ class ViewerSettings:
             if not getattr(self, name) > 0:
                 raise ValueError(f"ViewerSettings.{name} = {getattr(self, name)!r} must be > 0")
         for name in ("chunk_size", "tail_size", "trajectory_budget", "max_loops_listed", "camera_width",
-                     "thumbnail_width", "place_field_pixels"):
+                     "thumbnail_width", "place_field_pixels", "replay_max_nodes"):
             if int(getattr(self, name)) < 2:
                 raise ValueError(f"ViewerSettings.{name} = {getattr(self, name)!r} must be >= 2")
+        if not self.fit_margin >= 1.0:
+            raise ValueError(f"ViewerSettings.fit_margin = {self.fit_margin!r} must be >= 1")
         if self.tail_size > self.chunk_size:
             raise ValueError(f"ViewerSettings.tail_size = {self.tail_size} must not exceed "
                              f"chunk_size = {self.chunk_size}")

@@ -66,6 +66,45 @@ class SessionSource(Protocol):
     def lag_s(self) -> float | None:
         """Seconds between receiving the newest input and the mapper having processed it (None: unknown)."""
 
+    # Optional (looked up with getattr, so older sources still satisfy the protocol):
+    #   def ground_truth(self, start: int = 0) -> np.ndarray | None
+    # ground-truth poses rows ``start:`` as (K, 4) float (t, x, y, theta) in the ground truth's own
+    # world frame (append-only), or None when the session has no ground truth.
+
+
+def ground_truth_rows(source: "SessionSource", start: int) -> np.ndarray | None:
+    """``source.ground_truth(start)`` if the source offers ground truth, else None."""
+    fn = getattr(source, "ground_truth", None)
+    if fn is None:
+        return None
+    rows = fn(start)
+    return None if rows is None else np.asarray(rows, float).reshape(-1, 4)
+
+
+class GrowingRows:
+    """An append-only float table (thread-safe appends and reads of a suffix)."""
+
+    def __init__(self, width: int) -> None:
+        self._a = np.empty((256, width))
+        self._n = 0
+        self._lock = threading.Lock()
+
+    def append(self, row) -> None:
+        with self._lock:
+            if self._n == len(self._a):
+                grown = np.empty((2 * len(self._a), self._a.shape[1]))
+                grown[: self._n] = self._a[: self._n]
+                self._a = grown
+            self._a[self._n] = row
+            self._n += 1
+
+    def since(self, start: int) -> np.ndarray:
+        with self._lock:
+            return self._a[max(0, int(start)): self._n].copy()
+
+    def __len__(self) -> int:
+        return self._n
+
 
 class _ImageCache:
     """A bounded, thread-safe map of images (oldest evicted first)."""
@@ -104,6 +143,7 @@ class LocalSession:
         self._latest: CameraImage | None = None
         self._keyframes = _ImageCache(image_capacity)
         self._queries = _ImageCache(image_capacity)
+        self._ground_truth = GrowingRows(4)
         self._received = 0.0  # wall time of the newest input handed to step/observe
         self._processed = 0.0
         self._closed = False
@@ -127,12 +167,28 @@ class LocalSession:
         with self.lock:
             return fn(self.mapper)
 
-    def step(self, odometry: Odometry) -> list[dict[str, Any]]:
+    def step(self, odometry: Odometry, gt: tuple[float, float, float] | None = None) -> list[dict[str, Any]]:
+        """Feed one odometry reading; ``gt`` (or the reading's own ``gt``, if it has one) is the true
+        pose at its time, kept for the viewer (the mapper never sees it)."""
         self._received = time.monotonic()
         with self.lock:
             events = self.mapper.step(odometry)
         self._processed = time.monotonic()
+        gt = gt if gt is not None else getattr(odometry, "gt", None)
+        if gt is not None:
+            self.add_ground_truth(odometry.t, gt)
         return events
+
+    def add_ground_truth(self, t: float, pose: tuple[float, float, float]) -> None:
+        """Record the true pose at time ``t`` (x, y, theta in the ground truth's frame)."""
+        row = np.array([t, *pose], float)
+        if row.shape != (4,) or not np.all(np.isfinite(row)):
+            raise ValueError(f"ground truth must be a finite time and pose (x, y, theta), got {t!r}, {pose!r}")
+        self._ground_truth.append(row)
+
+    def ground_truth(self, start: int = 0) -> np.ndarray | None:
+        """Ground-truth rows ``start:`` (t, x, y, theta), or None if the session has none."""
+        return self._ground_truth.since(start) if len(self._ground_truth) else None
 
     def observe(self, frame: Frame) -> list[dict[str, Any]]:
         self._received = time.monotonic()

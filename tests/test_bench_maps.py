@@ -1,0 +1,218 @@
+"""The comparison benchmark's own logic (no peer is built or run here): parsing the
+OpenRatSLAM driver's output, its config for other image sizes, the loop-closure and
+loop-link scoring against ground truth, and the per-frame timing of the mapper."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+
+import bench_maps  # noqa: E402
+import peers  # noqa: E402
+
+from hippomap.inputs import Frame, Odometry  # noqa: E402
+
+STOCK_INI = """[general]
+topic_root=stlucia
+
+[ratslam]
+image_crop_x_min=40
+image_crop_x_max=600
+image_crop_y_min=150
+image_crop_y_max=300
+vt_match_threshold = 0.085
+template_x_size=60
+"""
+
+
+def _fake_peer(tmp_path: Path) -> Path:
+    d = tmp_path / "ors"
+    (d / "configs").mkdir(parents=True)
+    (d / "configs" / "stlucia_640x480.ini").write_text(STOCK_INI)
+    return d
+
+
+def test_ors_config_scales_crop_and_sets_threshold(tmp_path):
+    peer = _fake_peer(tmp_path)
+    text = peers.ors_config_text(peer, 1280, 960, 0.03)
+    assert "image_crop_x_min=80" in text and "image_crop_x_max=1200" in text
+    assert "image_crop_y_min=300" in text and "image_crop_y_max=600" in text
+    assert "vt_match_threshold = 0.03" in text and "0.085" not in text
+    same = peers.ors_config_text(peer, 640, 480, None)
+    assert same == STOCK_INI
+    assert peers.stock_threshold(peer, 640, 480) == pytest.approx(0.085)
+
+
+def _row(i, t, exp, action=0, src=-1, us=1000.0):
+    return f"{i},{t:.3f},0,0.010000,1,{action},{src},{exp},{exp + 1},{us:.1f}\n"
+
+
+def test_ors_frames_parser_recovers_the_truncated_first_row(tmp_path):
+    # the driver prints vt_err = DBL_MAX with %.6f into a 256-byte buffer: row 0 is cut
+    # and its newline lost, so row 1 is glued to it
+    row0 = ("0,0.000,0,%.6f,0,0,-1,0,1,3398.7\n" % sys.float_info.max)[:255]
+    p = tmp_path / "run_frames.csv"
+    p.write_text("frame,t,vt_id,vt_err,n_vt,action,src_exp,exp_id,n_exp,core_us\n" + row0
+                 + _row(1, 0.2, 0, us=1234.5) + _row(2, 0.4, 1, action=1, src=0) + _row(3, 0.6, 0, action=2, src=1))
+    rows = peers._read_ors_frames(p)
+    assert [int(r["frame"]) for r in rows] == [0, 1, 2, 3]
+    assert rows[1]["t"] == pytest.approx(0.2) and rows[1]["core_us"] == pytest.approx(1234.5)
+    assert [int(r["exp_id"]) for r in rows] == [0, 0, 1, 0]
+    assert int(rows[3]["action"]) == peers.ORS_CREATE_EDGE
+
+
+def _gt_circle(n=200, r=5.0):
+    t = np.arange(n) * 0.2
+    a = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    poses = np.column_stack([r * np.cos(a), r * np.sin(a), a + np.pi / 2])
+    return t, poses
+
+
+def test_link_errors_measure_loop_links_against_ground_truth(tmp_path):
+    t, gt = _gt_circle()
+    idx = [0, 50, 100, 150, 199]
+    nodes = [{"id": k, "pose": gt[i].tolist(), "t": float(t[i])} for k, i in enumerate(idx)]
+
+    def rel(a, b):
+        from hippomap.geometry import between
+
+        return between(gt[idx[a]], gt[idx[b]])
+
+    links = [{"source": k, "target": k + 1, "transform": rel(k, k + 1).tolist(), "kind": "odometry"} for k in range(4)]
+    bad = rel(4, 0) + np.array([0.3, 0.4, 0.0])  # 0.5 m off
+    links.append({"source": 4, "target": 0, "transform": bad.tolist(), "kind": "loop"})
+    links.append({"source": 3, "target": 1, "transform": rel(3, 1).tolist(), "kind": "prune"})
+    p = tmp_path / "map.json"
+    p.write_text(json.dumps({"nodes": nodes, "links": links}))
+    e = bench_maps.link_errors(p, (t, gt))
+    assert e["odometry"]["n"] == 4 and e["odometry"]["max_m"] < 1e-9
+    assert e["loop"]["n"] == 1 and e["loop"]["mean_m"] == pytest.approx(0.5)
+    assert e["prune"]["n"] == 1 and e["prune"]["max_m"] < 1e-9
+
+
+def test_ors_scoring_counts_false_links_by_ground_truth_separation():
+    t, gt = _gt_circle()
+    # experiences: 0 created at t=0 (angle 0), 1 at the opposite side of the circle
+    created = {0: 0.0, 1: float(t[100])}
+    links = [(float(t[199]), 1, 0),   # back at the start, linked to experience 0: true (~0.16 m)
+             (float(t[10]), 0, 1)]    # near the start, linked to the far experience: false (~10 m)
+    res = peers.ORSResult(0.03, t, gt + np.array([0.05, 0.0, 0.0]), links, created,
+                          {"mean": 1.0, "median": 1.0, "first_third": 1.0, "last_third": 1.0}, 3, 2, 0.1)
+    s = bench_maps.score_ors(res, (t, gt))
+    assert s["closures_accepted"] == 2 and s["closures_false"] == 1
+    assert s["ate"] == pytest.approx(0.0, abs=1e-6)  # a constant offset is aligned away
+
+
+def test_closure_counts():
+    dist = [0.5, 3.0, 7.0, None, 1.0]
+    used = [True, True, True, True, False]
+    c = bench_maps.count_closures(dist, used)
+    assert c == {"proposed": 5, "accepted": 4, "false_2m": 2, "false_5m": 1, "unjudged": 1, "true_rejected": 1}
+
+
+def test_thirds_separate_early_and_late_cost():
+    ms = np.concatenate([np.full(30, 1.0), np.full(30, 2.0), np.full(30, 4.0)])
+    s = bench_maps.thirds(ms)
+    assert s["first_third"] == pytest.approx(1.0) and s["last_third"] == pytest.approx(4.0)
+    assert s["mean"] == pytest.approx(7.0 / 3)
+
+
+def test_timed_mapper_records_one_time_per_frame():
+    m = bench_maps.TimedMapper()
+    rng = np.random.default_rng(0)
+    n = 6
+    for k in range(n):
+        t = 0.2 * k
+        m.step(Odometry(t, v=0.0 if k == 0 else 0.5, omega=0.1))
+        m.observe(Frame(t, rng.integers(0, 255, (60, 80), dtype=np.uint8)))
+    assert len(m.frame_seconds) == n and len(m.frame_cpu_seconds) == n
+    assert all(s > 0 for s in m.frame_seconds)
+    assert len(m.trajectory_times) >= n
+
+
+def test_parse_size_rejects_garbage():
+    assert bench_maps.parse_size("640x480") == (640, 480)
+    with pytest.raises(Exception):
+        bench_maps.parse_size("640")
+
+
+def test_sim_cache_key_changes_with_arguments(tmp_path, monkeypatch):
+    calls = []
+
+    def fake_run(cmd, **kw):
+        out = Path(cmd[cmd.index("--out") + 1])
+        out.mkdir(parents=True)
+        calls.append(cmd)
+
+        class R:
+            returncode = 0
+            stderr = ""
+
+        return R()
+
+    monkeypatch.setattr(bench_maps.subprocess, "run", fake_run)
+    shared = tmp_path / "shared"
+    a, ta = bench_maps.simulate("loop", 3, (320, 240), "procedural", shared, None, tmp_path)
+    a2, ta2 = bench_maps.simulate("loop", 3, (320, 240), "procedural", shared, None, tmp_path)
+    b, _ = bench_maps.simulate("loop", 4, (320, 240), "procedural", shared, None, tmp_path)
+    assert a == a2 and ta is not None and ta2 is None  # second call is served from the cache
+    assert a != b and len(calls) == 2
+    assert "--omega-bias" in calls[0] and calls[0][calls[0].index("--seed") + 1] == "3"
+
+
+
+def test_ors_loop_links_follow_the_experience_map_rules():
+    def r(t, action, src, exp):
+        return {"t": t, "action": float(action), "src_exp": float(src), "exp_id": float(exp)}
+
+    N, E = peers.ORS_CREATE_NODE, peers.ORS_CREATE_EDGE
+    rows = [r(0.2, N, 0, 0),   # the first experience: no link
+            r(0.4, N, 0, 1), r(0.6, N, 1, 2),
+            r(0.8, E, 2, 0),   # a loop link
+            r(1.0, E, 0, 2),   # the same pair again: the map makes no new link
+            r(1.2, E, 2, 1),   # already linked at creation
+            r(1.4, 0, 2, 2),   # no action
+            r(1.6, E, 1, 1)]   # a self-link, not a loop closure
+    links, n, self_links = peers.ors_loop_links(rows)
+    assert links == [(0.8, 2, 0)]
+    assert n == 4 and self_links == 1
+
+
+def test_ors_frames_parser_recovers_a_row_cut_mid_run(tmp_path):
+    # when no template passes the pre-filter, vt_err is DBL_MAX mid-run too: that row is cut
+    # and glued to the next; its experience is the next row's src_exp
+    cut = ("3,0.600,7,%.6f,2,1,1,2,3,999.0\n" % sys.float_info.max)[:255]
+    p = tmp_path / "run_frames.csv"
+    p.write_text("frame,t,vt_id,vt_err,n_vt,action,src_exp,exp_id,n_exp,core_us\n"
+                 + _row(0, 0.0, 0) + _row(1, 0.2, 0, action=1, src=0) + _row(2, 0.4, 1, action=1, src=0)
+                 + cut + _row(4, 0.8, 2, src=2) + _row(5, 1.0, 0, action=2, src=2))
+    rows = peers._read_ors_frames(p)
+    assert [int(r["frame"]) for r in rows] == [0, 1, 2, 3, 4, 5]
+    assert int(rows[3]["exp_id"]) == 2 and int(rows[3]["action"]) == peers.ORS_CREATE_NODE
+    assert int(rows[3]["src_exp"]) == 1
+    links, n, _ = peers.ors_loop_links(rows)
+    assert links == [(1.0, 2, 0)] and n == 3  # 0-1, 1-2 at creation, the loop 2-0
+
+
+def test_ors_frames_parser_recovers_consecutive_cut_rows(tmp_path):
+    big = "%.6f" % sys.float_info.max
+    cut3 = ("3,0.600,7," + big + ",2,1,1,2,3,999.0\n")[:255]
+    cut4 = ("4,0.800,8," + big + ",3,1,2,3,4,999.0\n")[:255]
+    p = tmp_path / "run_frames.csv"
+    p.write_text("frame,t,vt_id,vt_err,n_vt,action,src_exp,exp_id,n_exp,core_us\n"
+                 + _row(0, 0.0, 0) + _row(1, 0.2, 0, action=1, src=0) + _row(2, 0.4, 1, action=1, src=0)
+                 + cut3 + cut4 + _row(5, 1.0, 3, src=3) + _row(6, 1.2, 3, src=3))
+    rows = peers._read_ors_frames(p)
+    assert [int(r["frame"]) for r in rows] == [0, 1, 2, 3, 4, 5, 6]
+    assert [r["t"] for r in rows] == pytest.approx([0.0, 0.2, 0.4, 0.6, 0.8, 1.0, 1.2])
+    # experience ids are consecutive: two new ids (2, 3) behind row 5 mean each cut row made one
+    assert [int(r["exp_id"]) for r in rows[3:5]] == [2, 3]
+    assert [int(r["action"]) for r in rows[3:5]] == [peers.ORS_CREATE_NODE, peers.ORS_CREATE_NODE]
+    links, n, _ = peers.ors_loop_links(rows)
+    assert links == [] and n == 3
