@@ -123,18 +123,7 @@ def test_nested_message_after_odometry_then_disconnect_keeps_every_write_working
         assert stats["error"] is None and stats["inputs_stored"] == seq + 1
 
 
-@pytest.fixture(params=["sqlite", "postgres"])
-def store(request, tmp_path):
-    """Each store backend on an empty database of its own."""
-    if request.param == "sqlite":
-        s = SQLiteStore(tmp_path / "db.sqlite3")
-    else:
-        from server.postgres_store import PostgresStore
-        from server.testing import postgres_url_for
-
-        s = PostgresStore(postgres_url_for(tmp_path, fresh=True))
-    yield s
-    s.close()
+from tests.test_server_units import store  # noqa: E402, F401  (each store backend on an empty database)
 
 
 def test_the_issue_reproduction_on_a_real_server(tmp_path):

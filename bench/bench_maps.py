@@ -1,0 +1,717 @@
+"""hippomap beside OpenRatSLAM and GTSAM, in the same run, on the same data.
+
+Part 1, simulated camera runs. For every world x seed x image size x wall texture,
+``hippomap simulate`` renders a run with drifting odometry (``--omega-bias 0.01
+--sigma-omega 0.01 --sigma-v 0.02``; rendered folders are cached, keyed by their
+arguments and the simulator's source). On the SAME frames and odometry:
+
+- hippomap: :func:`hippomap.run.run_dataset` + :func:`hippomap.run.write_run` (what
+  ``hippomap run`` does) with the default config, or ``--config FILE``;
+- OpenRatSLAM (built once from the peer's source into the bench cache) with its stock
+  St Lucia config for the image size, and over a sweep of ``vt_match_threshold``; the
+  stock row and the best-threshold row (lowest ATE) are reported.
+
+Both trajectories are scored by :func:`hippomap.evaluation.trajectory_metrics` against
+the simulator's ground truth (ATE rmse after SE(2)/SE(3) alignment without scale; RPE
+over 10 m). Loop closures: hippomap's accepted loop decisions and, of those, the ones it
+still *uses* (robust weight >= its ``USED_WEIGHT``); OpenRatSLAM's experience-map links
+made between two existing experiences (``CREATE_EDGE`` that adds a new link). A closure is
+false when ground truth puts its two places more than 2 m apart (hippomap: robot at the
+proposal vs the matched node; OpenRatSLAM: robot at the link vs where the destination
+experience was created). Loop-link error: hippomap's per-decision ``link_error_m`` (the
+used link's relative pose vs the ground-truth relative pose of its two nodes); the JSON
+also re-measures every link of the final map per kind (``links``). Core time per frame:
+hippomap's ``step`` + ``observe`` (image decoding excluded; wall clock, and process CPU
+time in the JSON); OpenRatSLAM's ``core_us`` (its driver's figure: local view, pose cells,
+experience map; decoding excluded). Mean, and mean over the first vs the last third.
+
+Part 2, Bicocca 25b proposal files (real odometry, real bag-of-words loop proposals,
+GPS ground truth matched by timestamp): GTSAM Levenberg–Marquardt with no kernel,
+Cauchy, DCS and Huber on the loop factors vs ``hippomap run-odometry`` with the default
+config. Closures: GTSAM uses a closure when its final whitened residual is within the
+chi-square 99 % gate (no kernel: all; see ``bench/peers.py``; the stricter "weight >= 0.5"
+reading is shown too); hippomap's used closures as above; false at > 2 m and > 5 m
+ground-truth separation.
+
+    python bench/bench_maps.py --quick                 # one world/seed, 320x240, ~minutes
+    python bench/bench_maps.py --seeds 3 4 5 --out bench_maps.json   # the full matrix (hours)
+    python bench/bench_maps.py --from-json a.json b.json             # reprint earlier tables
+    python bench/bench_maps.py --worlds loop --sizes 640x480 --textures rtabmap --skip-gtsam
+
+Options pick worlds, seeds, sizes, textures (``procedural``, ``rtabmap`` = the
+rtabmap_samples photos, ``corridor`` = the corridor reference photos, or a folder),
+``--config`` for hippomap, ``--thresholds`` for the OpenRatSLAM sweep, ``--jobs`` for
+parallel runs (timings are only comparable with ``--jobs 1``). A markdown summary is
+printed at the end and every row is written as JSON to ``--out``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import math
+import os
+import shutil
+import subprocess
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import peers  # noqa: E402
+
+from hippomap.config import HippomapConfig  # noqa: E402
+from hippomap.evaluation import groundtruth_at, trajectory_metrics  # noqa: E402
+from hippomap.geometry import between, wrap_angle  # noqa: E402
+from hippomap.inputs import Frame, Odometry  # noqa: E402
+from hippomap.mapper import Mapper  # noqa: E402
+from hippomap.run import open_dataset, run_dataset, write_run  # noqa: E402
+
+#: odometry noise of every simulated run (the issue's reference setting)
+NOISE = {"omega_bias": 0.01, "sigma_omega": 0.01, "sigma_v": 0.02}
+TRUE_M = 2.0  # a closure is false beyond this ground-truth separation
+FAR_M = 5.0
+DEFAULT_THRESHOLDS = [0.02, 0.03, 0.04, 0.05, 0.07, 0.10]  # + the stock 0.085
+QUICK_THRESHOLDS = [0.03, 0.05]
+BICOCCA_FILES = ["B25b_0.000.g2o", "B25b_0.500.g2o", "B25b_1.000.g2o"]
+
+
+# --------------------------------------------------------------------------------------
+# simulated runs (cached)
+# --------------------------------------------------------------------------------------
+
+def texture_folder(name: str, shared: Path) -> str:
+    if name == "procedural":
+        return "procedural"
+    if name == "rtabmap":
+        return str(shared / "data" / "rtabmap_samples" / "data" / "samples")
+    if name == "corridor":
+        return str(shared / "data" / "corridor" / "ref")
+    return str(Path(name).resolve())
+
+
+def hippomap_source_hash() -> str:
+    """Short hash of the model's source (hippomap/*.py): which model version a row measured."""
+    h = hashlib.sha1()
+    for p in sorted((REPO / "hippomap").glob("*.py")):
+        h.update(p.name.encode())
+        h.update(p.read_bytes())
+    return h.hexdigest()[:10]
+
+
+def sim_source_hash() -> str:
+    h = hashlib.sha1()
+    for p in sorted((REPO / "hippomap" / "sim").glob("*.py")):
+        h.update(p.name.encode())
+        h.update(p.read_bytes())
+    return h.hexdigest()[:10]
+
+
+def simulate(world: str, seed: int, size: tuple[int, int], texture: str, shared: Path, laps: int | None,
+             cache: Path) -> tuple[Path, float | None]:
+    """The rendered folder for these arguments (rendered now unless cached); returns it and
+    the rendering time (None when cached)."""
+    tex = texture_folder(texture, shared)
+    args = ["simulate", world, "--seed", str(seed), "--width", str(size[0]), "--height", str(size[1]),
+            "--omega-bias", str(NOISE["omega_bias"]), "--sigma-omega", str(NOISE["sigma_omega"]),
+            "--sigma-v", str(NOISE["sigma_v"]), "--texture", tex]
+    if world == "bicocca":
+        args += ["--data", str(shared / "data" / "bicocca25b")]
+    if laps is not None:
+        args += ["--laps", str(laps)]
+    key = hashlib.sha1(json.dumps([args, sim_source_hash()]).encode()).hexdigest()[:12]
+    tname = texture if texture in ("procedural", "rtabmap", "corridor") else "photos"
+    folder = cache / "sim" / f"{world}-s{seed}-{size[0]}x{size[1]}-{tname}-{key}"
+    if (folder / "done").is_file():
+        return folder, None
+    tmp = folder.with_name(folder.name + f".tmp{os.getpid()}")
+    shutil.rmtree(tmp, ignore_errors=True)
+    t0 = time.perf_counter()
+    r = subprocess.run([sys.executable, "-m", "hippomap", *args, "--out", str(tmp)], capture_output=True, text=True,
+                       cwd=REPO)
+    if r.returncode != 0:
+        raise RuntimeError(f"hippomap simulate failed: {' '.join(args)}\n{r.stderr[-2000:]}")
+    (tmp / "done").write_text(json.dumps(args))
+    shutil.rmtree(folder, ignore_errors=True)
+    tmp.rename(folder)
+    return folder, time.perf_counter() - t0
+
+
+# --------------------------------------------------------------------------------------
+# hippomap on a rendered run
+# --------------------------------------------------------------------------------------
+
+class TimedMapper(Mapper):
+    """A Mapper that records, per camera frame, the time of its ``observe`` plus the
+    ``step`` calls since the previous frame (image decoding is outside both)."""
+
+    def __init__(self, config: HippomapConfig | None = None) -> None:
+        super().__init__(config)
+        self._pending = 0.0
+        self._pending_cpu = 0.0
+        self.frame_seconds: list[float] = []  # wall clock (as OpenRatSLAM's core_us)
+        self.frame_cpu_seconds: list[float] = []  # CPU time of this process (robust to a loaded machine)
+
+    def step(self, odometry: Odometry):  # type: ignore[override]
+        t0, c0 = time.perf_counter(), time.process_time()
+        out = super().step(odometry)
+        self._pending += time.perf_counter() - t0
+        self._pending_cpu += time.process_time() - c0
+        return out
+
+    def observe(self, frame: Frame):  # type: ignore[override]
+        t0, c0 = time.perf_counter(), time.process_time()
+        out = super().observe(frame)
+        self.frame_seconds.append(self._pending + time.perf_counter() - t0)
+        self.frame_cpu_seconds.append(self._pending_cpu + time.process_time() - c0)
+        self._pending = self._pending_cpu = 0.0
+        return out
+
+
+def thirds(ms: np.ndarray) -> dict[str, float]:
+    a = len(ms) // 3
+    return {"mean": float(ms.mean()), "median": float(np.median(ms)), "p95": float(np.percentile(ms, 95)),
+            "first_third": float(ms[:a].mean()) if a else float("nan"),
+            "last_third": float(ms[-a:].mean()) if a else float("nan")}
+
+
+def link_errors(map_json: Path, gt: tuple[np.ndarray, np.ndarray]) -> dict[str, Any]:
+    """Error of every link of the final map against the ground-truth relative pose of its
+    two nodes (nodes placed at the ground truth of their creation time), per link kind
+    (``loop``, ``odometry`` — a check of the convention, small —, and any other kind)."""
+    g = json.loads(map_json.read_text())
+    t = np.array([n["t"] for n in g["nodes"]], float)
+    gtp = [groundtruth_at(gt, float(x)) for x in t]
+    kinds = sorted({str(link["kind"]) for link in g["links"]} | {"loop", "odometry"})
+    out: dict[str, Any] = {}
+    for kind in kinds:
+        errs, herrs = [], []
+        for link in g["links"]:
+            if str(link["kind"]) != kind:
+                continue
+            a, b = gtp[link["source"]], gtp[link["target"]]
+            if a is None or b is None:
+                continue
+            rel = between(a, b)
+            tr = np.asarray(link["transform"], float)
+            errs.append(float(np.hypot(*(tr[:2] - rel[:2]))))
+            herrs.append(abs(float(wrap_angle(tr[2] - rel[2]))))
+        e = np.array(errs)
+        out[kind] = {"n": len(errs), "mean_m": float(e.mean()) if len(e) else None,
+                     "median_m": float(np.median(e)) if len(e) else None,
+                     "max_m": float(e.max()) if len(e) else None,
+                     "mean_heading_deg": float(np.degrees(np.mean(herrs))) if herrs else None}
+    return out
+
+
+def _summary(xs: list[float]) -> dict[str, Any]:
+    a = np.asarray(xs, float)
+    if not len(a):
+        return {"n": 0, "mean": None, "median": None, "max": None}
+    return {"n": len(a), "mean": float(a.mean()), "median": float(np.median(a)), "max": float(a.max())}
+
+
+def run_hippomap(data: Path, config_file: str | None, out_dir: Path) -> dict[str, Any]:
+    dataset = open_dataset(data)
+    cfg = HippomapConfig.from_file(config_file) if config_file else HippomapConfig()
+    # warm-up (not timed): first-use set-up shared across mappers (e.g. rate tables)
+    warm = Mapper(cfg)
+    first = dataset.frames[0].load()
+    warm.step(Odometry(0.0, v=0.0, omega=0.0))
+    warm.step(Odometry(0.2, v=0.1, omega=0.0))
+    warm.observe(Frame(0.2, first.image))
+    m = TimedMapper(cfg)
+    t0 = time.perf_counter()
+    m, timing = run_dataset(dataset, cfg, mapper=m)
+    wall = time.perf_counter() - t0
+    metrics = write_run(m, dataset, out_dir, timing)
+    decisions = json.loads((out_dir / "loop_closures.json").read_text())
+    accepted = [d for d in decisions if d.get("status") == "accepted"]
+    judged = [d for d in accepted if d.get("groundtruth_distance_m") is not None]
+    ms = np.array(m.frame_seconds) * 1e3
+    s = metrics.get("stats", {})
+    return {
+        "ate": metrics["map"]["ate"]["rmse"], "rpe": metrics["map"]["rpe"].get("rmse"),
+        "odometry_ate": metrics["odometry"]["ate"]["rmse"], "odometry_rpe": metrics["odometry"]["rpe"].get("rmse"),
+        "closures_accepted": len(accepted), "closures_rejected": sum(d.get("status") == "rejected" for d in decisions),
+        "closures_false": sum(d["groundtruth_distance_m"] > TRUE_M for d in judged),
+        # "used": accepted and still weighted >= hippomap's USED_WEIGHT by the robust back-end
+        # (decisions without the field: every accepted one is used)
+        "closures_used": sum(bool(d.get("used", True)) for d in accepted),
+        "closures_used_false": sum(d["groundtruth_distance_m"] > TRUE_M for d in judged if d.get("used", True)),
+        "closures_unjudged": len(accepted) - len(judged),
+        "max_accepted_distance_m": max((d["groundtruth_distance_m"] for d in judged), default=None),
+        # error of each accepted loop link against ground truth, as hippomap reports it per
+        # decision (link at acceptance); "links" re-measures the final map's links the same way
+        "loop_link_error_m": _summary([d["link_error_m"] for d in accepted
+                                       if "link_error_m" in d and d.get("used", True)]),
+        "links": link_errors(out_dir / "map.json", dataset.groundtruth),
+        "core_ms": thirds(ms), "core_cpu_ms": thirds(np.array(m.frame_cpu_seconds) * 1e3), "frames": len(ms),
+        "keyframes": s.get("keyframes"), "nodes": s.get("nodes"), "recognitions": s.get("recognitions"),
+        "wall_s": wall,
+    }
+
+
+# --------------------------------------------------------------------------------------
+# OpenRatSLAM on a rendered run
+# --------------------------------------------------------------------------------------
+
+def score_ors(res: peers.ORSResult, gt: tuple[np.ndarray, np.ndarray]) -> dict[str, Any]:
+    tm = trajectory_metrics(res.times, res.poses, *gt)
+    created = res.exp_created
+    judged, false = 0, 0
+    for t, _src, dest in res.links:
+        a, b = groundtruth_at(gt, t), groundtruth_at(gt, created.get(dest, float("nan")))
+        if a is None or b is None:
+            continue
+        judged += 1
+        false += float(np.linalg.norm(a[:2] - b[:2])) > TRUE_M
+    return {"threshold": res.threshold, "ate": tm["ate"]["rmse"], "rpe": tm["rpe"].get("rmse"),
+            "closures_accepted": len(res.links), "closures_false": false, "closures_unjudged": len(res.links) - judged,
+            "core_ms": res.core_ms, "templates": res.templates, "experiences": res.experiences, "wall_s": res.wall_s,
+            "link_check": res.link_check}
+
+
+def run_ors_sweep(exe: Path, peer_dir: Path, data: Path, size: tuple[int, int], thresholds: list[float],
+                  work: Path, gt) -> dict[str, Any]:
+    stock = score_ors(peers.run_ors(exe, peer_dir, data, *size, None, work), gt)
+    sweep = [score_ors(peers.run_ors(exe, peer_dir, data, *size, th, work), gt) for th in thresholds]
+    best = min([stock, *sweep], key=lambda r: r["ate"])
+    return {"stock": stock, "best": best, "sweep": sweep}
+
+
+# --------------------------------------------------------------------------------------
+# one simulated case = render + hippomap + OpenRatSLAM
+# --------------------------------------------------------------------------------------
+
+def sim_case(case: dict[str, Any]) -> dict[str, Any]:
+    shared, cache = Path(case["shared"]), Path(case["cache"])
+    size = tuple(case["size"])
+    row: dict[str, Any] = {"kind": "sim", "world": case["world"], "seed": case["seed"],
+                           "size": f"{size[0]}x{size[1]}", "texture": case["texture"],
+                           "hippomap_source": hippomap_source_hash(),
+                           "started": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+    t0 = time.perf_counter()
+    try:
+        data, render_s = simulate(case["world"], case["seed"], size, case["texture"], shared, case["laps"], cache)
+        row["render_s"] = render_s
+        work = peers.make_workdir(cache / "work", f"{case['world']}-{case['seed']}")
+        try:
+            row["hippomap"] = run_hippomap(data, case["config"], work / "hippomap")
+            if case["ors_exe"]:
+                gt = open_dataset(data).groundtruth
+                row["ors"] = run_ors_sweep(Path(case["ors_exe"]), Path(case["peer_dir"]), data, size,
+                                           case["thresholds"], work, gt)
+        finally:
+            if not case["keep"]:
+                peers.remove_tree(work)
+            else:
+                row["workdir"] = str(work)
+    except Exception as exc:  # one failed case must not lose a long run: report it in its row
+        import traceback
+
+        row["error"] = f"{type(exc).__name__}: {exc}"
+        row["traceback"] = traceback.format_exc()[-3000:]
+    row["case_s"] = time.perf_counter() - t0
+    hm, ors = row.get("hippomap"), row.get("ors")
+    if hm and ors:
+        row["ate_ratio_vs_best"] = hm["ate"] / max(ors["best"]["ate"], 1e-12)
+        row["ms_ratio_vs_best"] = hm["core_ms"]["mean"] / max(ors["best"]["core_ms"]["mean"], 1e-12)
+    return row
+
+
+# --------------------------------------------------------------------------------------
+# Bicocca proposal files: GTSAM kernels vs hippomap run-odometry
+# --------------------------------------------------------------------------------------
+
+def closure_truth(dataset, pairs: list[tuple[int, int]]) -> list[float | None]:
+    gt = dataset.groundtruth
+    out = []
+    for i, j in pairs:
+        a, b = groundtruth_at(gt, float(dataset.times[i])), groundtruth_at(gt, float(dataset.times[j]))
+        out.append(None if a is None or b is None else float(np.linalg.norm(a[:2] - b[:2])))
+    return out
+
+
+def count_closures(dist: list[float | None], used: list[bool]) -> dict[str, int]:
+    u = [d for d, ok in zip(dist, used) if ok]
+    return {"proposed": len(dist), "accepted": len(u), "false_2m": sum(d is not None and d > TRUE_M for d in u),
+            "false_5m": sum(d is not None and d > FAR_M for d in u), "unjudged": sum(d is None for d in u),
+            "true_rejected": sum(d is not None and d <= TRUE_M and not ok for d, ok in zip(dist, used))}
+
+
+def bicocca_case(case: dict[str, Any]) -> list[dict[str, Any]]:
+    from hippomap.datasets import load_odometry_dataset
+
+    data = Path(case["shared"]) / "data" / "bicocca25b"
+    fname = case["file"]
+    dataset = load_odometry_dataset(data, fname)
+    gt = dataset.groundtruth
+    rows = []
+    base = {"kind": "bicocca", "file": fname}
+    from hippomap.geometry import integrate
+
+    odo = integrate(dataset.graph.odometry, np.zeros(3))
+    om = trajectory_metrics(dataset.times, odo, *gt)
+    rows.append({**base, "method": "odometry", "ate": om["ate"]["rmse"], "rpe": om["rpe"].get("rmse")})
+    if not case["skip_gtsam"]:
+        for kernel in peers.KERNELS:
+            try:
+                r = peers.run_gtsam(data / fname, kernel)
+            except ImportError:
+                rows.append({**base, "method": f"gtsam-{kernel}", "error": "gtsam not installed (pip install gtsam)"})
+                break
+            tm = trajectory_metrics(dataset.times, r.poses, *gt)
+            dist = closure_truth(dataset, [(lp["i"], lp["j"]) for lp in r.loops])
+            rows.append({**base, "method": f"gtsam-{kernel}", "ate": tm["ate"]["rmse"], "rpe": tm["rpe"].get("rmse"),
+                         "closures": count_closures(dist, [lp["used"] for lp in r.loops]),
+                         "closures_alt": count_closures(dist, [lp["weight_half"] for lp in r.loops]),
+                         "alt_rule": "weight >= 0.5",
+                         "iterations": r.iterations, "seconds": r.seconds})
+    work = peers.make_workdir(Path(case["cache"]) / "work", "bicocca")
+    try:
+        cmd = [sys.executable, "-m", "hippomap", "run-odometry", str(data), "--loops", fname, "--out", str(work),
+               "--quiet"]
+        if case["config"]:
+            cmd += ["--config", case["config"]]
+        t0 = time.perf_counter()
+        p = subprocess.run(cmd, capture_output=True, text=True, cwd=REPO)
+        secs = time.perf_counter() - t0
+        if p.returncode != 0:
+            rows.append({**base, "method": "hippomap", "error": p.stderr[-1500:]})
+            return rows
+        metrics = json.loads((work / "metrics.json").read_text())
+        decisions = json.loads((work / "loop_closures.json").read_text())
+        pairs, used, accepted = [], [], []
+        for d in decisions:
+            poses = d.get("hypothesis", {}).get("meta", {}).get("poses")
+            if poses:
+                pairs.append((int(poses[0]), int(poses[1])))
+                accepted.append(d.get("status") == "accepted")
+                used.append(accepted[-1] and bool(d.get("used", True)))
+        dist = closure_truth(dataset, pairs)
+        rows.append({**base, "method": "hippomap", "ate": metrics["map"]["ate"]["rmse"],
+                     "rpe": metrics["map"]["rpe"].get("rmse"), "closures": count_closures(dist, used),
+                     "closures_alt": count_closures(dist, accepted), "alt_rule": "accepted",
+                     "map_never_worse_than_odometry": metrics.get("map_never_worse_than_odometry"),
+                     "seconds": secs, "run_seconds": metrics.get("run_seconds")})
+    finally:
+        peers.remove_tree(work)
+    return rows
+
+
+# --------------------------------------------------------------------------------------
+# report
+# --------------------------------------------------------------------------------------
+
+def f2(x: Any, nd: int = 2) -> str:
+    if x is None or (isinstance(x, float) and not math.isfinite(x)):
+        return "n/a"
+    return f"{x:.{nd}f}" if isinstance(x, float) else str(x)
+
+
+def sim_table(rows: list[dict[str, Any]]) -> list[str]:
+    out = ["| world | seed | size | texture | odometry ATE | hippomap ATE / RPE | ORS stock ATE (vt) | "
+           "ORS best ATE (vt) | ATE ratio hm/ORS best | hm closures acc/used/false used | ORS best links/false | "
+           "hm loop-link err m | hm ms mean (1st/last third) | ORS best ms (1st/last third) | ms ratio |",
+           "|---|---:|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for r in rows:
+        if "error" in r and "hippomap" not in r:
+            out.append(f"| {r['world']} | {r['seed']} | {r['size']} | {r['texture']} | error: {r['error'][:80]} "
+                       + "| " * 10 + "|")
+            continue
+        hm, ors = r["hippomap"], r.get("ors")
+        c = hm["core_ms"]
+        cells = [r["world"], str(r["seed"]), r["size"], r["texture"], f2(hm["odometry_ate"]),
+                 f"{f2(hm['ate'])} / {f2(hm['rpe'])}"]
+        if ors:
+            s, b = ors["stock"], ors["best"]
+            cells += [f"{f2(s['ate'])} ({s['threshold']:g})", f"{f2(b['ate'])} ({b['threshold']:g})",
+                      f2(r["ate_ratio_vs_best"])]
+        else:
+            cells += ["n/a", "n/a", "n/a"]
+        cells.append(f"{hm['closures_accepted']} / {hm.get('closures_used', hm['closures_accepted'])} / "
+                     f"{hm.get('closures_used_false', hm['closures_false'])}")
+        cells.append(f"{b['closures_accepted']} / {b['closures_false']}" if ors else "n/a")
+        le = hm.get("loop_link_error_m", {})
+        cells.append(f2(le.get("mean")) if le.get("n") else f2(hm["links"]["loop"]["mean_m"]))
+        cells.append(f"{f2(c['mean'])} ({f2(c['first_third'])}/{f2(c['last_third'])})")
+        if ors:
+            bc = b["core_ms"]
+            cells += [f"{f2(bc['mean'])} ({f2(bc['first_third'])}/{f2(bc['last_third'])})", f2(r["ms_ratio_vs_best"])]
+        else:
+            cells += ["n/a", "n/a"]
+        out.append("| " + " | ".join(cells) + " |")
+    return out
+
+
+def _used(hm: dict[str, Any]) -> int:
+    return hm.get("closures_used", hm["closures_accepted"])
+
+
+def _used_false(hm: dict[str, Any]) -> int:
+    return hm.get("closures_used_false", hm["closures_false"])
+
+
+def sim_summary(rows: list[dict[str, Any]]) -> list[str]:
+    """Per world x size x texture, over seeds: mean ATE of hippomap and of OpenRatSLAM
+    (stock, best threshold), worst ratio, false closures, mean core ms."""
+    ok = [r for r in rows if "hippomap" in r]
+    groups: dict[tuple[str, str, str], list[dict[str, Any]]] = {}
+    for r in ok:
+        groups.setdefault((r["world"], r["size"], r["texture"]), []).append(r)
+    out = ["| world | size | texture | seeds | odometry ATE | hippomap ATE | ORS stock ATE | ORS best ATE | "
+           "worst ATE ratio hm/ORS best | hm closures used (false) | ORS best links (false) | hm ms | hm CPU ms | "
+           "ORS best ms |",
+           "|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for (w, size, tex), rs in groups.items():
+        def mean(f) -> float:
+            return float(np.mean([f(r) for r in rs]))
+
+        has_ors = all("ors" in r for r in rs)
+        cells = [w, size, tex, ",".join(str(r["seed"]) for r in rs), f2(mean(lambda r: r["hippomap"]["odometry_ate"])),
+                 f2(mean(lambda r: r["hippomap"]["ate"]))]
+        if has_ors:
+            cells += [f2(mean(lambda r: r["ors"]["stock"]["ate"])), f2(mean(lambda r: r["ors"]["best"]["ate"])),
+                      f2(max(r["ate_ratio_vs_best"] for r in rs))]
+        else:
+            cells += ["n/a"] * 3
+        cells.append(f"{sum(_used(r['hippomap']) for r in rs)} ({sum(_used_false(r['hippomap']) for r in rs)})")
+        cells.append(f"{sum(r['ors']['best']['closures_accepted'] for r in rs)} "
+                     f"({sum(r['ors']['best']['closures_false'] for r in rs)})" if has_ors else "n/a")
+        cells.append(f2(mean(lambda r: r["hippomap"]["core_ms"]["mean"])))
+        cells.append(f2(mean(lambda r: r["hippomap"].get("core_cpu_ms", {}).get("mean", float("nan")))))
+        cells.append(f2(mean(lambda r: r["ors"]["best"]["core_ms"]["mean"])) if has_ors else "n/a")
+        out.append("| " + " | ".join(cells) + " |")
+    return out
+
+
+def sim_targets(rows: list[dict[str, Any]]) -> list[str]:
+    ok = [r for r in rows if "hippomap" in r]
+    if not ok:
+        return []
+    lines = []
+    with_ors = [r for r in ok if "ors" in r]
+    if with_ors:
+        worlds = sorted({r["world"] for r in with_ors})
+        for w in worlds:
+            rs = [r for r in with_ors if r["world"] == w]
+            ratios = np.array([r["ate_ratio_vs_best"] for r in rs])
+            lines.append(f"- {w}: ATE ratio hippomap / ORS best over {len(rs)} runs: median {np.median(ratios):.2f}, "
+                         f"max {ratios.max():.2f}; runs meeting <= 0.8: {int((ratios <= 0.8).sum())}/{len(rs)}")
+        ms = np.array([r["ms_ratio_vs_best"] for r in with_ors])
+        lines.append(f"- core ms ratio hippomap / ORS best: median {np.median(ms):.2f}, max {ms.max():.2f}; "
+                     f"runs meeting <= 1: {int((ms <= 1).sum())}/{len(ms)}")
+    growth = np.array([r["hippomap"]["core_ms"]["last_third"] / r["hippomap"]["core_ms"]["first_third"] for r in ok])
+    lines.append(f"- hippomap last third / first third cost: median {np.median(growth):.2f}, max {growth.max():.2f}; "
+                 f"runs meeting <= 1.2: {int((growth <= 1.2).sum())}/{len(growth)}")
+    cpu = [r["hippomap"]["core_cpu_ms"] for r in ok if "core_cpu_ms" in r["hippomap"]]
+    if cpu:
+        g = np.array([c["last_third"] / c["first_third"] for c in cpu])
+        lines.append(f"- the same on CPU time (less load-dependent): median {np.median(g):.2f}, max {g.max():.2f}; "
+                     f"runs meeting <= 1.2: {int((g <= 1.2).sum())}/{len(g)}")
+    false = sum(r["hippomap"]["closures_false"] for r in ok)
+    lines.append(f"- hippomap closures with ground-truth separation > {TRUE_M:g} m: used "
+                 f"{sum(_used_false(r['hippomap']) for r in ok)} (of {sum(_used(r['hippomap']) for r in ok)} used); "
+                 f"accepted {false} (of {sum(r['hippomap']['closures_accepted'] for r in ok)} accepted)")
+    return lines
+
+
+def bicocca_table(rows: list[dict[str, Any]]) -> list[str]:
+    out = ["| file | method | ATE rmse m | RPE rmse m | closures proposed | used | false > 2 m | false > 5 m | "
+           "true rejected | other rule: used / false > 2 m | time s |",
+           "|---|---|---:|---:|---:|---:|---:|---:|---:|---|---:|"]
+    for r in rows:
+        if "error" in r:
+            out.append(f"| {r['file']} | {r['method']} | error: {r['error'][:80]} | | | | | | | | |")
+            continue
+        c = r.get("closures")
+        cc = ([str(c["proposed"]), str(c["accepted"]), str(c["false_2m"]), str(c["false_5m"]), str(c["true_rejected"])]
+              if c else ["", "", "", "", ""])
+        alt = r.get("closures_alt")
+        cc.append(f"{r['alt_rule']}: {alt['accepted']} / {alt['false_2m']}" if alt else "")
+        out.append("| " + " | ".join([r["file"], r["method"], f2(r["ate"]), f2(r.get("rpe")), *cc,
+                                       f2(r.get("seconds"), 1) if r.get("seconds") is not None else ""]) + " |")
+    return out
+
+
+def bicocca_targets(rows: list[dict[str, Any]]) -> list[str]:
+    lines = []
+    for f in sorted({r["file"] for r in rows}):
+        rs = {r["method"]: r for r in rows if r["file"] == f and "error" not in r}
+        g = [r for m, r in rs.items() if m.startswith("gtsam")]
+        hm = rs.get("hippomap")
+        if not g or not hm:
+            continue
+        best = min(g, key=lambda r: r["ate"])
+        lines.append(f"- {f}: hippomap ATE {hm['ate']:.2f} m vs best GTSAM ({best['method']}) {best['ate']:.2f} m "
+                     f"(ratio {hm['ate'] / best['ate']:.2f}); hippomap false closures > 2 m: "
+                     f"{hm['closures']['false_2m']}; online map never worse than odometry: "
+                     f"{hm.get('map_never_worse_than_odometry')}")
+    return lines
+
+
+def report_lines(sim_rows: list[dict[str, Any]], bic_rows: list[dict[str, Any]]) -> list[str]:
+    worlds = ["loop", "corridor", "bicocca"]
+    sim_rows = sorted(sim_rows, key=lambda r: (worlds.index(r["world"]) if r["world"] in worlds else 9,
+                                               int(r["size"].split("x")[0]), r["texture"], r["seed"]))
+    lines = ["", "## Simulated camera runs (noisy odometry: " + ", ".join(f"{k} {v}" for k, v in NOISE.items()) + ")", ""]
+    lines += sim_table(sim_rows) if sim_rows else ["(none)"]
+    if sim_rows:
+        lines += ["", "Mean over seeds:", "", *sim_summary(sim_rows)]
+    lines += ["", *sim_targets(sim_rows), "", "## Bicocca 25b proposal files (ATE vs GPS ground truth)", ""]
+    lines += bicocca_table(bic_rows) if bic_rows else ["(none)"]
+    lines += ["", *bicocca_targets(bic_rows), ""]
+    return lines
+
+
+def parse_size(s: str) -> tuple[int, int]:
+    try:
+        w, h = s.lower().split("x")
+        return int(w), int(h)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"size {s!r}: expected WIDTHxHEIGHT, e.g. 320x240")
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--shared", type=Path, default=REPO.parent / "shared",
+                    help="shared folder holding data/ and peers/ (default: 'shared' beside the repository)")
+    ap.add_argument("--quick", action="store_true",
+                    help="loop world, seed 3, 320x240, procedural, ORS stock + 2 thresholds, one Bicocca file")
+    ap.add_argument("--worlds", nargs="+", default=["loop", "corridor", "bicocca"],
+                    choices=["loop", "corridor", "bicocca"])
+    ap.add_argument("--seeds", nargs="+", type=int, default=[3, 4, 5])
+    ap.add_argument("--sizes", nargs="+", type=parse_size, default=[(320, 240), (640, 480)])
+    ap.add_argument("--textures", nargs="+", default=["procedural", "rtabmap"],
+                    help="procedural | rtabmap | corridor | a folder of photos")
+    ap.add_argument("--laps", type=int, default=None, help="loop laps / corridor passes (simulator default)")
+    ap.add_argument("--config", help="hippomap JSON config overrides (default: the default config)")
+    ap.add_argument("--thresholds", nargs="+", type=float, default=None,
+                    help=f"OpenRatSLAM vt_match_threshold sweep (default {DEFAULT_THRESHOLDS})")
+    ap.add_argument("--bicocca-files", nargs="+", default=None, help=f"default {BICOCCA_FILES}")
+    ap.add_argument("--skip-sim", action="store_true", help="no simulated camera runs")
+    ap.add_argument("--skip-bicocca", action="store_true", help="no Bicocca proposal-file runs")
+    ap.add_argument("--skip-ors", action="store_true")
+    ap.add_argument("--skip-gtsam", action="store_true")
+    ap.add_argument("--jobs", type=int, default=1, help="parallel cases (timings comparable only with 1)")
+    ap.add_argument("--keep", action="store_true", help="keep each case's output folders in the cache")
+    ap.add_argument("--render-only", action="store_true", help="only render (and cache) the simulated runs")
+    ap.add_argument("--out", type=Path, default=None,
+                    help="JSON of all rows (default: bench_maps.json in the bench cache)")
+    ap.add_argument("--from-json", nargs="+", type=Path, metavar="FILE",
+                    help="run nothing: print the tables of earlier --out files (rows merged)")
+    args = ap.parse_args(argv)
+    if args.from_json:
+        sim_rows, bic_rows = [], []
+        for f in args.from_json:
+            d = json.loads(f.read_text())
+            sim_rows += d.get("sim", [])
+            bic_rows += d.get("bicocca", [])
+        print("\n".join(report_lines(sim_rows, bic_rows)))
+        return 0
+
+    if args.render_only:
+        args.skip_bicocca = True
+    if args.quick:
+        args.worlds, args.seeds, args.sizes, args.textures = ["loop"], args.seeds[:1], [(320, 240)], ["procedural"]
+        thresholds = args.thresholds or QUICK_THRESHOLDS
+        files = args.bicocca_files or ["B25b_0.500.g2o"]
+    else:
+        thresholds = args.thresholds or DEFAULT_THRESHOLDS
+        files = args.bicocca_files or BICOCCA_FILES
+    shared = args.shared.resolve()
+    if not (shared / "data").is_dir():
+        ap.error(f"--shared {shared}: no data/ folder there")
+    if args.config and not Path(args.config).is_file():
+        ap.error(f"--config {args.config}: no such file")
+    config = str(Path(args.config).resolve()) if args.config else None
+    cache = peers.cache_root()
+    peer_dir = shared / "peers" / "openratslam"
+    exe = None if args.skip_ors or args.skip_sim else peers.build_ors(peer_dir, cache)
+    print(f"cache {cache}; hippomap config: {config or 'default'}; ORS thresholds: "
+          f"{'skipped' if exe is None else thresholds}", flush=True)
+
+    t_start = time.perf_counter()
+    sim_rows: list[dict[str, Any]] = []
+    bic_rows: list[dict[str, Any]] = []
+    args.out = args.out or cache / "bench_maps.json"
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+
+    def save() -> None:
+        """Write every row so far (a long run that is cut short keeps what it measured)."""
+        meta = {"argv": sys.argv[1:] if argv is None else argv, "config": config, "thresholds": thresholds,
+                "hippomap_source": hippomap_source_hash(),
+                "noise": NOISE, "jobs": args.jobs, "seconds": time.perf_counter() - t_start}
+        args.out.write_text(json.dumps({"meta": meta, "sim": sim_rows, "bicocca": bic_rows}, indent=1, default=float))
+
+    # the Bicocca proposal files first: quick, and never crowded out by a long simulated run
+    if not args.skip_bicocca:
+        for f in files:
+            t0 = time.perf_counter()
+            try:
+                rows = bicocca_case({"shared": str(shared), "cache": str(cache), "file": f, "config": config,
+                                     "skip_gtsam": args.skip_gtsam})
+            except Exception as exc:  # report, keep going
+                rows = [{"kind": "bicocca", "file": f, "method": "all", "error": f"{type(exc).__name__}: {exc}"}]
+            bic_rows += rows
+            save()
+            summary = ", ".join(f"{r['method']} {r['ate']:.2f}" if "ate" in r else f"{r['method']} error" for r in rows)
+            print(f"[{time.perf_counter() - t_start:6.0f} s] {f}: ATE {summary} [{time.perf_counter() - t0:.0f} s]",
+                  flush=True)
+
+    if not args.skip_sim:
+        cases = [{"world": w, "seed": s, "size": list(sz), "texture": tx, "shared": str(shared), "cache": str(cache),
+                  "laps": args.laps, "config": config, "ors_exe": str(exe) if exe else None, "peer_dir": str(peer_dir),
+                  "thresholds": thresholds, "keep": args.keep}
+                 for s in args.seeds for tx in args.textures for sz in args.sizes for w in args.worlds]
+
+        def report(r: dict[str, Any]) -> None:
+            sim_rows.append(r)
+            head = f"[{time.perf_counter() - t_start:6.0f} s] {r['world']} seed {r['seed']} {r['size']} {r['texture']}"
+            if "hippomap" not in r:
+                print(f"{head}: {r.get('error')}", flush=True)
+                return
+            hm = r["hippomap"]
+            line = (f"{head}: odometry ATE {hm['odometry_ate']:.2f}, hippomap {hm['ate']:.2f} m "
+                    f"(closures {hm['closures_accepted']}, false {hm['closures_false']}, "
+                    f"{hm['core_ms']['mean']:.2f} ms/frame)")
+            if "ors" in r:
+                line += (f"; ORS stock {r['ors']['stock']['ate']:.2f}, best {r['ors']['best']['ate']:.2f} m "
+                         f"at vt {r['ors']['best']['threshold']:g} ({r['ors']['best']['core_ms']['mean']:.2f} ms/frame)")
+            render = f"render {r['render_s']:.0f} s, " if r.get("render_s") else ""
+            print(f"{line} [{render}case {r['case_s']:.0f} s]", flush=True)
+
+        if args.render_only:
+            for c in cases:
+                t0 = time.perf_counter()
+                folder, secs = simulate(c["world"], c["seed"], tuple(c["size"]), c["texture"], shared, c["laps"], cache)
+                print(f"{folder.name}: {'cached' if secs is None else f'rendered in {secs:.0f} s'}", flush=True)
+            return 0
+        if args.jobs > 1:
+            with ProcessPoolExecutor(args.jobs) as pool:
+                for fut in as_completed([pool.submit(sim_case, c) for c in cases]):
+                    report(fut.result())
+                    save()
+        else:
+            for c in cases:
+                report(sim_case(c))
+                save()
+
+    print("\n".join(report_lines(sim_rows, bic_rows)))
+    print(f"total {time.perf_counter() - t_start:.0f} s; hippomap config {config or 'default'}; jobs {args.jobs}")
+    save()
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
