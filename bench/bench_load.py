@@ -24,6 +24,7 @@ server with its own cores. Bounded: each level lasts ``--duration`` s plus drain
 from __future__ import annotations
 
 import argparse
+import json
 import asyncio
 import os
 import sys
@@ -92,9 +93,13 @@ def _run(coro):
         return asyncio.run(coro)
 
 
+#: session config overrides of every session the bench creates (``--config``); None = the model's defaults
+SESSION_CONFIG: dict | None = None
+
+
 def run_level(srv: LiveServer, n: int, duration: float, frames: list[bytes]) -> dict:
     with srv.client() as c:
-        sids = [c.create_session(f"load-{n}-{i}")["id"] for i in range(n)]
+        sids = [c.create_session(f"load-{n}-{i}", SESSION_CONFIG)["id"] for i in range(n)]
     lat: list[float] = []
 
     async def all_robots() -> list[dict]:
@@ -121,7 +126,7 @@ def run_level(srv: LiveServer, n: int, duration: float, frames: list[bytes]) -> 
 
 def throughput(srv: LiveServer, n_frames: int, frames: list[bytes]) -> dict:
     with srv.client() as c:
-        sid = c.create_session("throughput")["id"]
+        sid = c.create_session("throughput", SESSION_CONFIG)["id"]
     lat: list[float] = []
 
     async def blast() -> float:
@@ -149,12 +154,15 @@ def throughput(srv: LiveServer, n_frames: int, frames: list[bytes]) -> dict:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--duration", type=float, default=8.0, help="seconds each level streams")
+    ap.add_argument("--config", help="JSON session config overrides, e.g. '{\"mapper\": {\"keyframe_interval\": 100}}'")
     ap.add_argument("--max-sessions", type=int, default=64)
     ap.add_argument("--throughput-frames", type=int, default=600)
     ap.add_argument("--durability", choices=["full", "normal"], default="full")
     ap.add_argument("--retries", type=int, default=1,
                     help="a failing level is run again this many times (the machine may be shared)")
     args = ap.parse_args()
+    global SESSION_CONFIG
+    SESSION_CONFIG = None if args.config is None else json.loads(args.config)
     frames = jpeg_pool()
     print(f"frames: 320x240 JPEG, mean {np.mean([len(f) for f in frames]) / 1e3:.1f} kB; robot = {ODO_HZ} odometry "
           f"msg/s + {FRAME_HZ} frames/s over one websocket; {os.cpu_count()} CPUs shared by client and server; "

@@ -73,15 +73,18 @@ def is_truncated(data: bytes) -> bool:
     return False
 
 
-def check_jpeg_strict(data: bytes) -> None:
-    """Decode a JPEG fully and strictly: InputError on any corruption the decoder notices.
+def check_jpeg_strict(data: bytes) -> np.ndarray | None:
+    """Decode a JPEG fully and strictly: InputError on any corruption the decoder notices; the
+    gray image (H, W) uint8 it decoded, so that the frame is not decoded a second time (None for
+    a non-JPEG, or from the Pillow fallback). libjpeg-turbo's gray output here is the same,
+    pixel for pixel, as :func:`hippomap.inputs.decode_jpeg`'s, which replay uses.
 
     OpenCV's decoder (like most) turns libjpeg's "corrupt data" *warnings* into gray or garbled
     blocks and returns an image anyway, so a frame whose middle was overwritten would be stored
     and learned. libjpeg-turbo's strict mode (through ``simplejpeg``) raises on them instead;
     without ``simplejpeg`` Pillow's full decode is the (weaker) fallback."""
     if image_kind(data) != "jpeg":
-        return
+        return None
     try:
         import simplejpeg
     except ImportError:  # pragma: no cover - simplejpeg is a server dependency
@@ -94,11 +97,12 @@ def check_jpeg_strict(data: bytes) -> None:
                 im.load()
         except Exception as exc:  # noqa: BLE001 - any decoder complaint means a corrupt frame
             raise InputError(f"corrupt JPEG: {exc}") from None
-        return
+        return None
     try:
-        simplejpeg.decode_jpeg(data, colorspace="GRAY", strict=True)
+        gray = simplejpeg.decode_jpeg(data, colorspace="GRAY", strict=True)
     except (ValueError, RuntimeError) as exc:
         raise InputError(f"corrupt JPEG: {exc}") from None
+    return np.ascontiguousarray(gray.reshape(gray.shape[0], gray.shape[1]))
 
 
 def encode_jpeg(image: np.ndarray, quality: int = 90) -> bytes:

@@ -184,8 +184,9 @@ def check_frame(data: bytes, t: Any, settings: ServerSettings) -> Accepted:
         raise IngestError(413, f"image of {w}x{h} px exceeds the limit ({settings.max_image_side} px a side, "
                                f"{settings.max_image_pixels} px in all)")
     try:
-        check_jpeg_strict(data)
-        gray = decode_jpeg(data)
+        gray = check_jpeg_strict(data)  # decoded once: the strict check's image is the frame
+        if gray is None:
+            gray = decode_jpeg(data)
         frame = Frame(tf, gray)
     except InputError as exc:
         raise IngestError(422, str(exc)) from None

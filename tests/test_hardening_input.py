@@ -694,3 +694,20 @@ def test_websocket_ids_are_echoed_only_when_plain(tmp_path):
             for good in (7, 2.5, "robot-1"):
                 ws.send_text(json.dumps({"type": "ping", "id": good}))
                 assert _reply(ws) == {"type": "pong", "id": good}
+
+
+@pytest.mark.parametrize("quality", [50, 90])
+@pytest.mark.parametrize("colour", [False, True])
+def test_the_strict_check_decodes_the_frame_replay_decodes(quality, colour):
+    """Ingest keeps the strict check's image as the frame (one decode); replay decodes with
+    hippomap.inputs.decode_jpeg. The two must agree pixel for pixel, or a restored session
+    would not be the session that was acknowledged."""
+    from hippomap.inputs import decode_jpeg
+    from server.images import check_jpeg_strict
+
+    rng = np.random.default_rng(quality)
+    img = cv2.GaussianBlur(rng.integers(0, 255, (240, 320, 3) if colour else (240, 320), dtype=np.uint8), (5, 5), 0)
+    data = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, quality])[1].tobytes()
+    strict = check_jpeg_strict(data)
+    assert strict is not None and strict.shape == (240, 320) and strict.dtype == np.uint8
+    np.testing.assert_array_equal(strict, decode_jpeg(data))

@@ -21,7 +21,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 def _arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("world", choices=["loop", "corridor", "bicocca"], help="which world to drive in")
     p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--data", default="/work/shared/data/bicocca25b", help="Bicocca folder (bicocca world)")
+    p.add_argument("--data", default="../shared/data/bicocca25b",
+                   help="Bicocca folder (bicocca world); default: the shared data beside the clone")
     p.add_argument("--seed", type=int, default=0, help="world (textures, route jitter) and noise seed")
     p.add_argument("--laps", type=int, default=3, help="loop laps / corridor passes")
     p.add_argument("--rate", type=float, default=5.0, help="odometry rate in Hz (drive plans)")

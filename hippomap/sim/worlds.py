@@ -96,7 +96,7 @@ def bicocca_trajectory(data_dir: str | Path, g2o: str = "B25b_1.000.g2o") -> Tra
 
 
 def bicocca_world(
-    data_dir: str | Path = "/work/shared/data/bicocca25b",
+    data_dir: str | Path = "../shared/data/bicocca25b",
     g2o: str = "B25b_1.000.g2o",
     seed: int = 0,
     half_width_m: float = 1.2,
