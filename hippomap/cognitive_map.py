@@ -50,7 +50,6 @@ from .loop_closure import (
     consistent,
     drift_path,
     gate_limit,
-    jsonable,
     node_id,
     place_of,
     robust_weight,
@@ -84,12 +83,11 @@ from .relaxation import (
 LINK_KINDS = ("odometry", "loop", "prune")
 ODOMETRY, LOOP, PRUNE = 0, 1, 2
 
-_TWO_PI = 2.0 * math.pi
 _STATE_VERSION = 1
 
 
 _compose3, _inv3, _between3 = se2_compose, se2_inverse, se2_between
-_vec3, _node_id, _jsonable = vec3, node_id, jsonable
+_vec3, _node_id = vec3, node_id
 
 
 # --------------------------------------------------------------------------- the map
