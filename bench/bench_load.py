@@ -1,9 +1,11 @@
 """Load test of the server on loopback: how many robots can stream at once?
 
     python bench/bench_load.py [--duration 8] [--max-sessions 64] [--throughput-frames 600]
+                               [--backend inprocess|process] [--config JSON]
 
 A real server (``python -m server``, uvicorn, SQLite with ``synchronous=FULL``, the default
-model config) runs in a subprocess on 127.0.0.1. Each simulated robot is one session
+model config; ``--backend``: where the sessions' mappers run, the server's default when
+omitted) runs in a subprocess on 127.0.0.1. Each simulated robot is one session
 streaming over the websocket in real time: 50 odometry messages/s and 10 camera frames/s
 (320x240 JPEG, ~25 kB). The acknowledgement latency of every message (send -> ack, which
 the server sends only once the input is durable) is measured by the client.
@@ -158,6 +160,8 @@ def main() -> int:
     ap.add_argument("--max-sessions", type=int, default=64)
     ap.add_argument("--throughput-frames", type=int, default=600)
     ap.add_argument("--durability", choices=["full", "normal"], default="full")
+    ap.add_argument("--backend", choices=["inprocess", "process"], default=None,
+                    help="session backend of the server (default: the server's default)")
     ap.add_argument("--retries", type=int, default=1,
                     help="a failing level is run again this many times (the machine may be shared)")
     args = ap.parse_args()
@@ -166,10 +170,12 @@ def main() -> int:
     frames = jpeg_pool()
     print(f"frames: 320x240 JPEG, mean {np.mean([len(f) for f in frames]) / 1e3:.1f} kB; robot = {ODO_HZ} odometry "
           f"msg/s + {FRAME_HZ} frames/s over one websocket; {os.cpu_count()} CPUs shared by client and server; "
-          f"SQLite synchronous={args.durability.upper()}", flush=True)
+          f"SQLite synchronous={args.durability.upper()}; backend {args.backend or 'default'}; "
+          f"load average {os.getloadavg()[0]:.2f}", flush=True)
     env = {"HIPPOMAP_RATE_PER_S": "100000", "HIPPOMAP_RATE_BURST": "100000", "HIPPOMAP_DURABILITY": args.durability,
            "HIPPOMAP_MAX_SESSIONS_PER_TOKEN": "1000"}
-    with tempfile.TemporaryDirectory() as tmp, LiveServer(Path(tmp) / "data", env=env) as srv:
+    server_args = [] if args.backend is None else ["--backend", args.backend]
+    with tempfile.TemporaryDirectory() as tmp, LiveServer(Path(tmp) / "data", env=env, args=server_args) as srv:
         print(f"\n{'N':>4} {'msgs':>7} {'acked':>7} {'stored':>7} {'p50 ms':>8} {'p95 ms':>8} {'p99 ms':>8} "
               f"{'max ms':>8} {'drain s':>8}  held", flush=True)
 
@@ -180,7 +186,7 @@ def main() -> int:
                 r = run_level(srv, n, args.duration, frames)
                 print(f"{r['n']:>4} {r['sent']:>7} {r['acked']:>7} {r['stored']:>7} {r['p50']:>8.1f} {r['p95']:>8.1f} "
                       f"{r['p99']:>8.1f} {r['max']:>8.1f} {r['drain_s']:>8.1f}  {'yes' if r['ok'] else 'NO'}"
-                      + (" (retry)" if attempt else ""), flush=True)
+                      + (" (retry)" if attempt else "") + f"  [load {os.getloadavg()[0]:.2f}]", flush=True)
                 if r["ok"]:
                     break
             return r

@@ -127,6 +127,8 @@ class CognitiveMap:
         self._groups_key = -1
         self._version = 0
         self._dirty = False  # lsq: a link with a non-zero residual was added since the last solve
+        self._touched: list[int] = []  # links added or changed since the last solve; -1: the whole map
+        self._local_solves = 0  # local solves since the last solve of the whole map
         # robot state
         self._cur = 0
         self._delta = (0.0, 0.0, 0.0)  # robot pose in the current node's frame
@@ -270,6 +272,7 @@ class CognitiveMap:
         r = link_residuals(self._P[: self._n], [a], [b], np.asarray(tr, dtype=float).reshape(1, 3))
         if np.max(np.abs(r)) > 1e-9:
             self._dirty = True
+            self._touched.append(k)
         if kind == LOOP and self.cfg.loop_weight_init == "kernel":
             self._w[k] = self._kernel_weights(r, self._linfo[k: k + 1], self._lkw[k: k + 1])[0]
         return k
@@ -390,9 +393,24 @@ class CognitiveMap:
         sweeps = cfg.relax_loops if sweeps is None else int(sweeps)
         w = self._w[:m]
         if cfg.solver == "lsq":
-            info = self.link_information() if cfg.lsq_weighted else np.ones((m, 3))
-            res = solve_lsq(P, src, dst, tr, iterations=cfg.lsq_iterations, anchor=0, information=info * w[:, None])
-            converged = True
+            info = (self.link_information() if cfg.lsq_weighted else np.ones((m, 3))) * w[:, None]
+            window = None if force or self._local_solves >= cfg.lsq_window_every else self._local_window()
+            if window is None:
+                res = solve_lsq(P, src, dst, tr, iterations=cfg.lsq_iterations, anchor=0, information=info)
+                self._local_solves = 0
+            else:
+                self._local_solves += 1
+                nodes, links, fixed = window
+                local = np.full(n, -1, dtype=np.int64)
+                local[nodes] = np.arange(len(nodes))
+                Q = P[nodes].copy()
+                res = solve_lsq(Q, local[src[links]], local[dst[links]], tr[links], iterations=cfg.lsq_iterations,
+                                anchor=None, information=info[links], fixed=local[fixed])
+                P[nodes] = Q
+            self._touched = []
+            # a solve cut off by lsq_iterations has not converged: the weights are revised only on a
+            # converged map (IRLS), else a closure still being applied looks like an outlier and fades
+            converged = res.iterations < cfg.lsq_iterations or res.max_shift < cfg.relax_tolerance_m
         elif sweeps <= 0:
             return []
         elif cfg.solver == "jacobi":
@@ -404,7 +422,9 @@ class CognitiveMap:
                 self._groups_key = self._version
             res = relax(P, src, dst, tr, sweeps, cfg.alpha, anchor=0, groups=self._groups)
             converged = res.max_shift < cfg.relax_tolerance_m
-        self._dirty = not converged or self._reweight()
+        # robust weights are revised on a map solved whole only: a window holds the rest of the map
+        # fixed, and the strain at its edge would fade true links
+        self._dirty = not converged or (self._local_solves == 0 and self._reweight())
         return [MapRelaxed(res.solver, res.iterations, res.max_shift, t)]
 
     def _reweight(self) -> bool:
@@ -425,8 +445,49 @@ class CognitiveMap:
         if not changed.any():
             return False
         self._w[loop] = new
+        self._touched.extend(loop[changed].tolist())
         self._version += 1  # rebuild the relaxation groups with the new gains
         return True
+
+    def _local_window(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """(nodes, links, fixed) of a local solve, or None for a solve of the whole map.
+
+        When every link changed since the last solve disagrees with the map by less than
+        ``lsq_window_residual_m``, the correction is local (the robot is re-localising along a
+        mapped path, not closing a new loop): only the nodes within ``lsq_window_hops`` links of
+        their ends move, the nodes just outside hold the rest of the map in place. The cost of
+        such a step then depends on the window, not on the map (:meth:`finish` solves the
+        whole map)."""
+        cfg, n, m = self.cfg, self._n, self._m
+        touched = self._touched
+        if cfg.lsq_window_hops <= 0 or not touched or -1 in touched:
+            return None
+        k = np.unique(np.asarray(touched, dtype=np.int64))
+        k = k[k < m]
+        if not len(k):
+            return None
+        src, dst = self._src[:m], self._dst[:m]
+        r = link_residuals(self._P[:n], src[k], dst[k], self._tr[k])
+        if float(np.max(np.hypot(r[:, 0], r[:, 1]))) > cfg.lsq_window_residual_m:
+            return None
+        active = np.zeros(n, dtype=bool)
+        active[src[k]] = active[dst[k]] = True
+        for _ in range(cfg.lsq_window_hops):
+            grow = active[src] | active[dst]
+            nxt = active.copy()
+            nxt[src[grow]] = nxt[dst[grow]] = True
+            if nxt.sum() == active.sum():
+                break
+            active = nxt
+        active[0] = False  # the anchor never moves
+        links = np.flatnonzero(active[src] | active[dst])
+        if not len(links) or 2 * active.sum() > n:
+            return None  # the window is most of the map: solve it all
+        nodes = np.unique(np.concatenate([src[links], dst[links]]))
+        fixed = nodes[~active[nodes]]
+        if not len(fixed):
+            return None
+        return nodes, links, fixed
 
     def _trust(self, k: int) -> None:
         """A verified loop link: weight 1, and (``trust_verified``) out of the kernel's reach,
@@ -465,12 +526,14 @@ class CognitiveMap:
     def link_information(self) -> np.ndarray:
         """(M, 3) diagonal information of every link (x, y, θ) for the weighted solver: odometric
         and prune links ``odometry_information_per_m / length`` (variance grows with the path;
-        lengths below 5 cm count as 5 cm), loop links ``loop_information``."""
+        lengths below 5 cm count as 5 cm), the heading's variance also ``odometry_turn_variance``
+        per radian turned; loop links ``loop_information``."""
         m = self._m
         cfg = self.cfg
         length = np.maximum(np.hypot(self._tr[:m, 0], self._tr[:m, 1]), 0.05)
         xy, th = cfg.odometry_information_per_m
-        info = np.column_stack([xy / length, xy / length, th / length])
+        turn = np.abs(self._tr[:m, 2])
+        info = np.column_stack([xy / length, xy / length, 1.0 / (length / th + cfg.odometry_turn_variance * turn)])
         loop = self._kind[:m] == LOOP
         li = self._linfo[:m][loop]
         info[loop] = np.column_stack([li[:, 0], li[:, 0], li[:, 1]])
@@ -702,6 +765,7 @@ class CognitiveMap:
                 if k >= 0 and c.node != c.from_node:
                     self._tr[k] = c.link_tr
                     self._trust(k)
+                    self._touched.append(k)
                     book.decisions[c.id] = replace(book.decisions[c.id], transform=c.link_tr)
             self._version += 1
             self._dirty = True
@@ -740,6 +804,7 @@ class CognitiveMap:
             self._lkw[k] = c.kernel_width
             self._version += 1
             self._dirty = True
+            self._touched.append(k)
             return k
         return self._add_link(int(self._src[k]), c.node, tr, LOOP, 0.0, allow_duplicate=True, info=c.info,
                                   kernel_width=c.kernel_width)
@@ -857,6 +922,7 @@ class CognitiveMap:
         self._rebuild_link_index()
         self._version += 1
         self._dirty = True
+        self._touched = [-1]
         self._cur = int(old_to_new[self._cur])
         self._delta = delta
         code = self._robot_code()
@@ -902,7 +968,8 @@ class CognitiveMap:
             "robot": {"current": self._cur, "delta": list(self._delta), "odom": list(self._odom), "path": self._path,
                       "step": self._step, "t": self._t, "t_arrive": self._t_arrive, "arrival": self._arrival,
                       "code": None if self._code is None else list(self._code), "code_odom": list(self._code_odom),
-                      "anchor": None if self._anchor is None else list(self._anchor), "dirty": self._dirty},
+                      "anchor": None if self._anchor is None else list(self._anchor), "dirty": self._dirty,
+                      "touched": list(self._touched), "local_solves": self._local_solves},
             "loop": self._loops.state_dict(),
             "events": [e.to_dict() for e in self._events],
         }
@@ -953,6 +1020,8 @@ class CognitiveMap:
             cmap._code_odom = _vec3(robot["code_odom"], "state robot.code_odom")
             cmap._anchor = None if robot["anchor"] is None else _vec3(robot["anchor"], "state robot.anchor")
             cmap._dirty = bool(robot["dirty"])
+            cmap._touched = [int(k) for k in robot.get("touched", [-1] if cmap._dirty else [])]
+            cmap._local_solves = int(robot.get("local_solves", 0))
             cmap._loops = LoopBook.from_state(loop)
             cmap._events = [MapEvent.from_dict(e) for e in state.get("events", [])]
             cmap._version += 1

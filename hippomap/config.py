@@ -264,6 +264,16 @@ class MapConfig(_Frozen):
         "(docs/MODEL.md) [ours]",
     )
     lsq_iterations: int = Field(10, ge=1, description="max Gauss-Newton iterations per correction when solver='lsq' [ours]")
+    lsq_window_hops: int = Field(
+        40, ge=0, description="when every link changed since the last solve agrees with the map within "
+        "lsq_window_residual_m, solve only the nodes within this many links of them (10 m at the default node "
+        "spacing), holding the nodes around; 0 = always the whole map. Keeps the cost of re-localising along a "
+        "mapped path independent of the map's size [ours, docs/MODEL.md]")
+    lsq_window_every: int = Field(
+        10, ge=1, description="after this many local solves the next correction solves the whole map (and revises "
+        "the robust weights, which only a whole solve does) [ours]")
+    lsq_window_residual_m: float = Field(
+        0.5, gt=0, description="largest residual of a changed link that still counts as a local correction [ours]")
     lsq_weighted: bool = Field(
         True, description="solver='lsq' weights each link by its information (below) instead of alike: odometric "
         "links by their length, loop links by loop_information [ours]")
@@ -271,6 +281,10 @@ class MapConfig(_Frozen):
         (362.0, 3620.0), description="information of 1 m of odometry, (x/y in m^-2, heading in rad^-2); a link of "
         "length d gets this / d (variance grows with the path). Default: the B25b g2o files' 4000 / 40000 per 0.0905 m "
         "step [ours, from the data]")
+    odometry_turn_variance: float = Field(
+        0.0, ge=0, description="heading variance (rad^2) an odometric link gains per radian it turns, on top of its "
+        "length's: a gyro or wheel-odometry heading error grows with the turning too, so that a corner is not "
+        "held stiffer than a straight [ours, docs/MODEL.md]")
     visual_loop_information: tuple[_Positive, _Positive] = Field(
         (100.0, 1000.0), description="information of a visual loop link (x/y, heading), as for a measured one: "
         "softer visual links left loops partly open on the simulated worlds (docs/MODEL.md) [ours]")
@@ -290,6 +304,14 @@ class MapperConfig(_Frozen):
         "worlds, docs/MODEL.md]")
     keyframe_turn_rad: float = Field(
         0.35, gt=0, description="... or after turning this much (a robot turning on the spot sees new views) [ours]")
+    recognition_min_path_m: float = Field(
+        5.0, ge=0, description="a key frame can be recognised only after the robot has travelled this far since "
+        "learning it: the camera still sees the scene it took a few metres back (such matches are not loop "
+        "closures); chosen on the simulated tuning worlds, docs/MODEL.md [ours]")
+    learn_recognised: bool = Field(
+        False, description="also learn a key frame that was recognised: False learns only novel views (as "
+        "[ORS]'s view templates), so a key frame is always anchored to the node of the pass that first saw it, "
+        "and the visual memory grows with the places visited, not with the time spent there [ours, docs/MODEL.md]")
     camera_hfov_deg: float | None = Field(
         None, gt=0, lt=180, description="horizontal field of view of the camera; when known, the image shift of a "
         "recognition's saccade correspondences turns into the robot's heading relative to the matched key frame "

@@ -81,6 +81,7 @@ class Mapper:
         self._frame_distance = self._frame_turn = 0.0  # distance and turn at the previous frame
         self.frame_offset: dict[int, tuple[float, float, float]] = {}  # key frame -> its pose in its node's frame
         self.frame_node: dict[int, int] = {}  # key-frame id -> node id
+        self.frame_path: dict[int, float] = {}  # key-frame id -> odometric path length when it was learned
         self.recognitions: list[dict[str, Any]] = []
         self.place: tuple[float, float, float] | None = None  # latest place code p
         self.place_field = None  # latest PlaceCode with its field (not persisted)
@@ -130,9 +131,10 @@ class Mapper:
         if not self._is_keyframe():
             return []
         events: list[dict[str, Any]] = []
+        recognised = False
         if self.place is not None and self.memory.frame_count:
             frames = self.cmap.frames[self.cmap.loop_candidates()]
-            candidates = sorted(set(int(f) for f in frames[frames >= 0]))
+            candidates = self._recognisable(frames[frames >= 0])
             if candidates:
                 rec = self.memory.recognise(gray, candidates=candidates)
                 rec_id = len(self.recognitions)
@@ -145,17 +147,31 @@ class Mapper:
                                          meta={"recognition": rec_id, "frame": int(rec.frame)},
                                          offset=self._visual_offset(rec, gray.shape[1]))
                     decision = self.cmap.propose_loop(hyp)
+                    recognised = decision.status != "rejected"
                     events.append({"type": "loop_decision", **decision.to_dict()})
+        self.distance_at_keyframe = self.distance
+        self.turn_at_keyframe = self.turn
+        if recognised and not self.config.mapper.learn_recognised:
+            return events
         fid = self.memory.learn(gray)
         if fid is not None:
             node = int(self.cmap.current)
             self.cmap.set_frame(node, fid)
             self.frame_node[int(fid)] = node
             self.frame_offset[int(fid)] = tuple(float(v) for v in self.cmap.robot_offset)
-            self.distance_at_keyframe = self.distance
-            self.turn_at_keyframe = self.turn
+            self.frame_path[int(fid)] = float(self.distance)
             events.append({"type": "keyframe_learned", "t": frame.t, "frame": int(fid), "node": node})
         return events
+
+    def _recognisable(self, frames: np.ndarray) -> list[int]:
+        """The key frames a recognition may name, sorted: those learned at least
+        ``recognition_min_path_m`` of path ago. A camera still sees the scene of a key frame it
+        took a few metres back, so recognising it is not a return to a place: measured on the
+        simulated worlds, such matches named frames 1.5-2.5 m back along the robot's own track
+        and pulled the map short when they were verified."""
+        gap = self.config.mapper.recognition_min_path_m
+        fp = self.frame_path
+        return sorted({int(f) for f in frames if self.distance - fp.get(int(f), -math.inf) >= gap})
 
     def _is_keyframe(self) -> bool:
         m = self.config.mapper
@@ -236,6 +252,7 @@ class Mapper:
             "distance_at_keyframe": None if math.isinf(self.distance_at_keyframe) else self.distance_at_keyframe,
             "frame_node": [[k, v] for k, v in self.frame_node.items()],
             "frame_offset": [[k, list(v)] for k, v in self.frame_offset.items()],
+            "frame_path": [[k, v] for k, v in self.frame_path.items()],
             "turn": self.turn,
             "turn_at_keyframe": self.turn_at_keyframe,
             "frame_distance": self._frame_distance,
@@ -272,6 +289,7 @@ class Mapper:
         self.distance_at_keyframe = -math.inf if dk is None else dk
         self.frame_node = {int(k): int(v) for k, v in meta["frame_node"]}
         self.frame_offset = {int(k): tuple(float(x) for x in v) for k, v in meta.get("frame_offset", [])}
+        self.frame_path = {int(k): float(v) for k, v in meta.get("frame_path", [])}
         self.turn = float(meta.get("turn", 0.0))
         self.turn_at_keyframe = float(meta.get("turn_at_keyframe", 0.0))
         self._frame_distance = float(meta.get("frame_distance", self.distance))

@@ -381,6 +381,7 @@ def solve_lsq(
     tol: float = 1e-6,
     cost_rtol: float = 1e-9,
     information=None,
+    fixed=None,
 ) -> RelaxResult:
     """Gauss–Newton on the SE(2) pose graph, **in place**.
 
@@ -393,7 +394,8 @@ def solve_lsq(
     ``information`` (M, 3): the diagonal of each link's information matrix (x, y, θ in the
     link's frame); None = unit information. The normal equations ``JᵀJ δ = −Jᵀe`` are assembled with ``scipy.sparse``
     and solved by sparse LU with the ``anchor`` node held fixed (``None``: a tiny damping
-    fixes the gauge). Nodes without links keep their pose.
+    fixes the gauge). ``fixed``: ids of further nodes held at their poses (the boundary of a
+    local solve). Nodes without links keep their pose.
     """
     P, src, dst, T = _as_graph(poses, src, dst, transforms, inplace=True)
     n, m = len(P), len(src)
@@ -412,6 +414,11 @@ def solve_lsq(
     keep = np.ones(3 * n, dtype=bool)
     if anchor is not None:
         keep[3 * anchor: 3 * anchor + 3] = False
+    if fixed is not None:
+        f3 = 3 * np.asarray(fixed, dtype=np.int64).reshape(-1)
+        keep[np.concatenate([f3, f3 + 1, f3 + 2])] = False
+        if anchor is None and len(f3):
+            damp = damp - 1e-9  # the fixed nodes fix the gauge
     idx = np.flatnonzero(keep)
     shift = 0.0
     done = 0

@@ -16,7 +16,9 @@ Modules, one concept each:
 * :mod:`server.protocol`  — the websocket stream's messages and binary frame header
 * :mod:`server.model`     — the only module that touches the mapper (create, load, query)
 * :mod:`server.worker`    — one thread per session feeding its mapper in order, snapshotting
-* :mod:`server.mapper_host` — where a session's mapper runs: in process, or a Ray actor (:mod:`server.ray_backend`)
+* :mod:`server.mapper_host` — where a session's mapper runs: in process (behind a gate), in child processes
+  (:mod:`server.process_host`), or a Ray actor (:mod:`server.ray_backend`)
+* :mod:`server.loop_calls` — calls from other threads onto the event loop, one wake-up per burst
 * :mod:`server.metrics`   — Prometheus metrics; :mod:`server.logs` structured (JSON) logs
 * :mod:`server.sessions`  — live sessions: ordering, durability, backpressure, restore
 * :mod:`server.views`     — serialisers: GraphML, g2o, TUM, place fields, saccade images

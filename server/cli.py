@@ -1,7 +1,7 @@
 """``hippomap serve``: run the server on the embedded database.
 
     hippomap serve [--host H] [--port P] [--data-dir D] [--database FILE] [--demo]
-                   [--backend inprocess|ray] [--ray-address ADDR]
+                   [--backend inprocess|process|ray] [--ray-address ADDR]
 
 On the first start an admin token is generated, printed and saved in ``D/admin.token``
 (later starts print where it is; ``export HIPPOMAP_TOKEN=$(cat D/admin.token)`` lets the
@@ -111,8 +111,9 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--database", default=None,
                    help="SQLite file (default <data-dir>/hippomap.sqlite3) or a PostgreSQL URL postgresql://user:pw@host/db "
                         "(replicas sharing sessions; needs the 'postgres' extra)")
-    p.add_argument("--backend", default=None, choices=["inprocess", "ray"],
-                   help="where sessions' mappers run: in this process (default) or one Ray actor per session "
+    p.add_argument("--backend", default=None, choices=["inprocess", "process", "ray"],
+                   help="where sessions' mappers run: in this process (default), in child processes of this server "
+                        "($HIPPOMAP_PROCESS_WORKERS, default 1) or one Ray actor per session "
                         "(needs pip install \"hippomap[ray]\"; $HIPPOMAP_BACKEND)")
     p.add_argument("--ray-address", default=None,
                    help="Ray cluster to join with --backend ray (default: start a local Ray on loopback; "

@@ -88,11 +88,43 @@ class MapperHost(abc.ABC):
         """Release the mapper (idempotent)."""
 
 
+class MapperGate:
+    """How many in-process mappers may step at once (one per server by default), and the way they
+    leave the event loop its turn.
+
+    Why: the mappers run in threads beside the event loop, and a mapper step is mostly Python, so
+    it holds the GIL. With one thread per session stepping at once, the loop — which reads every
+    message, hands it to the store and sends its acknowledgement — queues for the GIL behind all
+    of them, several switch intervals per message: acknowledgements waited for mapping work that
+    they do not depend on. Through the gate only ``slots`` mappers contend for the GIL; the
+    others wait on a lock, which costs no GIL. Mapping throughput is unchanged (GIL-bound work
+    does not run faster in more threads), each session still processes its inputs in order, and
+    the sessions take turns input by input. After each
+    step the GIL is offered to the other threads (``time.sleep(0)``), so the loop does not wait
+    for a switch interval to expire."""
+
+    def __init__(self, slots: int = 1) -> None:
+        if slots < 1:
+            raise ValueError(f"slots must be >= 1, got {slots}")
+        self.slots = slots
+        self._sem = threading.Semaphore(slots)
+
+    def __enter__(self) -> "MapperGate":
+        self._sem.acquire()
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self._sem.release()
+        time.sleep(0)  # release the GIL now: a waiting event loop runs before the next step
+
+
 class InProcessHost(MapperHost):
     """The mapper in this process. :attr:`lock` is held while one input is processed, so a query
-    always sees the mapper between two inputs."""
+    always sees the mapper between two inputs; ``gate`` (shared by a server's hosts) bounds how
+    many mappers step at once (:class:`MapperGate`)."""
 
-    def __init__(self) -> None:
+    def __init__(self, gate: MapperGate | None = None) -> None:
+        self.gate = gate
         self.lock = threading.Lock()
         self.mapper: model.MapperPort | None = None
         self._last_field: Any = None
@@ -105,7 +137,13 @@ class InProcessHost(MapperHost):
             return mapper.stats()
 
     def process(self, batch: list[tuple[int, Odometry | Frame]]) -> list[StepResult]:
-        return [self._one(seq, value) for seq, value in batch]
+        if self.gate is None:
+            return [self._one(seq, value) for seq, value in batch]
+        out = []
+        for seq, value in batch:
+            with self.gate:
+                out.append(self._one(seq, value))
+        return out
 
     def _one(self, seq: int, value: Odometry | Frame) -> StepResult:
         if self.mapper is None:
@@ -155,3 +193,12 @@ HostFactory = Callable[[str], MapperHost]
 
 def inprocess_factory(session_id: str) -> MapperHost:
     return InProcessHost()
+
+
+def gated_factory(gate: MapperGate) -> HostFactory:
+    """In-process hosts that share ``gate`` (the server's default backend)."""
+
+    def factory(session_id: str) -> MapperHost:
+        return InProcessHost(gate)
+
+    return factory

@@ -16,7 +16,7 @@ registry. What is measured, all labelled by session id:
 from __future__ import annotations
 
 import threading
-from typing import Callable, Iterable
+from typing import Any, Callable, Iterable
 
 from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, Counter, Gauge, Histogram, generate_latest
 from prometheus_client.core import GaugeMetricFamily
@@ -59,13 +59,23 @@ class ServiceMetrics:
                               ["session"], registry=self.registry)
         self._live: _LiveGauges | None = None
         self._lock = threading.Lock()
+        # the labelled children of the per-input metrics, looked up once per (session, kind): ``labels()``
+        # takes the metric's lock and builds its key on every call, and these run once per input
+        self._children: dict[tuple[str, str, str], Any] = {}
+
+    def _child(self, metric: Any, name: str, session_id: str, kind: str) -> Any:
+        key = (name, session_id, kind)
+        child = self._children.get(key)
+        if child is None:
+            child = self._children[key] = metric.labels(session_id, kind)
+        return child
 
     # ---------------------------------------------------------------- events
     def inputs_accepted(self, session_id: str, kind: str, n: int = 1) -> None:
-        self._inputs.labels(session_id, kind).inc(n)
+        self._child(self._inputs, "inputs", session_id, kind).inc(n)
 
     def step_observed(self, session_id: str, kind: str, seconds: float) -> None:
-        self._steps.labels(session_id, kind).observe(seconds)
+        self._child(self._steps, "steps", session_id, kind).observe(seconds)
 
     def loop_closures(self, session_id: str, n: int = 1) -> None:
         self._loops.labels(session_id).inc(n)
@@ -75,6 +85,8 @@ class ServiceMetrics:
 
     def forget(self, session_id: str) -> None:
         """Drop a deleted session's series (they would otherwise be exported forever)."""
+        for key in [k for k in list(self._children) if k[1] == session_id]:
+            self._children.pop(key, None)
         for metric, kinds in ((self._inputs, ("odometry", "frame")), (self._steps, ("odometry", "frame"))):
             for kind in kinds:
                 try:

@@ -74,8 +74,8 @@ _STRING = re.compile(r'"(?:[^"\\]|\\.)*"?', re.DOTALL)
 def json_depth(text: str) -> int:
     """Deepest nesting of ``[``/``{`` in a JSON text, ignoring brackets inside strings: one linear
     pass in C (regex + numpy), so a hostile message costs no more than its length."""
-    if text.count("[") + text.count("{") <= 1:
-        return text.count("[") + text.count("{")
+    if "[" not in text and "{" not in text:  # e.g. a number, or a string without brackets
+        return 0
     data = _STRING.sub("", text).encode("utf-8", "surrogatepass")
     if not data:
         return 0
@@ -89,9 +89,11 @@ def parse_text_message(text: str, max_chars: int, max_depth: int) -> Any:
     not JSON; never anything else."""
     if len(text) > max_chars:
         raise MessageError(413, f"text message of {len(text)} characters exceeds the limit of {max_chars}")
-    depth = json_depth(text)
-    if depth > max_depth:
-        raise MessageError(422, f"text message nested {depth} levels deep exceeds the limit of {max_depth}")
+    # a text with at most max_depth brackets cannot nest deeper than that: the scan is for the others
+    if text.count("[") + text.count("{") > max_depth:
+        depth = json_depth(text)
+        if depth > max_depth:
+            raise MessageError(422, f"text message nested {depth} levels deep exceeds the limit of {max_depth}")
     try:
         return json.loads(text)
     except (ValueError, RecursionError) as exc:

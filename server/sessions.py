@@ -38,7 +38,8 @@ from . import model
 from .auth import can_read, can_write
 from .ingest import Accepted, IngestError, check_frame, check_time_jump, pydantic_message
 from .limits import TokenBucket
-from .mapper_host import HostFactory, inprocess_factory
+from .loop_calls import LoopCalls
+from .mapper_host import HostFactory, MapperGate, gated_factory
 from .quotas import MAX_OVERRIDES_CHARS, ConfigRejected, check_config, check_token_quota
 from .metrics import ServiceMetrics
 from .settings import ServerSettings
@@ -98,12 +99,14 @@ class LiveSession:
 
     def __init__(self, record: SessionRecord, config: HippomapConfig, store: Store, settings: ServerSettings,
                  loop: asyncio.AbstractEventLoop, host_factory: HostFactory | None = None,
-                 metrics: ServiceMetrics | None = None) -> None:
+                 metrics: ServiceMetrics | None = None, calls: LoopCalls | None = None) -> None:
         self.record = record
         self.config = config
         self.store = store
         self.settings = settings
         self.loop = loop
+        #: completions from the store's writer and the worker reach the loop through here (batched wake-ups)
+        self.calls = calls if calls is not None else LoopCalls(loop)
         self.metrics = metrics
         last = store.last_input(record.id)
         self.next_seq = 0 if last is None else last[0] + 1
@@ -116,6 +119,7 @@ class LiveSession:
         self.closed = False
         self.store_error: str | None = None
         self.rejected: Counter[int] = Counter()
+        self._frame_shapes_ok: set[tuple[Any, ...]] = set()  # see _validate_frame
         self.bucket = TokenBucket(settings.rate_per_s, settings.rate_burst)
         self._lock = asyncio.Lock()
         self._room = asyncio.Event()
@@ -143,10 +147,7 @@ class LiveSession:
 
     # --------------------------------------------------------------- ingest
     def _processed_threadsafe(self, seq: int) -> None:
-        try:
-            self.loop.call_soon_threadsafe(self._processed, seq)
-        except RuntimeError:  # loop closed during shutdown
-            pass
+        self.calls.call(self._processed, seq)
 
     def _processed(self, seq: int | None = None) -> None:
         self.pending = max(0, self.pending - 1)
@@ -219,29 +220,50 @@ class LiveSession:
                     self._pending_sizes[seq0 + k] = size
         last = seq0 + len(items) - 1
         kinds = Counter(a.kind for a in items)
-        inner = asyncio.wrap_future(cfut, loop=self.loop)
-        inner.add_done_callback(lambda f: self._stored(f, last, kinds))
-        # a caller that stops waiting (a websocket closed mid-ack) cancels only its own view of the
-        # write: the write itself, its bookkeeping above and the store's writer go on untouched
-        return seq0, last, asyncio.shield(inner)
+        # the commit completes `cfut` in the writer thread; the bookkeeping and `done` follow on the loop
+        # (batched with the other completions of the same commit). A caller that stops waiting (a websocket
+        # closed mid-ack) cancels only `done`: the write, its bookkeeping and the store's writer go on
+        done = self.loop.create_future()
+        cfut.add_done_callback(lambda f: self.calls.call(self._stored, f, last, kinds, done))
+        return seq0, last, done
 
-    def _stored(self, fut: asyncio.Future, last: int, kinds: Counter[str] | None = None) -> None:
-        if fut.cancelled() or fut.exception() is not None:
+    def _stored(self, fut: Any, last: int, kinds: Counter[str] | None = None,
+                done: asyncio.Future | None = None) -> None:
+        """On the loop, once the store has settled a write (``fut``, a concurrent future): record it and
+        settle ``done``, the future the caller awaits, with the same outcome."""
+        error = RuntimeError("the write was cancelled") if fut.cancelled() else fut.exception()
+        if error is not None:
             # sequence numbers were promised but not stored: refuse further inputs rather than leave a gap
-            self.store_error = f"storage failed: {None if fut.cancelled() else fut.exception()}"
+            self.store_error = f"storage failed: {error}"
             log.error("session %s: %s", self.id, self.store_error, extra={"session": self.id})
-            return
-        self.stored_seq = max(self.stored_seq, last)
-        if self.metrics is not None and kinds:
-            for kind, n in kinds.items():  # durable now: the acknowledgement follows
-                self.metrics.inputs_accepted(self.id, kind, n)
+        else:
+            self.stored_seq = max(self.stored_seq, last)
+            if self.metrics is not None and kinds:
+                for kind, n in kinds.items():  # durable now: the acknowledgement follows
+                    self.metrics.inputs_accepted(self.id, kind, n)
+        if done is not None and not done.done():
+            if error is None:
+                done.set_result(fut.result())
+            else:
+                done.set_exception(error)
 
     def _validate_frame(self, data: bytes, t: Any) -> Accepted:
+        """The server's checks (:func:`~server.ingest.check_frame`: decoded fully and strictly), then the
+        model's own rules (:func:`server.model.check_frame`: e.g. large enough for the fovea).
+
+        The model's rules look at the decoded image's shape and type only, but checking them runs the
+        visual front end (resize and retina: about three quarters of the validation's CPU time, and the
+        mapper does the same work again). So a shape and type the model accepted once in this session
+        is not checked again; a refused one is checked every time (the refusal names the problem)."""
         accepted = check_frame(data, t, self.settings)
-        try:  # the model's own rules (e.g. large enough for the fovea)
-            model.check_frame(self.config, accepted.value)
-        except ValueError as exc:
-            raise IngestError(422, str(exc)) from None
+        image = accepted.value.image  # type: ignore[union-attr]
+        key = (image.shape, image.dtype.str)
+        if key not in self._frame_shapes_ok:
+            try:
+                model.check_frame(self.config, accepted.value)
+            except ValueError as exc:
+                raise IngestError(422, str(exc)) from None
+            self._frame_shapes_ok.add(key)
         return accepted
 
     async def validate_frame(self, data: bytes, t: Any) -> Accepted:
@@ -295,8 +317,9 @@ class SessionManager:
         self.metrics = metrics if metrics is not None else ServiceMetrics()
         self.sessions: dict[str, LiveSession] = {}
         self.loop: asyncio.AbstractEventLoop | None = None
-        self.backend: Any = None  # the RayBackend when settings.backend == "ray"
-        self.host_factory: HostFactory = inprocess_factory
+        self.calls: LoopCalls | None = None  # shared by the sessions: one wake-up of the loop per burst
+        self.backend: Any = None  # the RayBackend or ProcessBackend when settings.backend is "ray" or "process"
+        self.host_factory: HostFactory = gated_factory(MapperGate(settings.mapper_slots))
         self.replica = settings.replica_id or socket.gethostname()
         self._stopping = threading.Event()
         self._lease_thread: threading.Thread | None = None
@@ -326,6 +349,12 @@ class SessionManager:
             from .ray_backend import RayBackend  # Ray is imported only on this path
 
             self.backend = RayBackend(self.settings)
+            self.backend.start()
+            self.host_factory = self.backend.factory
+        elif self.settings.backend == "process":
+            from .process_host import ProcessBackend
+
+            self.backend = ProcessBackend(self.settings.process_workers)
             self.backend.start()
             self.host_factory = self.backend.factory
         for rec in self.store.list_sessions():
@@ -404,7 +433,10 @@ class SessionManager:
 
     def _open(self, rec: SessionRecord, config: HippomapConfig) -> LiveSession:
         assert self.loop is not None
-        live = LiveSession(rec, config, self.store, self.settings, self.loop, self.host_factory, self.metrics)
+        if self.calls is None or self.calls.loop is not self.loop:
+            self.calls = LoopCalls(self.loop)
+        live = LiveSession(rec, config, self.store, self.settings, self.loop, self.host_factory, self.metrics,
+                           self.calls)
         live.replica = self.replica
         self.sessions[rec.id] = live
         live.worker.start()

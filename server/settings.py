@@ -92,9 +92,18 @@ class ServerSettings(BaseModel):
         15.0, gt=0, description="a session lease lasts this long and is renewed every third of it; a replica that "
         "stops renewing (crashed) loses its sessions to the others after at most this long")
     # ---- session backend (where each session's mapper runs: server/mapper_host.py, server/ray_backend.py) ----
-    backend: Literal["inprocess", "ray"] = Field(
+    backend: Literal["inprocess", "process", "ray"] = Field(
         "inprocess", description="'inprocess': every session's mapper in this process (a thread each); "
+        "'process': the mappers in process_workers child processes of this server (the event loop does not share "
+        "its GIL with them: more robots per server, see server/process_host.py); "
         "'ray': one Ray actor per session (needs the 'ray' extra: pip install \"hippomap[ray]\")")
+    mapper_slots: int = Field(
+        1, ge=1, le=64, description="in-process backend: how many session mappers step at the same time; the others "
+        "wait their turn without holding the GIL, so the event loop (which acknowledges inputs) is not starved by "
+        "mapper threads (server/mapper_host.py, MapperGate)")
+    process_workers: int = Field(
+        1, ge=1, le=256, description="process backend: child processes running the sessions' mappers (sessions are "
+        "spread over them in turn; each holds its own copy of the grid-cell tables)")
     ray_address: str | None = Field(
         None, description="Ray cluster to join (e.g. 127.0.0.1:6379 or ray://host:10001); unset: start a local "
         "Ray on loopback inside this server")

@@ -121,8 +121,35 @@ class SQLiteStore(Store):
                     pass
             raise
 
+    @classmethod
+    def _run_batch(cls, conn: sqlite3.Connection, batch: list) -> None:
+        """Commit ``batch`` in one transaction, each operation isolated from the others' failures.
+
+        Operations almost never fail, so the batch first runs without savepoints (two statements fewer
+        per operation). If one raises, that transaction is rolled back — nothing of it was committed —
+        and the whole batch runs again, each operation in its own savepoint (operations only touch the
+        database, so running them again is safe)."""
+        if len(batch) > 1:
+            outcomes: list[tuple[Any, BaseException | None]] = []
+            try:
+                conn.execute("BEGIN IMMEDIATE")
+                for fn, _, _ in batch:
+                    outcomes.append((fn(conn), None))
+            except Exception:  # an operation failed (or BEGIN did): redo the batch the careful way
+                if conn.in_transaction:
+                    conn.execute("ROLLBACK")
+            else:
+                try:
+                    conn.execute("COMMIT")
+                except Exception as exc:  # the commit itself failed (disk full, I/O error): nothing is durable
+                    cls._abort(conn, batch, exc)
+                    return
+                settle_batch(batch, outcomes)
+                return
+        cls._run_isolated(conn, batch)
+
     @staticmethod
-    def _run_batch(conn: sqlite3.Connection, batch: list) -> None:
+    def _run_isolated(conn: sqlite3.Connection, batch: list) -> None:
         outcomes: list[tuple[Any, BaseException | None]] = []
         try:
             conn.execute("BEGIN IMMEDIATE")
@@ -138,13 +165,18 @@ class SQLiteStore(Store):
                     outcomes.append((None, exc))
             conn.execute("COMMIT")
         except Exception as exc:  # the commit itself failed (disk full, I/O error): nothing is durable
-            try:
-                conn.execute("ROLLBACK")
-            except sqlite3.Error:
-                pass
-            fail_batch(batch, exc)
+            SQLiteStore._abort(conn, batch, exc)
             return
         settle_batch(batch, outcomes)
+
+    @staticmethod
+    def _abort(conn: sqlite3.Connection, batch: list, exc: BaseException) -> None:
+        """Roll back what the batch wrote and fail every write in it with ``exc``."""
+        try:
+            conn.execute("ROLLBACK")
+        except sqlite3.Error:
+            pass
+        fail_batch(batch, exc)
 
     def _checkpoint_loop(self) -> None:
         conn = self._connect()

@@ -25,15 +25,13 @@ from pydantic import ValidationError
 from hippomap.client import AsyncStream
 from hippomap.inputs import Odometry
 from server import model
-from server.ingest import odometry_bytes
 from server.mapper_host import InProcessHost
 from server.metrics import ServiceMetrics
 from server.settings import ServerSettings
 from server.sqlite_store import SQLiteStore
-from server.store import InputRecord, SessionRecord
 from server.testing import (ROOT, LiveServer, decoded, local_ray_head, offline_reference, ray_test_env, stream_items,
                             session_state, synthetic_inputs)
-from server.worker import SessionWorker, WorkItem
+from worker_harness import run_worker
 
 CONFIG = {"mapper": {"keyframe_interval": 3}}
 ITEMS = synthetic_inputs(n_odometry=400, frame_every=3)  # 1.6 laps: loops are closed
@@ -63,16 +61,6 @@ def ray_driver():
                 os.environ[k] = v
 
 
-def _records(items: tuple) -> list[InputRecord]:
-    out = []
-    for seq, it in enumerate(items):
-        if it[0] == "odometry":
-            out.append(InputRecord(seq, "odometry", it[1].t, odometry_bytes(it[1])))
-        else:
-            out.append(InputRecord(seq, "frame", it[1], it[2]))
-    return out
-
-
 def test_inprocess_and_ray_hosts_give_identical_results(ray_driver):
     values = decoded(ITEMS[:120])
     config = model.effective_config(CONFIG)
@@ -98,34 +86,7 @@ def test_inprocess_and_ray_hosts_give_identical_results(ray_driver):
 
 
 def _run_worker(tmp_path, items, host_factory, kill_at=None, metrics=None):
-    """Feed ``items`` to a SessionWorker the way LiveSession does (durable first); optionally
-    ``kill_at(worker)`` is called once half the inputs are queued. Returns the final state."""
-    store = SQLiteStore(tmp_path / "db.sqlite3", "normal")
-    sid = "s_unit"
-    store.create_session(SessionRecord(id=sid, owner="t", config=CONFIG)).result()
-    settings = ServerSettings(data_dir=tmp_path, snapshot_every_inputs=50, backend_max_restarts=3)
-    processed: list[int] = []
-    w = SessionWorker(sid, model.effective_config(CONFIG), store, settings, replay_until=-1,
-                      on_processed=processed.append, host_factory=host_factory, metrics=metrics)
-    w.start()
-    assert w.ready.wait(120) and w.error is None
-    recs, values = _records(items), decoded(items)
-    half = len(items) // 2
-    for k in range(0, len(items), 10):
-        work = [WorkItem(r.seq, v) for r, v in zip(recs[k:k + 10], values[k:k + 10])]
-        store.append_inputs(sid, recs[k:k + 10], on_durable=lambda work=work: w.put(work)).result()
-        if kill_at is not None and k <= half < k + 10:
-            kill_at(w)
-    deadline = time.monotonic() + 120
-    while w.processed_seq < len(items) - 1 and w.error is None and time.monotonic() < deadline:
-        time.sleep(0.02)
-    assert w.error is None
-    state = {"graph": w.query(model.graph), "stats": w.query(model.stats)}
-    w.stop(snapshot=True)
-    events = store.query_events(sid, limit=100_000)
-    fields = store.place_fields(sid, limit=100_000, with_data=True)
-    store.close()
-    return state, processed, w, events, fields
+    return run_worker(tmp_path, items, CONFIG, host_factory, kill_at, metrics)
 
 
 def test_worker_replaces_a_killed_actor_and_ends_in_the_uninterrupted_state(tmp_path, ray_driver):

@@ -559,3 +559,69 @@ def test_loop_relocalise_option():
         results[reloc] = (before, cmap.current)
     assert results[True][1] == 1
     assert results[False][1] == results[False][0]
+
+
+def test_local_solves_match_the_whole_map_and_stay_bounded():
+    """After the first closure of a lap, later closures are small corrections: they are solved on a
+    window of nodes around the changed links (the nodes just outside held), which must give nearly
+    the map a whole-map solve gives, and must not move nodes far from the window."""
+    inc = square_increments(side=8.0, laps=3)
+    gt = integrate(inc)
+    noisy = inc.copy()
+    noisy[:, 2] += 0.002 * (inc[:, 0] > 0)
+    first_lap = len(inc) // 3
+    maps = {}
+    for hops in (0, 20):
+        cmap = CognitiveMap(MapConfig(prune_online=False, loop_transform_radius_m=3.0, lsq_window_hops=hops))
+        windows = []
+        original = cmap._local_window
+
+        def spy(original=original, windows=windows):
+            w = original()
+            windows.append(None if w is None else (len(w[0]) - len(w[2]), cmap.node_count))
+            return w
+
+        cmap._local_window = spy
+        node_at, off, _ = drive(cmap, noisy, hypotheses=true_loops(gt, first_lap))
+        maps[hops] = (corrected(cmap, node_at, off), windows)
+    whole, _ = maps[0]
+    local, windows = maps[20]
+    used = [w for w in windows if w is not None]
+    assert used, "no correction was solved locally"
+    assert all(size <= total / 2 for size, total in used), used
+    assert rms_xy(local, gt) < 1.1 * rms_xy(whole, gt) + 0.02
+    assert rms_xy(local, whole) < 0.1
+
+
+def test_lsq_holds_fixed_nodes():
+    from hippomap.relaxation import solve_lsq
+
+    P = np.array([[0.0, 0, 0], [1.2, 0.1, 0.05], [2.1, -0.2, 0.0], [3.0, 0.0, 0.0]])
+    src, dst = np.array([0, 1, 2]), np.array([1, 2, 3])
+    tr = np.tile([1.0, 0.0, 0.0], (3, 1))
+    before = P.copy()
+    solve_lsq(P, src, dst, tr, anchor=None, fixed=[0, 3])
+    np.testing.assert_array_equal(P[[0, 3]], before[[0, 3]])
+    np.testing.assert_allclose(P[1:3, :2], [[1.0, 0.0], [2.0, 0.0]], atol=1e-6)
+
+
+def test_turning_links_hold_the_heading_less_stiffly():
+    """Odometric heading error grows with turning too: a link of the same length that turns has a
+    lower heading information (odometry_turn_variance per radian), and 0 gives the per-metre model."""
+    inc = np.array([(0.3, 0.0, 0.0)] * 5 + [(0.3, 0.0, 0.4)] * 5)
+    for turn_var in (0.0, 0.01):
+        cmap = CognitiveMap(MapConfig(prune_online=False, odometry_turn_variance=turn_var))
+        drive(cmap, inc)
+        links = cmap.links
+        odo = links["kind_code"] == 0
+        info = cmap.link_information()[odo]
+        tr = links["transform"][odo]
+        turning, straight = np.abs(tr[:, 2]) > 0.1, np.abs(tr[:, 2]) < 1e-9
+        assert turning.any() and straight.any()
+        length = np.hypot(tr[:, 0], tr[:, 1])
+        per_m = info[:, 2] * length
+        if turn_var == 0.0:
+            np.testing.assert_allclose(per_m, MapConfig().odometry_information_per_m[1])
+        else:
+            assert per_m[turning].max() < 0.5 * per_m[straight].min()
+            np.testing.assert_allclose(1 / info[turning, 2], length[turning] / 3620.0 + turn_var * np.abs(tr[turning, 2]))

@@ -113,3 +113,55 @@ def test_run_command_on_a_simulated_folder(tmp_path, capsys):
         assert (out / name).stat().st_size > 0
     assert main(["run", str(tmp_path / "nowhere"), "--out", str(out), "--quiet"]) == 2
     assert "does not exist" in capsys.readouterr().err
+
+
+def _recognised_path_gaps(cfg: HippomapConfig, inputs) -> list[float]:
+    """Path travelled between learning each recognised key frame and recognising it."""
+    m = Mapper(cfg)
+    learned: dict[int, float] = {}
+    gaps = []
+    for item in inputs:
+        if isinstance(item, Odometry):
+            m.step(item)
+            continue
+        for e in m.observe(item):
+            if e["type"] == "keyframe_learned":
+                learned[e["frame"]] = m.distance
+            elif e["type"] == "recognition" and e["frame_id"] is not None:
+                gaps.append(m.distance - learned[e["frame_id"]])
+    return gaps
+
+
+def test_recent_key_frames_are_not_recognised(inputs):
+    """The camera still sees the scene of a key frame taken a few metres back: recognising it is
+    not a return to a place. Without the rule such matches happen on this run; with it, every
+    recognition names a key frame learned at least recognition_min_path_m of path earlier."""
+    base = {"keyframe_interval": 5}
+    loose = _recognised_path_gaps(HippomapConfig.with_overrides(
+        {"mapper": {**base, "recognition_min_path_m": 0.0}}), inputs)
+    assert loose and min(loose) < 3.0  # the recent track is recognised when allowed
+    gap = 4.0
+    strict = _recognised_path_gaps(HippomapConfig.with_overrides(
+        {"mapper": {**base, "recognition_min_path_m": gap}}), inputs)
+    assert all(g >= gap for g in strict)
+
+
+def test_only_novel_views_are_learned(inputs):
+    """A key frame whose recognition closed a loop is not learned again (as OpenRatSLAM learns a
+    view template only when none matches): the memory grows with the places seen, and a key frame
+    stays anchored to the pass that first saw its place."""
+    def run(learn_recognised: bool) -> tuple[Mapper, list[dict]]:
+        m = Mapper(HippomapConfig.with_overrides({"mapper": {"keyframe_interval": 5,
+                                                              "learn_recognised": learn_recognised}}))
+        events = []
+        for item in inputs:
+            events.extend(m.step(item) if isinstance(item, Odometry) else m.observe(item))
+        return m, events
+
+    novel, events = run(False)
+    closed = {e["hypothesis"]["time"] for e in events
+              if e["type"] == "loop_decision" and e["status"] != "rejected"}
+    learned = {e["t"] for e in events if e["type"] == "keyframe_learned"}
+    assert closed and not closed & learned
+    every, _ = run(True)
+    assert novel.memory.frame_count < every.memory.frame_count

@@ -1,0 +1,127 @@
+"""The process session backend (server/process_host.py): the sessions' mappers in child processes.
+
+* a process host gives the same results as the in-process host for the same inputs, answers
+  queries given as lambdas, and its snapshot restores in process to the same mapper;
+* a session worker whose mapper process is SIGKILLed restores a new one from the store and ends
+  in the uninterrupted state, every input reported once and in order;
+* a live server with ``--backend process``: a robot streams while the mapper process is killed;
+  no acknowledged input is lost and the session ends in the state of the offline reference.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import signal
+import time
+
+import pytest
+
+from hippomap.client import AsyncStream
+from server import model
+from server.mapper_host import HostDied, InProcessHost
+from server.process_host import ProcessBackend
+from server.testing import LiveServer, decoded, offline_reference, session_state, synthetic_inputs
+from worker_harness import run_worker
+
+CONFIG = {"mapper": {"keyframe_interval": 3}, "spatial": {"resolution_m": 0.004}}
+ITEMS = synthetic_inputs(n_odometry=240, frame_every=3)
+
+
+@pytest.fixture()
+def backend():
+    b = ProcessBackend(workers=1, max_batch=8)
+    b.start()
+    yield b
+    b.shutdown()
+
+
+def test_process_and_inprocess_hosts_give_identical_results(backend):
+    values = decoded(ITEMS[:120])
+    config = model.effective_config(CONFIG)
+    local, remote = InProcessHost(), backend.factory("unit")
+    try:
+        assert local.restore(None, config) == remote.restore(None, config)
+        assert remote.info()["kind"] == "process" and remote.info()["pid"] != os.getpid()
+        batch = list(enumerate(values))
+        a, b = local.process(batch), remote.process(batch)
+        assert [r.seq for r in b] == list(range(len(values)))
+        assert [(r.kind, r.t, r.events, r.field) for r in a] == [(r.kind, r.t, r.events, r.field) for r in b]
+        assert any(r.field is not None for r in b) and any(r.events for r in b)
+        assert local.query(model.graph) == remote.query(model.graph)
+        assert remote.query(lambda m: model.trajectory(m, "map"))[0].tolist() == \
+            local.query(lambda m: model.trajectory(m, "map"))[0].tolist()
+        again = InProcessHost()
+        again.restore(remote.snapshot(), config)
+        assert again.query(model.stats) == local.query(model.stats)
+        with pytest.raises(ZeroDivisionError):  # an error in a query reaches the caller; the host goes on
+            remote.query(lambda m: 1 / 0)
+        assert remote.query(model.stats) == local.query(model.stats)
+    finally:
+        remote.close()
+
+
+def test_a_killed_mapper_process_is_reported_and_replaced(backend):
+    config = model.effective_config(CONFIG)
+    first = backend.factory("a")
+    first.restore(None, config)
+    pid = first.info()["pid"]
+    os.kill(pid, signal.SIGKILL)
+    with pytest.raises(HostDied):
+        first.process(list(enumerate(decoded(ITEMS[:3]))))
+    second = backend.factory("a")  # a new process
+    assert second.restore(None, config)["odometry_steps"] == 0 and second.info()["pid"] != pid
+
+
+def _run_worker(tmp_path, host_factory, kill_at=None):
+    state, processed, w, _, _ = run_worker(tmp_path, ITEMS, CONFIG, host_factory, kill_at)
+    return state, processed, w
+
+
+def test_worker_replaces_a_killed_mapper_process_and_ends_in_the_uninterrupted_state(tmp_path, backend):
+    ref, processed_ref, _ = _run_worker(tmp_path / "a", lambda sid: InProcessHost())
+    killed: list[int] = []
+
+    def kill(w):  # once a snapshot exists, so the new process restores it and replays after it
+        deadline = time.monotonic() + 60
+        while w.snapshot_seq < 0 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert w.snapshot_seq >= 0
+        killed.append(w.host_info["pid"])
+        os.kill(killed[0], signal.SIGKILL)
+
+    state, processed, w = _run_worker(tmp_path / "b", backend.factory, kill)
+    assert killed and w.restarts >= 1 and w.host_info["pid"] != killed[0]
+    assert state == ref
+    assert processed == processed_ref == list(range(len(ITEMS)))  # each input reported once, in order
+
+
+def test_live_server_on_processes_loses_nothing_when_the_mapper_process_dies(tmp_path):
+    srv = LiveServer(tmp_path / "data", env={"HIPPOMAP_SNAPSHOT_EVERY_INPUTS": "60"},
+                     args=["--backend", "process"]).start()
+    try:
+        with srv.client() as c:
+            sid = c.create_session("proc-kill", CONFIG)["id"]
+            pid0 = c.stats(sid)["backend"]["pid"]
+            assert c.stats(sid)["backend"]["kind"] == "process" and pid0 != srv.proc.pid
+
+        async def stream() -> list[dict]:
+            async with AsyncStream(srv.url, srv.token, sid, max_in_flight=32) as st:
+                futs = []
+                for k, it in enumerate(ITEMS):
+                    if k == len(ITEMS) // 2:  # the robot keeps streaming while the mapper process is killed
+                        await asyncio.to_thread(os.kill, pid0, signal.SIGKILL)
+                    futs.append(await (st.send_odometry(it[1]) if it[0] == "odometry"
+                                       else st.send_frame(it[1], it[2])))
+                return list(await asyncio.gather(*futs))
+
+        acks = asyncio.run(stream())
+        assert [a["seq"] for a in acks] == list(range(len(ITEMS)))
+        with srv.client() as c:
+            state = session_state(c, sid)
+            stats = c.stats(sid)
+        assert stats["inputs_stored"] == len(ITEMS) and stats["error"] is None
+        assert stats["backend"]["restarts"] >= 1 and stats["backend"]["pid"] != pid0
+        assert state == offline_reference(ITEMS, CONFIG)
+    finally:
+        srv.stop()

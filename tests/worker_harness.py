@@ -1,0 +1,53 @@
+"""Drives a SessionWorker the way a live session does, for the backend tests (in-process, child
+processes, Ray): inputs are made durable in a store first, then handed to the worker."""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+from server import model
+from server.ingest import odometry_bytes
+from server.settings import ServerSettings
+from server.sqlite_store import SQLiteStore
+from server.store import InputRecord, SessionRecord
+from server.testing import decoded
+from server.worker import SessionWorker, WorkItem
+
+
+def records(items: tuple) -> list[InputRecord]:
+    """``synthetic_inputs`` items as the store's input records."""
+    return [InputRecord(seq, "odometry", it[1].t, odometry_bytes(it[1])) if it[0] == "odometry"
+            else InputRecord(seq, "frame", it[1], it[2]) for seq, it in enumerate(items)]
+
+
+def run_worker(tmp_path, items: tuple, config: dict[str, Any], host_factory, kill_at=None, metrics=None):
+    """Feed ``items`` to a SessionWorker (durable first); ``kill_at(worker)`` is called once half the
+    inputs are queued. Returns the final state, the inputs reported, the worker, the stored events
+    and the stored place fields."""
+    store = SQLiteStore(tmp_path / "db.sqlite3", "normal")
+    sid = "s_unit"
+    store.create_session(SessionRecord(id=sid, owner="t", config=config)).result()
+    settings = ServerSettings(data_dir=tmp_path, snapshot_every_inputs=50, backend_max_restarts=3)
+    processed: list[int] = []
+    w = SessionWorker(sid, model.effective_config(config), store, settings, replay_until=-1,
+                      on_processed=processed.append, host_factory=host_factory, metrics=metrics)
+    w.start()
+    assert w.ready.wait(120) and w.error is None
+    recs, values = records(items), decoded(items)
+    half = len(items) // 2
+    for k in range(0, len(items), 10):
+        work = [WorkItem(r.seq, v) for r, v in zip(recs[k:k + 10], values[k:k + 10])]
+        store.append_inputs(sid, recs[k:k + 10], on_durable=lambda work=work: w.put(work)).result()
+        if kill_at is not None and k <= half < k + 10:
+            kill_at(w)
+    deadline = time.monotonic() + 120
+    while w.processed_seq < len(items) - 1 and w.error is None and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert w.error is None
+    state = {"graph": w.query(model.graph), "stats": w.query(model.stats)}
+    w.stop(snapshot=True)
+    events = store.query_events(sid, limit=100_000)
+    fields = store.place_fields(sid, limit=100_000, with_data=True)
+    store.close()
+    return state, processed, w, events, fields
