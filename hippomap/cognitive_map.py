@@ -392,9 +392,12 @@ class CognitiveMap:
         cfg = self.cfg
         sweeps = cfg.relax_loops if sweeps is None else int(sweeps)
         w = self._w[:m]
+        window = None
+        if cfg.solver == "lsq" and not force and self._local_solves < cfg.lsq_window_every:
+            window = self._local_window()
+        self._touched = []  # what is solved now; the reweighting below may add to it
         if cfg.solver == "lsq":
             info = (self.link_information() if cfg.lsq_weighted else np.ones((m, 3))) * w[:, None]
-            window = None if force or self._local_solves >= cfg.lsq_window_every else self._local_window()
             if window is None:
                 res = solve_lsq(P, src, dst, tr, iterations=cfg.lsq_iterations, anchor=0, information=info)
                 self._local_solves = 0
@@ -407,7 +410,6 @@ class CognitiveMap:
                 res = solve_lsq(Q, local[src[links]], local[dst[links]], tr[links], iterations=cfg.lsq_iterations,
                                 anchor=None, information=info[links], fixed=local[fixed])
                 P[nodes] = Q
-            self._touched = []
             # a solve cut off by lsq_iterations has not converged: the weights are revised only on a
             # converged map (IRLS), else a closure still being applied looks like an outlier and fades
             converged = res.iterations < cfg.lsq_iterations or res.max_shift < cfg.relax_tolerance_m
