@@ -122,11 +122,10 @@ def prepare_image(image: Any, config: VisualConfig | None = None, name: str = "i
     return work, scale
 
 
-def prepare_views(image: Any, config: VisualConfig | None = None,
-                  name: str = "image") -> tuple[np.ndarray, np.ndarray, float]:
-    """Like :func:`prepare_image`, also returning the working-size grey image before the retina:
-    ``(gray, work, scale)``; fixation points are chosen on ``gray`` or ``work`` (``corner_source``)."""
-    cfg = config or VisualConfig()
+def _working_size(image: Any, cfg: VisualConfig, name: str = "image") -> tuple[np.ndarray, int, int]:
+    """``(gray, width, height)``: the frame as grey levels and its size at the working width, or
+    :class:`InputError` for anything the memory could not learn or recognise (no image work
+    beyond the grey conversion: what every frame must pass, key frame or not)."""
     gray = _check_image(image, name)
     h0, w0 = gray.shape
     if min(h0, w0) < cfg.fovea:
@@ -139,6 +138,16 @@ def prepare_views(image: Any, config: VisualConfig | None = None,
             f"{name} of {w0}x{h0} px becomes {width}x{height} at the working width; the {cfg.fovea}-px fovea needs "
             f"at least {need} px on each side"
         )
+    return gray, width, height
+
+
+def prepare_views(image: Any, config: VisualConfig | None = None,
+                  name: str = "image") -> tuple[np.ndarray, np.ndarray, float]:
+    """Like :func:`prepare_image`, also returning the working-size grey image before the retina:
+    ``(gray, work, scale)``; fixation points are chosen on ``gray`` or ``work`` (``corner_source``)."""
+    cfg = config or VisualConfig()
+    gray, width, height = _working_size(image, cfg, name)
+    h0, w0 = gray.shape
     interp = cv2.INTER_AREA if width < w0 else cv2.INTER_LINEAR
     work = cv2.resize(gray, (width, height), interpolation=interp) if (width, height) != (w0, h0) else gray.copy()
     return work, Retina(cfg)(work), w0 / float(width)
@@ -409,8 +418,9 @@ class VisualMemory:
         return self._nframes
 
     def check_image(self, image: Any, name: str = "image") -> None:
-        """Raise :class:`InputError` if ``image`` could not be learned or recognised (no state change)."""
-        prepare_image(image, self.config, name)
+        """Raise :class:`InputError` if ``image`` could not be learned or recognised (no state change).
+        Only the checks: the retina runs when a key frame is recognised or learned, not on every frame."""
+        _working_size(image, self.config, name)
 
     def __len__(self) -> int:
         return self._nframes

@@ -391,3 +391,24 @@ def test_later_attempts_must_verify_more():
         assert all(s.outcome == "confirmed" and s.predicted_frame == rec.frame_id for s in after)
         seen_resets.add(rec.n_resets)
     assert max(seen_resets) >= 1  # the rule was exercised
+
+
+@pytest.mark.parametrize("image", [
+    np.zeros((240, 320), np.uint8), np.zeros((240, 320, 3), np.uint8), np.zeros((240, 320, 4), np.uint8),
+    np.zeros((240, 320, 1), np.uint8), np.zeros((240, 320), np.float32), np.zeros((0, 320), np.uint8),
+    np.zeros((8, 8), np.uint8), np.zeros((30, 2000), np.uint8), np.zeros((240, 320, 2), np.uint8), [[1, 2], [3, 4]],
+])
+def test_check_image_refuses_exactly_what_preparation_refuses(image):
+    """The per-frame check skips the retina but must accept and refuse the same frames as the full
+    preparation a key frame goes through."""
+    from hippomap.visual_memory import prepare_image
+
+    mem = VisualMemory(VisualConfig())
+    try:
+        prepare_image(image, mem.config)
+    except InputError as exc:
+        with pytest.raises(InputError) as got:
+            mem.check_image(image)
+        assert str(got.value) == str(exc)
+    else:
+        mem.check_image(image)
