@@ -29,9 +29,9 @@ from server.mapper_host import InProcessHost
 from server.metrics import ServiceMetrics
 from server.settings import ServerSettings
 from server.sqlite_store import SQLiteStore
-from server.testing import (ROOT, LiveServer, decoded, local_ray_head, offline_reference, ray_test_env, stream_items,
+from server.testing import (ROOT, LiveServer, local_ray_head, offline_reference, ray_test_env, stream_items,
                             session_state, synthetic_inputs)
-from worker_harness import run_worker
+from worker_harness import assert_host_matches_inprocess, run_worker
 
 CONFIG = {"mapper": {"keyframe_interval": 3}}
 ITEMS = synthetic_inputs(n_odometry=400, frame_every=3)  # 1.6 laps: loops are closed
@@ -62,25 +62,9 @@ def ray_driver():
 
 
 def test_inprocess_and_ray_hosts_give_identical_results(ray_driver):
-    values = decoded(ITEMS[:120])
-    config = model.effective_config(CONFIG)
-    local = InProcessHost()
     remote = ray_driver.factory("unit")
     try:
-        assert local.restore(None, config) == remote.restore(None, config)
-        assert remote.info()["kind"] == "ray" and remote.info()["pid"] != os.getpid()
-        batch = list(enumerate(values))
-        a, b = local.process(batch), remote.process(batch)
-        assert [r.seq for r in b] == list(range(len(values)))
-        assert [(r.kind, r.t, r.events, r.field) for r in a] == [(r.kind, r.t, r.events, r.field) for r in b]
-        assert any(r.field is not None for r in b) and any(r.events for r in b)
-        assert local.query(model.graph) == remote.query(model.graph)
-        assert remote.query(lambda m: model.trajectory(m, "map"))[0].tolist() == \
-            local.query(lambda m: model.trajectory(m, "map"))[0].tolist()
-        # a snapshot taken remotely restores locally to the same mapper
-        again = InProcessHost()
-        again.restore(remote.snapshot(), config)
-        assert again.query(model.stats) == local.query(model.stats)
+        assert_host_matches_inprocess(remote, "ray", ITEMS[:120], CONFIG)
     finally:
         remote.close()
 

@@ -22,7 +22,7 @@ from server import model
 from server.mapper_host import HostDied, InProcessHost
 from server.process_host import ProcessBackend
 from server.testing import LiveServer, decoded, offline_reference, session_state, synthetic_inputs
-from worker_harness import run_worker
+from worker_harness import assert_host_matches_inprocess, run_worker
 
 CONFIG = {"mapper": {"keyframe_interval": 3}, "spatial": {"resolution_m": 0.004}}
 ITEMS = synthetic_inputs(n_odometry=240, frame_every=3)
@@ -37,23 +37,9 @@ def backend():
 
 
 def test_process_and_inprocess_hosts_give_identical_results(backend):
-    values = decoded(ITEMS[:120])
-    config = model.effective_config(CONFIG)
-    local, remote = InProcessHost(), backend.factory("unit")
+    remote = backend.factory("unit")
     try:
-        assert local.restore(None, config) == remote.restore(None, config)
-        assert remote.info()["kind"] == "process" and remote.info()["pid"] != os.getpid()
-        batch = list(enumerate(values))
-        a, b = local.process(batch), remote.process(batch)
-        assert [r.seq for r in b] == list(range(len(values)))
-        assert [(r.kind, r.t, r.events, r.field) for r in a] == [(r.kind, r.t, r.events, r.field) for r in b]
-        assert any(r.field is not None for r in b) and any(r.events for r in b)
-        assert local.query(model.graph) == remote.query(model.graph)
-        assert remote.query(lambda m: model.trajectory(m, "map"))[0].tolist() == \
-            local.query(lambda m: model.trajectory(m, "map"))[0].tolist()
-        again = InProcessHost()
-        again.restore(remote.snapshot(), config)
-        assert again.query(model.stats) == local.query(model.stats)
+        local = assert_host_matches_inprocess(remote, "process", ITEMS[:120], CONFIG)
         with pytest.raises(ZeroDivisionError):  # an error in a query reaches the caller; the host goes on
             remote.query(lambda m: 1 / 0)
         assert remote.query(model.stats) == local.query(model.stats)

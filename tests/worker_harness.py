@@ -3,6 +3,7 @@ processes, Ray): inputs are made durable in a store first, then handed to the wo
 
 from __future__ import annotations
 
+import os
 import time
 from typing import Any
 
@@ -51,3 +52,28 @@ def run_worker(tmp_path, items: tuple, config: dict[str, Any], host_factory, kil
     fields = store.place_fields(sid, limit=100_000, with_data=True)
     store.close()
     return state, processed, w, events, fields
+
+
+def assert_host_matches_inprocess(remote, kind: str, items: tuple, config_overrides: dict[str, Any]):
+    """``remote`` (a host of another kind: ``kind``) gives the in-process host's results on ``items``:
+    the same step results, map and trajectory, and a snapshot it takes restores in process.
+    Returns the in-process host, fed the same items."""
+    from server.mapper_host import InProcessHost
+
+    values = decoded(items)
+    config = model.effective_config(config_overrides)
+    local = InProcessHost()
+    assert local.restore(None, config) == remote.restore(None, config)
+    assert remote.info()["kind"] == kind and remote.info()["pid"] != os.getpid()
+    batch = list(enumerate(values))
+    a, b = local.process(batch), remote.process(batch)
+    assert [r.seq for r in b] == list(range(len(values)))
+    assert [(r.kind, r.t, r.events, r.field) for r in a] == [(r.kind, r.t, r.events, r.field) for r in b]
+    assert any(r.field is not None for r in b) and any(r.events for r in b)
+    assert local.query(model.graph) == remote.query(model.graph)
+    assert remote.query(lambda m: model.trajectory(m, "map"))[0].tolist() == \
+        local.query(lambda m: model.trajectory(m, "map"))[0].tolist()
+    again = InProcessHost()  # a snapshot taken remotely restores locally to the same mapper
+    again.restore(remote.snapshot(), config)
+    assert again.query(model.stats) == local.query(model.stats)
+    return local
