@@ -73,9 +73,11 @@ from .relaxation import (
     ColourGroups,
     colour_link,
     edge_colouring,
+    graph_cost,
     link_residuals,
     relax,
     relax_jacobi,
+    rotation_first_init,
     solve_lsq,
 )
 
@@ -399,6 +401,8 @@ class CognitiveMap:
         if cfg.solver == "lsq":
             info = (self.link_information() if cfg.lsq_weighted else np.ones((m, 3))) * w[:, None]
             if window is None:
+                if cfg.lsq_rotation_init:
+                    self._rotation_init(P, src, dst, tr, info)
                 res = solve_lsq(P, src, dst, tr, iterations=cfg.lsq_iterations, anchor=0, information=info)
                 self._local_solves = 0
             else:
@@ -428,6 +432,16 @@ class CognitiveMap:
         # fixed, and the strain at its edge would fade true links
         self._dirty = not converged or (self._local_solves == 0 and self._reweight())
         return [MapRelaxed(res.solver, res.iterations, res.max_shift, t)]
+
+    @staticmethod
+    def _rotation_init(P: np.ndarray, src: np.ndarray, dst: np.ndarray, tr: np.ndarray, info: np.ndarray) -> None:
+        """Headings-first re-initialisation before a whole solve, kept only when it lowers the
+        weighted cost (it cannot on a map that is already at its optimum)."""
+        before = graph_cost(P, src, dst, tr, info)
+        Q = P.copy()
+        rotation_first_init(Q, src, dst, tr, info, anchor=0)
+        if graph_cost(Q, src, dst, tr, info) < before:
+            P[:] = Q
 
     def _reweight(self) -> bool:
         """Revise the robust weights of the loop links from their residuals on the converged

@@ -264,6 +264,11 @@ class MapConfig(_Frozen):
         "(docs/MODEL.md) [ours]",
     )
     lsq_iterations: int = Field(10, ge=1, description="max Gauss-Newton iterations per correction when solver='lsq' [ours]")
+    lsq_rotation_init: bool = Field(
+        True, description="before a whole-map lsq solve, re-initialise the poses headings first, then positions "
+        "(two linear solves, LAGO's idea): from the odometric poses Gauss-Newton can settle with a long loop's "
+        "heading error spread wrongly, leaving true closing links a metre off for the kernel to fade "
+        "[ours, docs/MODEL.md]")
     lsq_window_hops: int = Field(
         40, ge=0, description="when every link changed since the last solve agrees with the map within "
         "lsq_window_residual_m, solve only the nodes within this many links of them (10 m at the default node "
