@@ -88,6 +88,28 @@ __all__ = [
 STATE_VERSION = 1
 
 
+def _lut16_works() -> bool:
+    """Whether this OpenCV's ``LUT`` takes a 65,536-entry table indexed by uint16 (OpenCV >= 5)."""
+    try:
+        out = cv2.LUT(np.array([[0, 65535]], np.uint16), np.arange(65536, dtype=np.float32).reshape(1, -1))
+    except cv2.error:
+        return False
+    return out.dtype == np.float32 and out.tolist() == [[0.0, 65535.0]]
+
+
+_LUT16 = _lut16_works()
+
+
+def _gather_k(table: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """``table[idx]`` for a flat float32 table of 65,536 entries and a 2-D uint16 index array.
+
+    OpenCV's 16-bit ``LUT`` reads the uint16 indices directly; ``np.take`` first converts them all to
+    64-bit integers, which costs more than the gather itself. The values are the same either way."""
+    if _LUT16 and idx.ndim == 2 and idx.dtype == np.uint16:
+        return cv2.LUT(idx, table.reshape(1, -1))
+    return np.take(table, idx)
+
+
 # ---------------------------------------------------------------------------------------
 # input images
 # ---------------------------------------------------------------------------------------
@@ -355,6 +377,16 @@ class _Subset:
             n_all = mem.n_features
             self.sample = (np.arange(n_all, dtype=np.int64) if n_all <= cfg.index_shortlist + cfg.stats_sample
                            else np.unique(np.linspace(0, n_all - 1, cfg.stats_sample).round().astype(np.int64)))
+        # the FLCs whose drive is computed exactly at every fixation are fixed for the whole recognition when
+        # no index is used: their learned patches (shifted into the high byte of the drive table's index)
+        # and normalisers are gathered once here, not once per fixation
+        self.rows: np.ndarray | None = None
+        if self.exact_all:
+            self.rows = self.idx if self.is_all else np.concatenate([self.idx, self.sample])
+            self.rows_hi = mem._patch[self.rows].astype(np.uint16) << 8
+            self.rows_z = mem._z[self.rows]
+            self.rows_buf = np.empty_like(self.rows_hi)
+
     def local(self, global_index: int) -> int:
         """Index of a global FLC in this subset, or -1 (``idx`` is sorted: frames ascending)."""
         if self.is_all:
@@ -566,7 +598,14 @@ class VisualMemory:
             return np.zeros(0, np.float32)
         # flat index a * 256 + b into K, built in uint16 (fast gather; 255 * 256 + 255 fits)
         idx = (self._patch[flc].astype(np.uint16) << 8) | patch[None, :]
-        return np.take(self._K, idx).sum(axis=1) / self._z[flc]
+        return _gather_k(self._K, idx).sum(axis=1) / self._z[flc]
+
+    def _drive_rows(self, patch: np.ndarray, sub: _Subset) -> np.ndarray:
+        """:meth:`_drive` of ``sub.rows`` from the subset's gathered patches (same numbers, no row gather)."""
+        if sub.rows is None or sub.rows.size == 0:
+            return np.zeros(0, np.float32)
+        idx = np.bitwise_or(sub.rows_hi, patch[None, :], out=sub.rows_buf)
+        return _gather_k(self._K, idx).sum(axis=1) / sub.rows_z
 
     def _sense(self, img: np.ndarray, pos: np.ndarray, sub: _Subset, predicted: int) -> _Sense:
         """Drive of the FLC population at fixation ``pos`` and the [BBc] pruning: evidence test
@@ -579,9 +618,9 @@ class VisualMemory:
         if sub.exact_all:
             T = np.arange(sub.n)
             if sub.is_all:
-                uT = self._drive(patch, sub.idx)
+                uT = self._drive_rows(patch, sub)
             else:  # candidates and the library sample of the statistics in one gather
-                u = self._drive(patch, np.concatenate([sub.idx, sub.sample]))
+                u = self._drive_rows(patch, sub)
                 uT, uR = u[: sub.n], u[sub.n :]
         else:
             q = self._descriptor(patch[None, :])
