@@ -62,7 +62,7 @@ for scale.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from typing import Any, Iterable, Literal
 
 import cv2
@@ -86,6 +86,29 @@ __all__ = [
 ]
 
 STATE_VERSION = 1
+
+
+def _lut16_works() -> bool:
+    """Whether this OpenCV's ``LUT`` takes a 65,536-entry table indexed by uint16 (OpenCV >= 5)."""
+    try:
+        out = cv2.LUT(np.array([[0, 65535]], np.uint16), np.arange(65536, dtype=np.float32).reshape(1, -1))
+    except cv2.error:
+        return False
+    return out.dtype == np.float32 and out.tolist() == [[0.0, 65535.0]]
+
+
+_LUT16 = _lut16_works()
+_DECODE_CACHE = 1 << 15  # decoded saccade vectors remembered per memory (a few MB at most)
+
+
+def _gather_k(table: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """``table[idx]`` for a flat float32 table of 65,536 entries and a 2-D uint16 index array.
+
+    OpenCV's 16-bit ``LUT`` reads the uint16 indices directly; ``np.take`` first converts them all to
+    64-bit integers, which costs more than the gather itself. The values are the same either way."""
+    if _LUT16 and idx.ndim == 2 and idx.dtype == np.uint16:
+        return cv2.LUT(idx, table.reshape(1, -1))
+    return np.take(table, idx)
 
 
 # ---------------------------------------------------------------------------------------
@@ -197,11 +220,21 @@ class SaccadeStep:
     event: str | None = None
 
     def to_dict(self) -> dict[str, Any]:
-        d = asdict(self)
-        d["fixation"] = _pt(self.fixation)
-        d["target"] = _pt(self.target)
-        d["evidence"] = [[int(f), float(a)] for f, a in self.evidence]
-        return d
+        # what dataclasses.asdict gives (same keys, same order), without its recursive deep copy: every
+        # field is a scalar, a string or None apart from the three converted here
+        return {
+            "attempt": self.attempt,
+            "fixation": _pt(self.fixation),
+            "target": _pt(self.target),
+            "predicted_frame": self.predicted_frame,
+            "predicted_feature": self.predicted_feature,
+            "found_frame": self.found_frame,
+            "found_feature": self.found_feature,
+            "similarity": self.similarity,
+            "outcome": self.outcome,
+            "evidence": [[int(f), float(a)] for f, a in self.evidence],
+            "event": self.event,
+        }
 
 
 @dataclass
@@ -355,6 +388,16 @@ class _Subset:
             n_all = mem.n_features
             self.sample = (np.arange(n_all, dtype=np.int64) if n_all <= cfg.index_shortlist + cfg.stats_sample
                            else np.unique(np.linspace(0, n_all - 1, cfg.stats_sample).round().astype(np.int64)))
+        # the FLCs whose drive is computed exactly at every fixation are fixed for the whole recognition when
+        # no index is used: their learned patches (shifted into the high byte of the drive table's index)
+        # and normalisers are gathered once here, not once per fixation
+        self.rows: np.ndarray | None = None
+        if self.exact_all:
+            self.rows = self.idx if self.is_all else np.concatenate([self.idx, self.sample])
+            self.rows_hi = mem._patch[self.rows].astype(np.uint16) << 8
+            self.rows_z = mem._z[self.rows]
+            self.rows_buf = np.empty_like(self.rows_hi)
+
     def local(self, global_index: int) -> int:
         """Index of a global FLC in this subset, or -1 (``idx`` is sorted: frames ascending)."""
         if self.is_all:
@@ -388,6 +431,8 @@ class VisualMemory:
         self._n = S.sum(axis=1).astype(np.float32)  # sum_v s_a(v)
         self._rng = np.random.default_rng(cfg.seed)
         self._svc: SpatialViewCells | None = None
+        self._decoded: dict[bytes, np.ndarray] = {}  # see _decode
+        self._last_views: tuple[np.ndarray, np.ndarray, float, np.ndarray] | None = None  # see _views
         cap = 64
         self._patch = np.zeros((cap, self.P), np.uint8)
         self._desc = np.zeros((cap, self.D), np.float32)
@@ -456,11 +501,47 @@ class VisualMemory:
         return self._svc
 
     def _decode(self, m: np.ndarray, target: np.ndarray) -> np.ndarray:
+        """Saccade vector from gaze ``m`` to ``target`` decoded from their grid codes (a fresh array).
+
+        Both points are whole pixels during a recognition (learned positions, fovea positions), and
+        the decoded vector is a fixed function of the two points, so it is remembered per pair: the
+        same candidate frames come back recognition after recognition with the same feature pairs."""
+        m, target = np.asarray(m, dtype=float), np.asarray(target, dtype=float)
+        key = m.tobytes() + target.tobytes()  # bytes, so that even -0.0 and 0.0 stay apart
+        d = self._decoded.get(key)
+        if d is None:
+            if len(self._decoded) >= _DECODE_CACHE:
+                self._decoded.clear()
+            d = self._decode_uncached(m, target)
+            d.flags.writeable = False
+            self._decoded[key] = d
+        return d.copy()
+
+    def _decode_uncached(self, m: np.ndarray, target: np.ndarray) -> np.ndarray:
         g_cur = self.grid.encode(m)
         g_tgt = self.grid.encode(target)  # = W_FLC->GC e_k*
         if self.config.decoder == "svc":
             return self.spatial_view_cells.decode(g_cur, g_tgt)
         return self.grid.decode(g_cur, g_tgt)
+
+    def _views(self, image: Any) -> tuple[np.ndarray, float, np.ndarray]:
+        """``(work, scale, corner image)`` of a frame: :func:`prepare_views`, then the image whose corners
+        become fixation points (``corner_source``).
+
+        The mapper recognises a key frame and then learns the same frame: the views of the last frame
+        are kept with a copy of it, and a frame equal to it (same shape, dtype and pixels) gets them
+        again instead of another pass through the retina. The kept arrays are read-only."""
+        cfg = self.config
+        last = self._last_views
+        if (last is not None and isinstance(image, np.ndarray) and image.shape == last[0].shape
+                and image.dtype == last[0].dtype and np.array_equal(image, last[0])):
+            return last[1], last[2], last[3]
+        gray, work, scale = prepare_views(image, cfg)
+        cimg = work if cfg.corner_source == "retina" else _imadjust(gray, cfg.contrast_clip)
+        for a in (work, cimg):
+            a.flags.writeable = False
+        self._last_views = (np.array(image, copy=True), work, scale, cimg)
+        return work, scale, cimg
 
     def _descriptor(self, patches: np.ndarray) -> np.ndarray:
         f, s = self.config.fovea, self.config.index_side
@@ -529,8 +610,7 @@ class VisualMemory:
         """Learn a key frame one-shot; returns its frame id, or ``None`` when fewer than
         ``min_fixations`` fixation points were found (textureless frame, spec §2)."""
         cfg = self.config
-        gray, work, in_scale = prepare_views(image, cfg)
-        cimg = work if cfg.corner_source == "retina" else _imadjust(gray, cfg.contrast_clip)
+        work, in_scale, cimg = self._views(image)
         if cfg.fixation_mode == "corners":
             pts = self._corners(cimg, cfg.n_fixations, cfg.min_distance if cfg.min_distance else self.h)
         else:
@@ -566,7 +646,14 @@ class VisualMemory:
             return np.zeros(0, np.float32)
         # flat index a * 256 + b into K, built in uint16 (fast gather; 255 * 256 + 255 fits)
         idx = (self._patch[flc].astype(np.uint16) << 8) | patch[None, :]
-        return np.take(self._K, idx).sum(axis=1) / self._z[flc]
+        return _gather_k(self._K, idx).sum(axis=1) / self._z[flc]
+
+    def _drive_rows(self, patch: np.ndarray, sub: _Subset) -> np.ndarray:
+        """:meth:`_drive` of ``sub.rows`` from the subset's gathered patches (same numbers, no row gather)."""
+        if sub.rows is None or sub.rows.size == 0:
+            return np.zeros(0, np.float32)
+        idx = np.bitwise_or(sub.rows_hi, patch[None, :], out=sub.rows_buf)
+        return _gather_k(self._K, idx).sum(axis=1) / sub.rows_z
 
     def _sense(self, img: np.ndarray, pos: np.ndarray, sub: _Subset, predicted: int) -> _Sense:
         """Drive of the FLC population at fixation ``pos`` and the [BBc] pruning: evidence test
@@ -579,9 +666,9 @@ class VisualMemory:
         if sub.exact_all:
             T = np.arange(sub.n)
             if sub.is_all:
-                uT = self._drive(patch, sub.idx)
+                uT = self._drive_rows(patch, sub)
             else:  # candidates and the library sample of the statistics in one gather
-                u = self._drive(patch, np.concatenate([sub.idx, sub.sample]))
+                u = self._drive_rows(patch, sub)
                 uT, uR = u[: sub.n], u[sub.n :]
         else:
             q = self._descriptor(patch[None, :])
@@ -680,7 +767,7 @@ class VisualMemory:
         the frames of nodes near the current place code); ``None`` = all frames.
         """
         cfg = self.config
-        gray, work, scale = prepare_views(image, cfg)
+        work, scale, cimg = self._views(image)
         H, W = work.shape
         size = (int(round(W * scale)), int(round(H * scale)))
         if candidates is None:
@@ -691,7 +778,6 @@ class VisualMemory:
         if sub.n == 0:
             return Recognition(None, 0.0, [], 0, 0.0, size, "no stored frames")
         sense_img = self._blur(work) if cfg.query_blur else work
-        cimg = work if cfg.corner_source == "retina" else _imadjust(gray, cfg.contrast_clip)
         starts = self._corners(cimg, cfg.query_keypoints, self.h)
         if len(starts) == 0:
             return Recognition(None, 0.0, [], 0, 0.0, size, "no keypoints in the query")

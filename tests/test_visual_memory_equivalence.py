@@ -1,0 +1,150 @@
+"""The visual memory's fast paths give exactly what the straightforward computation gives.
+
+:class:`ReferenceMemory` keeps, in this file, the plain implementation of every part the fast code
+replaces: the FLC drive as one ``np.take`` over freshly gathered patches for every fixation, the
+saccade vector decoded from the two grid codes every time, the retina run on every call, and
+``dataclasses.asdict`` for a trace step. Recognitions (winning frame, evidence, every step of the
+saccade trace, correspondences) and the learned state must be identical, bit for bit, for the exact
+path, the index path, candidate subsets, a decoder variant and rejected queries.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from hippomap import visual_memory as vm
+from hippomap.config import VisualConfig
+from hippomap.retina import imadjust
+from hippomap.sim.scenes import shapes_scene
+
+
+class ReferenceMemory(vm.VisualMemory):
+    """The memory with its fast paths replaced by the plain computation they must equal."""
+
+    def _drive(self, patch: np.ndarray, flc: np.ndarray) -> np.ndarray:
+        if flc.size == 0:
+            return np.zeros(0, np.float32)
+        idx = (self._patch[flc].astype(np.uint16) << 8) | patch[None, :]
+        return np.take(self._K, idx).sum(axis=1) / self._z[flc]
+
+    def _drive_rows(self, patch: np.ndarray, sub) -> np.ndarray:
+        rows = sub.idx if sub.is_all else np.concatenate([sub.idx, sub.sample])
+        return self._drive(patch, rows)
+
+    def _decode(self, m: np.ndarray, target: np.ndarray) -> np.ndarray:
+        g_cur, g_tgt = self.grid.encode(m), self.grid.encode(target)
+        if self.config.decoder == "svc":
+            return self.spatial_view_cells.decode(g_cur, g_tgt)
+        return self.grid.decode(g_cur, g_tgt)
+
+    def _views(self, image):
+        gray, work, scale = vm.prepare_views(image, self.config)
+        cimg = work if self.config.corner_source == "retina" else imadjust(gray, self.config.contrast_clip)
+        return work, scale, cimg
+
+
+def perturb(img: np.ndarray, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    q = img.astype(np.float64) * 0.85 + 25 + rng.normal(0.0, 8.0, img.shape)
+    return np.roll(np.clip(q, 0, 255).astype(np.uint8), (3, 5), axis=(0, 1))
+
+
+SCENES = [shapes_scene(s) for s in range(10)]
+QUERIES = [(perturb(SCENES[f], seed=f), None) for f in (0, 4, 9)] + [
+    (shapes_scene(4000), None),  # never learned: every reset is used
+    (perturb(SCENES[6], seed=11), [5, 6, 7]),
+    (perturb(SCENES[2], seed=12), [7, 8]),  # the right frame is not a candidate
+    (SCENES[3], None),  # the learned image itself
+]
+
+
+def _pair(cfg: VisualConfig) -> tuple[vm.VisualMemory, ReferenceMemory]:
+    fast, ref = vm.VisualMemory(cfg), ReferenceMemory(cfg)
+    for img in SCENES:
+        assert fast.learn(img) == ref.learn(img)
+    return fast, ref
+
+
+def _same_state(a: vm.VisualMemory, b: vm.VisualMemory) -> None:
+    sa, sb = a.state_dict(), b.state_dict()
+    assert sa.keys() == sb.keys()
+    for k in sa:
+        if isinstance(sa[k], np.ndarray):
+            assert np.array_equal(sa[k], sb[k]), k
+        else:
+            assert sa[k] == sb[k], k
+
+
+@pytest.mark.parametrize(
+    "override",
+    [{}, {"index_shortlist": 12, "stats_sample": 16}, {"decoder": "svc"}, {"anchor": "none"},
+     {"next_target": "stochastic"}],
+    ids=["exact", "index", "svc", "no-anchor", "stochastic"],
+)
+def test_recognitions_equal_the_reference_bit_for_bit(override):
+    fast, ref = _pair(VisualConfig(**override))
+    if "index_shortlist" in override:
+        assert fast.n_features > fast.config.index_shortlist + fast.config.stats_sample  # the index is used
+    outcomes = set()
+    for _ in range(2):  # twice: the second pass meets remembered decodes
+        for img, cands in QUERIES:
+            a = fast.recognise(img, candidates=cands).to_dict()
+            b = ref.recognise(img, candidates=cands).to_dict()
+            assert a == b
+            outcomes.add(a["frame_id"] is not None)
+    assert outcomes == {True, False}  # both accepted and rejected recognitions were compared
+    _same_state(fast, ref)
+
+
+def test_recognise_then_learn_the_same_frame_equals_the_reference():
+    """The mapper's key-frame pattern: the retina views of a recognised frame are reused to learn it."""
+    fast, ref = _pair(VisualConfig())
+    for img, cands in QUERIES[:3]:
+        assert fast.recognise(img, candidates=cands).to_dict() == ref.recognise(img, candidates=cands).to_dict()
+        assert fast.learn(img) == ref.learn(img)
+    _same_state(fast, ref)
+    img = QUERIES[4][0].copy()
+    fast.recognise(img)
+    ref.recognise(img)
+    img[40:120, 60:200] = 255 - img[40:120, 60:200]  # the caller reuses its buffer for another picture
+    assert fast.learn(img) == ref.learn(img)
+    _same_state(fast, ref)
+    assert fast.recognise(img).to_dict() == ref.recognise(img).to_dict()
+
+
+def test_remembered_decodes_are_private_copies():
+    mem = vm.VisualMemory()
+    m, t = np.array([40.0, 50.0]), np.array([200.0, 130.0])
+    d = mem._decode(m, t)
+    assert d.tolist() == [160, 80]
+    d[:] = 0  # the caller may change what it got
+    assert mem._decode(m, t).tolist() == [160, 80]
+    assert np.array_equal(mem._decode(m, t), ReferenceMemory()._decode(m, t))
+
+
+@pytest.mark.parametrize("lut16", [True, False], ids=["opencv-lut", "numpy-take"])
+def test_table_gather_equals_numpy_take(monkeypatch, lut16):
+    if lut16 and not vm._LUT16:
+        pytest.skip("this OpenCV has no 16-bit LUT")
+    monkeypatch.setattr(vm, "_LUT16", lut16)
+    rng = np.random.default_rng(0)
+    table = rng.normal(size=65536).astype(np.float32)
+    idx = rng.integers(0, 65536, size=(37, 961)).astype(np.uint16)
+    idx[0, :2] = (0, 65535)
+    out = vm._gather_k(table, idx)
+    assert out.dtype == np.float32 and out.shape == idx.shape
+    assert np.array_equal(out, np.take(table, idx))
+
+
+def test_trace_step_dict_equals_dataclasses_asdict():
+    step = vm.SaccadeStep(attempt=1, fixation=(3.0, 4.5), target=None, predicted_frame=2, predicted_feature=17,
+                          found_frame=None, found_feature=None, similarity=0.25, outcome="no_evidence",
+                          evidence=[(2, 0.5), (0, 0.125)], event="reset: x")
+    ref = dataclasses.asdict(step)
+    ref["fixation"], ref["target"] = [3.0, 4.5], None
+    ref["evidence"] = [[2, 0.5], [0, 0.125]]
+    got = step.to_dict()
+    assert got == ref and list(got) == list(ref)
