@@ -3,21 +3,19 @@ ROS 2 bag (zipped), so a run recorded by the service can be re-run offline with 
 
 The writers live in the model package (:mod:`hippomap.session_export`); the routes here read
 the stored inputs page by page (up to the last durable one when the export starts), write the
-archive to a temporary file in a worker thread, stream it and delete it.
+archive to an anonymous temporary file in a worker thread and stream it from there.
 """
 
 from __future__ import annotations
 
 import asyncio
-import os
 import tempfile
 from collections.abc import Iterator
-from typing import Any
+from typing import IO, Any
 
 import numpy as np
 from fastapi import APIRouter, HTTPException
-from fastapi.responses import FileResponse
-from starlette.background import BackgroundTask
+from fastapi.responses import StreamingResponse
 
 from hippomap.errors import InputError
 from hippomap.inputs import Odometry
@@ -32,6 +30,8 @@ router = APIRouter(tags=["exports"])
 
 #: stored inputs read from the store at a time (a page of frames is the most an export holds in memory)
 PAGE = 256
+#: bytes of the archive sent at a time
+CHUNK = 1 << 20
 
 
 def stored_inputs(live: LiveSession, with_frames: bool = True) -> Iterator[Odometry | EncodedFrame]:
@@ -64,28 +64,39 @@ def groundtruth(live: LiveSession) -> tuple[np.ndarray, np.ndarray]:
     return arr[:, 0], arr[:, 1:]
 
 
-def _archive(live: LiveSession, kind: str) -> str:
-    """Write the session's inputs as ``kind`` ('data' or 'rosbag2') into a temporary zip; its path."""
-    fd, path = tempfile.mkstemp(prefix=f"hippomap-{live.id}-", suffix=".zip")
+def _archive(live: LiveSession, kind: str) -> tuple[IO[bytes], int]:
+    """Write the session's inputs as ``kind`` ('data' or 'rosbag2') into an anonymous temporary
+    file (gone once closed, whatever happens to the download); the file, rewound, and its size."""
+    fh = tempfile.TemporaryFile(prefix=f"hippomap-{live.id}-", suffix=".zip")
     try:
-        with os.fdopen(fd, "wb") as fh:
-            if kind == "data":
-                write_data_zip(fh, stored_inputs(live), root=live.id, config=live.record.config or {})
-            else:
-                write_rosbag2_zip(fh, stored_inputs(live), root=live.id)
+        if kind == "data":
+            write_data_zip(fh, stored_inputs(live), root=live.id, config=live.record.config or {})
+        else:
+            write_rosbag2_zip(fh, stored_inputs(live), root=live.id)
+        size = fh.tell()
+        fh.seek(0)
     except InputError as exc:
-        os.unlink(path)
+        fh.close()
         raise HTTPException(409, f"session {live.id} cannot be exported: {exc}") from None
     except BaseException:
-        os.unlink(path)
+        fh.close()
         raise
-    return path
+    return fh, size
 
 
-async def _zip_response(live: LiveSession, kind: str, filename: str) -> FileResponse:
-    path = await asyncio.to_thread(_archive, live, kind)
-    return FileResponse(path, media_type="application/zip", filename=filename,
-                        background=BackgroundTask(os.unlink, path))
+def _chunks(fh: IO[bytes]) -> Iterator[bytes]:
+    try:
+        while chunk := fh.read(CHUNK):
+            yield chunk
+    finally:
+        fh.close()
+
+
+async def _zip_response(live: LiveSession, kind: str, filename: str) -> StreamingResponse:
+    fh, size = await asyncio.to_thread(_archive, live, kind)
+    return StreamingResponse(_chunks(fh), media_type="application/zip",  # a sync iterator: read in a thread
+                             headers={"Content-Disposition": f'attachment; filename="{filename}"',
+                                      "Content-Length": str(size)})
 
 
 def _zip_doc() -> dict[int | str, dict[str, Any]]:
@@ -93,16 +104,16 @@ def _zip_doc() -> dict[int | str, dict[str, Any]]:
             409: {"description": "nothing to export (no odometry), or a time a bag cannot hold"}, **deps.ERRORS}
 
 
-@router.get("/export/data.zip", response_class=FileResponse, responses=_zip_doc(),
+@router.get("/export/data.zip", response_class=StreamingResponse, responses=_zip_doc(),
             summary="The session's recorded inputs as a data folder (zip) that `hippomap run` reads: frames/, "
                     "frames.csv, odometry.csv, groundtruth.csv when readings carried gt, config.json (overrides)")
-async def export_data_zip(live: deps.ReadSession) -> FileResponse:
+async def export_data_zip(live: deps.ReadSession) -> StreamingResponse:
     return await _zip_response(live, "data", f"{live.id}-data.zip")
 
 
-@router.get("/export/rosbag2.zip", response_class=FileResponse, responses=_zip_doc(),
+@router.get("/export/rosbag2.zip", response_class=StreamingResponse, responses=_zip_doc(),
             summary=f"The session's recorded inputs as a ROS 2 bag (zip): {IMAGE_TOPIC} "
                     f"(sensor_msgs/CompressedImage), {ODOM_TOPIC} (nav_msgs/Odometry), {GROUNDTRUTH_TOPIC} "
                     "(geometry_msgs/PoseStamped)")
-async def export_rosbag2_zip(live: deps.ReadSession) -> FileResponse:
+async def export_rosbag2_zip(live: deps.ReadSession) -> StreamingResponse:
     return await _zip_response(live, "rosbag2", f"{live.id}-rosbag2.zip")
