@@ -257,6 +257,35 @@ class Client:
     def frame(self, session_id: str, seq: int) -> bytes:
         return self._req("GET", f"/sessions/{session_id}/frames/{seq}").content
 
+    # ------------------------------------------------------------- exports
+    def groundtruth_tum(self, session_id: str) -> str:
+        """The ground truth the session's readings carried, as TUM (ServerError 404 without any)."""
+        return self.trajectory_tum(session_id, "groundtruth")
+
+    def _download(self, path: str, target: Any) -> Any:
+        """Stream a download into the file ``target`` (written only once the answer is a success)."""
+        from pathlib import Path
+
+        with self._http.stream("GET", path) as resp:
+            if resp.status_code >= 400:
+                resp.read()
+                raise ServerError(resp.status_code, _detail(resp))
+            target = Path(target)
+            with target.open("wb") as fh:
+                for chunk in resp.iter_bytes(1 << 20):
+                    fh.write(chunk)
+        return target
+
+    def export_data_zip(self, session_id: str, target: Any) -> Any:
+        """Save the session's recorded inputs as a zipped data folder (``hippomap run`` reads the
+        unzipped folder, named after the session) to ``target``; returns its path."""
+        return self._download(f"/sessions/{session_id}/export/data.zip", target)
+
+    def export_rosbag2_zip(self, session_id: str, target: Any) -> Any:
+        """Save the session's recorded inputs as a zipped ROS 2 bag (topics in
+        :mod:`hippomap.session_export`) to ``target``; returns its path."""
+        return self._download(f"/sessions/{session_id}/export/rosbag2.zip", target)
+
     # -------------------------------------------------------------- tokens
     def create_token(self, role: str = "viewer", session: str | None = None, label: str = "") -> dict[str, Any]:
         return self._json("POST", "/tokens", {"role": role, "session": session, "label": label})

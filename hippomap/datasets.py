@@ -16,14 +16,20 @@ import numpy as np
 from .errors import InputError
 
 
+#: the upper triangle of the 3x3 unit information matrix, as g2o writes it (I11 I12 I13 I22 I23 I33)
+UNIT_INFORMATION = (1.0, 0.0, 0.0, 1.0, 0.0, 1.0)
+
+
 @dataclass(frozen=True)
 class LoopEdge:
-    """A non-consecutive g2o edge: pose ``j`` measured in the frame of pose ``i``."""
+    """A non-consecutive g2o edge: pose ``j`` measured in the frame of pose ``i``, with the
+    upper triangle of its information matrix (``I11 I12 I13 I22 I23 I33``, g2o's order)."""
 
     i: int
     j: int
     transform: tuple[float, float, float]
     line: int
+    information: tuple[float, float, float, float, float, float] = UNIT_INFORMATION
 
 
 @dataclass(frozen=True)
@@ -32,12 +38,29 @@ class G2OGraph:
 
     ``vertices`` (N, 3) are the file's VERTEX_SE2 poses (ids 0..N-1), ``odometry``
     (N-1, 3) the relative increments of the edges ``i -> i+1`` (in the frame of pose
-    ``i``), ``loops`` every other edge (loop-closure proposals).
+    ``i``), ``loops`` every other edge (loop-closure proposals). ``odometry_information``
+    (N-1, 6) holds the odometry edges' information (upper triangle, g2o's order), so a
+    file written with each link's information (:func:`hippomap.exports.write_g2o`) reads
+    back with it. Read with ``chain=False``, a graph need not be a chain: a missing
+    ``i -> i+1`` edge leaves a NaN row in ``odometry`` and ``odometry_information``.
     """
 
     vertices: np.ndarray
     odometry: np.ndarray
     loops: list[LoopEdge] = field(default_factory=list)
+    odometry_information: np.ndarray | None = None
+
+    def edges(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Every edge as arrays ``(source, target, transform (M, 3), information (M, 6))``:
+        the odometry edges present (in order of ``i``), then the loops (file order)."""
+        odo = np.flatnonzero(np.isfinite(self.odometry).all(axis=1))
+        info = (self.odometry_information if self.odometry_information is not None
+                else np.tile(UNIT_INFORMATION, (len(self.odometry), 1)))
+        src = np.concatenate([odo, [e.i for e in self.loops]]).astype(np.int64)
+        dst = np.concatenate([odo + 1, [e.j for e in self.loops]]).astype(np.int64)
+        tr = np.vstack([self.odometry[odo], np.array([e.transform for e in self.loops], dtype=float).reshape(-1, 3)])
+        inf = np.vstack([info[odo], np.array([e.information for e in self.loops], dtype=float).reshape(-1, 6)])
+        return src, dst, tr, inf
 
 
 def _floats(tokens: list[str], path: Path, lineno: int, line: str) -> list[float]:
@@ -58,9 +81,12 @@ def _int(token: str, path: Path, lineno: int, line: str) -> int:
         raise InputError(f"{path}:{lineno}: malformed vertex id {token!r} in line {line.strip()!r}") from None
 
 
-def read_g2o(path: str | Path) -> G2OGraph:
-    """Read VERTEX_SE2 / EDGE_SE2 lines; vertex ids must be 0..N-1 and every
-    consecutive pair must be joined by exactly one odometry edge."""
+def read_g2o(path: str | Path, chain: bool = True) -> G2OGraph:
+    """Read VERTEX_SE2 / EDGE_SE2 lines; vertex ids must be 0..N-1 and (``chain``) every
+    consecutive pair must be joined by exactly one odometry edge. Each edge's information
+    (upper triangle of its 3x3 matrix) is kept. ``chain=False`` reads any pose graph (e.g.
+    a cognitive map, whose node ``i + 1`` may hang off an older node after a loop): missing
+    ``i -> i+1`` edges are NaN rows of ``odometry``, and a second ``i -> i+1`` edge is a loop."""
     path = Path(path)
     vertices: dict[int, list[float]] = {}
     odometry: dict[int, list[float]] = {}
@@ -86,12 +112,13 @@ def read_g2o(path: str | Path) -> G2OGraph:
                 i = _int(tokens[1], path, lineno, line)
                 j = _int(tokens[2], path, lineno, line)
                 values = _floats(tokens[3:], path, lineno, line)
-                if j == i + 1:
+                if j == i + 1 and not (i in odometry and not chain):
                     if i in odometry:
                         raise InputError(f"{path}:{lineno}: second odometry edge {i} -> {j}")
-                    odometry[i] = values[:3]
+                    odometry[i] = values
                 else:
-                    loops.append(LoopEdge(i, j, (values[0], values[1], values[2]), lineno))
+                    loops.append(LoopEdge(i, j, (values[0], values[1], values[2]), lineno,
+                                          (values[3], values[4], values[5], values[6], values[7], values[8])))
             elif tag in ("FIX", "VERTEX_XY", "EDGE_SE2_XY"):
                 continue  # not used by hippomap; tolerated so standard files read
             else:
@@ -103,14 +130,16 @@ def read_g2o(path: str | Path) -> G2OGraph:
     if missing:
         raise InputError(f"{path}: vertex ids must be 0..{n - 1}; missing {missing[:5]}")
     gaps = [i for i in range(n - 1) if i not in odometry]
-    if gaps:
+    if gaps and chain:
         raise InputError(f"{path}: no odometry edge {gaps[0]} -> {gaps[0] + 1} ({len(gaps)} missing)")
     for e in loops:
         if not (0 <= e.i < n and 0 <= e.j < n):
             raise InputError(f"{path}:{e.line}: edge {e.i} -> {e.j} names a vertex outside 0..{n - 1}")
     verts = np.array([vertices[k] for k in range(n)], dtype=float)
-    odo = np.array([odometry[k] for k in range(n - 1)], dtype=float).reshape(-1, 3)
-    return G2OGraph(verts, odo, loops)
+    for k in gaps:
+        odometry[k] = [math.nan] * 9
+    odo = np.array([odometry[k] for k in range(n - 1)], dtype=float).reshape(-1, 9)
+    return G2OGraph(verts, odo[:, :3].copy(), loops, odo[:, 3:].copy())
 
 
 def _check_increasing(t: np.ndarray, path: Path, lines: list[int] | None = None) -> None:
@@ -268,7 +297,8 @@ def _read_csv_rows(path: Path, columns: tuple[str, ...]) -> list[list[str]]:
 
 def read_folder_dataset(folder: str | Path) -> SensorDataset:
     """The project's folder format: ``frames/`` images, ``frames.csv`` (``t,file``),
-    ``odometry.csv`` (``t,v,omega`` in m/s, rad/s), optional ``groundtruth.csv``
+    ``odometry.csv`` (``t,v,omega`` in m/s, rad/s, or ``t,dx,dy,dtheta``: see
+    :func:`read_folder_odometry`), optional ``groundtruth.csv``
     (``t,x,y,theta``). Timestamps must increase within each file."""
     folder = Path(folder)
     for name in ("frames.csv", "odometry.csv"):
@@ -342,12 +372,20 @@ def read_tum_rgbd(folder: str | Path) -> SensorDataset:
 
 
 def read_folder_odometry(path: Path) -> list:
+    """``odometry.csv``: ``t,v,omega`` (velocities, m/s and rad/s, held from the previous row's
+    time) or ``t,dx,dy,dtheta`` (relative pose increments in the previous pose's frame, as a
+    session fed increments exports them); the header says which."""
     from .inputs import Odometry
 
+    with path.open(newline="") as fh:
+        first = fh.readline()
+    columns = ("t", "dx", "dy", "dtheta") if [c.strip() for c in first.split(",")] == ["t", "dx", "dy", "dtheta"] \
+        else ("t", "v", "omega")
     out = []
-    rows = _read_csv_rows(path, ("t", "v", "omega"))
-    for lineno, t, v, w in rows:
-        tf, vf, wf = _floats([t, v, w], path, lineno, f"{t},{v},{w}")
-        out.append(Odometry(tf, v=vf, omega=wf))
+    rows = _read_csv_rows(path, columns)
+    for lineno, *cells in rows:
+        values = _floats(cells, path, lineno, ",".join(cells))
+        out.append(Odometry(values[0], v=values[1], omega=values[2]) if len(values) == 3
+                   else Odometry(values[0], increment=(values[1], values[2], values[3])))
     _check_increasing(np.array([o.t for o in out]), path, [r[0] for r in rows])
     return out

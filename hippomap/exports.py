@@ -67,18 +67,44 @@ def link_transforms(d: Any, heading: Any, facing: Any) -> np.ndarray:
     return np.column_stack([d * np.cos(heading), d * np.sin(heading), facing])
 
 
-def write_g2o(path: str | Path, poses: Any, sources: Any, targets: Any, transforms: Any) -> Path:
-    """Write nodes as VERTEX_SE2 and links as EDGE_SE2 (unit information matrix)."""
+def link_information(cmap: Any) -> np.ndarray:
+    """(M, 3) diagonal information (x, y, θ) the map gives each link when it solves: the
+    solver's weights (:meth:`~hippomap.cognitive_map.CognitiveMap.link_information`:
+    odometric links ``odometry_information_per_m`` over their length, loop links their own
+    information; unit information when ``lsq_weighted`` is off) times each link's robust
+    weight (:meth:`~hippomap.cognitive_map.CognitiveMap.link_weights`: a faded loop link
+    counts for little). This is what :func:`write_g2o` writes on each edge."""
+    m = len(cmap.links["source"])
+    weighted = getattr(cmap.cfg, "lsq_weighted", True)
+    info = np.asarray(cmap.link_information(), dtype=float) if weighted else np.ones((m, 3))
+    return info * np.asarray(cmap.link_weights(), dtype=float)[:, None]
+
+
+def write_g2o(path: str | Path, poses: Any, sources: Any, targets: Any, transforms: Any,
+              information: Any | None = None) -> Path:
+    """Write nodes as VERTEX_SE2 and links as EDGE_SE2. ``information`` (M, 3) is each link's
+    diagonal information (x, y, θ; e.g. :func:`link_information`), written as the upper
+    triangle ``ix 0 0 iy 0 iθ`` that g2o reads; None writes unit information."""
     p = _as_poses(poses, "poses")
     src = np.asarray(sources, dtype=int)
     dst = np.asarray(targets, dtype=int)
     tr = _as_poses(np.asarray(transforms, dtype=float).reshape(-1, 3), "transforms")
     if not (len(src) == len(dst) == len(tr)):
         raise InputError("sources, targets and transforms must have the same length")
+    if information is None:
+        info = np.ones((len(src), 3))
+    else:
+        info = np.asarray(information, dtype=float)
+        if info.shape != (len(src), 3):
+            raise InputError(f"information must have shape ({len(src)}, 3), got {info.shape}")
+        bad = np.flatnonzero(~(np.isfinite(info).all(axis=1) & (info > 0).all(axis=1)))
+        if len(bad):
+            raise InputError(f"link {int(bad[0])} has information {info[bad[0]].tolist()}: every value must be "
+                             "finite and > 0")
     lines = [f"VERTEX_SE2 {i} {x:.9f} {y:.9f} {th:.9f}" for i, (x, y, th) in enumerate(p)]
     lines += [
-        f"EDGE_SE2 {a} {b} {dx:.9f} {dy:.9f} {dth:.9f} 1 0 0 1 0 1"
-        for a, b, (dx, dy, dth) in zip(src.tolist(), dst.tolist(), tr)
+        f"EDGE_SE2 {a} {b} {dx:.9f} {dy:.9f} {dth:.9f} {ix!r} 0 0 {iy!r} 0 {ith!r}"
+        for a, b, (dx, dy, dth), (ix, iy, ith) in zip(src.tolist(), dst.tolist(), tr, info.tolist())
     ]
     path = Path(path)
     path.write_text("\n".join(lines) + "\n")
@@ -171,7 +197,8 @@ def export_map(out_dir: str | Path, cmap: Any, times: Any, odometry: Any, correc
     links = cmap.links
     write_tum(out / "map.tum", times, corrected)
     write_tum(out / "odometry.tum", times, odometry)
-    write_g2o(out / "map.g2o", cmap.poses, links["source"], links["target"], links["transform"])
+    write_g2o(out / "map.g2o", cmap.poses, links["source"], links["target"], links["transform"],
+              link_information(cmap))
     write_json(out / "map.json", graph_dict(cmap.poses, cmap.place_codes, cmap.frames, cmap.times, links["source"],
                                             links["target"], links["transform"], links["kind"]))
     write_json(out / "loop_closures.json", decisions)

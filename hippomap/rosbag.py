@@ -54,8 +54,12 @@ def _yaw(q) -> float:
     return float(np.arctan2(2 * (q.w * q.z + q.x * q.y), 1 - 2 * (q.y**2 + q.z**2)))
 
 
-def read_rosbag(path: str | Path, image_topic: str, odometry_topic: str, max_frames: int | None = None) -> SensorDataset:
-    """Read a ROS 1 (``.bag``) or ROS 2 (folder) bag. Times are the messages' header stamps."""
+def read_rosbag(path: str | Path, image_topic: str, odometry_topic: str, max_frames: int | None = None,
+                groundtruth_topic: str | None = None) -> SensorDataset:
+    """Read a ROS 1 (``.bag``) or ROS 2 (folder) bag. Times are the messages' header stamps.
+    ``groundtruth_topic`` (optional: ``geometry_msgs/PoseStamped`` or ``nav_msgs/Odometry``,
+    e.g. what :func:`hippomap.session_export.write_rosbag2` writes) becomes the data set's
+    ground truth."""
     from rosbags.highlevel import AnyReader
     from rosbags.typesys import Stores, get_typestore
 
@@ -65,18 +69,28 @@ def read_rosbag(path: str | Path, image_topic: str, odometry_topic: str, max_fra
     frames: list[DecodedFrame] = []
     stamps: list[float] = []
     poses: list[tuple[float, float, float]] = []
+    gt_t: list[float] = []
+    gt_p: list[tuple[float, float, float]] = []
     with AnyReader([path], default_typestore=get_typestore(Stores.ROS2_HUMBLE)) as reader:
         topics = {c.topic: c for c in reader.connections}
-        for topic in (image_topic, odometry_topic):
+        wanted = (image_topic, odometry_topic) + ((groundtruth_topic,) if groundtruth_topic else ())
+        for topic in wanted:
             if topic not in topics:
                 raise InputError(f"bag {path} has no topic {topic!r}; topics: {sorted(topics)}")
-        conns = [c for c in reader.connections if c.topic in (image_topic, odometry_topic)]
+        conns = [c for c in reader.connections if c.topic in wanted]
         for conn, _, raw in reader.messages(connections=conns):
             msg = reader.deserialize(raw, conn.msgtype)
             t = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
             if conn.topic == image_topic:
                 if max_frames is None or len(frames) < max_frames:
                     frames.append(DecodedFrame(t, _image(msg, conn.msgtype)))
+            elif conn.topic == groundtruth_topic:
+                if not conn.msgtype.endswith(("PoseStamped", "Odometry")):
+                    raise InputError(f"ground-truth topic {groundtruth_topic!r} carries {conn.msgtype}, not "
+                                     "geometry_msgs/PoseStamped or nav_msgs/Odometry")
+                p = msg.pose if conn.msgtype.endswith("PoseStamped") else msg.pose.pose
+                gt_t.append(t)
+                gt_p.append((p.position.x, p.position.y, _yaw(p.orientation)))
             else:
                 if not conn.msgtype.endswith("Odometry"):
                     raise InputError(f"odometry topic {odometry_topic!r} carries {conn.msgtype}, not nav_msgs/Odometry")
@@ -91,4 +105,8 @@ def read_rosbag(path: str | Path, image_topic: str, odometry_topic: str, max_fra
     arr = np.array(poses)
     inc = between(arr[:-1], arr[1:])
     odometry = [Odometry(float(t), increment=tuple(map(float, d))) for t, d in zip(stamps[1:], inc)]
-    return SensorDataset(odometry, frames, None, path)
+    gt = None
+    if gt_t:
+        _check_increasing(np.array(gt_t), Path(f"{path}[{groundtruth_topic}]"))
+        gt = (np.array(gt_t), np.array(gt_p, dtype=float))
+    return SensorDataset(odometry, frames, gt, path)

@@ -5,7 +5,8 @@
 writes), a TUM RGB-D folder, or a ROS 1/2 bag (``--image-topic``, ``--odom-topic``),
 feeds every input in time order to one :class:`~hippomap.mapper.Mapper` and writes
 ``map.tum``, ``odometry.tum``, ``map.g2o``, ``map.json``, ``loop_closures.json``,
-``map.png`` and ``metrics.json``.
+``map.png`` and ``metrics.json``, and ``groundtruth.tum`` when the data set has ground truth
+(e.g. ``groundtruth.csv``), so that evo compares the map with it directly.
 """
 
 from __future__ import annotations
@@ -21,14 +22,15 @@ from .config import HippomapConfig
 from .datasets import SensorDataset, read_folder_dataset, read_tum_rgbd
 from .errors import InputError
 from .evaluation import LOOP_TRUTH_DISTANCE_M, groundtruth_at, trajectory_metrics
-from .exports import export_map, write_json
+from .exports import export_map, write_json, write_tum
 from .geometry import between
 from .inputs import Odometry
 from .mapper import Mapper
 
 
 
-def open_dataset(path: str | Path, image_topic: str | None = None, odom_topic: str | None = None) -> SensorDataset:
+def open_dataset(path: str | Path, image_topic: str | None = None, odom_topic: str | None = None,
+                 groundtruth_topic: str | None = None) -> SensorDataset:
     """Pick the reader by what the path holds."""
     path = Path(path)
     if not path.exists():
@@ -42,7 +44,7 @@ def open_dataset(path: str | Path, image_topic: str | None = None, odom_topic: s
             raise InputError("a ROS bag needs --image-topic and --odom-topic")
         from .rosbag import read_rosbag
 
-        return read_rosbag(path, image_topic, odom_topic)
+        return read_rosbag(path, image_topic, odom_topic, groundtruth_topic=groundtruth_topic)
     raise InputError(f"{path}: not a hippomap data folder (frames.csv), a TUM RGB-D folder (rgb.txt) or a ROS bag")
 
 
@@ -111,7 +113,8 @@ def link_error(gt: tuple[np.ndarray, np.ndarray], t_from: float, t_to: float, tr
 
 
 def write_run(m: Mapper, dataset: SensorDataset, out_dir: str | Path, timing: dict[str, Any] | None = None) -> dict[str, Any]:
-    """Write the exports (see :func:`hippomap.exports.export_map`) and metrics.json."""
+    """Write the exports (see :func:`hippomap.exports.export_map`), ``groundtruth.tum`` (when
+    the data set has ground truth) and metrics.json."""
     t = m.trajectory_times
     odo = m.odometry_trajectory()
     cor = m.corrected_trajectory()
@@ -144,12 +147,14 @@ def write_run(m: Mapper, dataset: SensorDataset, out_dir: str | Path, timing: di
     if "map" in metrics:
         title += f": ATE odometry {metrics['odometry']['ate']['rmse']:.2f} m, map {metrics['map']['ate']['rmse']:.2f} m"
     out = export_map(out_dir, m.cmap, t, odo, cor, loops, dataset.groundtruth, segs, title=title)
+    if dataset.groundtruth is not None:
+        write_tum(out / "groundtruth.tum", *dataset.groundtruth)
     write_json(out / "metrics.json", metrics)
     return metrics
 
 
 def _cmd(args: argparse.Namespace) -> int:
-    dataset = open_dataset(args.data_dir, args.image_topic, args.odom_topic)
+    dataset = open_dataset(args.data_dir, args.image_topic, args.odom_topic, args.groundtruth_topic)
     m, timing = run_dataset(dataset, HippomapConfig.from_file(args.config), progress=not args.quiet)
     metrics = write_run(m, dataset, args.out, timing)
     s = metrics["stats"]
@@ -169,6 +174,8 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--image-topic", help="ROS bag: image or compressed-image topic")
     p.add_argument("--odom-topic", help="ROS bag: nav_msgs/Odometry topic")
+    p.add_argument("--groundtruth-topic", help="ROS bag (optional): ground truth, geometry_msgs/PoseStamped or "
+                   "nav_msgs/Odometry")
     p.add_argument("--config", help="JSON file of config overrides")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd)

@@ -35,12 +35,14 @@ def graphml(arrays: dict[str, np.ndarray]) -> str:
 
 
 def g2o(arrays: dict[str, np.ndarray]) -> str:
-    """The map as g2o VERTEX_SE2/EDGE_SE2 lines (``hippomap.exports.write_g2o``)."""
+    """The map as g2o VERTEX_SE2/EDGE_SE2 lines (``hippomap.exports.write_g2o``), each edge with
+    ``arrays["information"]`` (M, 3) when given (``hippomap.exports.link_information``), else unit."""
     from hippomap.exports import write_g2o
 
+    info = arrays.get("information")
     with tempfile.TemporaryDirectory() as tmp:
         path = write_g2o(Path(tmp) / "map.g2o", arrays["poses"].reshape(-1, 3), arrays["source"], arrays["target"],
-                         arrays["transform"].reshape(-1, 3))
+                         arrays["transform"].reshape(-1, 3), None if info is None else np.asarray(info).reshape(-1, 3))
         return path.read_text()
 
 

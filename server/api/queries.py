@@ -1,4 +1,5 @@
-"""Queries: the map and its downloads, loop closures, saccade traces, place fields, events, inputs."""
+"""Queries: the map and its downloads, loop closures, saccade traces, place fields, events, inputs
+(and, through :mod:`server.api.exports`, the recorded inputs as a data folder or a ROS 2 bag)."""
 
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ from fastapi.responses import PlainTextResponse, Response
 from .. import model, views
 from ..schemas import Event, LoopClosure, MapGraph, PlaceField, PlaceFieldInfo, RecognitionInfo
 from ..sessions import LiveSession
-from . import deps
+from . import deps, exports
 
 router = APIRouter(prefix="/sessions/{session_id}", tags=["queries"])
 
@@ -58,18 +59,33 @@ async def get_map_graphml(live: deps.ReadSession) -> Response:
                     headers={"Content-Disposition": f'attachment; filename="{live.id}.graphml"'})
 
 
+def _g2o_arrays(m: Any) -> dict[str, Any]:
+    from hippomap.exports import link_information
+
+    return {**model.graph_arrays(m), "information": link_information(m.cmap)}
+
+
 @router.get("/map.g2o", response_class=PlainTextResponse, responses=_binary("text/plain"),
-            summary="The map as a g2o pose graph (VERTEX_SE2 / EDGE_SE2)")
+            summary="The map as a g2o pose graph (VERTEX_SE2 / EDGE_SE2), each edge with the information the map "
+                    "gives its link (odometric: by length; loop: its information x robust weight)")
 async def get_map_g2o(live: deps.ReadSession) -> Response:
-    text = await asyncio.to_thread(views.g2o, await _arrays(live))
+    arrays = await _query(live, _g2o_arrays)
+    if arrays is None:
+        raise HTTPException(503, "the session is still loading")
+    text = await asyncio.to_thread(views.g2o, arrays)
     return PlainTextResponse(text, headers={"Content-Disposition": f'attachment; filename="{live.id}.g2o"'})
 
 
 @router.get("/trajectory.tum", response_class=PlainTextResponse, responses=_binary("text/plain"),
-            summary="The robot's trajectory in TUM format: on the corrected map, or raw odometry")
+            summary="The robot's trajectory in TUM format: on the corrected map, raw odometry, or the ground truth "
+                    "its odometry readings carried (404 when none did)")
 async def get_trajectory_tum(live: deps.ReadSession,
-                             source: Literal["map", "odometry"] = Query("map", description="which trajectory")) -> Response:
-    res = await _query(live, lambda m: model.trajectory(m, source))
+                             source: Literal["map", "odometry", "groundtruth"] = Query(
+                                 "map", description="which trajectory")) -> Response:
+    if source == "groundtruth":
+        res = await asyncio.to_thread(exports.groundtruth, live)
+    else:
+        res = await _query(live, lambda m: model.trajectory(m, source))
     text = "" if res is None else await asyncio.to_thread(views.tum, *res)
     return PlainTextResponse(text, headers={"Content-Disposition": f'attachment; filename="{live.id}-{source}.tum"'})
 
@@ -240,3 +256,6 @@ async def get_frame(live: deps.ReadSession,
         raise _not_found(f"frame {seq}")
     media = "image/png" if rec.data[:4] == b"\x89PNG" else "image/jpeg"
     return Response(rec.data, media_type=media)
+
+
+router.include_router(exports.router)  # /export/...: the recorded inputs as a data folder or a ROS 2 bag
