@@ -54,6 +54,7 @@ def test_without_a_token_it_explains_how_to_get_one_and_lists_nothing(service):
     for link in ("href=\"/docs\"", "href=\"/redoc\"", "href=\"/viewer/\""):
         assert link in r.text
     assert "admin.token" in r.text and "POST /tokens" in r.text and "name=\"token\"" in r.text
+    assert "http://testserver/tokens" in r.text  # the command to mint a token names this server
     assert _rows(r.text) == {} and mine not in r.text and other not in r.text and "admin lap" not in r.text
     assert "set-cookie" not in r.headers
 

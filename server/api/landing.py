@@ -47,8 +47,8 @@ cells, a visual recognition memory that closes loops).</p>
     return HTMLResponse(doc, status_code=status, headers={"Cache-Control": "no-store", "Referrer-Policy": "no-referrer"})
 
 
-def how_to_get_a_token(message: str) -> str:
-    """The explanation and form shown without a (valid) token."""
+def how_to_get_a_token(message: str, base_url: str) -> str:
+    """The explanation and form shown without a (valid) token; ``base_url`` is this server's address."""
     return f"""<h2>Sign in</h2><p id="no-token">{html.escape(message)}</p>
 <form method="get" action="/"><label>Token <input name="token" type="password" size="50" autocomplete="off"></label>
 <button>Show my sessions</button></form>
@@ -58,7 +58,7 @@ def how_to_get_a_token(message: str) -> str:
 <li>A writer (or the admin) mints a read-only <b>viewer token</b>, for all its sessions or one of them, with
 <code>POST /tokens</code>:
 <pre>curl -X POST -H "Authorization: Bearer $HIPPOMAP_TOKEN" -H "Content-Type: application/json" \\
-     -d '{{"role": "viewer", "label": "dashboard"}}' http://this-server/tokens</pre>
+     -d '{{"role": "viewer", "label": "dashboard"}}' {html.escape(base_url.rstrip("/"))}/tokens</pre>
 The admin also mints <b>writer tokens</b> for robots (<code>"role": "writer"</code>).</li></ul>"""
 
 
@@ -89,7 +89,7 @@ def session_rows(entries: list[dict[str, Any]]) -> str:
             f"<td class='n'>{_number(st, 'mapper', 'loop_closures_rejected')}</td>"
             f"<td class='n'>{_number(st, 'inputs_stored')}</td><td class='n'>{_number(st, 'pending')}</td></tr>")
     return ("<table id='sessions'><thead><tr><th>session</th><th></th><th>nodes</th><th>loop closures</th>"
-            "<th>rejected</th><th>inputs</th><th>pending</th></tr></thead><tbody>" + "".join(rows) + "</tbody></table>")
+            "<th>rejected closures</th><th>inputs</th><th>pending</th></tr></thead><tbody>" + "".join(rows) + "</tbody></table>")
 
 
 async def visible_sessions(request: Request, token: Any) -> list[dict[str, Any]]:
@@ -114,10 +114,10 @@ async def landing(request: Request, token: Annotated[str | None, Query(
 
     secret = token_from(request.headers, request.query_params, request.cookies)
     if not secret:
-        return _page(how_to_get_a_token("Give a token to see your sessions."))
+        return _page(how_to_get_a_token("Give a token to see your sessions.", str(request.base_url)))
     tok = request.app.state.auth.authenticate(secret)
     if tok is None:
-        return _page(how_to_get_a_token("That token is not valid."), status=401)
+        return _page(how_to_get_a_token("That token is not valid.", str(request.base_url)), status=401)
     entries = await visible_sessions(request, tok)
     who = f"{html.escape(tok.role)} token <code>{html.escape(tok.id)}</code>"
     response = _page(f"<h2>Sessions</h2><p class='d'>Visible to the {who}.</p>{session_rows(entries)}")
