@@ -94,6 +94,18 @@ def test_fastapi_cdn_pages_are_gone(client):
     assert client.get(ASSETS_URL + "/../server/app.py").status_code == 404
 
 
+def test_mount_docs_refuses_a_broken_install_or_an_app_with_cdn_pages(tmp_path):
+    from fastapi import FastAPI
+
+    from server.api.docs import mount_docs
+
+    (tmp_path / "swagger-ui.css").write_text("body{}")
+    with pytest.raises(RuntimeError, match="swagger-ui-bundle.js.*redoc.standalone.js.*fastapi-offline"):
+        mount_docs(FastAPI(docs_url=None, redoc_url=None), assets_dir=tmp_path)
+    with pytest.raises(RuntimeError, match="docs_url=None"):
+        mount_docs(FastAPI())
+
+
 def _offline_page(p, url: str):
     """A Chromium page that may reach loopback only; returns (page, browser, outside requests seen)."""
     browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)

@@ -35,9 +35,9 @@ ASSETS_DIR = Path(fastapi_offline.__file__).parent / "static"
 #: the files the pages need (checked at mount time: a broken install fails at start, not in a browser)
 ASSET_FILES = ("swagger-ui-bundle.js", "swagger-ui.css", "redoc.standalone.js", "favicon.png")
 
-#: Swagger UI options: no online validator (its badge fetches an outside host); "Try it out" shows the
-#: request examples of every operation; the bearer token typed into "Authorize" survives a reload
-SWAGGER_PARAMETERS = {"validatorUrl": None, "persistAuthorization": True, "displayRequestDuration": True}
+#: Swagger UI options: no online validator (its badge fetches an outside host); the token typed into
+#: "Authorize" is not persisted (it would sit in the browser's local storage)
+SWAGGER_PARAMETERS = {"validatorUrl": None, "persistAuthorization": False, "displayRequestDuration": True}
 
 
 #: example camera frames for the request examples of POST /sessions/{id}/frames (binary bodies cannot be
