@@ -6,7 +6,6 @@ OpenAPI document (real stream messages validated against its schemas), and no un
 from __future__ import annotations
 
 import re
-import time
 from urllib.parse import urlsplit
 
 import cv2
