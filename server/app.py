@@ -28,7 +28,7 @@ from starlette.routing import Match
 from hippomap import __version__
 
 from . import model
-from .api import ingest, queries, sessions, stream, tokens
+from .api import docs, ingest, landing, queries, sessions, stream, tokens, wsdoc
 from .auth import Authenticator, CloseOnRevoke, adopt_orphans, ensure_admin
 from .limits import BodySizeLimit, KeyedBuckets, OriginCheck
 from .metrics import ServiceMetrics
@@ -234,8 +234,9 @@ def create_app(settings: ServerSettings | None = None) -> FastAPI:
             await asyncio.to_thread(manager.stop)
             store.close()
 
-    app = FastAPI(title="hippomap server", version=__version__, description=DESCRIPTION, lifespan=lifespan,
-                  default_response_class=SafeJSONResponse)
+    app = FastAPI(title="hippomap server", version=__version__, description=DESCRIPTION + wsdoc.websocket_description(),
+                  lifespan=lifespan, default_response_class=SafeJSONResponse, docs_url=None, redoc_url=None)
+    docs.mount_docs(app)  # /docs and /redoc with their assets served here (offline), not from a CDN
     app.state.settings = settings
     app.state.metrics = metrics
     app.state.serving = False
@@ -315,10 +316,12 @@ def create_app(settings: ServerSettings | None = None) -> FastAPI:
     def openapi() -> dict[str, Any]:
         if app.openapi_schema is None:
             document_input_bounds(default_openapi(), settings)
+            wsdoc.add_websocket_docs(app.openapi_schema, settings)
         return app.openapi_schema
 
     app.openapi = openapi  # type: ignore[method-assign]
     from web.service import viewer_router  # the live 3D viewer: /viewer/ (web/routes.py)
 
     app.include_router(viewer_router(app))
+    app.include_router(landing.router)
     return app

@@ -21,7 +21,9 @@ class OdometryReading(_In):
         "oneOf": [{"required": ["t", "v", "omega"], "properties": {"v": {"type": "number"}, "omega": {"type": "number"},
                                                                   "increment": {"type": "null"}}},
                   {"required": ["t", "increment"], "properties": {"increment": {"type": "array"},
-                                                                  "v": {"type": "null"}, "omega": {"type": "null"}}}]})
+                                                                  "v": {"type": "null"}, "omega": {"type": "null"}}}],
+        "examples": [{"t": 12.5, "v": 0.4, "omega": 0.05}, {"t": 12.55, "increment": [0.02, 0.0, 0.0025]},
+                     {"t": 12.6, "v": 0.4, "omega": 0.0, "gt": [3.1, -0.4, 1.57]}]})
 
     # strict numbers: a JSON string ("0.1") or boolean (true) is refused, not coerced
     t: StrictFloat = Field(description="timestamp, seconds; must exceed the session's previous input and lie "
@@ -37,6 +39,9 @@ class OdometryReading(_In):
 
 
 class OdometryBatch(_In):
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
+        {"readings": [{"t": 12.5, "v": 0.4, "omega": 0.05}, {"t": 12.55, "v": 0.4, "omega": 0.04}]}]})
+
     readings: list[OdometryReading] = Field(min_length=1, description="readings in increasing time order")
 
 
@@ -51,6 +56,9 @@ class IngestAck(BaseModel):
 
 # ---------------------------------------------------------------- sessions
 class SessionCreate(_In):
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
+        {"name": "warehouse, lap 3", "config": {"mapper": {"keyframe_interval": 10}}}, {"name": "defaults"}]})
+
     name: str = Field("", max_length=200, description="free label")
     config: dict[str, dict[str, Any]] = Field(
         default_factory=dict,
@@ -178,7 +186,8 @@ class TokenCreate(_In):
     # a writer token is never limited to one session
     model_config = ConfigDict(extra="forbid", json_schema_extra={"anyOf": [
         {"properties": {"role": {"const": "viewer"}}},
-        {"required": ["role"], "properties": {"role": {"const": "writer"}, "session": {"type": "null"}}}]})
+        {"required": ["role"], "properties": {"role": {"const": "writer"}, "session": {"type": "null"}}}],
+        "examples": [{"role": "viewer", "label": "control-room dashboard"}, {"role": "writer", "label": "robot 7"}]})
 
     role: Literal["viewer", "writer"] = "viewer"
     session: str | None = Field(None, description="viewer only: limit the token to this session")
@@ -200,3 +209,105 @@ class TokenCreated(TokenInfo):
 
 class Problem(BaseModel):
     detail: Any
+
+
+# ------------------------------------------------------- websocket messages
+# The stream /sessions/{id}/stream (server/protocol.py) is not an HTTP operation: OpenAPI cannot list
+# it. These models document its JSON messages in the OpenAPI document's ``x-websockets`` extension
+# (server/api/wsdoc.py); the stream itself validates odometry with OdometryReading, as HTTP does.
+MessageId = int | float | str | None
+
+
+class WsOdometry(OdometryReading):
+    """Client → server: one odometry reading (the fields of OdometryReading inline)."""
+
+    model_config = ConfigDict(extra="forbid", title="odometry", json_schema_extra={"examples": [
+        {"type": "odometry", "id": 7, "t": 12.5, "v": 0.4, "omega": 0.05},
+        {"type": "odometry", "id": 8, "t": 12.55, "increment": [0.02, 0.0, 0.0025]}]})
+
+    type: Literal["odometry"]
+    id: MessageId = Field(None, description="echoed in the ack or error (a number, or a string of at most 128 "
+                          "characters)")
+
+
+class WsOdometryBatch(_In):
+    """Client → server: a batch of odometry readings, acknowledged together."""
+
+    model_config = ConfigDict(extra="forbid", title="odometry batch", json_schema_extra={"examples": [
+        {"type": "odometry", "id": 9, "readings": [{"t": 12.6, "v": 0.4, "omega": 0.0},
+                                                   {"t": 12.65, "v": 0.4, "omega": 0.0}]}]})
+
+    type: Literal["odometry"]
+    id: MessageId = None
+    readings: list[OdometryReading] = Field(min_length=1, description="readings in increasing time order")
+
+
+class WsPing(_In):
+    """Client → server: answered by a pong with the same id."""
+
+    model_config = ConfigDict(extra="forbid", title="ping", json_schema_extra={"examples": [{"type": "ping", "id": 10}]})
+
+    type: Literal["ping"]
+    id: MessageId = None
+
+
+class WsHello(BaseModel):
+    """Server → client, first message: where the session stands (lets a robot resume)."""
+
+    model_config = ConfigDict(title="hello", json_schema_extra={"examples": [
+        {"type": "hello", "session": "s_3f9a1c2b7d4e", "last_seq": 41, "last_t": 12.5, "last_odometry_t": 12.5,
+         "last_frame_t": 12.4, "max_pending": 256}]})
+
+    type: Literal["hello"]
+    session: str
+    last_seq: int = Field(description="sequence number of the last stored input (-1: none)")
+    last_t: float | None
+    last_odometry_t: float | None = Field(description="the next odometry reading must be later than this")
+    last_frame_t: float | None = Field(description="the next frame must be later than this")
+    max_pending: int = Field(description="inputs the session queues before the server stops reading (busy)")
+
+
+class WsAck(BaseModel):
+    """Server → client: the message's inputs are durable as ``seq``..``last_seq``; acks come in message order."""
+
+    model_config = ConfigDict(title="ack", json_schema_extra={"examples": [
+        {"type": "ack", "id": 7, "seq": 42, "last_seq": 42, "count": 1}]})
+
+    type: Literal["ack"]
+    id: MessageId
+    seq: int
+    last_seq: int
+    count: int
+
+
+class WsError(BaseModel):
+    """Server → client: the message was refused (HTTP status codes); nothing of it was stored, the stream
+    stays open."""
+
+    model_config = ConfigDict(title="error", json_schema_extra={"examples": [
+        {"type": "error", "id": 7, "status": 422, "detail": "odometry v must be finite, got nan"}]})
+
+    type: Literal["error"]
+    id: MessageId
+    status: int
+    detail: str
+
+
+class WsBusy(BaseModel):
+    """Server → client: the mapper's queue is full; the server reads nothing more until there is room."""
+
+    model_config = ConfigDict(title="busy", json_schema_extra={"examples": [
+        {"type": "busy", "pending": 256, "max_pending": 256}]})
+
+    type: Literal["busy"]
+    pending: int
+    max_pending: int
+
+
+class WsPong(BaseModel):
+    """Server → client: the answer to a ping."""
+
+    model_config = ConfigDict(title="pong", json_schema_extra={"examples": [{"type": "pong", "id": 10}]})
+
+    type: Literal["pong"]
+    id: MessageId

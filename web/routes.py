@@ -118,7 +118,7 @@ def make_router(access: ViewerAccess, hub: ViewerHub | None = None,
     viewers at shutdown: ``router.hub.close_all()``).
     """
     hub = hub or ViewerHub(settings)
-    router = APIRouter()
+    router = APIRouter(tags=["viewer"])
     router.hub = hub  # type: ignore[attr-defined]
 
     @router.get(PREFIX, include_in_schema=False)

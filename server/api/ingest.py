@@ -2,15 +2,16 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Annotated, Any
 
-from fastapi import APIRouter, HTTPException, Query, Request
+from fastapi import APIRouter, Body, HTTPException, Query, Request
 from starlette.datastructures import UploadFile
 
 from ..ingest import Accepted, IngestError, check_odometry
 from ..schemas import IngestAck, OdometryBatch, OdometryReading
 from ..sessions import LiveSession, NotFound
 from . import deps
+from .docs import EXAMPLE_FRAME_URLS
 
 router = APIRouter(prefix="/sessions/{session_id}", tags=["ingest"])
 
@@ -42,9 +43,23 @@ async def accept(live: LiveSession, items: list[Accepted], wait_s: float) -> dic
     return {"session": live.id, "seq": first, "last_seq": last, "count": len(items)}
 
 
+#: request examples of POST /sessions/{id}/odometry (shown by /docs and /redoc)
+ODOMETRY_EXAMPLES: dict[str, dict[str, Any]] = {
+    "velocities": {"summary": "one reading: velocities held since the previous reading",
+                   "value": {"t": 12.5, "v": 0.4, "omega": 0.05}},
+    "increment": {"summary": "one reading: a pose increment in the previous pose's frame",
+                  "value": {"t": 12.55, "increment": [0.02, 0.0, 0.0025]}},
+    "ground truth": {"summary": "one reading with the simulator's ground-truth pose (drawn by the viewer only)",
+                     "value": {"t": 12.6, "v": 0.4, "omega": 0.0, "gt": [3.1, -0.4, 1.57]}},
+    "batch": {"summary": "a batch, acknowledged together",
+              "value": {"readings": [{"t": 12.65, "v": 0.4, "omega": 0.05}, {"t": 12.7, "v": 0.4, "omega": 0.04}]}},
+}
+
+
 @router.post("/odometry", response_model=IngestAck, responses=INGEST_ERRORS,
              summary="Odometry: one reading or a batch; acknowledged once stored")
-async def post_odometry(live: deps.WriteSession, request: Request, body: OdometryBatch | OdometryReading) -> Any:
+async def post_odometry(live: deps.WriteSession, request: Request, body: Annotated[
+        OdometryBatch | OdometryReading, Body(openapi_examples=ODOMETRY_EXAMPLES)]) -> Any:
     readings = body.readings if isinstance(body, OdometryBatch) else [body]
     try:
         items = check_odometry(readings, live.settings.max_odometry_batch, live.settings)
@@ -57,8 +72,11 @@ async def post_odometry(live: deps.WriteSession, request: Request, body: Odometr
 _FRAME_BODY = {
     "required": True,
     "content": {
-        "image/jpeg": {"schema": {"type": "string", "format": "binary"}},
-        "image/png": {"schema": {"type": "string", "format": "binary"}},
+        # binary bodies: the examples are real files the service serves (an OpenAPI externalValue)
+        "image/jpeg": {"schema": {"type": "string", "format": "binary"}, "examples": {"frame": {
+            "summary": "a 320x240 camera frame, sent with ?t=12.5", "externalValue": EXAMPLE_FRAME_URLS["jpeg"]}}},
+        "image/png": {"schema": {"type": "string", "format": "binary"}, "examples": {"frame": {
+            "summary": "a 320x240 camera frame, sent with ?t=12.5", "externalValue": EXAMPLE_FRAME_URLS["png"]}}},
         "multipart/form-data": {"schema": {
             "type": "object", "required": ["t", "image"],
             "properties": {"t": {"type": "number", "description": "timestamp, seconds"},
