@@ -24,6 +24,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from .cli import add_progress_argument, progress_enabled
 from .errors import InputError
 from .inputs import Odometry
 
@@ -156,7 +157,7 @@ def _cmd(args: argparse.Namespace) -> int:
             sid = client.create_session(name=args.name or Path(args.dataset).name, config=config)["id"]
         print(f"session {sid}", flush=True)
         result = asyncio.run(replay(dataset, args.server, client.token, sid, speed=args.speed, window=args.window,
-                                    resume=args.resume, progress=not args.quiet))
+                                    resume=args.resume, progress=progress_enabled(args)))
         print(f"sent {result['odometry']} odometry readings and {result['frames']} frames in "
               f"{result['seconds']:.1f} s ({result['inputs_per_s']:.0f} inputs/s), all acknowledged"
               + (f"; skipped {result['skipped']} already stored" if result["skipped"] else ""), flush=True)
@@ -185,6 +186,6 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--odom-topic", help="ROS bag: odometry topic")
     p.add_argument("--no-wait", action="store_true", help="do not wait for the mapper to finish")
     p.add_argument("--wait-timeout", type=float, default=3600.0, help="seconds to wait for the mapper")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_progress_argument(p)
     p.set_defaults(func=_cmd)
 

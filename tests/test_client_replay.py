@@ -62,7 +62,7 @@ def test_replay_folder_dataset_matches_offline(server, tmp_path):
         it[1].t if it[0] == "odometry" else it[1] for it in ITEMS]
     cfg = tmp_path / "cfg.json"
     cfg.write_text(json.dumps(CONFIG))
-    rc, out = run_replay(str(folder), "--server", server.url, "--token", server.token, "--config", str(cfg), "--quiet")
+    rc, out = run_replay(str(folder), "--server", server.url, "--token", server.token, "--config", str(cfg), "--no-progress")
     assert rc == 0
     sid = re.search(r"session (\S+)", out).group(1)
     assert "all acknowledged" in out and "nodes" in out
@@ -79,13 +79,13 @@ def test_interrupted_replay_resumes_without_duplicates(server, tmp_path):
     full = write_folder(tmp_path / "full", ITEMS)
     with server.client() as c:
         sid = c.create_session("resume", CONFIG)["id"]
-    rc, _ = run_replay(str(half), "--server", server.url, "--token", server.token, "--session", sid, "--quiet",
+    rc, _ = run_replay(str(half), "--server", server.url, "--token", server.token, "--session", sid, "--no-progress",
                        "--no-wait", "--speed", "50")
     assert rc == 0
     with pytest.raises(ServerError) as e:  # replaying from the start again is refused (timestamps)
-        run_replay(str(full), "--server", server.url, "--token", server.token, "--session", sid, "--quiet")
+        run_replay(str(full), "--server", server.url, "--token", server.token, "--session", sid, "--no-progress")
     assert e.value.status == 409
-    rc, out = run_replay(str(full), "--server", server.url, "--token", server.token, "--session", sid, "--quiet",
+    rc, out = run_replay(str(full), "--server", server.url, "--token", server.token, "--session", sid, "--no-progress",
                          "--resume", "--window", "8")
     assert rc == 0 and "skipped 70 already stored" in out
     with server.client() as c:

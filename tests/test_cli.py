@@ -1,0 +1,167 @@
+"""The ``hippomap`` command line: ``--version``, one progress switch for every long command,
+help texts without Sphinx markup, and ``simulate``'s realistic odometry noise by default."""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import csv
+import io
+import json
+import subprocess
+import sys
+from importlib.metadata import version
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hippomap.cli import build_parser, clean_help, main, plain_text, progress_enabled
+from hippomap.sim import cli as sim_cli
+
+ROOT = Path(__file__).resolve().parents[1]
+LONG_COMMANDS = ["run", "run-odometry", "eval-vpr", "simulate", "replay"]
+MARKUP = ("``", ":class:", ":func:", ":meth:", ":mod:", ":attr:")
+
+
+def _subparsers(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentParser]:
+    action = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    return dict(action.choices)
+
+
+def test_version_is_the_package_metadata():
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out), pytest.raises(SystemExit) as e:
+        main(["--version"])
+    assert e.value.code == 0
+    assert out.getvalue().strip() == f"hippomap {version('hippomap')}"
+    r = subprocess.run([sys.executable, "-m", "hippomap", "--version"], capture_output=True, text=True, cwd=ROOT,
+                       timeout=120)
+    assert r.returncode == 0 and r.stdout.strip() == f"hippomap {version('hippomap')}"
+
+
+@pytest.mark.parametrize("command", LONG_COMMANDS)
+def test_every_long_command_has_the_same_progress_switch(command):
+    sub = _subparsers(build_parser())[command]
+    flags = {s for a in sub._actions for s in a.option_strings if "progress" in s or s == "--quiet"}
+    assert flags == {"--progress", "--no-progress", "--quiet"}
+    assert "--quiet" not in sub.format_help()  # the old spelling is accepted, not advertised
+    required = {"run": ["d", "--out", "o"], "run-odometry": ["d", "--loops", "l", "--out", "o"],
+                "eval-vpr": ["d", "--out", "o"], "simulate": ["loop", "--out", "o"],
+                "replay": ["d", "--server", "http://x"]}[command]
+    parser = build_parser()
+    parse = lambda *extra: parser.parse_args([command, *required, *extra])  # noqa: E731
+    assert progress_enabled(parse("--progress")) is True
+    assert progress_enabled(parse("--no-progress")) is False
+    assert progress_enabled(parse("--quiet")) is False
+    assert parse().progress is None  # left to the terminal test below
+
+
+class _Stream(io.StringIO):
+    def __init__(self, tty: bool) -> None:
+        super().__init__()
+        self._tty = tty
+
+    def isatty(self) -> bool:
+        return self._tty
+
+
+@pytest.mark.parametrize("tty", [True, False])
+def test_progress_defaults_to_whether_stderr_is_a_terminal(monkeypatch, tty):
+    monkeypatch.setattr(sys, "stderr", _Stream(tty))
+    assert progress_enabled(argparse.Namespace(progress=None)) is tty
+    assert progress_enabled(argparse.Namespace(progress=not tty)) is (not tty)
+
+
+def test_simulate_progress_bar_follows_the_switch(tmp_path):
+    """The switch reaches the work: a bar on stderr with --progress, none with --no-progress."""
+    base = ["simulate", "corridor", "--laps", "1", "--width", "32", "--height", "24", "--frame-every", "20"]
+    shown = subprocess.run([sys.executable, "-m", "hippomap", *base, "--out", str(tmp_path / "a"), "--progress"],
+                           capture_output=True, text=True, cwd=ROOT, timeout=300)
+    hidden = subprocess.run([sys.executable, "-m", "hippomap", *base, "--out", str(tmp_path / "b"), "--no-progress"],
+                            capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert shown.returncode == 0 and hidden.returncode == 0, shown.stderr + hidden.stderr
+    assert "frames:" in shown.stderr and "frame/s" in shown.stderr
+    assert hidden.stderr == ""
+
+
+def _all_help_texts() -> dict[str, str]:
+    parser = build_parser()
+    texts = {"hippomap": parser.format_help()}
+    texts.update({name: sub.format_help() for name, sub in _subparsers(parser).items()})
+    sim_parser = argparse.ArgumentParser(prog="python -m hippomap.sim", description=sim_cli.__doc__)
+    sim_cli._arguments(sim_parser)
+    texts["python -m hippomap.sim"] = clean_help(sim_parser).format_help()
+    return texts
+
+
+def test_help_texts_have_no_sphinx_markup():
+    texts = _all_help_texts()
+    assert {"run", "run-odometry", "eval-vpr", "simulate", "replay", "serve"} <= set(texts)
+    for name, text in texts.items():
+        for mark in MARKUP:
+            assert mark not in text, f"{name} --help shows {mark!r}"
+
+
+def test_every_subcommand_help_runs():
+    """``hippomap COMMAND --help`` as a user runs it: exit 0, usage printed, no markup."""
+    for name in _subparsers(build_parser()):
+        r = subprocess.run([sys.executable, "-m", "hippomap", name, "--help"], capture_output=True, text=True,
+                           cwd=ROOT, timeout=120)
+        assert r.returncode == 0 and r.stdout.startswith(f"usage: hippomap {name}"), r.stderr
+        assert not any(mark in r.stdout for mark in MARKUP), r.stdout
+
+
+def test_simulate_help_describes_what_the_options_do():
+    text = " ".join(_all_help_texts()["simulate"].split())
+    assert "COMMAND_MODULES" not in text  # commands register through entry points now
+    assert "--no-noise" in text and "default 0.02" in text and "default 0.01" in text
+
+
+def test_plain_text_strips_roles_and_literals():
+    assert plain_text("feeds ``x`` to one :class:`~hippomap.mapper.Mapper`") == "feeds x to one Mapper"
+    assert plain_text(":func:`hippomap.sim.simulate` and :meth:`A.b`") == "hippomap.sim.simulate and A.b"
+    assert plain_text("so::\n\n    code") == "so:\n\n    code"
+
+
+def _trajectory(folder: Path, name: str) -> np.ndarray:
+    with open(folder / name) as f:
+        return np.array([[float(x) for x in row] for row in list(csv.reader(f))[1:]])
+
+
+def _odometry_drift(folder: Path) -> float:
+    """Distance between the integrated odometry and the ground truth at the end of the run."""
+    from hippomap.geometry import integrate
+    from hippomap.sim.motion import arc_increments
+
+    odo, gt = _trajectory(folder, "odometry.csv"), _trajectory(folder, "groundtruth.csv")
+    poses = integrate(arc_increments(odo[1:, 1], odo[1:, 2], np.diff(odo[:, 0])), gt[0, 1:])
+    return float(np.hypot(*(poses[-1, :2] - gt[-1, 1:3])))
+
+
+def test_simulate_writes_noisy_odometry_by_default_and_exact_with_no_noise(tmp_path):
+    base = ["simulate", "loop", "--laps", "1", "--width", "32", "--height", "24", "--frame-every", "50",
+            "--no-progress"]
+    assert main([*base, "--out", str(tmp_path / "noisy")]) == 0
+    assert main([*base, "--out", str(tmp_path / "exact"), "--no-noise"]) == 0
+    assert main([*base, "--out", str(tmp_path / "bias"), "--no-noise", "--omega-bias", "0.01"]) == 0
+    meta = json.loads((tmp_path / "noisy" / "sim.json").read_text())
+    assert meta["config"]["odometry_noise"] == {"sigma_v": 0.02, "sigma_omega": 0.01, "omega_bias": 0.01,
+                                                "scale_error": 0.0}
+    assert _odometry_drift(tmp_path / "exact") < 1e-6
+    assert _odometry_drift(tmp_path / "noisy") > 0.2  # one 52 m lap drifting 0.01 rad/s
+    assert _odometry_drift(tmp_path / "bias") > 0.2
+    assert json.loads((tmp_path / "bias" / "sim.json").read_text())["config"]["odometry_noise"]["sigma_v"] == 0.0
+
+
+def test_readme_simulate_then_run_closes_loops_with_the_defaults(tmp_path):
+    """The README's path, as written there: ``simulate loop --seed 3`` (default noise) then
+    ``run`` (default config). About 25 s on one core: 1,915 steps rendered and mapped."""
+    readme = (ROOT / "README.md").read_text()
+    assert "hippomap simulate loop --out sim/loop --seed 3\n" in readme
+    assert main(["simulate", "loop", "--out", str(tmp_path / "sim"), "--seed", "3", "--no-progress"]) == 0
+    assert main(["run", str(tmp_path / "sim"), "--out", str(tmp_path / "run"), "--no-progress"]) == 0
+    m = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    assert m["odometry"]["ate"]["rmse"] > 1.0  # the odometry drifts
+    assert m["loop_closures"]["used"] >= 1 and m["loop_closures"]["used_false"] == 0
+    assert m["map"]["ate"]["rmse"] < 0.5 * m["odometry"]["ate"]["rmse"]
