@@ -8,8 +8,10 @@ import contextlib
 import csv
 import io
 import json
+import re
 import subprocess
 import sys
+import time
 from importlib.metadata import version
 from pathlib import Path
 
@@ -165,3 +167,66 @@ def test_readme_simulate_then_run_closes_loops_with_the_defaults(tmp_path):
     assert m["odometry"]["ate"]["rmse"] > 1.0  # the odometry drifts
     assert m["loop_closures"]["used"] >= 1 and m["loop_closures"]["used_false"] == 0
     assert m["map"]["ate"]["rmse"] < 0.5 * m["odometry"]["ate"]["rmse"]
+
+
+def _wait_for(srv, pattern: str, timeout: float = 120.0) -> re.Match:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        for line in list(srv.output):
+            m = re.search(pattern, line)
+            if m:
+                return m
+        time.sleep(0.1)
+    raise AssertionError(f"no line matching {pattern!r} in:\n{''.join(srv.output)}")
+
+
+def _demo_sessions(srv) -> list[dict]:
+    with srv.client() as c:
+        return [s for s in c.sessions() if s["name"] == "demo robot"]
+
+
+def test_serve_demo_reuses_its_session_across_restarts_and_says_when_it_finished(tmp_path):
+    """One lap at 4x then 20x real time (11 s + 2 s of driving): a restart mid-run resumes the
+    same session where it stopped, the robot says when its lap is done, and a restart after
+    that leaves the finished session alone instead of adding another demo session."""
+    from hippomap.client import Client, ServerError
+    from server.demo import demo_run
+    from server.testing import LiveServer
+
+    data = tmp_path / "data"
+    run = demo_run(10.0, 1, 1)
+    n_inputs = len(run.times) + run.n_frames
+    with LiveServer(data, args=["--demo", "--demo-laps", "1", "--demo-speed", "4"]) as srv:
+        sid = _wait_for(srv, r"demo robot streaming into session (s_\w+)").group(1)
+        with srv.client() as c:
+            while c.stats(sid)["inputs_stored"] < 40:
+                time.sleep(0.1)
+    assert not any("finished" in line for line in srv.output)  # stopped mid-lap
+    with LiveServer(data, args=["--demo", "--demo-laps", "1", "--demo-speed", "20"]) as srv:
+        assert _wait_for(srv, r"demo robot back in its session (s_\w+)").group(1) == sid
+        m = _wait_for(srv, r"demo robot finished its 1 lap \((\d+) steps.* in session (s_\w+)")
+        assert m.group(2) == sid and int(m.group(1)) == len(run.times)
+        viewer = _wait_for(srv, r"viewer: (\S+)/viewer/(s_\w+)/\?token=(hm_\S+)")
+        assert viewer.group(2) == sid
+        assert [s["id"] for s in _demo_sessions(srv)] == [sid]
+        with srv.client() as c:
+            st = c.wait_processed(sid)
+            stored = c.all_inputs(sid)
+        # the stats show the whole run: every input once, the last at the run's end
+        assert st["inputs_stored"] == n_inputs and st["last_odometry_t"] == pytest.approx(float(run.times[-1]))
+        assert st["mapper"]["odometry_steps"] == len(run.times) and st["rejected"] == {}
+        for kind in ("odometry", "frame"):
+            ts = [r["t"] for r in stored if r["kind"] == kind]
+            assert ts == sorted(set(ts)) and len(ts) == len(run.times)
+        old_viewer = viewer.group(3)
+    with LiveServer(data, args=["--demo", "--demo-laps", "1", "--demo-speed", "20"]) as srv:
+        assert _wait_for(srv, r"session (s_\w+) already holds its whole run").group(1) == sid
+        new_viewer = _wait_for(srv, r"viewer: \S+\?token=(hm_\S+)").group(1)
+        assert [s["id"] for s in _demo_sessions(srv)] == [sid]
+        with srv.client() as c:
+            assert c.stats(sid)["inputs_stored"] == n_inputs
+        with Client(srv.url, new_viewer) as v:
+            assert v.stats(sid)["inputs_stored"] == n_inputs
+        with Client(srv.url, old_viewer) as v, pytest.raises(ServerError) as e:  # the previous start's is revoked
+            v.stats(sid)
+        assert e.value.status == 401
