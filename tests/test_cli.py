@@ -8,6 +8,7 @@ import contextlib
 import csv
 import io
 import json
+import os
 import re
 import subprocess
 import sys
@@ -230,3 +231,42 @@ def test_serve_demo_reuses_its_session_across_restarts_and_says_when_it_finished
         with Client(srv.url, old_viewer) as v, pytest.raises(ServerError) as e:  # the previous start's is revoked
             v.stats(sid)
         assert e.value.status == 401
+
+
+def test_readme_python_client_example_runs_against_a_live_server(tmp_path):
+    """The README's client example, extracted between its markers and run unchanged but for
+    the server's address, streams a simulated run and prints the accepted loop closures."""
+    from server.testing import LiveServer
+
+    readme = (ROOT / "README.md").read_text()
+    m = re.search(r"<!-- python-client-example -->\n```python\n(.*?)```\n<!-- /python-client-example -->", readme,
+                  re.S)
+    assert m, "README.md has no marked Python client example"
+    code = m.group(1)
+    assert len(code.splitlines()) <= 20
+    assert "from hippomap.client import Client, Odometry\n" in code and "hippomap.inputs" not in code
+    with LiveServer(tmp_path / "data") as srv:
+        assert code.count("http://127.0.0.1:8000") == 1
+        script = tmp_path / "example.py"
+        script.write_text(code.replace("http://127.0.0.1:8000", srv.url))
+        env = {**os.environ, "HIPPOMAP_TOKEN": srv.token,
+               "PYTHONPATH": os.pathsep.join(p for p in (str(ROOT), os.environ.get("PYTHONPATH", "")) if p)}
+        r = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, cwd=tmp_path, env=env,
+                           timeout=300)
+        assert r.returncode == 0, r.stderr
+        sid = re.search(r"^session (s_\w+): \d+ nodes$", r.stdout, re.M).group(1)
+        printed = re.findall(r"^loop closure at t = [\d.]+ s: node (\d+) -> node (\d+)$", r.stdout, re.M)
+        with srv.client() as c:
+            accepted = c.loop_closures(sid, status="accepted")
+            assert c.stats(sid)["rejected"] == {}
+    assert len(printed) >= 1
+    assert [tuple(map(int, p)) for p in printed] == [tuple(lc["nodes"]) for lc in accepted]
+
+
+def test_client_exports_its_public_types():
+    import hippomap.client as client
+    from hippomap.inputs import Odometry
+
+    assert client.Odometry is Odometry
+    assert {"Client", "Stream", "AsyncStream", "Odometry", "ServerError"} <= set(client.__all__)
+    assert all(hasattr(client, name) for name in client.__all__)
