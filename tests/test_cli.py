@@ -270,3 +270,22 @@ def test_client_exports_its_public_types():
     assert client.Odometry is Odometry
     assert {"Client", "Stream", "AsyncStream", "Odometry", "ServerError"} <= set(client.__all__)
     assert all(hasattr(client, name) for name in client.__all__)
+
+
+def test_simulate_noise_options_per_world():
+    """Realistic noise for the drawn worlds, none added to Bicocca's real odometry; --no-noise
+    zeroes the defaults and explicit options apply on top of either."""
+    from hippomap.errors import InputError
+    from hippomap.sim import OdometryNoise
+
+    def noise(*argv: str) -> OdometryNoise:
+        p = argparse.ArgumentParser()
+        sim_cli._arguments(p)
+        return sim_cli.odometry_noise(p.parse_args([*argv, "--out", "o"]))
+
+    assert noise("loop") == noise("corridor") == OdometryNoise.realistic() == OdometryNoise(0.02, 0.01, 0.01, 0.0)
+    assert noise("bicocca") == noise("loop", "--no-noise") == OdometryNoise()
+    assert noise("bicocca", "--omega-bias", "0.01") == OdometryNoise(omega_bias=0.01)
+    assert noise("loop", "--sigma-v", "0") == OdometryNoise(0.0, 0.01, 0.01, 0.0)
+    with pytest.raises(InputError, match="sigma_v"):
+        noise("loop", "--sigma-v", "-1")

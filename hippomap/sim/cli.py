@@ -3,9 +3,9 @@ dataset folder format that ``hippomap run`` and ``hippomap replay`` read. Also r
 ``python -m hippomap.sim``.
 
 Odometry is noisy by default, as a real robot's: in the loop and corridor worlds the true
-motion gets ``--sigma-v 0.02 --sigma-omega 0.01 --omega-bias 0.01`` (see
-:meth:`~hippomap.sim.params.OdometryNoise.realistic`), so the odometry drifts and the map has loops
-to close. The bicocca world's odometry is the real robot's recorded wheel odometry, so no
+motion gets ``--sigma-v 0.02 --sigma-omega 0.01 --omega-bias 0.01`` (in Python
+``sim.OdometryNoise.realistic()``), so the odometry drifts and the map has loops to
+close. The bicocca world's odometry is the real robot's recorded wheel odometry, so no
 noise is added there by default. ``--no-noise`` writes exact odometry (the ground-truth
 motion); any noise option given explicitly applies on top of either.
 """
@@ -18,10 +18,6 @@ from dataclasses import fields, replace
 
 from ..cli import add_progress_argument, clean_help, progress_enabled
 from .params import Camera, OdometryNoise, SimConfig, TextureParams
-
-#: the noise options: command-line flag -> OdometryNoise field
-NOISE_FLAGS = {"sigma_v": "--sigma-v", "sigma_omega": "--sigma-omega", "omega_bias": "--omega-bias",
-               "scale_error": "--scale-error"}
 
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
