@@ -379,7 +379,7 @@ def bicocca_case(case: dict[str, Any]) -> list[dict[str, Any]]:
     work = peers.make_workdir(Path(case["cache"]) / "work", "bicocca")
     try:
         cmd = [sys.executable, "-m", "hippomap", "run-odometry", str(data), "--loops", fname, "--out", str(work),
-               "--quiet"]
+               "--no-progress"]
         if case["config"]:
             cmd += ["--config", case["config"]]
         t0 = time.perf_counter()

@@ -49,7 +49,7 @@ def main(argv=None):
     loop = sim.loop_world(seed=0)
     t_world = time.perf_counter() - t0
     t0 = time.perf_counter()
-    run = sim.simulate(loop, rate_hz=5.0)
+    run = sim.simulate(loop, rate_hz=5.0, odometry_noise=sim.OdometryNoise())
     t_sim = time.perf_counter() - t0
     poses = run.groundtruth[np.linspace(0, len(run) - 1, args.frames).astype(int)]
     print(f"loop world: {len(loop.segments)} wall segments, texture {loop.atlas.shape[1]} texels long; "
@@ -58,7 +58,7 @@ def main(argv=None):
         line(f"loop {name}", time_frames(loop, poses, cam))
 
     with tempfile.TemporaryDirectory() as tmp:
-        short = sim.simulate(loop, rate_hz=5.0, frame_every=len(run) // 100 or 1)
+        short = sim.simulate(loop, rate_hz=5.0, frame_every=len(run) // 100 or 1, odometry_noise=sim.OdometryNoise())
         t0 = time.perf_counter()
         short.write(tmp)
         dt = time.perf_counter() - t0
@@ -75,7 +75,7 @@ def main(argv=None):
     print(f"Bicocca world: {len(bic.segments)} wall segments around {len(traj)} ground-truth poses, "
           f"texture {bic.atlas.shape[1]} texels long, grid {bic.grid.shape}; build {t_world * 1000:.0f} ms")
     t0 = time.perf_counter()
-    brun = sim.simulate(bic)
+    brun = sim.simulate(bic, odometry_noise=sim.OdometryNoise())
     print(f"  simulate(): {len(brun)} steps, {brun.n_frames} frames (lazy) in {(time.perf_counter() - t0) * 1000:.0f} ms")
     poses = traj.poses[np.linspace(0, len(traj) - 1, args.frames).astype(int)]
     brute = World(bic.name, bic.segments, bic.u0, bic.atlas, bic.texture)

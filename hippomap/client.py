@@ -1,6 +1,6 @@
 """Python client of the hippomap server (``hippomap serve``): HTTP via httpx, streaming via websockets.
 
-    from hippomap.client import Client
+    from hippomap.client import Client, Odometry
     with Client("http://127.0.0.1:8000", token="hm_...") as c:     # or $HIPPOMAP_TOKEN
         s = c.create_session(name="lab", config={"mapper": {"keyframe_interval": 10}})
         c.send_odometry(s["id"], [Odometry(0.1, v=0.2, omega=0.0)])
@@ -33,6 +33,9 @@ import numpy as np
 
 from .errors import HippomapError
 from .inputs import Odometry
+
+#: the client's public names: ``from hippomap.client import Client, Odometry`` is all a robot needs
+__all__ = ["AsyncStream", "Client", "Odometry", "ServerError", "Stream", "default_token", "encode_image"]
 
 FRAME_MAGIC = b"HMF1"  # mirrors server.protocol (the client must not import the server)
 

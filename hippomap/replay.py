@@ -8,7 +8,7 @@ twice as fast); by default inputs go as fast as the server acknowledges them, wi
 has (odometry and frames up to the session's last timestamp of each), so an interrupted
 replay can be restarted.
 The token comes from ``--token``, ``$HIPPOMAP_TOKEN``, or a local server's
-``hippomap-data/admin.token``.
+``hippomap-data/admin.token``. The session's id and its live viewer URL are printed first.
 A data set with ground truth sends it along: each odometry reading within the ground truth's
 time span carries the true pose at its time (``gt``, linearly interpolated) for the viewer;
 the mapper never uses it.
@@ -24,6 +24,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from .cli import add_progress_argument, progress_enabled
 from .errors import InputError
 from .inputs import Odometry
 
@@ -133,6 +134,13 @@ async def replay(dataset: Any, url: str, token: str | None, session_id: str, spe
     return {**counts, "seconds": elapsed, "inputs_per_s": (counts["odometry"] + counts["frames"]) / max(elapsed, 1e-9)}
 
 
+def viewer_url(session: dict[str, Any], server: str) -> str:
+    """The live viewer of a session, as the server links it (``links.viewer`` of
+    ``GET /sessions/{id}``), else built the same way from the server URL."""
+    url = (session.get("links") or {}).get("viewer")
+    return url or f"{server.rstrip('/')}/viewer/{session['id']}/"
+
+
 def _cmd(args: argparse.Namespace) -> int:
     from .client import Client
     from .run import open_dataset
@@ -150,13 +158,15 @@ def _cmd(args: argparse.Namespace) -> int:
             raise InputError(f"cannot read config {args.config}: {exc}") from exc
     with Client(args.server, args.token) as client:
         if args.session:
-            sid = args.session
-            client.session(sid)
+            info = client.session(args.session)
         else:
-            sid = client.create_session(name=args.name or Path(args.dataset).name, config=config)["id"]
+            info = client.create_session(name=args.name or Path(args.dataset).name, config=config)
+        sid = info["id"]
         print(f"session {sid}", flush=True)
+        print(f"viewer: {viewer_url(info, args.server)}  (in a browser add ?token= with a token that may read "
+              "the session)", flush=True)
         result = asyncio.run(replay(dataset, args.server, client.token, sid, speed=args.speed, window=args.window,
-                                    resume=args.resume, progress=not args.quiet))
+                                    resume=args.resume, progress=progress_enabled(args)))
         print(f"sent {result['odometry']} odometry readings and {result['frames']} frames in "
               f"{result['seconds']:.1f} s ({result['inputs_per_s']:.0f} inputs/s), all acknowledged"
               + (f"; skipped {result['skipped']} already stored" if result["skipped"] else ""), flush=True)
@@ -185,6 +195,6 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--odom-topic", help="ROS bag: odometry topic")
     p.add_argument("--no-wait", action="store_true", help="do not wait for the mapper to finish")
     p.add_argument("--wait-timeout", type=float, default=3600.0, help="seconds to wait for the mapper")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_progress_argument(p)
     p.set_defaults(func=_cmd)
 

@@ -18,6 +18,7 @@ from typing import Any
 
 import numpy as np
 
+from .cli import add_progress_argument, progress_enabled
 from .config import HippomapConfig
 from .datasets import SensorDataset, read_folder_dataset, read_tum_rgbd
 from .errors import InputError
@@ -155,7 +156,7 @@ def write_run(m: Mapper, dataset: SensorDataset, out_dir: str | Path, timing: di
 
 def _cmd(args: argparse.Namespace) -> int:
     dataset = open_dataset(args.data_dir, args.image_topic, args.odom_topic, args.groundtruth_topic)
-    m, timing = run_dataset(dataset, HippomapConfig.from_file(args.config), progress=not args.quiet)
+    m, timing = run_dataset(dataset, HippomapConfig.from_file(args.config), progress=progress_enabled(args))
     metrics = write_run(m, dataset, args.out, timing)
     s = metrics["stats"]
     lc = metrics["loop_closures"]
@@ -177,5 +178,5 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--groundtruth-topic", help="ROS bag (optional): ground truth, geometry_msgs/PoseStamped or "
                    "nav_msgs/Odometry")
     p.add_argument("--config", help="JSON file of config overrides")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_progress_argument(p)
     p.set_defaults(func=_cmd)

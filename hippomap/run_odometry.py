@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from .cognitive_map import CognitiveMap, LoopHypothesis
+from .cli import add_progress_argument, progress_enabled
 from .config import HippomapConfig
 from .datasets import OdometryDataset, load_odometry_dataset
 from .errors import InputError
@@ -184,7 +185,7 @@ def write_outputs(run: OdometryRun, dataset: OdometryDataset, out_dir: str | Pat
 
 def _cmd(args: argparse.Namespace) -> int:
     dataset = load_odometry_dataset(args.data_dir, args.loops)
-    run = run_odometry(dataset, HippomapConfig.from_file(args.config), progress=not args.quiet)
+    run = run_odometry(dataset, HippomapConfig.from_file(args.config), progress=progress_enabled(args))
     metrics = write_outputs(run, dataset, args.out)
     lc = metrics["loop_closures"]
     line = (f"{metrics['nodes']} nodes, loop closures accepted {lc['accepted']} (used {lc['used']}, "
@@ -203,5 +204,5 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--loops", required=True, help="g2o file with odometry and loop proposals (e.g. B25b_1.000.g2o)")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--config", help="JSON file of config overrides, e.g. {\"map\": {\"alpha\": 0.5}}")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_progress_argument(p)
     p.set_defaults(func=_cmd)

@@ -45,6 +45,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from .cli import add_progress_argument, progress_enabled
 from .config import HippomapConfig, VisualConfig
 from .errors import HippomapError, InputError
 from .visual_memory import VisualMemory, draw_frame_features, draw_trace
@@ -480,7 +481,7 @@ def _run(args: argparse.Namespace) -> int:
             raise InputError(f"cannot read config {args.config}: {exc}") from exc
         overrides.update(data.get("visual", data) if isinstance(data, dict) else {})
     overrides.update(_parse_overrides(args.set))
-    m = evaluate_vpr(args.data_dir, args.out, overrides or None, n_examples=args.examples, progress=args.progress,
+    m = evaluate_vpr(args.data_dir, args.out, overrides or None, n_examples=args.examples, progress=progress_enabled(args),
                      seeds=args.seeds)
     o, b = m["ours"], m["baseline"]
     print(f"{m['dataset']}: {m['n_references']} references, {m['n_queries']} queries ({m['n_queries_with_match']} with a match)")
@@ -515,6 +516,6 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--examples", type=int, default=4,
                    help="matches drawn as saccade-trace images (default 4), plus one false match and one rejection")
     p.add_argument("--seeds", type=int, default=3, help="runs of ours with seeds seed, seed+1, ... (default 3)")
-    p.add_argument("--progress", action="store_true", help="print one line per query on stderr")
+    add_progress_argument(p)  # one line per query on stderr
     p.set_defaults(func=_run)
     return p

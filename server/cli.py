@@ -1,14 +1,19 @@
-"""``hippomap serve``: run the server on the embedded database.
+"""``hippomap serve``: run the mapping service (FastAPI sessions, ingest, queries, live viewer).
 
-    hippomap serve [--host H] [--port P] [--data-dir D] [--database FILE] [--demo]
+    hippomap serve [--host H] [--port P] [--data-dir D] [--database FILE|URL]
                    [--backend inprocess|process|ray] [--ray-address ADDR]
+                   [--demo [--demo-rate HZ] [--demo-laps N] [--demo-speed X]]
 
-On the first start an admin token is generated, printed and saved in ``D/admin.token``
-(later starts print where it is; ``export HIPPOMAP_TOKEN=$(cat D/admin.token)`` lets the
-client and ``hippomap replay`` find it). ``HIPPOMAP_ADMIN_TOKEN`` sets it explicitly.
-Sessions are created with ``POST /sessions``. ``--demo`` also starts a simulated robot
-streaming into a session and prints that session's viewer URL. ``--port 0`` picks a free port.
-Other limits come from ``HIPPOMAP_*`` environment variables (see ``server/settings.py``).
+Sessions are stored in the embedded SQLite database ``D/hippomap.sqlite3`` unless
+``--database`` names another file or a PostgreSQL URL. On the first start an admin token is
+generated, printed and saved in ``D/admin.token`` (later starts print where it is;
+``export HIPPOMAP_TOKEN=$(cat D/admin.token)`` lets the client and ``hippomap replay`` find
+it). ``HIPPOMAP_ADMIN_TOKEN`` sets it explicitly. Sessions are created with
+``POST /sessions``. ``--demo`` also starts a simulated robot streaming into the admin's
+session named "demo robot" (created on the first start, reused after a restart) and prints
+that session's viewer URL; the robot stops after its laps and says so. ``--port 0`` picks a
+free port. Other limits come from ``HIPPOMAP_*`` environment variables (see
+``server/settings.py``).
 """
 
 from __future__ import annotations
@@ -51,6 +56,14 @@ async def _serve(args: argparse.Namespace) -> int:
     from .logs import configure as configure_logs
 
     configure_logs(args.log_format, args.log_level)
+    if args.demo:
+        bad = [f"{flag} must be {what}, got {value}" for flag, value, ok, what in (
+            ("--demo-rate", args.demo_rate, args.demo_rate > 0, "> 0"),
+            ("--demo-laps", args.demo_laps, args.demo_laps >= 1, ">= 1"),
+            ("--demo-speed", args.demo_speed, args.demo_speed > 0, "> 0")) if not ok]
+        if bad:
+            print(f"hippomap serve: {'; '.join(bad)}", file=sys.stderr, flush=True)
+            return 2
     settings = ServerSettings.from_env(data_dir=args.data_dir, database=args.database, backend=args.backend,
                                        ray_address=args.ray_address)
     if settings.backend == "ray":  # fail now, with the fix, rather than in the app's start-up
@@ -85,8 +98,8 @@ async def _serve(args: argparse.Namespace) -> int:
     if args.demo:
         from .demo import run_demo
 
-        demo = asyncio.create_task(run_demo(url, app.state.admin_token, rate_hz=args.demo_rate,
-                                            stopping=lambda: server.should_exit))
+        demo = asyncio.create_task(run_demo(url, app.state.admin_token, rate_hz=args.demo_rate, laps=args.demo_laps,
+                                            speed=args.demo_speed, stopping=lambda: server.should_exit))
     await task
     if demo is not None:
         demo.cancel()
@@ -118,8 +131,13 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--ray-address", default=None,
                    help="Ray cluster to join with --backend ray (default: start a local Ray on loopback; "
                         "$HIPPOMAP_RAY_ADDRESS)")
-    p.add_argument("--demo", action="store_true", help="also stream a simulated robot into a session")
-    p.add_argument("--demo-rate", type=float, default=10.0, help="demo camera frames per second")
+    p.add_argument("--demo", action="store_true",
+                   help="also stream a simulated robot into the session 'demo robot' (reused after a restart)")
+    p.add_argument("--demo-rate", type=float, default=10.0,
+                   help="demo odometry readings per second of simulated time, each with a camera frame (default 10)")
+    p.add_argument("--demo-laps", type=int, default=10, help="laps the demo robot drives before it stops (default 10)")
+    p.add_argument("--demo-speed", type=float, default=1.0,
+                   help="demo real-time factor (default 1: real time; 2 = twice as fast)")
     p.add_argument("--log-level", default="warning", choices=["critical", "error", "warning", "info", "debug"])
     p.add_argument("--access-log", action="store_true", help="log every request")
     p.add_argument("--log-format", default=None, choices=["auto", "json", "text"],
@@ -129,8 +147,11 @@ def add_parser(sub: Any) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from hippomap.cli import clean_help
+
     parser = argparse.ArgumentParser(prog="python -m server")
     sub = parser.add_subparsers(dest="command", required=True)
     add_parser(sub)
+    clean_help(parser)
     args = parser.parse_args(["serve", *(argv if argv is not None else sys.argv[1:])])
     return int(args.func(args) or 0)

@@ -2,8 +2,15 @@
 
 The robot is a client like any other (the Python client over the websocket), driving the
 simulator's corridor loop (:func:`hippomap.sim.loop_world`) in real time: odometry and a
-rendered camera frame at every step. It creates its session with the admin token, mints a
-viewer token for it and prints the session's viewer URL.
+rendered camera frame at every step. It streams into the admin's session named
+``demo robot``, created on the first start and reused on later ones (the same data folder
+keeps it): a restart picks the run up after the last input the session holds, and a session
+that already holds the whole run is left as it is. Each start mints a viewer token for the
+session (replacing the previous start's) and prints the session's viewer URL.
+
+After its laps the robot stops and says so: a line on stdout and in the log (level info),
+naming the session, whose stats then show the whole run stored (``inputs_stored``, and
+``last_odometry_t`` at the run's end).
 """
 
 from __future__ import annotations
@@ -11,52 +18,119 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
-from typing import Callable
+from dataclasses import dataclass
+from typing import Any, Callable
 
 log = logging.getLogger("hippomap.server")
 
+#: the name of the demo's session, found again by name among the admin's sessions on a restart
+DEMO_NAME = "demo robot"
+#: the label of the viewer token minted for it
+VIEWER_LABEL = "demo viewer"
+
+
+@dataclass(frozen=True)
+class DemoSession:
+    """The demo's session: its id, the viewer token minted for it at this start, whether it
+    was found (not created), and the last odometry / frame times it already holds."""
+
+    id: str
+    viewer_token: str
+    reused: bool
+    last_odometry_t: float | None
+    last_frame_t: float | None
+
+
+def _laps(n: int) -> str:
+    return f"{n} lap" if n == 1 else f"{n} laps"
+
+
+def demo_run(rate_hz: float, laps: int, seed: int) -> Any:
+    """The demo robot's simulated run (deterministic for its arguments): an 8 m x 5 m loop
+    at 0.6 m/s, so the first revisit (and loop closure) comes within a minute."""
+    from hippomap import sim
+
+    world = sim.loop_world(seed=seed, laps=laps, size=(8.0, 5.0), speed_mps=0.6)
+    return sim.simulate(world, rate_hz=rate_hz, frame_every=1, seed=seed,
+                        odometry_noise=sim.OdometryNoise(sigma_omega=0.02, omega_bias=0.005))
+
+
+def open_demo_session(client: Any) -> DemoSession:
+    """The admin's ``demo robot`` session (the oldest, if several) or a new one, with a fresh
+    viewer token for it; the viewer tokens earlier starts minted for it are revoked."""
+    found = sorted((s for s in client.sessions() if s["name"] == DEMO_NAME), key=lambda s: s["created"])
+    if found:
+        sid = found[0]["id"]
+        stats = client.stats(sid)
+        last_odo, last_frame = stats["last_odometry_t"], stats["last_frame_t"]
+        for tok in client.tokens():
+            if tok.get("session") == sid and tok.get("label") == VIEWER_LABEL:
+                client.delete_token(tok["id"])
+    else:
+        sid = client.create_session(name=DEMO_NAME)["id"]  # the model's default config
+        last_odo = last_frame = None
+    viewer = client.create_token("viewer", session=sid, label=VIEWER_LABEL)
+    return DemoSession(sid, viewer["token"], bool(found), last_odo, last_frame)
+
 
 async def run_demo(url: str, token: str, rate_hz: float = 10.0, laps: int = 10, seed: int = 1,
-                   stopping: Callable[[], bool] = lambda: False) -> str:
-    """Stream one simulated run in real time; returns the session id. ``stopping()`` tells
-    whether the server is shutting down (then a closed stream is expected, not an error)."""
-    from hippomap import sim
+                   stopping: Callable[[], bool] = lambda: False, speed: float = 1.0) -> str:
+    """Stream the demo run into the demo session at ``speed`` times real time (resuming after
+    what the session holds); returns the session id. ``stopping()`` tells whether the server
+    is shutting down (then a closed stream is expected, not an error)."""
     from hippomap.client import AsyncStream, Client, encode_image
     from hippomap.inputs import Odometry
 
-    # an 8 m x 5 m loop at 0.6 m/s: the first revisit (and loop closure) comes within a minute
-    world = sim.loop_world(seed=seed, laps=laps, size=(8.0, 5.0), speed_mps=0.6)
-    run = await asyncio.to_thread(sim.simulate, world, rate_hz=rate_hz, frame_every=1, seed=seed,
-                                  odometry_noise=sim.OdometryNoise(sigma_omega=0.02, omega_bias=0.005))
+    if not speed > 0:
+        raise ValueError(f"demo speed must be > 0, got {speed}")
+    run = await asyncio.to_thread(demo_run, rate_hz, laps, seed)
 
-    def setup() -> tuple[str, str]:
+    def setup() -> DemoSession:
         with Client(url, token) as c:
-            s = c.create_session(name="demo robot")  # the model's default config
-            viewer = c.create_token("viewer", session=s["id"], label="demo viewer")
-            return s["id"], viewer["token"]
+            return open_demo_session(c)
 
-    sid, viewer = await asyncio.to_thread(setup)
-    print(f"demo robot streaming into session {sid}", flush=True)
-    print(f"viewer: {url}/viewer/{sid}/?token={viewer}", flush=True)
+    demo = await asyncio.to_thread(setup)
+    sid = demo.id
+    print(f"demo robot {'back in its' if demo.reused else 'streaming into'} session {sid}", flush=True)
+    print(f"viewer: {url}/viewer/{sid}/?token={demo.viewer_token}", flush=True)
+    end_t = float(run.times[-1])
+    if demo.last_odometry_t is not None and demo.last_odometry_t >= end_t:
+        message = (f"demo robot: session {sid} already holds its whole run ({_laps(laps)}, {len(run.times)} steps); "
+                   "it is not driven again")
+        print(message, flush=True)
+        log.info(message)
+        return sid
     frame_at = {int(k): i for i, k in enumerate(run.frame_steps)}
+    skip_odo = -float("inf") if demo.last_odometry_t is None else demo.last_odometry_t
+    skip_frame = -float("inf") if demo.last_frame_t is None else demo.last_frame_t
     try:
         async with AsyncStream(url, token, sid, max_in_flight=256) as stream:
             start = time.monotonic()
-            t0 = float(run.times[0])
+            first = None
             for k in range(len(run.times)):
                 t = float(run.times[k])
-                delay = start + (t - t0) - time.monotonic()
+                i = frame_at.get(k)
+                if t <= skip_odo and (i is None or t <= skip_frame):
+                    continue  # the session has this step already (a restart)
+                first = t if first is None else first
+                delay = start + (t - first) / speed - time.monotonic()
                 if delay > 0:
                     await asyncio.sleep(delay)
-                _, v, omega = (float(x) for x in run.odometry[k])
-                gt = tuple(float(x) for x in run.groundtruth[k])  # drawn by the viewer, unused by the mapper
-                await stream.send_odometry(Odometry(t, v=v, omega=omega, gt=gt))
-                i = frame_at.get(k)
-                if i is not None:
+                if stopping():  # the server is shutting down: stop driving, a restart resumes here
+                    log.info("demo robot stopped at t = %.1f s: the server is shutting down", t)
+                    return sid
+                if t > skip_odo:
+                    _, v, omega = (float(x) for x in run.odometry[k])
+                    gt = tuple(float(x) for x in run.groundtruth[k])  # drawn by the viewer, unused by the mapper
+                    await stream.send_odometry(Odometry(t, v=v, omega=omega, gt=gt))
+                if i is not None and t > skip_frame:
                     img = await asyncio.to_thread(lambda: encode_image(run.frame(i)))
                     await stream.send_frame(t, img)  # the frame of this step, at the same time
             await stream.drain()
-        print(f"demo robot finished its run ({len(run.times)} steps) in session {sid}", flush=True)
+        message = (f"demo robot finished its {_laps(laps)} ({len(run.times)} steps, last input at t = {end_t:.1f} s) "
+                   f"in session {sid}; it stops here (the map stays in the session)")
+        print(message, flush=True)
+        log.info(message)
     except asyncio.CancelledError:
         raise
     except Exception as exc:  # the demo must never take the server down

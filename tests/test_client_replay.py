@@ -11,6 +11,7 @@ import io
 import json
 import re
 
+import httpx
 import pytest
 
 from hippomap.client import ServerError
@@ -56,16 +57,30 @@ def run_replay(*argv):
     return rc, out.getvalue()
 
 
+def check_viewer_url(server, out, sid):
+    """replay printed the viewer URL of the session it streamed into, as the server links it,
+    and that page is the session's live viewer for a token that may read the session."""
+    url = re.search(r"^viewer: (\S+)", out, re.M).group(1)
+    with server.client() as c:
+        assert url == c.session(sid)["links"]["viewer"] == f"{server.url}/viewer/{sid}/"
+        viewer = c.create_token("viewer", session=sid)["token"]
+    page = httpx.get(url, params={"token": viewer}, timeout=60)
+    assert page.status_code == 200 and "text/html" in page.headers["content-type"]
+    assert httpx.get(url, params={"token": "hm_not_a_token"}, timeout=60).status_code in (401, 404)
+
+
 def test_replay_folder_dataset_matches_offline(server, tmp_path):
     folder = write_folder(tmp_path / "run", ITEMS)
     assert [e.t for e in read_folder_dataset(folder).events()] == [
         it[1].t if it[0] == "odometry" else it[1] for it in ITEMS]
     cfg = tmp_path / "cfg.json"
     cfg.write_text(json.dumps(CONFIG))
-    rc, out = run_replay(str(folder), "--server", server.url, "--token", server.token, "--config", str(cfg), "--quiet")
+    rc, out = run_replay(str(folder), "--server", server.url, "--token", server.token, "--config", str(cfg),
+                         "--no-progress")
     assert rc == 0
     sid = re.search(r"session (\S+)", out).group(1)
     assert "all acknowledged" in out and "nodes" in out
+    check_viewer_url(server, out, sid)
     with server.client() as c:
         stored = c.all_inputs(sid)
         assert len(stored) == len(ITEMS)
@@ -79,15 +94,16 @@ def test_interrupted_replay_resumes_without_duplicates(server, tmp_path):
     full = write_folder(tmp_path / "full", ITEMS)
     with server.client() as c:
         sid = c.create_session("resume", CONFIG)["id"]
-    rc, _ = run_replay(str(half), "--server", server.url, "--token", server.token, "--session", sid, "--quiet",
+    rc, _ = run_replay(str(half), "--server", server.url, "--token", server.token, "--session", sid, "--no-progress",
                        "--no-wait", "--speed", "50")
     assert rc == 0
     with pytest.raises(ServerError) as e:  # replaying from the start again is refused (timestamps)
-        run_replay(str(full), "--server", server.url, "--token", server.token, "--session", sid, "--quiet")
+        run_replay(str(full), "--server", server.url, "--token", server.token, "--session", sid, "--no-progress")
     assert e.value.status == 409
-    rc, out = run_replay(str(full), "--server", server.url, "--token", server.token, "--session", sid, "--quiet",
+    rc, out = run_replay(str(full), "--server", server.url, "--token", server.token, "--session", sid, "--no-progress",
                          "--resume", "--window", "8")
     assert rc == 0 and "skipped 70 already stored" in out
+    check_viewer_url(server, out, sid)  # an existing session: its own viewer
     with server.client() as c:
         stored = c.all_inputs(sid)
         assert [r["t"] for r in stored] == [it[1].t if it[0] == "odometry" else it[1] for it in ITEMS]

@@ -101,7 +101,7 @@ def test_run_command_on_a_simulated_folder(tmp_path, capsys):
     data = tmp_path / "data"
     run.write(data)
     out = tmp_path / "out"
-    assert main(["run", str(data), "--out", str(out), "--quiet"]) == 0  # the default config
+    assert main(["run", str(data), "--out", str(out), "--no-progress"]) == 0  # the default config
     assert "ATE rmse odometry" in capsys.readouterr().out
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["stats"]["odometry_steps"] == len(run)
@@ -111,7 +111,7 @@ def test_run_command_on_a_simulated_folder(tmp_path, capsys):
     assert metrics["map"]["ate"]["rmse"] < metrics["odometry"]["ate"]["rmse"]
     for name in ("map.tum", "odometry.tum", "map.g2o", "map.json", "loop_closures.json", "map.png"):
         assert (out / name).stat().st_size > 0
-    assert main(["run", str(tmp_path / "nowhere"), "--out", str(out), "--quiet"]) == 2
+    assert main(["run", str(tmp_path / "nowhere"), "--out", str(out), "--no-progress"]) == 2
     assert "does not exist" in capsys.readouterr().err
 
 

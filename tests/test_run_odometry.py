@@ -90,7 +90,7 @@ def test_map_beats_odometry_and_rejects_false_loops(dataset_dir):
 def test_cli_writes_exports(dataset_dir, tmp_path, capsys):
     folder, _ = dataset_dir
     out = tmp_path / "out"
-    assert main(["run-odometry", str(folder), "--loops", "synthetic.g2o", "--out", str(out), "--quiet"]) == 0
+    assert main(["run-odometry", str(folder), "--loops", "synthetic.g2o", "--out", str(out), "--no-progress"]) == 0
     assert "ATE rmse odometry" in capsys.readouterr().out
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["map"]["ate"]["rmse"] < metrics["odometry"]["ate"]["rmse"]
@@ -109,6 +109,6 @@ def test_cli_writes_exports(dataset_dir, tmp_path, capsys):
 
 def test_cli_reports_bad_input(tmp_path, capsys):
     (tmp_path / "bad.g2o").write_text("VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 0 0 nan\n")
-    assert main(["run-odometry", str(tmp_path), "--loops", "bad.g2o", "--out", str(tmp_path / "o"), "--quiet"]) == 2
+    assert main(["run-odometry", str(tmp_path), "--loops", "bad.g2o", "--out", str(tmp_path / "o"), "--no-progress"]) == 2
     err = capsys.readouterr().err
     assert "bad.g2o:2" in err and "non-finite value nan" in err

@@ -25,7 +25,7 @@ def loop():
 
 @pytest.fixture(scope="module")
 def loop_run(loop):
-    return sim.simulate(loop, rate_hz=5.0)
+    return sim.simulate(loop, rate_hz=5.0, odometry_noise=sim.OdometryNoise())
 
 
 def ncc(a, b, size=(64, 48)):
@@ -145,7 +145,7 @@ def test_photo_textures_from_a_folder(tmp_path):
         im = (rng.random((60, 80)) * 255).astype(np.uint8)
         cv2.imwrite(str(tmp_path / f"p{k}.png"), cv2.GaussianBlur(im, (5, 5), 0))
     world = sim.loop_world(seed=0, texture=sim.TextureParams(source=str(tmp_path)))
-    run = sim.simulate(world, rate_hz=2.0)
+    run = sim.simulate(world, rate_hz=2.0, odometry_noise=sim.OdometryNoise())
     img = run.frame(5)
     assert img.shape == (240, 320) and img.std() > 10
     with pytest.raises(InputError, match="does not exist"):
@@ -184,14 +184,14 @@ def test_zero_noise_on_a_given_trajectory_is_exact():
     rng = np.random.default_rng(0)
     t = np.cumsum(rng.uniform(0.1, 0.3, 200))
     poses = integrate(np.column_stack([rng.uniform(0, 0.1, 199), rng.normal(0, 0.01, 199), rng.normal(0, 0.1, 199)]))
-    run = sim.simulate(sim.loop_world(), sim.Trajectory(t, poses))
+    run = sim.simulate(sim.loop_world(), sim.Trajectory(t, poses), odometry_noise=sim.OdometryNoise())
     np.testing.assert_allclose(integrate(run.increments, poses[0]), poses, atol=1e-9)
     np.testing.assert_array_equal(run.times, t)
 
 
 def test_omega_bias_shows_up_as_heading_drift(loop):
     bias = 0.01
-    clean = sim.simulate(loop, rate_hz=5.0)
+    clean = sim.simulate(loop, rate_hz=5.0, odometry_noise=sim.OdometryNoise())
     run = sim.simulate(loop, rate_hz=5.0, odometry_noise=sim.OdometryNoise(omega_bias=bias))
     est = integrate(run.increments, run.groundtruth[0])
     drift = np.unwrap(est[:, 2]) - np.unwrap(clean.groundtruth[:, 2])
@@ -203,7 +203,7 @@ def test_omega_bias_shows_up_as_heading_drift(loop):
 
 def test_odometry_noise_statistics_match_config(loop):
     noise = sim.OdometryNoise(sigma_v=0.02, sigma_omega=0.05, omega_bias=0.01, scale_error=0.1)
-    clean = sim.simulate(loop, rate_hz=10.0)
+    clean = sim.simulate(loop, rate_hz=10.0, odometry_noise=sim.OdometryNoise())
     run = sim.simulate(loop, rate_hz=10.0, odometry_noise=noise, seed=4)
     v0, w0 = clean.odometry[1:, 1], clean.odometry[1:, 2]
     v, w = run.odometry[1:, 1], run.odometry[1:, 2]
@@ -324,7 +324,7 @@ def test_walls_around_a_self_crossing_path():
 def test_path_world_renders_along_the_path():
     path = figure_eight(300)
     world = sim.path_world(path[:, :2], seed=2, route=sim.Trajectory(np.arange(len(path)) * 0.2, path))
-    run = sim.simulate(world, frame_every=50)
+    run = sim.simulate(world, frame_every=50, odometry_noise=sim.OdometryNoise())
     assert run.n_frames == 6
     for _, img in run.frames():
         assert img.std() > 15
@@ -353,7 +353,8 @@ def test_bicocca_trajectory_matches_ground_truth_by_timestamp(tmp_path):
     np.testing.assert_allclose(traj.poses[:, 0], 0.5 * (traj.times - 1000), atol=1e-6)
     np.testing.assert_allclose(traj.poses[:, 2], wrap_angle(0.1 * (traj.times - 1000)), atol=1e-6)
     np.testing.assert_array_equal(traj.odometry, inc[3:])
-    run = sim.simulate(World.from_polylines(sim.walls_around_path(traj.poses[:, :2])), traj)
+    run = sim.simulate(World.from_polylines(sim.walls_around_path(traj.poses[:, :2])), traj,
+                       odometry_noise=sim.OdometryNoise())
     np.testing.assert_allclose(run.increments, inc[3:])  # real odometry passed through
 
 

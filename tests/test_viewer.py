@@ -255,7 +255,7 @@ def test_recognition_dict_round_trip_with_the_real_memory():
 
 def _small_run():
     world = sim.loop_world(seed=3, size=(6.0, 4.0), corridor_width=2.0, laps=2, speed_mps=0.5)
-    return sim.simulate(world, rate_hz=5, frame_every=2, seed=3)
+    return sim.simulate(world, rate_hz=5, frame_every=2, seed=3, odometry_noise=sim.OdometryNoise())
 
 
 @pytest.fixture(scope="module")

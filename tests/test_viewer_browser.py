@@ -42,7 +42,7 @@ def streamed(tmp_path_factory):
     server = LiveServer(tmp_path_factory.mktemp("service"), env=env).start()
     try:
         world = sim.loop_world(seed=3, size=(6.0, 4.0), corridor_width=2.0, laps=2, speed_mps=0.5)
-        run = sim.simulate(world, rate_hz=5, frame_every=2, seed=3)
+        run = sim.simulate(world, rate_hz=5, frame_every=2, seed=3, odometry_noise=sim.OdometryNoise())
         with server.client() as c:
             s = c.create_session(name="e2e loop", config={"mapper": {"keyframe_interval": 3}})
             sid = s["id"]

@@ -1,43 +1,74 @@
 """``hippomap simulate``: write a simulated run (frames, odometry, ground truth) in the
-dataset folder format. Register by adding ``"hippomap.sim.cli"`` to
-``hippomap.cli.COMMAND_MODULES``; also runnable as ``python -m hippomap.sim``."""
+dataset folder format that ``hippomap run`` and ``hippomap replay`` read. Also runnable as
+``python -m hippomap.sim``.
+
+Odometry is noisy by default, as a real robot's: in the loop and corridor worlds the true
+motion gets ``--sigma-v 0.02 --sigma-omega 0.01 --omega-bias 0.01`` (in Python
+``sim.OdometryNoise.realistic()``), so the odometry drifts and the map has loops to
+close. The bicocca world's odometry is the real robot's recorded wheel odometry, so no
+noise is added there by default. ``--no-noise`` writes exact odometry (the ground-truth
+motion); any noise option given explicitly applies on top of either.
+"""
 
 from __future__ import annotations
 
 import argparse
 import sys
+from dataclasses import fields, replace
 
+from ..cli import add_progress_argument, clean_help, progress_enabled
 from .params import Camera, OdometryNoise, SimConfig, TextureParams
 
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
     p = subparsers.add_parser("simulate", help="render a simulated camera run into a dataset folder",
-                              description=__doc__)
+                              description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     _arguments(p)
     p.set_defaults(func=run_command)
     return p
 
 
 def _arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("world", choices=["loop", "corridor", "bicocca"], help="which world to drive in")
+    realistic = OdometryNoise.realistic()
+    p.add_argument("world", choices=["loop", "corridor", "bicocca"],
+                   help="loop: a 16 m x 10 m corridor loop; corridor: a straight corridor driven out and back; "
+                        "bicocca: walls along the real Bicocca run, driven as recorded")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--data", default="../shared/data/bicocca25b",
-                   help="Bicocca folder (bicocca world); default: the shared data beside the clone")
-    p.add_argument("--seed", type=int, default=0, help="world (textures, route jitter) and noise seed")
-    p.add_argument("--laps", type=int, default=3, help="loop laps / corridor passes")
-    p.add_argument("--rate", type=float, default=5.0, help="odometry rate in Hz (drive plans)")
-    p.add_argument("--frame-every", type=int, default=1, help="render a frame every N odometry steps")
-    p.add_argument("--width", type=int, default=320)
-    p.add_argument("--height", type=int, default=240)
-    p.add_argument("--hfov", type=float, default=60.0, help="horizontal field of view, degrees")
-    p.add_argument("--pixel-noise", type=float, default=0.0, help="sensor noise std, grey levels")
-    p.add_argument("--sigma-v", type=float, default=0.0, help="odometry speed noise std, m/s")
-    p.add_argument("--sigma-omega", type=float, default=0.0, help="odometry turn-rate noise std, rad/s")
-    p.add_argument("--omega-bias", type=float, default=0.0, help="constant turn-rate bias, rad/s")
-    p.add_argument("--scale-error", type=float, default=0.0, help="odometry distance scale error (fraction)")
-    p.add_argument("--texture", default="procedural", help="'procedural' or a folder of photos")
-    p.add_argument("--format", choices=["png", "jpg"], default="png")
-    p.add_argument("--progress", action="store_true", help="show a progress bar")
+                   help="Bicocca data folder for the bicocca world (default ../shared/data/bicocca25b, "
+                        "relative to the current directory)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the world (textures, route jitter) and of the noise")
+    p.add_argument("--laps", type=int, default=3,
+                   help="loop: laps, corridor: passes (default 3; the bicocca world drives the recorded run once)")
+    p.add_argument("--rate", type=float, default=5.0,
+                   help="odometry rate in Hz (default 5; the bicocca world keeps the recorded times)")
+    p.add_argument("--frame-every", type=int, default=1, help="render a frame every N odometry steps (default 1)")
+    p.add_argument("--width", type=int, default=320, help="frame width in pixels (default 320)")
+    p.add_argument("--height", type=int, default=240, help="frame height in pixels (default 240)")
+    p.add_argument("--hfov", type=float, default=60.0, help="horizontal field of view, degrees (default 60)")
+    p.add_argument("--pixel-noise", type=float, default=0.0, help="sensor noise std, grey levels (default 0)")
+    p.add_argument("--sigma-v", type=float, default=None,
+                   help=f"odometry speed noise std, m/s (default {realistic.sigma_v}; bicocca 0)")
+    p.add_argument("--sigma-omega", type=float, default=None,
+                   help=f"odometry turn-rate noise std, rad/s (default {realistic.sigma_omega}; bicocca 0)")
+    p.add_argument("--omega-bias", type=float, default=None,
+                   help=f"constant turn-rate bias, rad/s: the heading drifts by this much per second "
+                        f"(default {realistic.omega_bias}; bicocca 0)")
+    p.add_argument("--scale-error", type=float, default=None,
+                   help=f"odometry distance scale error, a fraction (default {realistic.scale_error})")
+    p.add_argument("--no-noise", action="store_true",
+                   help="exact odometry: every noise option 0 unless given explicitly")
+    p.add_argument("--texture", default="procedural", help="'procedural' or a folder of photos (jpg/png)")
+    p.add_argument("--format", choices=["png", "jpg"], default="png", help="frame file format (default png)")
+    add_progress_argument(p)
+
+
+def odometry_noise(args: argparse.Namespace) -> OdometryNoise:
+    """The noise of a command line: the world's default (realistic; none for bicocca, whose
+    odometry is already real) or none with ``--no-noise``, then the options given."""
+    base = OdometryNoise() if args.no_noise or args.world == "bicocca" else OdometryNoise.realistic()
+    given = {f.name: getattr(args, f.name) for f in fields(OdometryNoise) if getattr(args, f.name, None) is not None}
+    return replace(base, **given)
 
 
 def run_command(args) -> int:
@@ -53,20 +84,25 @@ def run_command(args) -> int:
         world = worlds.bicocca_world(args.data, seed=args.seed, texture=tex)
     config = SimConfig(
         camera=Camera(width=args.width, height=args.height, hfov_deg=args.hfov, pixel_noise=args.pixel_noise),
-        odometry_noise=OdometryNoise(args.sigma_v, args.sigma_omega, args.omega_bias, args.scale_error),
+        odometry_noise=odometry_noise(args),
         rate_hz=args.rate, frame_every=args.frame_every, seed=args.seed, image_format=args.format,
     )
     run = simulate(world, config=config)
-    out = run.write(args.out, progress=args.progress)
-    print(f"{out}: {len(run)} odometry steps, {run.n_frames} frames ({world.name} world)")
+    out = run.write(args.out, progress=progress_enabled(args))
+    n = config.odometry_noise
+    print(f"{out}: {len(run)} odometry steps, {run.n_frames} frames ({world.name} world); odometry noise: "
+          + ("none" if n.is_zero else f"sigma_v {n.sigma_v} m/s, sigma_omega {n.sigma_omega} rad/s, "
+             f"omega_bias {n.omega_bias} rad/s, scale_error {n.scale_error}"))
     return 0
 
 
 def main(argv=None) -> int:
     from ..errors import HippomapError
 
-    p = argparse.ArgumentParser(prog="python -m hippomap.sim", description=__doc__)
+    p = argparse.ArgumentParser(prog="python -m hippomap.sim", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
     _arguments(p)
+    clean_help(p)
     args = p.parse_args(argv)
     try:
         return run_command(args)
