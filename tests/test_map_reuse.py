@@ -206,3 +206,148 @@ def test_command_line_base_map(base, run2, tmp_path, capsys):
     assert main(["run", str(tmp_path / "run2"), "--out", str(tmp_path / "o2"), "--quiet",
                  "--base-map", str(tmp_path / "none")]) == 2
     assert "cannot read base map" in capsys.readouterr().err
+
+
+# --------------------------------------------------------------------------- the service
+def jpeg_items(run: sim.SimRun, n: int) -> tuple:
+    """The run's first ``n`` steps as the service takes them: odometry, and a JPEG frame at each step."""
+    import cv2
+
+    out: list[tuple] = []
+    for i in range(min(n, len(run))):
+        t, v, w = run.odometry[i]
+        out.append(("odometry", Odometry(float(t), v=float(v), omega=float(w))))
+        ok, buf = cv2.imencode(".jpg", run.frame(i), [cv2.IMWRITE_JPEG_QUALITY, 90])
+        out.append(("frame", float(t), buf.tobytes()))
+    return tuple(out)
+
+
+def tum_xy(text: str) -> tuple[np.ndarray, np.ndarray]:
+    rows = np.array([[float(v) for v in line.split()[:3]] for line in text.splitlines()
+                     if line.strip() and not line.startswith("#")])
+    return rows[:, 0], rows[:, 1:3]
+
+
+def placed_after(client, sid: str) -> float:
+    """When the run was placed: the first group of loop closures accepted together (they share the
+    map step of the decision) was decided at the proposal of its newest member."""
+    rows = client.loop_closures(sid, status="accepted")
+    first = min(r["decision"]["decided_step"] for r in rows)
+    return max(r["t"] for r in rows if r["decision"]["decided_step"] == first)
+
+
+def ate_from(client, sid: str, run: sim.SimRun, to_gt: np.ndarray, t0: float) -> float:
+    t, xy = tum_xy(client.trajectory_tum(sid))
+    keep = t >= t0
+    pts = compose(to_gt, np.column_stack([xy, np.zeros(len(xy))]))[keep, :2]
+    gt = run.groundtruth[np.searchsorted(run.times, t[keep] - 1e-9)][:, :2]
+    return float(np.sqrt(np.mean(np.sum((pts - gt) ** 2, axis=1))))
+
+
+@pytest.fixture(scope="module")
+def service(tmp_path_factory):
+    from server.testing import LiveServer
+
+    srv = LiveServer(tmp_path_factory.mktemp("reuse")).start()
+    yield srv
+    srv.stop()
+
+
+def test_service_reuse_end_to_end(service, run1, run2):
+    """Base session by streaming run 1; a session from it streams run 2 and lands in run 1's frame;
+    a localisation session leaves the map as it was; a plain session of run 2 merged into the
+    base's map does the same through replay; the base never changes; a restart restores it all."""
+    import asyncio
+
+    from server.testing import stream_items
+
+    client = service.client()
+    base = client.create_session("run 1")["id"]
+    asyncio.run(stream_items(service.url, service.token, base, jpeg_items(run1, RUN1_STEPS)))
+    client.wait_processed(base)
+    t1, xy1 = tum_xy(client.trajectory_tum(base))
+    to_gt = align(xy1, run1.groundtruth[np.searchsorted(run1.times, t1 - 1e-9), :2])
+    base_map = client.map(base)
+    n_base = len(base_map["nodes"])
+
+    items2 = jpeg_items(run2, RUN2_STEPS)
+    reused = client._json("POST", "/sessions", {"name": "run 2", "base_session": base})
+    assert reused["stats"]["mapper"]["lost"] is True and reused["stats"]["mapper"]["base_nodes"] == n_base
+    localise = client._json("POST", "/sessions", {"name": "run 2, localising", "base_session": base,
+                                                  "config": {"mapper": {"mode": "localise"}}})
+    assert localise["config"]["mapper"]["mode"] == "localise"
+    plain = client.create_session("run 2 alone")["id"]
+
+    async def streams():
+        await asyncio.gather(*(stream_items(service.url, service.token, sid, items2)
+                               for sid in (reused["id"], localise["id"], plain)))
+
+    asyncio.run(streams())
+    for sid in (reused["id"], localise["id"], plain):
+        client.wait_processed(sid)
+
+    # started from the saved map: placed by recognition, in run 1's frame, the map grown from the base's
+    st = client.stats(reused["id"])["mapper"]
+    assert st["lost"] is False and st["nodes"] > n_base
+    assert ate_from(client, reused["id"], run2, to_gt, placed_after(client, reused["id"])) < ATE_M
+    # localisation only: placed, and the map exactly the base's
+    st = client.stats(localise["id"])["mapper"]
+    assert st["lost"] is False and st["mode"] == "localise"
+    assert client.map(localise["id"]) == base_map
+    assert ate_from(client, localise["id"], run2, to_gt, placed_after(client, localise["id"])) < ATE_M
+
+    # merge: the plain run 2 session into the base's map, as a new session replaying run 2's inputs
+    merged = client._json("POST", f"/sessions/{base}/merge", {"from": plain, "name": "run 1 + run 2"})
+    client.wait_processed(merged["id"])
+    assert [(r["seq"], r["kind"], r["t"]) for r in client.all_inputs(merged["id"])] == \
+        [(r["seq"], r["kind"], r["t"]) for r in client.all_inputs(plain)]
+    st = client.stats(merged["id"])["mapper"]
+    assert st["lost"] is False and st["base_nodes"] == n_base and st["nodes"] > n_base
+    assert ate_from(client, merged["id"], run2, to_gt, placed_after(client, merged["id"])) < ATE_M
+    # the same run through the base or through a merge: the same session state
+    assert client.map(merged["id"]) == client.map(reused["id"])
+
+    # the base is copied, never changed; its snapshot is the saved map of `hippomap run --base-map`
+    assert client.map(base) == base_map
+    snap = client._req("GET", f"/sessions/{base}/snapshot").content
+    assert Mapper.from_bytes(snap).stats()["nodes"] == n_base
+
+    # a restart restores the based, localising and merged sessions (initial snapshot + replay)
+    before = {sid: client.trajectory_tum(sid) for sid in (reused["id"], localise["id"], merged["id"])}
+    service.stop()
+    service.start()
+    client = service.client()
+    for sid, tum in before.items():
+        client.wait_processed(sid)
+        assert client.trajectory_tum(sid) == tum
+
+
+def test_service_reuse_refuses_bad_requests(service):
+    from hippomap.client import ServerError
+
+    client = service.client()
+    sid = client.create_session("small")["id"]
+    client.send_odometry(sid, [Odometry(0.1, v=0.1, omega=0.0), Odometry(0.2, v=0.1, omega=0.0)])
+    client.wait_processed(sid)
+
+    def status(method: str, path: str, body: dict, c=client) -> tuple[int, str]:
+        with pytest.raises(ServerError) as exc:
+            c._json(method, path, body)
+        return exc.value.status, str(exc.value.detail)
+
+    assert status("POST", "/sessions", {"base_session": "s_0000000000000000"}) == \
+        (404, "base_session session 's_0000000000000000' not found")
+    code, detail = status("POST", "/sessions", {"base_session": sid, "config": {"visual": {"n_fixations": 12}}})
+    assert code == 422 and "visual config" in detail
+    code, detail = status("POST", "/sessions", {"base_session": sid, "config": {"mapper": {"mode": "explore"}}})
+    assert code == 422 and "mode" in detail
+    assert status("POST", f"/sessions/{sid}/merge", {"from": sid})[0] == 422
+    assert status("POST", f"/sessions/{sid}/merge", {"from": "s_0000000000000000"})[0] == 404
+    assert status("POST", f"/sessions/{sid}/merge", {})[0] == 422  # 'from' is required
+    # another writer cannot see the session, so cannot start from it or merge it; a viewer cannot create
+    writer = service.client(client.create_token("writer")["token"])
+    assert status("POST", "/sessions", {"base_session": sid}, writer)[0] == 404
+    other = writer.create_session("other")["id"]
+    assert status("POST", f"/sessions/{other}/merge", {"from": sid}, writer)[0] == 404
+    viewer = service.client(client.create_token("viewer")["token"])
+    assert status("POST", "/sessions", {"base_session": sid}, viewer)[0] == 403
