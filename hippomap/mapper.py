@@ -248,6 +248,9 @@ class Mapper:
         if not isinstance(data, (bytes, bytearray)):
             raise InputError(f"from_base needs a mapper snapshot (bytes) or a Mapper, got {type(base).__name__}")
         m = cls.from_bytes(bytes(data))
+        if m.cmap.lost and m.cmap.component_from >= 0:
+            raise InputError("the saved map holds a run that was never placed on it: its nodes float apart from "
+                             "the map, so it cannot be a base map")
         if overrides:
             config = config_over(m.config, overrides)
             if config.visual != m.config.visual:

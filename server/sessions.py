@@ -34,6 +34,7 @@ from typing import Any, Awaitable, Callable
 from pydantic import ValidationError
 
 from hippomap.config import HippomapConfig
+from hippomap.errors import InputError
 
 from . import model
 from .auth import can_read, can_write
@@ -521,7 +522,10 @@ class SessionManager:
                                    "(its key frames were learned with it)")
         if base.error:
             raise IngestError(409, f"base session {base.id} has failed: {base.error}")
-        data = await asyncio.to_thread(base.worker.query, functools.partial(based_snapshot, overrides=overrides))
+        try:
+            data = await asyncio.to_thread(base.worker.query, functools.partial(based_snapshot, overrides=overrides))
+        except InputError as exc:  # the model's refusal, e.g. a base whose own run was never placed on its map
+            raise IngestError(409, f"session {base.id} cannot be a base map: {exc}") from None
         if data is None:
             raise IngestError(503, f"base session {base.id} is being restored; retry shortly", retry_after=1)
         return merged, data
