@@ -140,21 +140,26 @@ class _ReuseMap(CognitiveMap):
     def propose_loop(self, h: LoopHypothesis) -> LoopDecision:
         """The map's own door; while lost, the decisions made here record no gate (there was none),
         and in localisation mode an accepted one says that it only relocalised the robot."""
+        if not (self.lost or self.localise_only):
+            return super().propose_loop(h)
         was_lost = self.lost
-        decision = super().propose_loop(h)
         book = self._loops
+        waiting = [c.id for c in book.pending]  # the decisions this call may accept besides its own
+        decision = super().propose_loop(h)
         if was_lost:
             book.decisions[decision.id] = _replace(book.decisions[decision.id], gate_distance=math.nan,
                                                    gate_limit=math.nan)
-        for d in book.decisions:
+        for i in waiting + [decision.id]:
+            d = book.decisions[i]
             if d.status != "accepted" or d.decided_step != self._step:
                 continue
-            reason = d.reason
-            if was_lost and reason.startswith("gate"):
-                reason = "no gate (the robot was not placed on the map yet); " + reason.removeprefix("gate and ")
+            checks, _, rest = d.reason.partition(";")
+            if was_lost and checks.startswith("gate"):
+                checks = "no gate (the robot was not placed on the map yet)" + checks.removeprefix("gate").replace(
+                    " and ", "; ", 1)
             if self.localise_only and d.link < 0:
-                reason = reason.split(";")[0] + "; localisation only: robot relocalised, no link"
-            book.decisions[d.id] = _replace(d, reason=reason)
+                rest = " localisation only: robot relocalised, no link"
+            book.decisions[i] = _replace(d, reason=checks + (";" + rest if rest else ""))
         if self.lost and decision.status == "accepted":  # placed (map mode: already, by the first link)
             self.configure(self.localise_only, False)
         return book.decisions[decision.id]
