@@ -87,7 +87,8 @@ def loop_report(m: Mapper, gt: tuple[np.ndarray, np.ndarray] | None) -> list[dic
     out = []
     times = m.cmap.times
     for d, row in zip(m.cmap.loop_decisions, m.cmap.loop_rows()):
-        if gt is not None:
+        # nodes of a saved map (--base-map) were made in another run, whose ground truth this is not
+        if gt is not None and min(d.hypothesis.node, d.from_node) >= m.base_nodes:
             h = d.hypothesis
             a = groundtruth_at(gt, float(h.time))
             b = groundtruth_at(gt, float(times[h.node]))

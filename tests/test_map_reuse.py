@@ -206,6 +206,10 @@ def test_command_line_base_map(base, run2, tmp_path, capsys):
     metrics = json.loads((tmp_path / "out" / "metrics.json").read_text())
     assert metrics["stats"]["nodes"] == m1.stats()["nodes"] and metrics["stats"]["lost"] is False
     assert metrics["stats"]["mode"] == "localise" and metrics["stats"]["loop_closures_accepted"] >= 3
+    # the saved map's nodes were made in run 1: run 2's ground truth says nothing about their places
+    rows = json.loads((tmp_path / "out" / "loop_closures.json").read_text())
+    assert rows and not any("groundtruth_distance_m" in r for r in rows)
+    assert metrics["loop_closures"].get("accepted_false", 0) == 0
     assert main(["run", str(tmp_path / "run2"), "--out", str(tmp_path / "o2"), "--quiet",
                  "--base-map", str(tmp_path / "none")]) == 2
     assert "cannot read base map" in capsys.readouterr().err
