@@ -321,6 +321,10 @@ class MapperConfig(_Frozen):
         None, gt=0, lt=180, description="horizontal field of view of the camera; when known, the image shift of a "
         "recognition's saccade correspondences turns into the robot's heading relative to the matched key frame "
         "[ours]")
+    mode: Literal["map", "localise"] = Field(
+        "map", description="'map': build the map (new nodes, key frames, loop links); 'localise': recognise places "
+        "and relocalise the robot through the same loop-closure path, but add no node, link or key frame and never "
+        "move the map (localisation in a saved map, as RTAB-Map's localisation mode) [ours, docs/MODEL.md]")
 
 
 class HippomapConfig(_Frozen):

@@ -14,6 +14,17 @@ Inputs must come in time order; every call returns a list of events (plain dicts
 ``type`` key, JSON-ready) and never mutates state when it raises ``InputError``.
 The whole state serialises to bytes (:meth:`Mapper.to_bytes`) and restores to a mapper
 whose future outputs are identical.
+
+**Map reuse.** :meth:`Mapper.from_base` starts a new run in a saved map (a snapshot of another
+mapper): the map, its key frames and their poses are kept, the run's own odometry starts from
+an unknown pose. Until the robot is placed (``lost``), every key frame of the saved map is a
+recognition candidate and the loop gate, which needs a pose on the map, is waived: the run's
+recognitions of saved key frames are ordinary loop hypotheses, accepted only when
+``loop_min_support`` of them agree (cycle consistency) and fitted together; the accepted group
+places the run on the map. With ``mapper.mode = 'localise'`` the map adds no node, link or
+key frame and never moves: accepted groups only relocalise the robot (:class:`_ReuseMap`).
+Merging one session into another is a new run from the first session's map fed with the
+second session's inputs (docs/MODEL.md).
 """
 
 from __future__ import annotations
@@ -26,10 +37,10 @@ from typing import Any
 import numpy as np
 
 from .cognitive_map import CognitiveMap
-from .loop_closure import LoopHypothesis
+from .loop_closure import LoopBook, LoopDecision, LoopHypothesis, se2_between, se2_compose, se2_inverse
 from .config import HippomapConfig
 from .errors import InputError
-from .geometry import compose
+from .geometry import compose, wrap_angle
 from .inputs import Frame, Odometry
 from .place_cells import SpatialPathway
 from .visual_memory import VisualMemory
@@ -62,14 +73,142 @@ class _Grow:
         return g
 
 
+class _ReuseMap(CognitiveMap):
+    """The cognitive map with two states a saved map needs, kept out of the map's own module.
+
+    * ``lost``: the robot has no pose on the map yet (a new run in a saved map). Hypotheses
+      skip the loop gate (there is no pose to gate with) and are accepted only when verified by
+      cycle consistency (``loop_accept = 'verified'``, whatever the config says: one recognition
+      must not place the robot); the first accepted group places the run. In map mode the run's
+      own nodes (``component_from`` on) float unlinked until then and are moved onto the map
+      rigidly when the first loop link joins them, so the solve starts near its answer; nothing is
+      solved while they float (they are not tied to the anchored map).
+    * ``localise_only``: accepted hypotheses relocalise the robot but add no link, and the map is
+      never solved, so node poses stay exactly as loaded.
+
+    Everything else is :class:`CognitiveMap`'s, through its own loop-closure door
+    (:meth:`CognitiveMap.propose_loop`).
+    """
+
+    def __init__(self, cfg=None, capacity: int = 256):
+        super().__init__(cfg, capacity)
+        self.own_cfg = self.cfg
+        self.localise_only = False
+        self.lost = False
+        self.component_from = -1  # map mode while lost: first node of the run's own, unplaced nodes
+        self._fresh_start = False  # the run's start node takes the time of the first update
+
+    def configure(self, localise_only: bool, lost: bool, component_from: int = -1) -> None:
+        """Set the mode and the lost state; while lost or localising only verified groups are accepted."""
+        self.localise_only, self.lost, self.component_from = bool(localise_only), bool(lost), int(component_from)
+        update: dict[str, Any] = {}
+        if self.lost or self.localise_only:
+            update.update(loop_accept="verified", loop_relocalise=True)
+        if self.lost and self.own_cfg.prune_graph_radius_m is None:
+            # online pruning merges along the graph only, never into the saved map the run floats over
+            update["prune_graph_radius_m"] = 1e12
+        self.cfg = self.own_cfg.model_copy(update=update) if update else self.own_cfg
+
+    def start_run(self, initial_pose) -> None:
+        """A new run on this map, from an unknown pose: its odometry frame starts at ``initial_pose``.
+        The loop book starts empty (its candidates are the previous run's odometry); in map mode the
+        run gets its own start node, linked to nothing until a loop closure places it."""
+        self._loops = LoopBook()
+        self._events = []
+        self._t = None
+        self._code = None
+        self._anchor = None
+        self._arrival = -1
+        self._odom = tuple(float(v) for v in initial_pose)
+        self._code_odom = self._odom
+        self._t_arrive = 0.0
+        if self.localise_only:
+            self._delta = se2_between(tuple(self._P[self._cur]), self._odom)
+            self.configure(True, True, -1)
+        else:
+            start = self._add_node(self._odom, (np.nan, np.nan, np.nan), 0.0)
+            self._cur, self._delta = start, (0.0, 0.0, 0.0)
+            self._fresh_start = True
+            self.configure(False, True, start)
+
+    def update(self, place_code, increment, t: float):
+        if self._fresh_start:
+            self._Tn[self.component_from] = float(t)
+            self._fresh_start = False
+        return super().update(place_code, increment, t)
+
+    def propose_loop(self, h: LoopHypothesis) -> LoopDecision:
+        """The map's own door; while lost, the decisions made here record no gate (there was none),
+        and in localisation mode an accepted one says that it only relocalised the robot."""
+        if not (self.lost or self.localise_only):
+            return super().propose_loop(h)
+        was_lost = self.lost
+        book = self._loops
+        waiting = [c.id for c in book.pending]  # the decisions this call may accept besides its own
+        decision = super().propose_loop(h)
+        if was_lost:
+            book.decisions[decision.id] = _replace(book.decisions[decision.id], gate_distance=math.nan,
+                                                   gate_limit=math.nan)
+        for i in waiting + [decision.id]:
+            d = book.decisions[i]
+            if d.status != "accepted" or d.decided_step != self._step:
+                continue
+            checks, _, rest = d.reason.partition(";")
+            if was_lost and checks.startswith("gate"):
+                checks = "no gate (the robot was not placed on the map yet)" + checks.removeprefix("gate").replace(
+                    " and ", "; ", 1)
+            if self.localise_only and d.link < 0:
+                rest = " localisation only: robot relocalised, no link"
+            book.decisions[i] = _replace(d, reason=checks + (";" + rest if rest else ""))
+        if self.lost and decision.status == "accepted":  # placed (map mode: already, by the first link)
+            self.configure(self.localise_only, False)
+        return book.decisions[decision.id]
+
+    def _gate(self, c):
+        if self.lost and (self.component_from < 0 or c.node < self.component_from):
+            return 0.0, math.inf, "unplaced"
+        return super()._gate(c)
+
+    def _add_loop_link(self, c) -> int:
+        if self.localise_only:
+            return -1
+        if self.lost and self.component_from >= 0 and c.node < self.component_from <= c.from_node:
+            self._place(c)
+        return super()._add_loop_link(c)
+
+    def _place(self, c) -> None:
+        """Move the run's own nodes rigidly so that ``c.from_node`` sits where the (fitted)
+        hypothesis puts it on the map; the run is placed from now on."""
+        k = self.component_from
+        new_from = se2_compose(tuple(self._P[c.node]), se2_inverse(c.link_tr))
+        T = np.asarray(se2_compose(new_from, se2_inverse(tuple(self._P[c.from_node]))))
+        P = self._P[k: self._n]
+        P[:] = compose(T, P)
+        P[:, 2] = wrap_angle(P[:, 2])
+        self.configure(self.localise_only, False)
+
+    def _optimise(self, t: float, force: bool = False, sweeps: int | None = None):
+        if self.localise_only or (self.lost and self.component_from >= 0):
+            return []
+        return super()._optimise(t, force, sweeps)
+
+
+def _replace(d: LoopDecision, **kw: Any) -> LoopDecision:
+    from dataclasses import replace
+
+    return replace(d, **kw)
+
+
 class Mapper:
     """One mapping session: ``step(odometry)`` and ``observe(frame)`` in time order."""
 
     def __init__(self, config: HippomapConfig | None = None) -> None:
         self.config = config or HippomapConfig()
         self.pathway = SpatialPathway(self.config.spatial, self.config.map.initial_pose)
-        self.cmap = CognitiveMap(self.config.map)
+        self.cmap = _ReuseMap(self.config.map)
+        self.cmap.configure(self.localise_only, False)
         self.memory = VisualMemory(self.config.visual)
+        self.base_nodes = 0  # nodes that came from a saved map (Mapper.from_base)
         self.last_t: float | None = None  # time of the last input of either kind
         self.last_odometry_t: float | None = None
         self.last_frame_t: float | None = None
@@ -87,6 +226,59 @@ class Mapper:
         self.place_field = None  # latest PlaceCode with its field (not persisted)
         # per odometry step: t, raw odometric pose, current node, robot offset from it
         self._traj = _Grow(8)
+
+    @property
+    def localise_only(self) -> bool:
+        """``mapper.mode == 'localise'``: recognise and relocalise, never change the map."""
+        return self.config.mapper.mode == "localise"
+
+    @property
+    def lost(self) -> bool:
+        """The robot has no pose on the map yet (a new run in a saved map, not yet recognised)."""
+        return self.cmap.lost
+
+    @classmethod
+    def from_base(cls, base: "bytes | Mapper", overrides: dict[str, Any] | None = None) -> "Mapper":
+        """A new run in a saved map: ``base`` is a snapshot (:meth:`to_bytes`) or a mapper (copied,
+        never changed). ``overrides`` (nested, as :meth:`HippomapConfig.with_overrides`) change the
+        base's config, e.g. ``{"mapper": {"mode": "localise"}}``; they must keep its visual config,
+        which the key frames were learned with.
+
+        Kept: the cognitive map, the visual memory and each key frame's node and pose. New: the
+        run's odometry (it starts at ``map.initial_pose`` of its own frame, an unknown pose on the
+        map), the spatial pathway, the clocks (the run may start at t = 0 again), the trajectory,
+        the recognitions and loop decisions. The path length goes on, plus
+        ``recognition_min_path_m``, so that every saved key frame can be recognised at once."""
+        data = base.to_bytes() if isinstance(base, Mapper) else base
+        if not isinstance(data, (bytes, bytearray)):
+            raise InputError(f"from_base needs a mapper snapshot (bytes) or a Mapper, got {type(base).__name__}")
+        m = cls.from_bytes(bytes(data))
+        if m.cmap.lost and m.cmap.component_from >= 0:
+            raise InputError("the saved map holds a run that was never placed on it: its nodes float apart from "
+                             "the map, so it cannot be a base map")
+        if overrides:
+            config = config_over(m.config, overrides)
+            if config.visual != m.config.visual:
+                raise InputError("a run in a saved map must keep the saved map's visual config (its key frames "
+                                 "were learned with it)")
+            m.config = config
+            m.cmap.own_cfg = config.map
+        cfg = m.config
+        m.pathway = SpatialPathway(cfg.spatial, cfg.map.initial_pose)
+        m.last_t = m.last_odometry_t = m.last_frame_t = None
+        m.frames_seen = 0
+        m.distance += cfg.mapper.recognition_min_path_m
+        m.distance_at_keyframe = -math.inf
+        m.turn_at_keyframe = m.turn
+        m._frame_distance, m._frame_turn = m.distance, m.turn
+        m.recognitions = []
+        m.place = None
+        m.place_field = None
+        m._traj = _Grow(8)
+        m.base_nodes = int(m.cmap.node_count)
+        m.cmap.configure(m.localise_only, False)
+        m.cmap.start_run(cfg.map.initial_pose)
+        return m
 
     # ------------------------------------------------------------------ inputs
     def _check_time(self, t: float, last: float | None, what: str) -> None:
@@ -110,8 +302,8 @@ class Mapper:
         code = self.pathway.step_increment(*inc)
         self.distance += math.hypot(inc[0], inc[1])
         self.turn += abs(inc[2])
-        events = [e.to_dict() for e in self.cmap.update(
-            None if code is None else (code.x, code.y, code.theta), inc, t)]
+        events = [e.to_dict() for e in self.cmap.update(  # localising: no place code, so no new node
+            None if code is None or self.localise_only else (code.x, code.y, code.theta), inc, t)]
         if code is not None:
             self.place = (code.x, code.y, code.theta)
             self.place_field = code
@@ -133,7 +325,10 @@ class Mapper:
         events: list[dict[str, Any]] = []
         recognised = False
         if self.place is not None and self.memory.frame_count:
-            frames = self.cmap.frames[self.cmap.loop_candidates()]
+            if self.cmap.lost:  # no pose on the map yet: any key frame of the saved map may be the place
+                frames = self.cmap.frames[: self.base_nodes]
+            else:
+                frames = self.cmap.frames[self.cmap.loop_candidates()]
             candidates = self._recognisable(frames[frames >= 0])
             if candidates:
                 rec = self.memory.recognise(gray, candidates=candidates)
@@ -151,7 +346,7 @@ class Mapper:
                     events.append({"type": "loop_decision", **decision.to_dict()})
         self.distance_at_keyframe = self.distance
         self.turn_at_keyframe = self.turn
-        if recognised and not self.config.mapper.learn_recognised:
+        if self.localise_only or (recognised and not self.config.mapper.learn_recognised):
             return events
         fid = self.memory.learn(gray)
         if fid is not None:
@@ -228,6 +423,9 @@ class Mapper:
             "nodes": int(self.cmap.node_count),
             "links": int(self.cmap.link_count),
             "recognitions": len(self.recognitions),
+            "mode": self.config.mapper.mode,
+            "lost": bool(self.cmap.lost),
+            "base_nodes": int(self.base_nodes),
             "loop_closures_accepted": decisions.count("accepted"),
             "loop_closures_rejected": decisions.count("rejected"),
             "distance_m": float(self.distance),
@@ -259,6 +457,8 @@ class Mapper:
             "frame_turn": self._frame_turn,
             "recognitions": self.recognitions,
             "place": self.place,
+            "reuse": {"base_nodes": self.base_nodes, "lost": self.cmap.lost, "component_from": self.cmap.component_from,
+                      "fresh_start": self.cmap._fresh_start},
         }
         arrays["traj"] = self._traj.view
         buf = io.BytesIO()
@@ -278,7 +478,11 @@ class Mapper:
         self = cls.__new__(cls)
         self.config = HippomapConfig.model_validate(meta["config"])
         self.pathway = SpatialPathway.from_state(self.config.spatial, _join(meta["pathway"], arrays))
-        self.cmap = CognitiveMap.from_state(self.config.map, _join(meta["cmap"], arrays))
+        self.cmap = _ReuseMap.from_state(self.config.map, _join(meta["cmap"], arrays))
+        reuse = meta.get("reuse") or {}
+        self.base_nodes = int(reuse.get("base_nodes", 0))
+        self.cmap.configure(self.localise_only, bool(reuse.get("lost", False)), int(reuse.get("component_from", -1)))
+        self.cmap._fresh_start = bool(reuse.get("fresh_start", False))
         self.memory = VisualMemory.from_state(self.config.visual, _join(meta["memory"], arrays))
         self.last_t = meta["last_t"]
         self.last_odometry_t = meta["last_odometry_t"]
@@ -299,6 +503,24 @@ class Mapper:
         self.place_field = None
         self._traj = _Grow.of(arrays["traj"])
         return self
+
+
+def config_over(config: HippomapConfig, overrides: dict[str, Any]) -> HippomapConfig:
+    """``config`` changed by nested ``overrides`` (``{"section": {"field": value}}``), validated;
+    InputError naming the problem."""
+    if not isinstance(overrides, dict):
+        raise InputError(f"config overrides must be a mapping of sections, got {type(overrides).__name__}")
+    base = config.model_dump()
+    for section, values in overrides.items():
+        if section not in base:
+            raise InputError(f"unknown config section {section!r}; known: {sorted(base)}")
+        if not isinstance(values, dict):
+            raise InputError(f"config section {section!r} must be a mapping")
+        base[section].update(values)
+    try:
+        return HippomapConfig.model_validate(base)
+    except ValueError as exc:
+        raise InputError(f"invalid config: {exc}") from None
 
 
 def _split(obj: Any, prefix: str, arrays: dict[str, np.ndarray]) -> Any:

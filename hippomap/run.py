@@ -90,7 +90,8 @@ def loop_report(m: Mapper, gt: tuple[np.ndarray, np.ndarray] | None) -> list[dic
     out = []
     times = m.cmap.times
     for d, row in zip(m.cmap.loop_decisions, m.cmap.loop_rows()):
-        if gt is not None:
+        # nodes of a saved map (--base-map) were made in another run, whose ground truth this is not
+        if gt is not None and min(d.hypothesis.node, d.from_node) >= m.base_nodes:
             h = d.hypothesis
             a = groundtruth_at(gt, float(h.time))
             b = groundtruth_at(gt, float(times[h.node]))
@@ -154,9 +155,32 @@ def write_run(m: Mapper, dataset: SensorDataset, out_dir: str | Path, timing: di
     return metrics
 
 
+def base_mapper(snapshot: str | Path, config_file: str | None = None) -> Mapper:
+    """A new run in the saved map of ``snapshot`` (a mapper snapshot: ``Mapper.to_bytes``, or a
+    session's ``GET /sessions/{id}/snapshot``); the JSON overrides of ``config_file`` change the
+    saved map's config (e.g. ``{"mapper": {"mode": "localise"}}``)."""
+    try:
+        data = Path(snapshot).read_bytes()
+    except OSError as exc:
+        raise InputError(f"cannot read base map {snapshot}: {exc}") from None
+    overrides = None
+    if config_file:
+        import json
+
+        try:
+            overrides = json.loads(Path(config_file).read_text())
+        except (OSError, json.JSONDecodeError) as exc:
+            raise InputError(f"cannot read config {config_file}: {exc}") from None
+    return Mapper.from_base(data, overrides)
+
+
 def _cmd(args: argparse.Namespace) -> int:
     dataset = open_dataset(args.data_dir, args.image_topic, args.odom_topic, args.groundtruth_topic)
-    m, timing = run_dataset(dataset, HippomapConfig.from_file(args.config), progress=progress_enabled(args))
+    if args.base_map:
+        base = base_mapper(args.base_map, args.config)
+        m, timing = run_dataset(dataset, None, progress=progress_enabled(args), mapper=base)
+    else:
+        m, timing = run_dataset(dataset, HippomapConfig.from_file(args.config), progress=progress_enabled(args))
     metrics = write_run(m, dataset, args.out, timing)
     s = metrics["stats"]
     lc = metrics["loop_closures"]
@@ -178,5 +202,8 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--groundtruth-topic", help="ROS bag (optional): ground truth, geometry_msgs/PoseStamped or "
                    "nav_msgs/Odometry")
     p.add_argument("--config", help="JSON file of config overrides")
+    p.add_argument("--base-map", help="start in this saved map (a mapper snapshot, e.g. a session's /snapshot): "
+                   "the run starts from an unknown pose and is placed by recognition; --config then changes the "
+                   "saved map's config")
     add_progress_argument(p)
     p.set_defaults(func=_cmd)

@@ -28,7 +28,7 @@ from starlette.routing import Match
 from hippomap import __version__
 
 from . import model
-from .api import docs, ingest, landing, queries, sessions, stream, tokens, wsdoc
+from .api import docs, ingest, landing, queries, reuse, sessions, stream, tokens, wsdoc
 from .auth import Authenticator, CloseOnRevoke, adopt_orphans, ensure_admin
 from .limits import BodySizeLimit, KeyedBuckets, OriginCheck
 from .metrics import ServiceMetrics
@@ -309,7 +309,7 @@ def create_app(settings: ServerSettings | None = None) -> FastAPI:
         body, content_type = await asyncio.to_thread(metrics.render)
         return Response(body, media_type=content_type)
 
-    for module in (sessions, ingest, stream, queries, tokens):
+    for module in (sessions, reuse, ingest, stream, queries, tokens):
         app.include_router(module.router)
     default_openapi = app.openapi
 

@@ -60,6 +60,11 @@ class SessionCreate(_In):
         {"name": "warehouse, lap 3", "config": {"mapper": {"keyframe_interval": 10}}}, {"name": "defaults"}]})
 
     name: str = Field("", max_length=200, description="free label")
+    base_session: str | None = Field(
+        None, max_length=100, description="start in a copy of this session's map (one the token can read; it is "
+        "never changed): the new run's odometry starts from an unknown pose and is placed on the map when its "
+        "recognitions of the base's key frames are verified; `config` then changes the base's config (it must "
+        "keep the visual section), e.g. {\"mapper\": {\"mode\": \"localise\"}} to localise without changing the map")
     config: dict[str, dict[str, Any]] = Field(
         default_factory=dict,
         description="overrides of the model config by section, e.g. {\"mapper\": {\"keyframe_interval\": 10}}; the "

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import asyncio
 import ctypes
+import functools
 import gc
 import json
 import logging
@@ -33,6 +34,7 @@ from typing import Any, Awaitable, Callable
 from pydantic import ValidationError
 
 from hippomap.config import HippomapConfig
+from hippomap.errors import InputError
 
 from . import model
 from .auth import can_read, can_write
@@ -57,6 +59,12 @@ def exit_process(code: int) -> None:
     """End the process at once (no graceful shutdown: it would wait for writes that cannot happen)."""
     logging.shutdown()
     os._exit(code)
+
+
+def based_snapshot(mapper: Any, overrides: dict[str, Any]) -> bytes:
+    """Run in a session's mapper host: the state of a new run in a copy of its map
+    (``Mapper.from_base``, which only reads the mapper) with config ``overrides``."""
+    return type(mapper).from_base(mapper, overrides).to_bytes()
 
 
 class NotFound(Exception):
@@ -460,9 +468,70 @@ class SessionManager:
             self.backend = None
 
     # ------------------------------------------------------------ commands
-    async def create(self, token: TokenRecord, name: str, overrides: dict[str, Any]) -> LiveSession:
+    async def create(self, token: TokenRecord, name: str, overrides: dict[str, Any],
+                     base_session: str | None = None) -> LiveSession:
+        """A new session: a fresh mapper of ``overrides``, or (``base_session``) a new run in a copy of
+        that session's map, its config the base's changed by ``overrides`` (see :meth:`_based`)."""
         if token.role == "viewer":
             raise Forbidden()
+        if base_session is None:
+            return await self._create(token, name, overrides)
+        base = self._base(token, base_session, "base_session")
+        merged, snapshot = await self._based(base, overrides)
+        return await self._create(token, name, merged, snapshot)
+
+    async def merge(self, token: TokenRecord, into: LiveSession, source_id: str, name: str) -> LiveSession:
+        """A new session that holds ``source``'s run merged into ``into``'s map: a new run in a copy of
+        ``into``'s map (as a based session) fed ``source``'s stored inputs, which the new session stores
+        as its own and replays. ``source``'s recognitions of ``into``'s key frames are loop hypotheses
+        like any other; neither session changes. Answers before the replay ends (stats: ``replaying``)."""
+        if token.role == "viewer":
+            raise Forbidden()
+        source = self._base(token, source_id, "from")
+        if source.id == into.id:
+            raise IngestError(422, "a session cannot be merged into itself: 'from' names the session of the path")
+        merged, snapshot = await self._based(into, {})
+        return await self._create(token, name, merged, snapshot, inputs_of=source, wait_ready=False)
+
+    def _base(self, token: TokenRecord, session_id: Any, what: str) -> LiveSession:
+        """A session named in a request body, which the token must be able to read (404 otherwise)."""
+        if not isinstance(session_id, str):
+            raise IngestError(422, f"{what} must be a session id (a string), got {session_id!r}")
+        try:
+            return self.get(token, session_id)
+        except NotFound:
+            raise IngestError(404, f"{what} session {session_id!r} not found") from None
+
+    async def _based(self, base: LiveSession, overrides: dict[str, Any]) -> tuple[dict[str, Any], bytes]:
+        """``(config overrides, initial snapshot)`` of a new run in a copy of ``base``'s map: the base's
+        overrides changed by ``overrides``, and the mapper state ``Mapper.from_base`` makes of the base's
+        mapper as processed so far (built in the base's mapper host, which is only read)."""
+        merged = {section: dict(values) for section, values in base.record.config.items()}
+        for section, values in overrides.items():
+            if not isinstance(values, dict):
+                raise IngestError(422, f"invalid config: section {section!r} must be a mapping")
+            merged.setdefault(section, {}).update(values)
+        try:
+            config = model.effective_config(merged)
+        except ValidationError as exc:
+            raise IngestError(422, f"invalid config: {pydantic_message(exc)}") from None
+        except (ValueError, TypeError) as exc:
+            raise IngestError(422, f"invalid config: {exc}") from None
+        if config.visual != base.config.visual:
+            raise IngestError(422, "a session started from a base map must keep the base's visual config "
+                                   "(its key frames were learned with it)")
+        if base.error:
+            raise IngestError(409, f"base session {base.id} has failed: {base.error}")
+        try:
+            data = await asyncio.to_thread(base.worker.query, functools.partial(based_snapshot, overrides=overrides))
+        except InputError as exc:  # the model's refusal, e.g. a base whose own run was never placed on its map
+            raise IngestError(409, f"session {base.id} cannot be a base map: {exc}") from None
+        if data is None:
+            raise IngestError(503, f"base session {base.id} is being restored; retry shortly", retry_after=1)
+        return merged, data
+
+    async def _create(self, token: TokenRecord, name: str, overrides: dict[str, Any], snapshot: bytes | None = None,
+                      inputs_of: LiveSession | None = None, wait_ready: bool = True) -> LiveSession:
         try:
             config = model.effective_config(overrides)
         except ValidationError as exc:
@@ -484,12 +553,29 @@ class SessionManager:
                             created=time.time())
         await asyncio.to_thread(self.store.claim_session, rec.id, self.replica, self.settings.lease_ttl_s)
         await asyncio.wrap_future(self.store.create_session(rec))
+        if snapshot is not None:  # the new run in the base's map: the state its worker restores (before seq 0)
+            await asyncio.wrap_future(self.store.put_snapshot(rec.id, -1, snapshot, self.settings.keep_snapshots))
+        if inputs_of is not None:
+            await asyncio.to_thread(self._copy_inputs, inputs_of.id, rec.id, inputs_of.stored_seq)
         with self._open_lock:
             live = self._open(rec, config)
         log.info("session %s created by token %s", rec.id, token.id, extra={"session": rec.id})
-        # answer once the mapper exists: building it (grid-cell tables...) must not delay the first inputs
-        await asyncio.to_thread(live.worker.ready.wait, 120)
+        if wait_ready:
+            # answer once the mapper exists: building it (grid-cell tables...) must not delay the first inputs
+            await asyncio.to_thread(live.worker.ready.wait, 120)
         return live
+
+    def _copy_inputs(self, source: str, target: str, until: int) -> None:
+        """Store ``source``'s inputs up to seq ``until`` as ``target``'s, same order and sequence numbers
+        (blocking; before ``target`` opens, so its worker replays them)."""
+        after = -1
+        while after < until:
+            chunk = self.store.read_inputs(source, after, min(256, until - after))
+            if not chunk:
+                break
+            self.store.append_inputs(target, [InputRecord(seq=r.seq, kind=r.kind, t=r.t, data=r.data) for r in chunk]
+                                     ).result()
+            after = chunk[-1].seq
 
     def visible(self, token: TokenRecord) -> list[LiveSession]:
         return [s for s in self.sessions.values() if can_read(token, s.record)]

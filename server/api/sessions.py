@@ -35,14 +35,15 @@ def _links(request: Request, sid: str) -> dict[str, str]:
     }
 
 
-@router.post("", status_code=201, response_model=SessionDetail, responses={**deps.ERRORS, 403: {"description":
+@router.post("", status_code=201, response_model=SessionDetail, responses={**deps.ERRORS, 404: {"description":
+             "no such base_session, or one this token may not see"}, 403: {"description":
              "read-only token, or the token's grid-cell memory quota is used up"}, 422: {"description":
              "invalid config overrides, or outside the server's safe ranges"},
              429: {"description": "the token owns max_sessions_per_token sessions already"}},
              summary="Create a session (its own mapper, configured by overrides)")
 async def create_session(body: SessionCreate, request: Request, tok: deps.Token) -> Any:
     try:
-        live = await deps.manager(request).create(tok, body.name, body.config)
+        live = await deps.manager(request).create(tok, body.name, body.config, body.base_session)
     except Forbidden:
         raise HTTPException(403, "this token is read-only") from None
     except IngestError as exc:
