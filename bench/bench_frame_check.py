@@ -49,7 +49,8 @@ def main() -> int:
                     cpu += time.process_time() - t0
             ms = cpu / len(frames) * 1e3
             res.setdefault(label, []).append(ms)
-            print(f"{label:17s} {ms:6.2f} ms CPU per frame; loop closures accepted {m.stats()['loop_closures_accepted']}")
+            accepted = m.stats()["loop_closures_accepted"]
+            print(f"{label:17s} {ms:6.2f} ms CPU per frame; loop closures accepted {accepted}")
     finally:
         vm.VisualMemory.check_image = checks_only
     ratios = [n / o for n, o in zip(res["checks only"], res["full preparation"])]

@@ -26,8 +26,8 @@ server with its own cores. Bounded: each level lasts ``--duration`` s plus drain
 from __future__ import annotations
 
 import argparse
-import json
 import asyncio
+import json
 import os
 import sys
 import tempfile
@@ -205,10 +205,12 @@ def main() -> int:
             else:
                 fail = mid
         print(f"\nlargest N held (p99 ack latency <= {P99_LIMIT_S * 1e3:.0f} ms, nothing lost): {best}"
-              + ("" if fail is not None else f" (the search stopped at --max-sessions {args.max_sessions})"), flush=True)
+              + ("" if fail is not None else f" (the search stopped at --max-sessions {args.max_sessions})"),
+              flush=True)
         tp = throughput(srv, args.throughput_frames, frames)
         print(f"one session at full speed ({tp['frames']} frames + 5 odometry readings each, window 128): "
-              f"{tp['ack_fps']:.0f} frames/s acknowledged (stored), {tp['mapper_fps']:.0f} frames/s through the mapper; "
+              f"{tp['ack_fps']:.0f} frames/s acknowledged (stored), "
+              f"{tp['mapper_fps']:.0f} frames/s through the mapper; "
               f"ack latency p50 {tp['p50_ms']:.1f} ms, p99 {tp['p99_ms']:.1f} ms", flush=True)
     return 0
 

@@ -13,9 +13,9 @@ the map's ATE against ground truth vs raw odometry, and the loop closures.
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 from pathlib import Path
-import sys
 
 import cv2
 import numpy as np

@@ -9,8 +9,9 @@ records
   iterations, reset) and every recognition (``Recognition.to_dict()``: frame, evidence, saccade trace,
   correspondences), plus the final corrected trajectory;
 * per frame: CPU ms (``time.process_time``: robust on a shared machine) of the odometry ``step`` and of the
-  frame's ``observe`` (image decode excluded: frames are decoded once before timing), the ms of each ``VisualMemory.recognise`` call and of each spatial-pathway
-  step, and the mean per-frame cost of the first and last third of the run.
+  frame's ``observe`` (image decode excluded: frames are decoded once before timing), the ms of each
+  ``VisualMemory.recognise`` call and of each spatial-pathway step, and the mean per-frame cost of the first
+  and last third of the run.
 
 It exits with status 1 unless every recorded output of the new code equals the old one exactly
 (floats compared bit for bit, evidence to 1e-9 absolute).

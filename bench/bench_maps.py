@@ -67,7 +67,6 @@ sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import peers  # noqa: E402
-
 from hippomap.config import HippomapConfig  # noqa: E402
 from hippomap.evaluation import groundtruth_at, trajectory_metrics  # noqa: E402
 from hippomap.geometry import between, wrap_angle  # noqa: E402
@@ -563,7 +562,8 @@ def report_lines(sim_rows: list[dict[str, Any]], bic_rows: list[dict[str, Any]])
     worlds = ["loop", "corridor", "bicocca"]
     sim_rows = sorted(sim_rows, key=lambda r: (worlds.index(r["world"]) if r["world"] in worlds else 9,
                                                int(r["size"].split("x")[0]), r["texture"], r["seed"]))
-    lines = ["", "## Simulated camera runs (noisy odometry: " + ", ".join(f"{k} {v}" for k, v in NOISE.items()) + ")", ""]
+    noise = ", ".join(f"{k} {v}" for k, v in NOISE.items())
+    lines = ["", "## Simulated camera runs (noisy odometry: " + noise + ")", ""]
     lines += sim_table(sim_rows) if sim_rows else ["(none)"]
     if sim_rows:
         lines += ["", "Mean over seeds:", "", *sim_summary(sim_rows)]
@@ -578,7 +578,7 @@ def parse_size(s: str) -> tuple[int, int]:
         w, h = s.lower().split("x")
         return int(w), int(h)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"size {s!r}: expected WIDTHxHEIGHT, e.g. 320x240")
+        raise argparse.ArgumentTypeError(f"size {s!r}: expected WIDTHxHEIGHT, e.g. 320x240") from None
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -686,7 +686,8 @@ def main(argv: list[str] | None = None) -> int:
                     f"{hm['core_ms']['mean']:.2f} ms/frame)")
             if "ors" in r:
                 line += (f"; ORS stock {r['ors']['stock']['ate']:.2f}, best {r['ors']['best']['ate']:.2f} m "
-                         f"at vt {r['ors']['best']['threshold']:g} ({r['ors']['best']['core_ms']['mean']:.2f} ms/frame)")
+                         f"at vt {r['ors']['best']['threshold']:g} "
+                         f"({r['ors']['best']['core_ms']['mean']:.2f} ms/frame)")
             render = f"render {r['render_s']:.0f} s, " if r.get("render_s") else ""
             print(f"{line} [{render}case {r['case_s']:.0f} s]", flush=True)
 

@@ -95,7 +95,8 @@ def sweep_costs(sizes, repeats):
         if n <= 10_000:
             P = P0.copy()
             t_ref = timeit(lambda: relax_ors_reference(P, src, dst, T, 1), max(3, repeats // 5))
-            print(f"    ORS reference (Python)   {ms(t_ref)}   ratio ref/relax {np.median(t_ref) / np.median(t_relax):6.1f}x"
+            print(f"    ORS reference (Python)   {ms(t_ref)}   "
+                  f"ratio ref/relax {np.median(t_ref) / np.median(t_relax):6.1f}x"
                   f"   ref/jacobi {np.median(t_ref) / np.median(t_jac):6.1f}x")
 
 

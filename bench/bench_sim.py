@@ -76,7 +76,8 @@ def main(argv=None):
           f"texture {bic.atlas.shape[1]} texels long, grid {bic.grid.shape}; build {t_world * 1000:.0f} ms")
     t0 = time.perf_counter()
     brun = sim.simulate(bic, odometry_noise=sim.OdometryNoise())
-    print(f"  simulate(): {len(brun)} steps, {brun.n_frames} frames (lazy) in {(time.perf_counter() - t0) * 1000:.0f} ms")
+    print(f"  simulate(): {len(brun)} steps, {brun.n_frames} frames (lazy) "
+          f"in {(time.perf_counter() - t0) * 1000:.0f} ms")
     poses = traj.poses[np.linspace(0, len(traj) - 1, args.frames).astype(int)]
     brute = World(bic.name, bic.segments, bic.u0, bic.atlas, bic.texture)
     brute.grid = None

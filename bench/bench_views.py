@@ -14,9 +14,9 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 import time
 from pathlib import Path
-import sys
 
 import numpy as np
 
@@ -69,7 +69,7 @@ def main() -> None:
     rng = np.random.default_rng(0)
 
     p = SpatialPathway(SpatialConfig())
-    p.place_cells.tables  # build the shared tables once (not measured)
+    _ = p.place_cells.tables  # build the shared tables once (not measured)
     for _ in range(3):
         p.step_increment(0.02, 0.01, 0.05)
     T = p.discharges()

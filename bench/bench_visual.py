@@ -33,15 +33,13 @@ import sys
 import time
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from hippomap.config import VisualConfig  # noqa: E402
-from hippomap.visual_memory import VisualMemory  # noqa: E402
 from hippomap.sim.scenes import shapes_scene  # noqa: E402
-
+from hippomap.visual_memory import VisualMemory  # noqa: E402
 
 scene = shapes_scene
 
@@ -146,7 +144,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--sizes", type=int, nargs="+", default=[100, 1000, 10000])
     ap.add_argument("--queries", type=int, default=40, help="recognitions timed per library size")
     ap.add_argument("--rejections", type=int, default=10, help="never-learned queries timed per size")
-    ap.add_argument("--ablation", nargs="+", metavar="DATA_DIR", help="run the deviation ablation on eval-vpr data sets")
+    ap.add_argument("--ablation", nargs="+", metavar="DATA_DIR",
+                    help="run the deviation ablation on eval-vpr data sets")
     ap.add_argument("--seeds", type=int, default=3, help="seeds per ablation variant")
     ap.add_argument("--no-lighting", action="store_true", help="skip the retina / lighting-change figures")
     args = ap.parse_args(argv)

@@ -226,7 +226,8 @@ class PlaceCells:
             applied.append(n)
             if new.size <= n_max:
                 iy, ix = np.divmod(new.astype(np.int64), size)
-                if _is_single(int(new.size), int(ix.sum()), int((ix * ix).sum()), int(iy.sum()), int((iy * iy).sum()), tau):
+                if _is_single(int(new.size), int(ix.sum()), int((ix * ix).sum()), int(iy.sum()), int((iy * iy).sum()),
+                              tau):
                     return PlaceField._from_indices(new, size, t.resolution, iterations, skipped, applied)
         return None
 

@@ -18,7 +18,6 @@ directly (no pyplot state), so it is safe from any thread; 1-3 s per figure: dra
 
 from __future__ import annotations
 
-
 import numpy as np
 
 from .errors import InputError

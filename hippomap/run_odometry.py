@@ -28,7 +28,6 @@ from .geometry import between, compose, integrate
 from .place_cells import SpatialPathway
 
 
-
 @dataclass
 class OdometryRun:
     """Everything a run produced: per-pose trajectories and the final map."""
@@ -154,7 +153,8 @@ def summarise(run: OdometryRun, dataset: OdometryDataset) -> dict[str, Any]:
         rows = []
         for k, traj in run.checkpoints:
             try:
-                odo_ate = trajectory_metrics(run.times[: k + 1], run.odometry[: k + 1], *dataset.groundtruth)["ate"]["rmse"]
+                odo_ate = trajectory_metrics(run.times[: k + 1], run.odometry[: k + 1],
+                                             *dataset.groundtruth)["ate"]["rmse"]
                 map_ate = trajectory_metrics(run.times[: k + 1], traj, *dataset.groundtruth)["ate"]["rmse"]
             except InputError:  # too few ground-truth poses so far
                 continue
@@ -191,7 +191,8 @@ def _cmd(args: argparse.Namespace) -> int:
     line = (f"{metrics['nodes']} nodes, loop closures accepted {lc['accepted']} (used {lc['used']}, "
             f"false used {lc.get('used_false', 'n/a')}) / rejected {lc['rejected']}")
     if "map" in metrics:
-        line += f"; ATE rmse odometry {metrics['odometry']['ate']['rmse']:.3f} m -> map {metrics['map']['ate']['rmse']:.3f} m"
+        line += (f"; ATE rmse odometry {metrics['odometry']['ate']['rmse']:.3f} m "
+                 f"-> map {metrics['map']['ate']['rmse']:.3f} m")
     print(line)
     print(f"wrote {args.out}/metrics.json, map.tum, odometry.tum, map.g2o, map.json, map.png")
     return 0

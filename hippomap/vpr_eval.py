@@ -91,7 +91,8 @@ def load_vpr_dataset(data_dir: str | Path) -> VPRDataset:
                 q = int(row[0])
                 refs_of_q = {int(r) for r in np.atleast_1d(row[1])}
             except (TypeError, ValueError, IndexError):
-                raise InputError(f"{gt_path}: row {row_no} is not (query index, [reference indices]): {row!r}") from None
+                raise InputError(
+                    f"{gt_path}: row {row_no} is not (query index, [reference indices]): {row!r}") from None
             if not 0 <= q < len(queries) or any(not 0 <= r < len(refs) for r in refs_of_q):
                 raise InputError(f"{gt_path}: row {row_no} names an image outside the folders: {row!r}")
             positives[q] |= refs_of_q
@@ -104,7 +105,8 @@ def load_vpr_dataset(data_dir: str | Path) -> VPRDataset:
         files = _images(samples)
         gt = cv2.imread(str(gt_path), cv2.IMREAD_GRAYSCALE)
         if gt is None or gt.shape != (len(files), len(files)):
-            raise InputError(f"{gt_path} must be a {len(files)}x{len(files)} image, got {None if gt is None else gt.shape}")
+            raise InputError(f"{gt_path} must be a {len(files)}x{len(files)} image, "
+                             f"got {None if gt is None else gt.shape}")
         truth = gt > 127
         rows = np.flatnonzero(truth.any(axis=1))
         if rows.size == 0:
@@ -112,7 +114,8 @@ def load_vpr_dataset(data_dir: str | Path) -> VPRDataset:
         split = int(rows[0])  # the first frame that revisits an earlier one starts the query pass
         refs, queries = files[:split], files[split:]
         positives = [set(int(j) for j in np.flatnonzero(truth[split + i, :split])) for i in range(len(queries))]
-        protocol = (f"learn frames 1-{split} (the first pass, before the first ground-truth loop closure) as key frames; "
+        protocol = (f"learn frames 1-{split} (the first pass, before the first ground-truth loop closure) "
+                    "as key frames; "
                     f"query frames {split + 1}-{len(files)} against all of them; positives = white pixels of "
                     "samples_GT.bmp among the references")
         return VPRDataset(root.name, refs, queries, positives, protocol)
@@ -319,7 +322,8 @@ def evaluate_vpr(data_dir: str | Path, out_dir: str | Path, config: Any = None, 
         pr = _pr_points(np.array(errs), b_ok, n_pos, higher_better=False)
         base_results[name] = {
             "name": "RatSLAM view templates (OpenRatSLAM local_view_match: SAD with shift)"
-            + (", column intensity profile" if bcfg.template_y == 1 else f", {bcfg.template_x}x{bcfg.template_y} template"),
+            + (", column intensity profile" if bcfg.template_y == 1
+               else f", {bcfg.template_x}x{bcfg.template_y} template"),
             "config": {k: getattr(bcfg, k) for k in bcfg.__dataclass_fields__},
             "recall_at_1": float(b_ok[has_pos].mean()) if n_pos else 0.0,
             "recall_at_100_precision": pr["recall_at_100_precision"],
@@ -464,7 +468,8 @@ def _parse_overrides(items: list[str] | None) -> dict[str, Any]:
         if key.startswith("visual."):
             key = key[len("visual."):]
         if key not in VisualConfig.model_fields:
-            raise InputError(f"--set {key!r}: not a VisualConfig field; known: {', '.join(sorted(VisualConfig.model_fields))}")
+            known = ", ".join(sorted(VisualConfig.model_fields))
+            raise InputError(f"--set {key!r}: not a VisualConfig field; known: {known}")
         try:
             out[key] = json.loads(value)
         except json.JSONDecodeError:
@@ -484,13 +489,16 @@ def _run(args: argparse.Namespace) -> int:
     m = evaluate_vpr(args.data_dir, args.out, overrides or None, n_examples=args.examples, progress=progress_enabled(args),
                      seeds=args.seeds)
     o, b = m["ours"], m["baseline"]
-    print(f"{m['dataset']}: {m['n_references']} references, {m['n_queries']} queries ({m['n_queries_with_match']} with a match)")
+    print(f"{m['dataset']}: {m['n_references']} references, "
+          f"{m['n_queries']} queries ({m['n_queries_with_match']} with a match)")
     print(f"  ours:     precision {o['precision']:.3f}  recall {o['recall']:.3f}  "
           f"({o['true_positives']} TP, {o['false_positives']} FP, {o['rejected']} rejected; "
           f"median {o['recognise_ms']['median']:.1f} ms/query)")
     sd = m["ours_over_seeds"]
-    print(f"  ours over {len(sd['runs'])} seeds: precision mean {sd['precision_mean']:.3f} (min {sd['precision_min']:.3f}), "
-          f"recall mean {sd['recall_mean']:.3f} (min {sd['recall_min']:.3f}), {sd['false_positives_total']} FP in total")
+    print(f"  ours over {len(sd['runs'])} seeds: "
+          f"precision mean {sd['precision_mean']:.3f} (min {sd['precision_min']:.3f}), "
+          f"recall mean {sd['recall_mean']:.3f} (min {sd['recall_min']:.3f}), "
+          f"{sd['false_positives_total']} FP in total")
     print(f"  baseline: recall at 100% precision {b['recall_at_100_precision']:.3f}  recall@1 {b['recall_at_1']:.3f}  "
           f"AP {b['average_precision']:.3f}")
     b2 = m["baseline_variants"].get("grid_60x10")
@@ -509,9 +517,12 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
         description="Visual place recognition on real images with ground-truth loop closures: learn the reference "
         "frames, query the others, score ours and the RatSLAM view-template baseline in one run.",
     )
-    p.add_argument("data_dir", metavar="DATA_DIR", help="dataset folder (VPR-Bench ref/query layout or RTAB-Map samples)")
-    p.add_argument("--out", required=True, metavar="OUT_DIR", help="output folder for metrics.json, pr_curve.png, traces/")
-    p.add_argument("--config", metavar="JSON", help="JSON file with VisualConfig overrides (or a full config with 'visual')")
+    p.add_argument("data_dir", metavar="DATA_DIR",
+                   help="dataset folder (VPR-Bench ref/query layout or RTAB-Map samples)")
+    p.add_argument("--out", required=True, metavar="OUT_DIR",
+                   help="output folder for metrics.json, pr_curve.png, traces/")
+    p.add_argument("--config", metavar="JSON",
+                   help="JSON file with VisualConfig overrides (or a full config with 'visual')")
     p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override one VisualConfig field, repeatable")
     p.add_argument("--examples", type=int, default=4,
                    help="matches drawn as saccade-trace images (default 4), plus one false match and one rejection")

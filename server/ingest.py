@@ -146,7 +146,8 @@ def parse_odometry_message(msg: dict[str, Any], max_batch: int, limits: ServerSe
             if not isinstance(body["readings"], list):
                 raise IngestError(422, "readings must be a list")
             if len(body["readings"]) > max_batch:
-                raise IngestError(413, f"odometry batch of {len(body['readings'])} readings exceeds the limit of {max_batch}")
+                raise IngestError(
+                    413, f"odometry batch of {len(body['readings'])} readings exceeds the limit of {max_batch}")
             readings = [OdometryReading.model_validate(r) for r in body["readings"]]
         else:
             readings = [OdometryReading.model_validate(body)]

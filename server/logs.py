@@ -38,8 +38,8 @@ FORMATS = ("auto", "json", "text")
 ENV_FORMAT = "HIPPOMAP_LOG_FORMAT"
 
 #: attributes every LogRecord has: anything else on a record came from ``extra=``
-_STANDARD = frozenset(vars(logging.LogRecord("x", logging.INFO, "x", 0, "x", None, None))) | {"message", "asctime",
-                                                                                              "color_message", "taskName"}
+_STANDARD = frozenset(vars(logging.LogRecord("x", logging.INFO, "x", 0, "x", None, None))) | {
+    "message", "asctime", "color_message", "taskName"}
 #: the loggers set to the chosen level (everything else stays at WARNING)
 OWN_LOGGERS = ("hippomap", "web")
 

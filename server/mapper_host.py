@@ -34,7 +34,6 @@ from hippomap.inputs import Frame, Odometry
 
 from . import model
 
-
 log = logging.getLogger("hippomap.server")
 
 #: event type of an input the mapper raised on (recorded, skipped; the session goes on)
@@ -84,7 +83,7 @@ class MapperHost(abc.ABC):
         """Where the mapper runs (shown in the session's stats)."""
         return {"kind": "inprocess"}
 
-    def close(self) -> None:
+    def close(self) -> None:  # noqa: B027 (an optional hook: hosts holding nothing keep the no-op)
         """Release the mapper (idempotent)."""
 
 

@@ -41,7 +41,8 @@ class _LiveGauges(Collector):
             q.add_metric([sid], depth)
         yield q
         yield GaugeMetricFamily("hippomap_sessions", "live sessions", value=len(depths))
-        yield GaugeMetricFamily("hippomap_ready", "1 when every session is restored and serving", value=float(self._ready()))
+        yield GaugeMetricFamily("hippomap_ready", "1 when every session is restored and serving",
+                                value=float(self._ready()))
 
 
 class ServiceMetrics:

@@ -43,8 +43,17 @@ import psycopg
 from psycopg.conninfo import conninfo_to_dict
 from psycopg.pq import TransactionStatus
 
-from .store import (EventRecord, InputRecord, PlaceFieldRecord, SessionRecord, Store, TokenRecord, WriterState,
-                    fail_batch, settle_batch)
+from .store import (
+    EventRecord,
+    InputRecord,
+    PlaceFieldRecord,
+    SessionRecord,
+    Store,
+    TokenRecord,
+    WriterState,
+    fail_batch,
+    settle_batch,
+)
 
 SCHEMA_VERSION = 1
 MAX_BATCH = 1024

@@ -58,7 +58,8 @@ def pack_frame(message_id: int, t: float, image: bytes) -> bytes:
 def unpack_frame(data: bytes) -> tuple[int, float, bytes]:
     """``(message id, t, image bytes)`` of a binary message; InputError on a bad header."""
     if len(data) < FRAME_HEADER.size:
-        raise InputError(f"binary message of {len(data)} bytes is shorter than the {FRAME_HEADER.size}-byte frame header")
+        raise InputError(
+            f"binary message of {len(data)} bytes is shorter than the {FRAME_HEADER.size}-byte frame header")
     magic, mid, t = FRAME_HEADER.unpack_from(data)
     if magic != FRAME_MAGIC:
         raise InputError(f"binary message does not start with the frame magic {FRAME_MAGIC!r} (got {magic!r})")

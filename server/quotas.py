@@ -5,8 +5,8 @@ model itself accepts any value its maths allows, so the server bounds what one r
 make it spend. Checked once, when a session is created (sessions stored earlier keep running):
 
 * **Safe ranges** (:data:`SAFE_RANGES`) on every parameter whose value drives memory or time
-  per input: cell counts, iteration counts, image and patch sizes, windows counted in steps. Each range holds the default
-  with a wide margin (typically 10x); a value outside is refused with 422 naming the field.
+  per input: cell counts, iteration counts, image and patch sizes, windows counted in steps. Each range holds the
+  default with a wide margin (typically 10x); a value outside is refused with 422 naming the field.
   Every other number must be finite, and integers fit in 64 bits; seeds are any value in
   ``[0, 2**63)`` (each distinct spatial seed has its own grid-cell tables, counted below).
 * **Memory per session.** The dominant cost is the grid-cell rate tables

@@ -20,10 +20,11 @@ class ServerSettings(BaseModel):
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
-    data_dir: Path = Field(Path("hippomap-data"), description="folder of the embedded database and the admin token file")
+    data_dir: Path = Field(Path("hippomap-data"),
+                           description="folder of the embedded database and the admin token file")
     database: str | None = Field(
-        None, description="database location: a SQLite file path (default <data_dir>/hippomap.sqlite3), sqlite:///path, "
-        "or a PostgreSQL URL postgresql://user:password@host:port/db (several replicas may share it)"
+        None, description="database location: a SQLite file path (default <data_dir>/hippomap.sqlite3), "
+        "sqlite:///path, or a PostgreSQL URL postgresql://user:password@host:port/db (several replicas may share it)"
     )
     durability: Literal["full", "normal"] = Field(
         "full",
@@ -117,7 +118,8 @@ class ServerSettings(BaseModel):
         "progress stops with an error instead of being restored again")
     # ---- auth ----
     admin_token: str | None = Field(
-        None, description="the admin token; if unset one is generated on first start and saved in <data_dir>/admin.token"
+        None,
+        description="the admin token; if unset one is generated on first start and saved in <data_dir>/admin.token",
     )
     metrics_token: str | None = Field(
         None, description="the bearer token GET /metrics requires; unset: the admin token (see metrics_public)")

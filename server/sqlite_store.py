@@ -27,8 +27,17 @@ from concurrent.futures import Future
 from pathlib import Path
 from typing import Any, Callable
 
-from .store import (EventRecord, InputRecord, PlaceFieldRecord, SessionRecord, Store, TokenRecord, WriterState,
-                    fail_batch, settle_batch)
+from .store import (
+    EventRecord,
+    InputRecord,
+    PlaceFieldRecord,
+    SessionRecord,
+    Store,
+    TokenRecord,
+    WriterState,
+    fail_batch,
+    settle_batch,
+)
 
 SCHEMA_VERSION = 1
 MAX_BATCH = 1024
@@ -333,7 +342,8 @@ class SQLiteStore(Store):
     def derived_counts(self, session_id: str) -> tuple[int, int]:
         c = self._read()
         ne = c.execute("SELECT COALESCE(MAX(id) + 1, 0) FROM events WHERE session=?", (session_id,)).fetchone()[0]
-        nf = c.execute("SELECT COALESCE(MAX(step) + 1, 0) FROM place_fields WHERE session=?", (session_id,)).fetchone()[0]
+        nf = c.execute("SELECT COALESCE(MAX(step) + 1, 0) FROM place_fields WHERE session=?",
+                       (session_id,)).fetchone()[0]
         return int(ne), int(nf)
 
     @staticmethod

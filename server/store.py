@@ -188,7 +188,8 @@ class Store(abc.ABC):
 
     @abc.abstractmethod
     def query_events(self, session_id: str, types: list[str] | None = None, since_id: int = -1,
-                     t_min: float | None = None, t_max: float | None = None, limit: int = 1000) -> list[EventRecord]: ...
+                     t_min: float | None = None, t_max: float | None = None,
+                     limit: int = 1000) -> list[EventRecord]: ...
 
     @abc.abstractmethod
     def event_by_ref(self, session_id: str, type: str, ref: int) -> EventRecord | None:

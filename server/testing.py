@@ -232,7 +232,7 @@ class PostgresCluster:
         self._run(str(self.bin_dir / "initdb"), "-D", str(root / "data"), "-U", "postgres", "-E", "UTF8",
                   "--auth-local=trust", "--auth-host=scram-sha-256", f"--pwfile={pwfile}", "--no-sync")
         pwfile.unlink()
-        conf = [f"listen_addresses = '127.0.0.1'", f"unix_socket_directories = '{root}'", "max_connections = 300",
+        conf = ["listen_addresses = '127.0.0.1'", f"unix_socket_directories = '{root}'", "max_connections = 300",
                 f"fsync = {'on' if self.fsync else 'off'}", f"full_page_writes = {'on' if self.fsync else 'off'}"]
         with open(root / "data" / "postgresql.conf", "a") as f:
             f.write("\n".join(conf) + "\n")
@@ -565,7 +565,8 @@ def session_state(client: Any, session_id: str) -> dict[str, Any]:
     client.wait_processed(session_id)
     return {"map": client.map(session_id), "stats": client.stats(session_id)["mapper"],
             "loop_closures": [r["decision"] for r in client.loop_closures(session_id, limit=10_000)],
-            "recognitions": [client.saccades(session_id, r["id"]) for r in client.recognitions(session_id, limit=10_000)]}
+            "recognitions": [client.saccades(session_id, r["id"])
+                             for r in client.recognitions(session_id, limit=10_000)]}
 
 
 async def stream_items(url: str, token: str, session_id: str, items: tuple, window: int = 64) -> list[dict]:

@@ -89,9 +89,9 @@ def place_field_png(rec: Any, spatial: Any = None) -> bytes:
 
 def saccade_jpeg(frame_bytes: bytes, rec: dict[str, Any], attempt: Any = "last") -> bytes:
     """The query frame with its saccade trace drawn (the model's ``draw_trace``), as JPEG."""
-    from hippomap.inputs import decode_jpeg
-
     import cv2
+
+    from hippomap.inputs import decode_jpeg
 
     img = cv2.imdecode(np.frombuffer(frame_bytes, np.uint8), cv2.IMREAD_COLOR)
     if img is None:  # stored frames were validated, but be safe

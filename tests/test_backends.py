@@ -29,8 +29,16 @@ from server.mapper_host import InProcessHost
 from server.metrics import ServiceMetrics
 from server.settings import ServerSettings
 from server.sqlite_store import SQLiteStore
-from server.testing import (ROOT, LiveServer, local_ray_head, offline_reference, ray_test_env, stream_items,
-                            session_state, synthetic_inputs)
+from server.testing import (
+    ROOT,
+    LiveServer,
+    local_ray_head,
+    offline_reference,
+    ray_test_env,
+    session_state,
+    stream_items,
+    synthetic_inputs,
+)
 from worker_harness import assert_host_matches_inprocess, run_worker
 
 CONFIG = {"mapper": {"keyframe_interval": 3}}

@@ -4,6 +4,7 @@ loop-link scoring against ground truth, and the per-frame timing of the mapper."
 
 from __future__ import annotations
 
+import argparse
 import json
 import sys
 from pathlib import Path
@@ -15,7 +16,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
 
 import bench_maps  # noqa: E402
 import peers  # noqa: E402
-
 from hippomap.inputs import Frame, Odometry  # noqa: E402
 
 STOCK_INI = """[general]
@@ -138,7 +138,7 @@ def test_timed_mapper_records_one_time_per_frame():
 
 def test_parse_size_rejects_garbage():
     assert bench_maps.parse_size("640x480") == (640, 480)
-    with pytest.raises(Exception):
+    with pytest.raises(argparse.ArgumentTypeError, match="expected WIDTHxHEIGHT"):
         bench_maps.parse_size("640")
 
 

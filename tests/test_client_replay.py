@@ -115,7 +115,8 @@ def test_sync_stream_and_client_errors(server):
         sid = c.create_session("sync", CONFIG)["id"]
         with c.stream(sid, max_in_flight=4) as st:
             assert st.hello["last_seq"] == -1 and st.hello["last_t"] is None
-            futs = [st.send_odometry(it[1]) if it[0] == "odometry" else st.send_frame(it[1], it[2]) for it in ITEMS[:40]]
+            futs = [st.send_odometry(it[1]) if it[0] == "odometry" else st.send_frame(it[1], it[2])
+                    for it in ITEMS[:40]]
             bad = st.send_odometry({"t": 0.0, "v": 0.0, "omega": 0.0})  # before the last input
             st.drain()
         assert [f.result(10)["seq"] for f in futs] == list(range(40))

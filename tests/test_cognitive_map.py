@@ -139,8 +139,9 @@ def test_loop_closure_removes_injected_heading_drift(solver):
     first_lap = len(inc) // 2
     # a strong drift (0.02 rad/m): open the gate and the cycle tolerance wide enough for it (the tolerance of
     # transform-less hypotheses), support as in [ours] v1
-    cmap = CognitiveMap(MapConfig(**VERIFIED, solver=solver, prune_online=False, loop_transform_radius_m=3.0, loop_min_support=2,
-                                  loop_transform_consistency_rad=0.1, loop_consistency_rad_per_m=0.0))
+    cmap = CognitiveMap(MapConfig(**VERIFIED, solver=solver, prune_online=False, loop_transform_radius_m=3.0,
+                                  loop_min_support=2, loop_transform_consistency_rad=0.1,
+                                  loop_consistency_rad_per_m=0.0))
     node_at, off, _ = drive(cmap, noisy, hypotheses=true_loops(gt, first_lap))
     cmap.finish(iterations=2000)
     before, after = rms_xy(odo, gt), rms_xy(corrected(cmap, node_at, off), gt)
@@ -624,4 +625,5 @@ def test_turning_links_hold_the_heading_less_stiffly():
             np.testing.assert_allclose(per_m, MapConfig().odometry_information_per_m[1])
         else:
             assert per_m[turning].max() < 0.5 * per_m[straight].min()
-            np.testing.assert_allclose(1 / info[turning, 2], length[turning] / 3620.0 + turn_var * np.abs(tr[turning, 2]))
+            np.testing.assert_allclose(1 / info[turning, 2],
+                                       length[turning] / 3620.0 + turn_var * np.abs(tr[turning, 2]))

@@ -13,13 +13,13 @@ from __future__ import annotations
 import argparse
 import ast
 import json
-from importlib.metadata import PackageNotFoundError, packages_distributions, requires
 import re
 import shlex
 import subprocess
 import sys
 import tomllib
 from dataclasses import dataclass, field
+from importlib.metadata import PackageNotFoundError, packages_distributions, requires
 from pathlib import Path
 from urllib.parse import urlsplit
 
@@ -358,8 +358,10 @@ def test_volume_is_the_data_folder_and_user_is_not_root():
     user = users[-1].args.split(":")[0]
     assert user not in ("root", "0")
     runs = " ".join(i.args for i in RUNTIME.all("RUN"))
-    assert re.search(rf"useradd\b.*--uid {re.escape(user)}\b", runs) or re.search(rf"useradd\b.*\b{user}\s*(&&|$)", runs)
-    assert re.search(r"chown [^ ]+ /data|chown [^ ]+ " + re.escape(volumes[0]), runs), "the data folder must be writable"
+    assert (re.search(rf"useradd\b.*--uid {re.escape(user)}\b", runs)
+            or re.search(rf"useradd\b.*\b{user}\s*(&&|$)", runs))
+    assert re.search(r"chown [^ ]+ /data|chown [^ ]+ " + re.escape(volumes[0]), runs), \
+        "the data folder must be writable"
     order = [i.op for i in RUNTIME.instructions]
     assert order.index("USER") < order.index("ENTRYPOINT") and order.index("USER") < order.index("VOLUME")
 

@@ -26,8 +26,15 @@ from hippomap.inputs import Odometry, decode_jpeg
 from hippomap.mapper import Mapper
 from hippomap.rosbag import read_rosbag
 from hippomap.run import open_dataset, run_dataset, write_run
-from hippomap.session_export import (GROUNDTRUTH_TOPIC, IMAGE_TOPIC, ODOM_TOPIC, EncodedFrame, increments,
-                                     write_data_dir, write_rosbag2)
+from hippomap.session_export import (
+    GROUNDTRUTH_TOPIC,
+    IMAGE_TOPIC,
+    ODOM_TOPIC,
+    EncodedFrame,
+    increments,
+    write_data_dir,
+    write_rosbag2,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))

@@ -132,9 +132,8 @@ def test_revoking_a_writer_revokes_its_viewers_and_hands_its_sessions_to_the_adm
 
 
 def test_sockets_opened_before_a_revocation_are_closed(client):
-    from web.routes import COOKIE, SUBPROTOCOL
-
     from server.auth import VIEWER_COOKIE
+    from web.routes import COOKIE, SUBPROTOCOL
 
     assert COOKIE == VIEWER_COOKIE
     writer = client.post("/tokens", json={"role": "writer"}, headers=AUTH).json()

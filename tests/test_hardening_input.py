@@ -39,7 +39,6 @@ from server.ingest import IngestError, check_frame
 from server.protocol import json_depth, pack_frame, parse_text_message
 from server.quotas import SAFE_RANGES, check_config, grid_table_bytes
 from server.settings import ServerSettings
-from server.sqlite_store import SQLiteStore
 from server.store import InputRecord, StoreDead
 
 TOKEN = "hm_hardening_admin_token"
@@ -666,7 +665,10 @@ def test_time_jump_limit_is_relative_to_the_session_clock_and_configurable(tmp_p
     app = create_app(_settings(tmp_path, max_time_jump_s=10.0))
     with TestClient(app) as c:
         sid = _session(c)
-        post = lambda t: c.post(f"/sessions/{sid}/odometry", json={"t": t, "v": 0.1, "omega": 0.0}, headers=AUTH)
+
+        def post(t: float):
+            return c.post(f"/sessions/{sid}/odometry", json={"t": t, "v": 0.1, "omega": 0.0}, headers=AUTH)
+
         assert post(1e9).status_code == 200  # the first input sets the clock (Unix time is fine)
         assert post(1e9 + 9.0).status_code == 200
         r = post(1e9 + 20.0)

@@ -143,7 +143,7 @@ def test_a_visual_hypothesis_carries_where_its_key_frame_was_taken():
     """The offset a visual hypothesis carries is the key frame's pose in its node's frame, so a
     closure links the robot to where the view was learned, not to the node's own pose."""
     m = Mapper(HippomapConfig())
-    for t, odo, frame in _frames_at(10.0, seconds=6.0):
+    for _t, odo, frame in _frames_at(10.0, seconds=6.0):
         m.step(odo)
         m.observe(frame)
     assert m.frame_offset

@@ -3,6 +3,7 @@ rule, phase reset continuity, odometry conventions, state snapshots and input va
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 
@@ -30,7 +31,7 @@ DELTA = DEFAULT.resolution_m
 @pytest.fixture(scope="module")
 def grid() -> GridCells:
     g = GridCells(DEFAULT)
-    g.tables  # build the 801 x 801 matrices once for the module
+    _ = g.tables  # build the 801 x 801 matrices once for the module
     return g
 
 
@@ -292,7 +293,8 @@ def test_state_round_trip_gives_identical_future_outputs(grid):
         if ca is None or cb is None:
             assert ca is None and cb is None
             continue
-        assert (ca.x, ca.y, ca.theta, ca.iterations, ca.reset, ca.origin) == (cb.x, cb.y, cb.theta, cb.iterations, cb.reset, cb.origin)
+        assert ((ca.x, ca.y, ca.theta, ca.iterations, ca.reset, ca.origin)
+                == (cb.x, cb.y, cb.theta, cb.iterations, cb.reset, cb.origin))
         assert np.array_equal(ca.field.indices, cb.field.indices)
     assert sp.steps == 65 and clone.steps == 65
     # the noisy discharges themselves continue identically, and differ with another noise stream
@@ -342,5 +344,5 @@ def test_bad_initial_pose_raises():
 def test_place_code_is_frozen(grid):
     code = SpatialPathway(DEFAULT).localise()
     assert isinstance(code, PlaceCode)
-    with pytest.raises(Exception):
+    with pytest.raises(dataclasses.FrozenInstanceError):
         code.x = 1.0  # type: ignore[misc]

@@ -67,7 +67,7 @@ def test_recorded_iteration_finds_the_field_localise_finds(small, x, y, noise):
 def test_recording_draws_no_noise_and_reproduces_the_step():
     cfg = SpatialConfig(**SMALL, rate_noise=0.01)
     a, b = SpatialPathway(cfg), SpatialPathway(cfg)
-    for k in range(25):
+    for _ in range(25):
         ca = a.step_increment(0.003, 0.001, 0.05)
         a.record()  # must not touch the noise stream
         cb = b.step_increment(0.003, 0.001, 0.05)

@@ -274,7 +274,8 @@ def test_relaxation_commutes_with_a_rigid_motion(g, th, x, y):
     true, src, dst, T = random_graph(rng, n=n, extra=extra, noise=0.1)
     P = true + rng.normal(0, 0.2, true.shape)
     motion = np.array([x, y, th])
-    for fn in (lambda Q: relax(Q, src, dst, T, 15, anchor=None), lambda Q: relax_jacobi(Q, src, dst, T, 15, anchor=None),
+    for fn in (lambda Q: relax(Q, src, dst, T, 15, anchor=None),
+               lambda Q: relax_jacobi(Q, src, dst, T, 15, anchor=None),
                lambda Q: relax(Q, src, dst, T, 15), lambda Q: solve_lsq(Q, src, dst, T, iterations=3)):
         A = P.copy()
         B = compose(motion, P)

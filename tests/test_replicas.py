@@ -19,7 +19,14 @@ import pytest
 from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed
 
-from server.testing import LiveServer, offline_reference, postgres_url_for, session_state, stream_items, synthetic_inputs
+from server.testing import (
+    LiveServer,
+    offline_reference,
+    postgres_url_for,
+    session_state,
+    stream_items,
+    synthetic_inputs,
+)
 
 CONFIG = {"mapper": {"keyframe_interval": 3}}
 ITEMS = synthetic_inputs(n_odometry=300, frame_every=3)  # closes loops (as in test_server_crash)

@@ -39,8 +39,9 @@ def _msgs(n=6):
                                          pose=pose, twist=twist)
         img = np.full((12, 16), 10 * k, np.uint8)
         ok, jpg = cv2.imencode(".jpg", img)
-        cimg = T["sensor_msgs/msg/CompressedImage"](header=Header(stamp=Time(sec=100 + k, nanosec=500_000_000), frame_id="cam"),
-                                                   format="jpeg", data=np.frombuffer(jpg.tobytes(), np.uint8))
+        header = Header(stamp=Time(sec=100 + k, nanosec=500_000_000), frame_id="cam")
+        cimg = T["sensor_msgs/msg/CompressedImage"](header=header, format="jpeg",
+                                                   data=np.frombuffer(jpg.tobytes(), np.uint8))
         raw = T["sensor_msgs/msg/Image"](header=Header(stamp=Time(sec=100 + k, nanosec=500_000_000), frame_id="cam"),
                                         height=12, width=16, encoding="mono8", is_bigendian=0, step=16,
                                         data=img.reshape(-1))

@@ -95,7 +95,8 @@ def test_cli_writes_exports(dataset_dir, tmp_path, capsys):
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["map"]["ate"]["rmse"] < metrics["odometry"]["ate"]["rmse"]
     assert metrics["loop_closures"]["accepted_false"] == 0
-    assert metrics["loop_closures"]["accepted"] + metrics["loop_closures"]["rejected"] == metrics["loop_closures"]["proposed"]
+    lc = metrics["loop_closures"]
+    assert lc["accepted"] + lc["rejected"] == lc["proposed"]
     t_map, p_map = read_tum(out / "map.tum")
     t_odo, _ = read_tum(out / "odometry.tum")
     ts = np.array([float(x) for x in (folder / "synthetic_timestamps.txt").read_text().split()])

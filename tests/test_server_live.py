@@ -156,7 +156,8 @@ def test_queries_serve_the_session_state(server, client):
     paths = client._http.get("/openapi.json").json()["paths"]
     for p in ("/sessions", "/sessions/{session_id}/odometry", "/sessions/{session_id}/frames",
               "/sessions/{session_id}/map.graphml", "/sessions/{session_id}/loop-closures",
-              "/sessions/{session_id}/place-fields/{step}/png", "/sessions/{session_id}/saccades/{recognition_id}/image",
+              "/sessions/{session_id}/place-fields/{step}/png",
+              "/sessions/{session_id}/saccades/{recognition_id}/image",
               "/tokens"):
         assert p in paths
 
@@ -234,7 +235,8 @@ def test_bad_inputs_get_their_4xx_and_the_session_stays_correct(server, client):
             code, msg = _status(client.send_frame, sid, t_last + 1e-4, jpeg + bytes(450_000))
             assert code == 413 and "limit" in msg
         elif kind == 8:
-            code, msg = _status(client.send_frame, sid, t_last + 1e-4, cv2.imencode(".png", noisy)[1].tobytes()[:390_000])
+            truncated = cv2.imencode(".png", noisy)[1].tobytes()[:390_000]
+            code, msg = _status(client.send_frame, sid, t_last + 1e-4, truncated)
             assert code in (413, 422)  # oversize frame bytes (413) or truncated (422): either names the problem
             code, msg = _status(client.send_frame, sid, t_last + 1e-4, cv2.imencode(".jpg", big)[1].tobytes())
             assert code == 413 and "2100x1100" in msg
@@ -272,7 +274,8 @@ def test_bad_inputs_get_their_4xx_and_the_session_stays_correct(server, client):
             t = hello["last_t"]
             assert hello["last_odometry_t"] == last_odo and hello["last_frame_t"] == last_frame
             msgs = [
-                ("text", json.dumps({"type": "odometry", "id": 1, "t": t + 1, "v": "NaN", "omega": 0}).replace('"NaN"', "NaN"), 422),
+                ("text", json.dumps({"type": "odometry", "id": 1, "t": t + 1, "v": "NaN", "omega": 0})
+                 .replace('"NaN"', "NaN"), 422),
                 ("text", "{not json", 422),
                 ("text", json.dumps({"type": "teleport", "id": 3}), 422),
                 ("text", json.dumps({"type": "odometry", "id": 4, "t": last_odo, "v": 0, "omega": 0}), 409),
@@ -282,7 +285,7 @@ def test_bad_inputs_get_their_4xx_and_the_session_stays_correct(server, client):
                 ("bytes", b"HMF1" + struct.pack("<Id", 8, t + 1) + jpeg[:-300], 422),
             ]
             out = []
-            for kind, payload, status in msgs:
+            for _kind, payload, status in msgs:
                 await ws.send(payload)
                 reply = json.loads(await ws.recv())
                 out.append((reply["type"], reply["status"], status, reply["detail"]))
@@ -396,12 +399,14 @@ def test_backpressure_and_rate_limit_slow_or_tell_and_lose_nothing(tmp_path, var
             {"readings": [{"t": 1e6 + 0.05 * i, "v": 0.5, "omega": 0.3} for i in range(2000)]}),
             headers={"Content-Type": "application/json"})
         r2 = c._http.post(f"/sessions/{sid2}/odometry", content=json.dumps(
-            {"readings": [{"t": 2e6 + i, "v": 0, "omega": 0} for i in range(100)]}), headers={"Content-Type": "application/json"})
+            {"readings": [{"t": 2e6 + i, "v": 0, "omega": 0} for i in range(100)]}),
+            headers={"Content-Type": "application/json"})
         assert r.status_code == 200 and r2.status_code == 429 and r2.headers["Retry-After"] == "1" and "busy" in r2.text
         # reads have a rate limit too (their own budget, per token: see test_hardening_api)
         async def burst():
             async with httpx.AsyncClient(base_url=srv.url, headers={"Authorization": f"Bearer {srv.token}"}) as h:
-                return await asyncio.gather(*(h.get(f"/sessions/{sid2}/events", params={"limit": 1}) for _ in range(80)))
+                return await asyncio.gather(*(h.get(f"/sessions/{sid2}/events", params={"limit": 1})
+                                              for _ in range(80)))
 
         limited = [r for r in asyncio.run(burst()) if r.status_code == 429]
         assert limited and "rate limit" in limited[0].text and int(limited[0].headers["Retry-After"]) >= 1

@@ -18,8 +18,14 @@ from hippomap.errors import InputError
 from hippomap.inputs import Odometry
 from server.auth import Authenticator, can_read, can_write, ensure_admin, hash_secret
 from server.images import image_dimensions
-from server.ingest import (IngestError, check_frame, check_odometry, odometry_bytes, odometry_from_bytes,
-                           parse_odometry_message)
+from server.ingest import (
+    IngestError,
+    check_frame,
+    check_odometry,
+    odometry_bytes,
+    odometry_from_bytes,
+    parse_odometry_message,
+)
 from server.limits import TokenBucket
 from server.postgres_store import PostgresStore
 from server.protocol import pack_frame, unpack_frame

@@ -12,6 +12,7 @@ Chromium is Debian's (/usr/bin/chromium) driven by Playwright with software WebG
 from __future__ import annotations
 
 import os
+
 import cv2
 import numpy as np
 import pytest

@@ -13,6 +13,7 @@ import pytest
 import hippomap
 from hippomap.config import VisualConfig
 from hippomap.errors import InputError
+from hippomap.sim.scenes import shapes_scene
 from hippomap.visual_memory import (
     Recognition,
     VisualMemory,
@@ -20,8 +21,6 @@ from hippomap.visual_memory import (
     draw_trace,
     prepare_image,
 )
-from hippomap.sim.scenes import shapes_scene
-
 
 scene = shapes_scene
 

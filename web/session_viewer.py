@@ -30,20 +30,20 @@ import viser
 
 from hippomap.cognitive_map import LoopDecision
 
+from .camera_fit import fit_camera, map_bounds
 from .chunks import ChunkUpdate
 from .images import pair_panel, placeholder
 from .panel_camera import CameraPanel
 from .panel_evidence import EvidencePanel
-from .camera_fit import fit_camera, map_bounds
 from .panel_layers import layer_specs, legend_html
-from .panel_place_cells import PlaceCellsPanel
-from .panel_view import ClientViews
 from .panel_loops import LoopsPanel
+from .panel_place_cells import PlaceCellsPanel
 from .panel_stats import StatsPanel
+from .panel_view import ClientViews
+from .scene_ground_truth import GroundTruthLayer
 from .scene_loops import LoopLayer, LoopUpdate
 from .scene_map import MapGraphLayer, MapUpdate
 from .scene_place_field import PlaceFieldLayer
-from .scene_ground_truth import GroundTruthLayer
 from .scene_pose import RobotMarker
 from .scene_trajectories import TrajectoryLayer, TrajectoryUpdate
 from .settings import ViewerSettings
