@@ -17,8 +17,8 @@ from typing import Any
 
 import numpy as np
 
-from .cognitive_map import CognitiveMap, LoopHypothesis
 from .cli import add_progress_argument, progress_enabled
+from .cognitive_map import CognitiveMap, LoopHypothesis
 from .config import HippomapConfig
 from .datasets import OdometryDataset, load_odometry_dataset
 from .errors import InputError

@@ -486,8 +486,8 @@ def _run(args: argparse.Namespace) -> int:
             raise InputError(f"cannot read config {args.config}: {exc}") from exc
         overrides.update(data.get("visual", data) if isinstance(data, dict) else {})
     overrides.update(_parse_overrides(args.set))
-    m = evaluate_vpr(args.data_dir, args.out, overrides or None, n_examples=args.examples, progress=progress_enabled(args),
-                     seeds=args.seeds)
+    m = evaluate_vpr(args.data_dir, args.out, overrides or None, n_examples=args.examples,
+                     progress=progress_enabled(args), seeds=args.seeds)
     o, b = m["ours"], m["baseline"]
     print(f"{m['dataset']}: {m['n_references']} references, "
           f"{m['n_queries']} queries ({m['n_queries_with_match']} with a match)")

@@ -28,7 +28,7 @@ from starlette.routing import Match
 from hippomap import __version__
 
 from . import model
-from .api import docs, ingest, landing, queries, reuse, sessions, stream, tokens, wsdoc
+from .api import docs, ingest, queries, reuse, sessions, stream, tokens, wsdoc
 from .auth import Authenticator, CloseOnRevoke, adopt_orphans, ensure_admin
 from .limits import BodySizeLimit, KeyedBuckets, OriginCheck
 from .metrics import ServiceMetrics
@@ -320,8 +320,8 @@ def create_app(settings: ServerSettings | None = None) -> FastAPI:
         return app.openapi_schema
 
     app.openapi = openapi  # type: ignore[method-assign]
-    from web.service import viewer_router  # the live 3D viewer: /viewer/ (web/routes.py)
+    from web.service import landing_router, viewer_router  # the live 3D viewer: /viewer/ (web/routes.py); /
 
     app.include_router(viewer_router(app))
-    app.include_router(landing.router)
+    app.include_router(landing_router)
     return app

@@ -171,7 +171,8 @@ def _examples(document, media: dict) -> list:
     if "example" in media:
         return [media["example"]]
     if "examples" in media:  # named examples: a value, or (binary bodies) a file's URL
-        return [e["value"] if "value" in e else {"externalValue": e["externalValue"]} for e in media["examples"].values()]
+        return [e["value"] if "value" in e else {"externalValue": e["externalValue"]}
+                for e in media["examples"].values()]
     schema = media.get("schema", {})
     if "$ref" in schema:
         schema = document["components"]["schemas"][schema["$ref"].rsplit("/", 1)[1]]
@@ -206,7 +207,8 @@ def test_the_json_examples_are_accepted_by_the_server(client, document):
     sessions = body_examples("/sessions")
     created = [client.post("/sessions", json=ex, headers=AUTH) for ex in sessions]
     assert [r.status_code for r in created] == [201] * len(sessions), [r.text for r in created]
-    assert created[0].json()["config"]["mapper"]["keyframe_interval"] == sessions[0]["config"]["mapper"]["keyframe_interval"]
+    mapper_cfg = created[0].json()["config"]["mapper"]
+    assert mapper_cfg["keyframe_interval"] == sessions[0]["config"]["mapper"]["keyframe_interval"]
     sid = created[0].json()["id"]
     odometry = body_examples("/sessions/{session_id}/odometry")
     assert len(odometry) >= 3 and any("readings" in ex for ex in odometry) and any("increment" in ex for ex in odometry)

@@ -38,7 +38,8 @@ def service(tmp_path_factory):
         mine = c.post("/sessions", json={"name": "admin lap"}, headers=_bearer(ADMIN)).json()["id"]
         other = c.post("/sessions", json={"name": "writer lap <b>"}, headers=_bearer(writer)).json()["id"]
         readings = [{"t": 0.1 * (k + 1), "v": 0.5, "omega": 0.3} for k in range(60)]
-        assert c.post(f"/sessions/{mine}/odometry", json={"readings": readings}, headers=_bearer(ADMIN)).status_code == 200
+        sent = c.post(f"/sessions/{mine}/odometry", json={"readings": readings}, headers=_bearer(ADMIN))
+        assert sent.status_code == 200
         deadline = time.monotonic() + 60
         while c.get(f"/sessions/{mine}/stats", headers=_bearer(ADMIN)).json()["pending"] > 0:
             assert time.monotonic() < deadline

@@ -110,6 +110,7 @@ def test_cli_writes_exports(dataset_dir, tmp_path, capsys):
 
 def test_cli_reports_bad_input(tmp_path, capsys):
     (tmp_path / "bad.g2o").write_text("VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 0 0 nan\n")
-    assert main(["run-odometry", str(tmp_path), "--loops", "bad.g2o", "--out", str(tmp_path / "o"), "--no-progress"]) == 2
+    out = str(tmp_path / "o")
+    assert main(["run-odometry", str(tmp_path), "--loops", "bad.g2o", "--out", out, "--no-progress"]) == 2
     err = capsys.readouterr().err
     assert "bad.g2o:2" in err and "non-finite value nan" in err

@@ -22,6 +22,7 @@ from typing import Any, Callable, TypeVar
 import numpy as np
 from fastapi import APIRouter
 
+from .landing import router as landing_router  # noqa: F401  (mounted by server.app with the viewer)
 from .routes import SessionEntry, make_router
 from .session_viewer import ViewerHub
 from .settings import ViewerSettings

@@ -25,11 +25,14 @@ from fastapi.responses import HTMLResponse, Response
 
 from hippomap import __version__
 
+from .routes import _remember, token_from  # the viewer's token rules
+
 router = APIRouter(tags=["server"])
 
 STYLE = """body{font-family:system-ui,sans-serif;max-width:60rem;margin:2rem auto;padding:0 1rem;color:#222}
 table{border-collapse:collapse;margin:.5rem 0}td,th{padding:.25rem .7rem;border-bottom:1px solid #ddd;text-align:left}
-td.n{text-align:right;font-variant-numeric:tabular-nums}code,pre{background:#eee;padding:0 .2em}pre{padding:.5em;overflow-x:auto}
+td.n{text-align:right;font-variant-numeric:tabular-nums}code,pre{background:#eee;padding:0 .2em}
+pre{padding:.5em;overflow-x:auto}
 .d{color:#777;font-size:.9em}nav a{margin-right:1.2rem}"""
 
 
@@ -44,7 +47,8 @@ cells, a visual recognition memory that closes loops).</p>
 <a href="/viewer/">Live viewer</a><a href="/health">Health</a></nav>
 {body}</body></html>"""
     # no-store: the page may list a token's sessions; no-referrer: a token in the URL never leaves it
-    return HTMLResponse(doc, status_code=status, headers={"Cache-Control": "no-store", "Referrer-Policy": "no-referrer"})
+    headers = {"Cache-Control": "no-store", "Referrer-Policy": "no-referrer"}
+    return HTMLResponse(doc, status_code=status, headers=headers)
 
 
 def how_to_get_a_token(message: str, base_url: str) -> str:
@@ -89,7 +93,8 @@ def session_rows(entries: list[dict[str, Any]]) -> str:
             f"<td class='n'>{_number(st, 'mapper', 'loop_closures_rejected')}</td>"
             f"<td class='n'>{_number(st, 'inputs_stored')}</td><td class='n'>{_number(st, 'pending')}</td></tr>")
     return ("<table id='sessions'><thead><tr><th>session</th><th></th><th>nodes</th><th>loop closures</th>"
-            "<th>rejected closures</th><th>inputs</th><th>pending</th></tr></thead><tbody>" + "".join(rows) + "</tbody></table>")
+            "<th>rejected closures</th><th>inputs</th><th>pending</th></tr></thead><tbody>" + "".join(rows)
+            + "</tbody></table>")
 
 
 async def visible_sessions(request: Request, token: Any) -> list[dict[str, Any]]:
@@ -110,8 +115,6 @@ async def visible_sessions(request: Request, token: Any) -> list[dict[str, Any]]
 async def landing(request: Request, token: Annotated[str | None, Query(
         description="a token, for a browser (also read from Authorization: Bearer or the viewer's cookie); "
                     "kept in the viewer's cookie for /viewer")] = None) -> Response:
-    from web.routes import _remember, token_from  # the viewer's token rules (web/ is imported with the app)
-
     secret = token_from(request.headers, request.query_params, request.cookies)
     if not secret:
         return _page(how_to_get_a_token("Give a token to see your sessions.", str(request.base_url)))
