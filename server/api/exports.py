@@ -26,7 +26,7 @@ from ..ingest import odometry_from_bytes
 from ..sessions import LiveSession
 from . import deps
 
-router = APIRouter(tags=["exports"])
+router = APIRouter()  # included by the queries router: its operations are tagged "queries"
 
 #: stored inputs read from the store at a time (a page of frames is the most an export holds in memory)
 PAGE = 256

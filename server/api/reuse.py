@@ -17,7 +17,7 @@ import asyncio
 from typing import Any
 
 from fastapi import APIRouter, HTTPException, Request, Response
-from pydantic import Field
+from pydantic import ConfigDict, Field
 
 from ..ingest import IngestError
 from ..schemas import SessionDetail, _In
@@ -29,6 +29,9 @@ router = APIRouter(prefix="/sessions", tags=["map reuse"])
 
 
 class MergeRequest(_In):
+    model_config = ConfigDict(extra="forbid", populate_by_name=False, json_schema_extra={"examples": [
+        {"from": "0f3c2a9e5b7d4e1f", "name": "second run merged into the first"}]})
+
     from_: str = Field(alias="from", max_length=100, description="the session whose run is merged into this one's map "
                        "(one the token can read)")
     name: str = Field("", max_length=200, description="label of the new, merged session")
