@@ -117,6 +117,22 @@ class VisualConfig(_Frozen):
         "local contrast: keeps flat, noisy regions near zero [ours]"
     )
     retina_gain: float = Field(1.0, gt=0, description="gain of the tanh that codes the response as a grey level [ours]")
+    v1_orientations: int = Field(
+        0, ge=0, le=16, description="V1 complex-cell orientation channels beside the centre-surround one "
+        "(hippomap.retina; 0 = off): the sensory cells also tune to local oriented edge energy. Off by default: 4 channels cost precision on both eval-vpr sets (3 and 4 false matches over 3 seeds), 1.7-1.9x the recognition time, and map ATE on the simulated loop (0.416 -> 0.452 m, seed 1); docs/MODEL.md item 15b [ours]"
+    )
+    v1_sigma: float = Field(1.0, ge=0, description="scale of the V1 simple cells' derivative filters, working px [ours]")
+    v1_pool_sigma: float = Field(2.0, gt=0, description="complex-cell pooling of the squared simple cells, working px [ours]")
+    v1_norm_sigma: float = Field(8.0, gt=0, description="normalisation pool of the orientation energy, working px [ours]")
+    v1_semisaturation: float = Field(
+        0.5, ge=0, description="semi-saturation of the orientation normalisation, fraction of the frame's median pooled "
+        "energy [ours]"
+    )
+    v1_gain: float = Field(1.0, gt=0, description="gain of the tanh coding an orientation response as a rate [ours]")
+    v1_stride: int = Field(
+        2, ge=1, description="the orientation channels are sampled every v1_stride px inside the fovea (complex cells "
+        "are pooled, so coarser sampling loses little and keeps the drive cost down) [ours]"
+    )
     corner_source: Literal["gray", "retina"] = Field(
         "gray", description="image whose Shi-Tomasi corners become fixation points: the contrast-stretched grey image "
         "or the retina's output; corners of the retina image are noise-amplified (rtabmap recall 0.42) [ours]"

@@ -23,6 +23,18 @@ stages, all with Gaussian receptive fields (OpenCV, separable, no Python loop):
    [BBc] and their Gaussian tuning are kept unchanged — they now tune to normalised
    local contrast instead of luminance.
 
+5. **Orientation channels** (V1 complex cells, :meth:`Retina.orientation_channels`): the
+   light-adapted image's gradient at scale ``v1_sigma`` is projected on ``v1_orientations``
+   directions (simple cells, Hubel & Wiesel 1962; steerable derivative filters, Freeman &
+   Adelson 1991), squared and pooled over ``v1_pool_sigma`` (the energy model of complex
+   cells, Adelson & Bergen 1985: phase-invariant and tolerant to a shift of a few px), and
+   divided by the pooled energy of all orientations in the neighbourhood plus a
+   semi-saturation set by the frame's median (normalisation pool, Heeger 1992). Channel
+   ``i`` prefers edges at ``i * 180 / n`` degrees (0 = horizontal edges), with the broad
+   ``cos^2`` tuning of V1 and no response to the orthogonal edge; its rate is coded as
+   ``255 tanh(v1_gain r)``. A gain or a gamma change of the light scales every energy
+   alike and cancels in the ratio.
+
 ``mode="none"`` keeps the paper's input (grey levels contrast-stretched like MATLAB's
 ``imadjust``, [BBc]). Parameters are the ``retina_*`` fields of
 :class:`~hippomap.config.VisualConfig`.
@@ -102,6 +114,49 @@ class Retina:
         C = float(np.sqrt(np.median(energy[::4, ::4])))  # the scene's typical local contrast (sampled)
         k = cfg.retina_semisaturation * C + 1e-3
         return c / cv2.sqrt(energy + k * k)
+
+    def orientation_channels(self, gray: np.ndarray) -> np.ndarray:
+        """V1 complex-cell responses: ``(H, W, v1_orientations)`` uint8 (firing rate 0..255).
+
+        Channel ``i`` prefers edges oriented at ``pi * i / n`` (0 = horizontal: a vertical
+        luminance gradient). Cost: two separable derivative filters and three Gaussian pools,
+        whatever the number of orientations (the oriented energies are combinations of the
+        pooled gradient products ``Jxx, Jxy, Jyy``: steerability)."""
+        cfg = self.config
+        n = cfg.v1_orientations
+        if not isinstance(gray, np.ndarray) or gray.dtype != np.uint8 or gray.ndim != 2 or gray.size == 0:
+            raise InputError("the orientation channels need a non-empty 2-D uint8 gray image")
+        if n < 1:
+            raise InputError(f"v1_orientations must be >= 1 to compute orientation channels, got {n}")
+        L = _gauss(_LOG_LUT[gray], cfg.v1_sigma)  # light adaptation, then the simple cells' scale
+        gx = cv2.Sobel(L, cv2.CV_32F, 1, 0, ksize=3, borderType=cv2.BORDER_REFLECT) * 0.125
+        gy = cv2.Sobel(L, cv2.CV_32F, 0, 1, ksize=3, borderType=cv2.BORDER_REFLECT) * 0.125
+        jxx = _gauss(gx * gx, cfg.v1_pool_sigma)  # complex cells: squared simple cells, pooled
+        jxy = _gauss(gx * gy, cfg.v1_pool_sigma)
+        jyy = _gauss(gy * gy, cfg.v1_pool_sigma)
+        total = jxx + jyy  # energy summed over all orientations (up to a factor n / 2)
+        pool = _gauss(total, cfg.v1_norm_sigma)  # the normalisation pool of the neighbourhood
+        C = float(np.median(pool[::4, ::4]))
+        den = pool + (cfg.v1_semisaturation * C + 1e-6)
+        out = np.empty(gray.shape + (n,), np.uint8)
+        for i in range(n):  # n orientations: a handful of whole-image operations
+            th = np.pi * i / n
+            # a simple cell preferring edges at angle th differentiates across them: along
+            # (-sin th, cos th)
+            s, c = np.sin(th), np.cos(th)
+            e = s * s * jxx - 2.0 * s * c * jxy + c * c * jyy
+            r = np.maximum(e, 0.0) / den  # energy ratio: cos^2 tuning, gain and contrast cancel
+            out[..., i] = np.clip(np.rint(255.0 * np.tanh(cfg.v1_gain * r)), 0, 255).astype(np.uint8)
+        return out
+
+    def sensory_image(self, gray: np.ndarray) -> np.ndarray:
+        """What the sensory cells see: the ganglion image (``H x W`` uint8), with the
+        orientation channels stacked behind it (``H x W x (1 + n)``) when ``v1_orientations``
+        is on and the mode is ``"dog"``."""
+        g = self(gray)
+        if self.mode == "none" or self.config.v1_orientations == 0:
+            return g
+        return np.concatenate([g[..., None], self.orientation_channels(gray)], axis=2)
 
     def __call__(self, gray: np.ndarray) -> np.ndarray:
         cfg = self.config

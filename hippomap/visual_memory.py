@@ -101,6 +101,11 @@ _LUT16 = _lut16_works()
 _DECODE_CACHE = 1 << 15  # decoded saccade vectors remembered per memory (a few MB at most)
 
 
+def _channel0(img: np.ndarray) -> np.ndarray:
+    """The ganglion (centre-surround) image of a sensory image with or without orientation channels."""
+    return img[..., 0] if img.ndim == 3 else img
+
+
 def _gather_k(table: np.ndarray, idx: np.ndarray) -> np.ndarray:
     """``table[idx]`` for a flat float32 table of 65,536 entries and a 2-D uint16 index array.
 
@@ -167,13 +172,15 @@ def _working_size(image: Any, cfg: VisualConfig, name: str = "image") -> tuple[n
 def prepare_views(image: Any, config: VisualConfig | None = None,
                   name: str = "image") -> tuple[np.ndarray, np.ndarray, float]:
     """Like :func:`prepare_image`, also returning the working-size grey image before the retina:
-    ``(gray, work, scale)``; fixation points are chosen on ``gray`` or ``work`` (``corner_source``)."""
+    ``(gray, work, scale)``; fixation points are chosen on ``gray`` or ``work`` (``corner_source``).
+    ``work`` is ``H x W`` (the ganglion image), or ``H x W x (1 + v1_orientations)`` with the V1
+    orientation channels behind it (:meth:`~hippomap.retina.Retina.sensory_image`)."""
     cfg = config or VisualConfig()
     gray, width, height = _working_size(image, cfg, name)
     h0, w0 = gray.shape
     interp = cv2.INTER_AREA if width < w0 else cv2.INTER_LINEAR
     work = cv2.resize(gray, (width, height), interpolation=interp) if (width, height) != (w0, h0) else gray.copy()
-    return work, Retina(cfg)(work), w0 / float(width)
+    return work, Retina(cfg).sensory_image(work), w0 / float(width)
 
 
 # ---------------------------------------------------------------------------------------
@@ -421,7 +428,12 @@ class VisualMemory:
             raise InputError(f"fovea must be odd (2h+1), got {cfg.fovea}")
         self.grid = VisualGridCells(cfg)
         self.h = cfg.fovea // 2
-        self.P = cfg.fovea * cfg.fovea
+        # a feature unit's sensory field: the fovea of the ganglion image, then the fovea of each
+        # orientation channel sampled every v1_stride px (prepare_views stacks them in this order)
+        self.P0 = cfg.fovea * cfg.fovea
+        self._n_ori = cfg.v1_orientations if cfg.retina_mode != "none" else 0
+        self._ori_side = len(range(0, cfg.fovea, cfg.v1_stride))
+        self.P = self.P0 + self._n_ori * self._ori_side**2
         self.D = cfg.index_side * cfg.index_side
         # sensory cells: s_a(v) = exp(-((a - v)/sigma)^2), cut below the cutoff ([BBc])
         v = np.arange(256, dtype=np.float64)
@@ -537,7 +549,7 @@ class VisualMemory:
                 and image.dtype == last[0].dtype and np.array_equal(image, last[0])):
             return last[1], last[2], last[3]
         gray, work, scale = prepare_views(image, cfg)
-        cimg = work if cfg.corner_source == "retina" else _imadjust(gray, cfg.contrast_clip)
+        cimg = _channel0(work) if cfg.corner_source == "retina" else _imadjust(gray, cfg.contrast_clip)
         for a in (work, cimg):
             a.flags.writeable = False
         self._last_views = (np.array(image, copy=True), work, scale, cimg)
@@ -546,7 +558,7 @@ class VisualMemory:
     def _descriptor(self, patches: np.ndarray) -> np.ndarray:
         f, s = self.config.fovea, self.config.index_side
         out = np.empty((patches.shape[0], self.D), np.float32)
-        for i, p in enumerate(patches.reshape(-1, f, f)):
+        for i, p in enumerate(patches[:, : self.P0].reshape(-1, f, f)):  # the ganglion part indexes
             out[i] = cv2.resize(p, (s, s), interpolation=cv2.INTER_AREA).astype(np.float32).ravel()
         return out
 
@@ -572,7 +584,7 @@ class VisualMemory:
 
     def _random_points(self, shape: tuple[int, int], k: int) -> np.ndarray:
         m = self._margin()
-        H, W = shape
+        H, W = shape[:2]
         cand = self._rng.integers([m, m], [W - m, H - m], size=(40 * k, 2))
         chosen: list[np.ndarray] = []
         for c in cand:  # k accepted points: a tiny loop, not a hot path
@@ -582,9 +594,19 @@ class VisualMemory:
                     break
         return np.array(chosen, np.int32).reshape(-1, 2)
 
-    def _patches(self, img: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    def _patch_at(self, img: np.ndarray, x: int, y: int) -> np.ndarray:
+        """The sensory field of a fovea at (x, y): ganglion fovea, then each orientation channel's
+        fovea sampled every ``v1_stride`` px (``P`` uint8 values)."""
         h = self.h
-        return np.stack([img[y - h : y + h + 1, x - h : x + h + 1].ravel() for x, y in pts]) if len(pts) else np.zeros(
+        if img.ndim == 2:
+            return img[y - h : y + h + 1, x - h : x + h + 1].ravel()
+        st = self.config.v1_stride
+        g = img[y - h : y + h + 1, x - h : x + h + 1, 0].ravel()
+        o = img[y - h : y + h + 1 : st, x - h : x + h + 1 : st, 1:]
+        return np.concatenate([g, o.transpose(2, 0, 1).ravel()])
+
+    def _patches(self, img: np.ndarray, pts: np.ndarray) -> np.ndarray:
+        return np.stack([self._patch_at(img, int(x), int(y)) for x, y in pts]) if len(pts) else np.zeros(
             (0, self.P), np.uint8
         )
 
@@ -659,9 +681,8 @@ class VisualMemory:
         """Drive of the FLC population at fixation ``pos`` and the [BBc] pruning: evidence test
         ``max u > mean + N_std sd``, ``u / max u``, bias on the predicted unit, prune, softmax."""
         cfg = self.config
-        h = self.h
         x, y = int(pos[0]), int(pos[1])
-        patch = img[y - h : y + h + 1, x - h : x + h + 1].ravel()
+        patch = self._patch_at(img, x, y)
         uR = None
         if sub.exact_all:
             T = np.arange(sub.n)
@@ -743,6 +764,7 @@ class VisualMemory:
         """Snap the landing point to the best match of the predicted feature within ``tolerance_px``
         (the [BBc] microsaccade); ``None`` if the fovea cannot be placed inside the image."""
         h, r = self.h, self.config.tolerance_px
+        img = _channel0(img)  # the microsaccade matches the ganglion fovea
         H, W = img.shape
         lo_x, hi_x = h, W - h - 1
         lo_y, hi_y = h, H - h - 1
@@ -754,7 +776,7 @@ class VisualMemory:
         if r == 0:
             return np.array([x0, y0])
         region = img[y0 - h : y1 + h + 1, x0 - h : x1 + h + 1]
-        tmpl = self._patch[flc].reshape(self.config.fovea, self.config.fovea)
+        tmpl = self._patch[flc, : self.P0].reshape(self.config.fovea, self.config.fovea)
         res = cv2.matchTemplate(region, tmpl, cv2.TM_SQDIFF)
         _, _, loc, _ = cv2.minMaxLoc(res)
         return np.array([x0 + loc[0], y0 + loc[1]])
@@ -768,7 +790,7 @@ class VisualMemory:
         """
         cfg = self.config
         work, scale, cimg = self._views(image)
-        H, W = work.shape
+        H, W = work.shape[:2]
         size = (int(round(W * scale)), int(round(H * scale)))
         if candidates is None:
             frames = None

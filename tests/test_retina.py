@@ -98,3 +98,61 @@ def test_recognition_survives_a_lighting_change_that_defeats_grey_level_cells(ga
         assert wrong == 0
     assert hits["dog"] >= 9
     assert hits["dog"] >= hits["none"] + 4
+
+
+# ---------------------------------------------------------------------------------------
+# V1 orientation channels
+# ---------------------------------------------------------------------------------------
+def _edge(angle_deg: float, size: int = 81, lo: int = 60, hi: int = 180) -> np.ndarray:
+    """A straight luminance edge through the image centre, oriented at ``angle_deg`` (0 = horizontal)."""
+    yy, xx = np.mgrid[:size, :size].astype(np.float64) - size // 2
+    th = np.deg2rad(angle_deg)
+    side = -np.sin(th) * xx + np.cos(th) * yy  # signed distance across the edge
+    return np.where(side > 1e-9, hi, lo).astype(np.uint8)
+
+
+@pytest.mark.parametrize("n", [4, 8])
+def test_orientation_channel_prefers_its_edge_and_ignores_the_orthogonal_one(n):
+    """Channel i responds at the centre of an edge oriented at i * 180 / n degrees, and that channel
+    stays near rest for the orthogonal edge; on a uniform field every channel is silent."""
+    r = Retina(VisualConfig(v1_orientations=n))
+    for i in range(n):
+        angle = 180.0 * i / n
+        on = r.orientation_channels(_edge(angle))[40, 40].astype(int)
+        ortho = r.orientation_channels(_edge(angle + 90.0))[40, 40].astype(int)
+        assert int(np.argmax(on)) == i, (angle, on)
+        assert on[i] > 150
+        assert ortho[i] < 0.15 * on[i], (angle, on[i], ortho[i])
+    flat = r.orientation_channels(np.full((60, 60), 120, np.uint8))
+    assert flat.max() <= 1
+
+
+@settings(max_examples=20, deadline=None)
+@given(gain=st.floats(0.4, 0.95), gamma=st.floats(0.6, 1.6), seed=st.integers(0, 10_000))
+def test_orientation_channels_are_invariant_to_brightness_and_contrast(gain, gamma, seed):
+    """A global gain and an exposure curve (gamma, i.e. a contrast change of the light-adapted image)
+    barely move the normalised orientation responses, while the grey levels move a lot."""
+    img = (shapes_scene(seed).astype(np.float64) * 0.8 + 20).astype(np.uint8)
+    other = relight(img, gain, 0.0, gamma)
+    r = Retina(VisualConfig(v1_orientations=4))
+    a = r.orientation_channels(img).astype(float)
+    b = r.orientation_channels(other).astype(float)
+    change = np.abs(a - b).mean()
+    raw_change = np.abs(img.astype(float) - other.astype(float)).mean()
+    assert change < 8.0, change
+    assert change < 0.5 * raw_change or raw_change < 8.0
+
+
+def test_sensory_image_stacks_the_channels_and_bad_inputs_raise():
+    img = shapes_scene(5)
+    off = Retina(VisualConfig(v1_orientations=0)).sensory_image(img)
+    assert off.shape == img.shape
+    cfg = VisualConfig(v1_orientations=4)
+    on = Retina(cfg).sensory_image(img)
+    assert on.shape == img.shape + (5,) and on.dtype == np.uint8
+    assert np.array_equal(on[..., 0], Retina(cfg)(img))
+    assert Retina(VisualConfig(v1_orientations=4, retina_mode="none")).sensory_image(img).ndim == 2
+    with pytest.raises(InputError, match="v1_orientations"):
+        Retina(VisualConfig(v1_orientations=0)).orientation_channels(img)
+    with pytest.raises(InputError, match="gray image"):
+        Retina(cfg).orientation_channels(img.astype(np.float32))

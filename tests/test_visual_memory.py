@@ -411,3 +411,47 @@ def test_check_image_refuses_exactly_what_preparation_refuses(image):
         assert str(got.value) == str(exc)
     else:
         mem.check_image(image)
+
+
+# -- V1 orientation channels beside the centre-surround one ---------------------------------
+def _relit_and_shifted(img: np.ndarray, seed: int) -> np.ndarray:
+    """Another exposure curve (gamma 1.4), 30 % less light falling off across the view, sensor noise,
+    and the view shifted by a few pixels."""
+    rng = np.random.default_rng(seed)
+    h, w = img.shape
+    ramp = 0.7 * (1.0 + 0.4 * (np.arange(w) / (w - 1) - 0.5))
+    q = 255.0 * (img.astype(np.float64) / 255.0) ** 1.4 * ramp[None, :] + rng.normal(0.0, 4.0, img.shape)
+    return np.roll(np.clip(q, 0, 255).astype(np.uint8), (4, -6), axis=(0, 1))
+
+
+@pytest.fixture(scope="module")
+def v1_memory() -> VisualMemory:
+    mem = VisualMemory(VisualConfig(v1_orientations=4))
+    assert [mem.learn(img) for img in SCENES] == list(range(N_FRAMES))
+    return mem
+
+
+def test_orientation_channels_widen_every_feature_unit(v1_memory):
+    cfg = v1_memory.config
+    side = len(range(0, cfg.fovea, cfg.v1_stride))
+    assert v1_memory.P == cfg.fovea**2 + 4 * side**2
+    assert v1_memory.state_dict()["patch"].shape == (v1_memory.n_features, v1_memory.P)
+
+
+@pytest.mark.parametrize("frame", [1, 5, 9])
+def test_relit_and_shifted_view_is_recognised_with_orientation_channels(v1_memory, frame):
+    rec = v1_memory.recognise(_relit_and_shifted(SCENES[frame], seed=frame))
+    assert rec.accepted, rec.reason
+    assert rec.frame_id == frame
+    # the reported shift is the view's: query - memory = (-6, +4) px (the scenes are 320 px wide)
+    assert abs(rec.shift["x"] - (-6.0)) <= 2.0 and abs(rec.shift["y"] - 4.0) <= 2.0
+
+
+def test_orientation_channels_still_reject_unlearned_views_and_roundtrip(v1_memory):
+    for s in (2000, 2001):
+        assert v1_memory.recognise(scene(s)).frame_id is None
+    twin = VisualMemory.from_state(v1_memory.config, v1_memory.state_dict())
+    q = _relit_and_shifted(SCENES[3], seed=33)
+    assert twin.recognise(q).to_dict() == v1_memory.recognise(q).to_dict()
+    with pytest.raises(InputError, match="patches have shape"):
+        VisualMemory.from_state(VisualConfig(), v1_memory.state_dict())
