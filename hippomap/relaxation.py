@@ -158,6 +158,8 @@ class RelaxResult:
     solver: str
     iterations: int
     max_shift: float
+    #: :func:`solve_lsq` with ``bias_dt``: the heading bias rate it ends with (rad per unit of ``bias_dt``)
+    bias: float = 0.0
 
 
 class ColourGroups:
@@ -382,6 +384,10 @@ def solve_lsq(
     cost_rtol: float = 1e-9,
     information=None,
     fixed=None,
+    bias_dt=None,
+    bias: float = 0.0,
+    bias_information: float = 0.0,
+    estimate_bias: bool = True,
 ) -> RelaxResult:
     """Gauss–Newton on the SE(2) pose graph, **in place**.
 
@@ -396,12 +402,31 @@ def solve_lsq(
     and solved by sparse LU with the ``anchor`` node held fixed (``None``: a tiny damping
     fixes the gauge). ``fixed``: ids of further nodes held at their poses (the boundary of a
     local solve). Nodes without links keep their pose.
+
+    ``bias_dt`` (M,): a heading bias of the odometry, estimated with the poses (odometry
+    calibration, as in Kümmerle et al., *Simultaneous calibration, localization, and mapping*,
+    IROS 2011): link k's measured heading change is taken to include ``bias · bias_dt[k]`` (a
+    gyro's constant drift per second when ``bias_dt`` holds the links' durations; 0 for links
+    that are not odometry). ``bias`` is the starting value, ``bias_information`` a zero-mean
+    prior on it (needed while no loop determines it); ``estimate_bias=False`` holds it fixed.
+    The result's ``bias`` is the final value.
     """
     P, src, dst, T = _as_graph(poses, src, dst, transforms, inplace=True)
     n, m = len(P), len(src)
     if m == 0 or iterations <= 0:
-        return RelaxResult("lsq", 0, 0.0)
+        return RelaxResult("lsq", 0, 0.0, float(bias))
     sw = _sqrt_information(information, m)
+    bdt = None
+    if bias_dt is not None:
+        bdt = np.asarray(bias_dt, dtype=float)
+        if bdt.shape != (m,) or not np.all(np.isfinite(bdt)):
+            raise InputError(f"bias_dt must be {m} finite values, one per link, got shape {bdt.shape}")
+        if not np.isfinite(bias) or not (np.isfinite(bias_information) and bias_information >= 0):
+            raise InputError(f"bias {bias!r} and bias_information {bias_information!r} must be finite, the latter >= 0")
+        T = T.copy()
+        T_raw = T[:, 2].copy()
+        T[:, 2] = T_raw - bias * bdt
+    est = bdt is not None and estimate_bias and bool(np.any(bdt != 0))
     rows = 3 * np.arange(m)
     ci = 3 * src
     cj = 3 * dst
@@ -411,7 +436,12 @@ def solve_lsq(
     c_idx = np.concatenate([c5, c5, np.column_stack([ci + 2, cj + 2]).ravel()])
     deg = np.bincount(src, minlength=n) + np.bincount(dst, minlength=n)
     damp = np.repeat(np.where(deg > 0, 0.0, 1.0), 3) + (1e-9 if anchor is None else 0.0)
-    keep = np.ones(3 * n, dtype=bool)
+    nv = 3 * n + (1 if est else 0)  # unknowns: the poses, then the bias
+    if est:
+        r_idx = np.concatenate([r_idx, rows + 2])
+        c_idx = np.concatenate([c_idx, np.full(m, 3 * n)])
+        damp = np.append(damp, bias_information if bias_information > 0 else 1e-9)
+    keep = np.ones(nv, dtype=bool)
     if anchor is not None:
         keep[3 * anchor: 3 * anchor + 3] = False
     if fixed is not None:
@@ -424,17 +454,28 @@ def solve_lsq(
     done = 0
     lam = 0.0  # Levenberg-Marquardt damping, raised only when a Gauss-Newton step fails
     one = np.ones(m)
+    b = float(bias)
+    prior = bias_information if est else 0.0
+
+    def total(e_: np.ndarray, b_: float) -> float:
+        return float(np.sum(e_ * e_)) + prior * b_ * b_
+
     e, c, s, dx, dy = _lsq_errors(P, src, dst, T, sw)
-    cost = float(np.sum(e * e))
+    cost = total(e, b)
     while done < iterations and cost > 0:
-        vals = np.concatenate([
+        parts = [
             (np.column_stack([-c, -s, -s * dx + c * dy, c, s]) * sw[:, :1]).ravel(),  # d ex / d(xi, yi, ti, xj, yj)
             (np.column_stack([s, -c, -c * dx - s * dy, -s, c]) * sw[:, 1:2]).ravel(),  # d ey / d(xi, yi, ti, xj, yj)
             (np.column_stack([-one, one]) * sw[:, 2:]).ravel(),                       # d et / d(ti, tj)
-        ])
-        J = sp.csr_matrix((vals, (r_idx, c_idx)), shape=(3 * m, 3 * n))
+        ]
+        if est:
+            parts.append(bdt * sw[:, 2])  # d et / d bias
+        J = sp.csr_matrix((np.concatenate(parts), (r_idx, c_idx)), shape=(3 * m, nv))
         H = (J.T @ J + sp.diags(damp)).tocsc()[idx][:, idx]
-        g = -(J.T @ e.ravel())[idx]
+        grad = J.T @ e.ravel()
+        if est:
+            grad[3 * n] += prior * b  # the prior's gradient (its Hessian is in damp)
+        g = -grad[idx]
         hdiag = H.diagonal()
         while True:
             A = H if lam == 0 else (H + sp.diags(lam * hdiag)).tocsc()
@@ -442,50 +483,73 @@ def solve_lsq(
             # A + A^T, no pivoting (several times faster than the default COLAMD spsolve)
             lu = spla.splu(A.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
                            options={"SymmetricMode": True})
-            step = np.zeros(3 * n)
-            step[idx] = lu.solve(g)
-            step = step.reshape(n, 3)
+            full = np.zeros(nv)
+            full[idx] = lu.solve(g)
+            step = full[: 3 * n].reshape(n, 3)
             trial = P + step
             _wrap_inplace(trial[:, 2])
+            b_t = b + (float(full[3 * n]) if est else 0.0)
+            if est:
+                T[:, 2] = T_raw - b_t * bdt
             e_t, c_t, s_t, dx_t, dy_t = _lsq_errors(trial, src, dst, T, sw)
-            cost_t = float(np.sum(e_t * e_t))
+            cost_t = total(e_t, b_t)
             done += 1
             if np.isfinite(cost_t) and cost_t <= cost:
                 lam = 0.0 if lam <= 1e-6 else lam / 10
                 break
             lam = 1e-4 if lam == 0 else lam * 10
+            if est:
+                T[:, 2] = T_raw - b * bdt
             if lam > 1e6 or done >= iterations:
-                return RelaxResult("lsq", done, shift)  # no step lowers the cost: keep the poses
+                return RelaxResult("lsq", done, shift, b)  # no step lowers the cost: keep the poses
         P[:] = trial
+        b = b_t
         shift = float(np.sqrt(np.max(step[:, 0] ** 2 + step[:, 1] ** 2)))
-        converged = np.max(np.abs(step)) < tol or cost - cost_t <= cost_rtol * cost
+        converged = np.max(np.abs(full)) < tol or cost - cost_t <= cost_rtol * cost
         e, c, s, dx, dy, cost = e_t, c_t, s_t, dx_t, dy_t, cost_t
         if converged:
             break
-    return RelaxResult("lsq", done, shift)
+    return RelaxResult("lsq", done, shift, b)
 
 
 def _laplacian_solve(n: int, src: np.ndarray, dst: np.ndarray, w: np.ndarray, rhs_links: np.ndarray,
-                     keep: np.ndarray) -> np.ndarray:
-    """Weighted least squares ``min Σ_k w_k (u_dst − u_src − b_k)²`` over the nodes in ``keep``
-    (the others held at 0), for one or more right-hand sides ``b`` (M, C). Returns (N, C)."""
-    A = sp.csr_matrix((np.concatenate([-np.ones(len(src)), np.ones(len(dst))]),
-                       (np.concatenate([np.arange(len(src))] * 2), np.concatenate([src, dst]))),
-                      shape=(len(src), n))
+                     keep: np.ndarray, extra: np.ndarray | None = None, extra_prior: float = 0.0,
+                     extra_start: float = 0.0):
+    """Weighted least squares ``min Σ_k w_k (u_dst − u_src + extra_k β − b_k)²`` over the nodes in
+    ``keep`` (the others held at 0), for one or more right-hand sides ``b`` (M, C). With ``extra``
+    (M,), one more unknown β shared by all links: the change of a parameter now at ``extra_start``
+    with a zero-mean prior of information ``extra_prior`` (one right-hand side only). Returns
+    (N, C), and β (0 without ``extra``)."""
+    m = len(src)
+    rows = np.concatenate([np.arange(m)] * 2)
+    cols = np.concatenate([src, dst])
+    vals = np.concatenate([-np.ones(m), np.ones(m)])
+    nv = n
+    if extra is not None:
+        rows, cols, vals = np.concatenate([rows, np.arange(m)]), np.append(cols, np.full(m, n)), np.append(vals, extra)
+        nv = n + 1
+    A = sp.csr_matrix((vals, (rows, cols)), shape=(m, nv))
     AW = A.T.multiply(w[None, :]).tocsr()
-    L = (AW @ A).tocsc()
+    deg = np.bincount(src, minlength=nv) + np.bincount(dst, minlength=nv)
+    diag = np.where(deg > 0, 0.0, 1.0)
+    keep = np.asarray(keep, dtype=bool)
+    if extra is not None:
+        diag[n] = extra_prior if extra_prior > 0 else 1e-9
+        keep = np.append(keep, True)
+    L = (AW @ A + sp.diags(diag)).tocsc()
     idx = np.flatnonzero(keep)
-    deg = np.asarray(abs(A).sum(axis=0)).ravel()
-    L = (L + sp.diags(np.where(deg > 0, 0.0, 1.0))).tocsc()[idx][:, idx]
+    L = L[idx][:, idx]
     rhs = (AW @ rhs_links)[idx]
-    lu = spla.splu(L, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
-    out = np.zeros((n, rhs_links.shape[1]))
+    if extra is not None:
+        rhs[-1] -= extra_prior * extra_start
+    lu = spla.splu(L.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+    out = np.zeros((nv, rhs_links.shape[1]))
     out[idx] = lu.solve(rhs)
-    return out
+    return out[:n], (float(out[n, 0]) if extra is not None else 0.0)
 
 
 def rotation_first_init(poses: np.ndarray, src, dst, transforms, information=None, anchor: int | None = 0,
-                        fixed=None) -> float:
+                        fixed=None, bias_dt=None, bias: float = 0.0, bias_information: float = 0.0) -> tuple[float, float]:
     """Re-initialise the poses of a pose graph **in place**, headings first (the LAGO idea of
     Carlone et al., 2014), and return the largest position change.
 
@@ -497,12 +561,14 @@ def rotation_first_init(poses: np.ndarray, src, dst, transforms, information=Non
     ``min Σ w |p_j − p_i − R(θ_i) t_xy|²``. Both are sparse Laplacian solves (a few ms at 10⁴
     nodes); the result is the starting point for :func:`solve_lsq`. The anchor and ``fixed``
     nodes keep their poses; nodes without links keep theirs. Weights: ``information`` (M, 3)
-    diagonals (x/y mean for positions), unit when None.
+    diagonals (x/y mean for positions), unit when None. With ``bias_dt`` the odometry's heading
+    bias is solved with the headings (as in :func:`solve_lsq`, from ``bias``). Returns the largest
+    position change and the bias.
     """
     P, src, dst, T = _as_graph(poses, src, dst, transforms, inplace=True)
     n, m = len(P), len(src)
     if m == 0:
-        return 0.0
+        return 0.0, float(bias)
     info = np.ones((m, 3)) if information is None else np.asarray(information, dtype=float)
     _sqrt_information(info, m)  # checked
     keep = np.ones(n, dtype=bool)
@@ -512,15 +578,19 @@ def rotation_first_init(poses: np.ndarray, src, dst, transforms, information=Non
         keep[np.asarray(fixed, dtype=np.int64).reshape(-1)] = False
     if keep.all():  # no gauge: hold the first linked node
         keep[int(src[0])] = False
-    e_th = _wrap_inplace(P[dst, 2] - P[src, 2] - T[:, 2])
-    dth = _laplacian_solve(n, src, dst, info[:, 2], -e_th[:, None], keep)[:, 0]
-    th = P[:, 2] + dth
+    bdt = None if bias_dt is None else np.asarray(bias_dt, dtype=float).reshape(m)
+    T_th = T[:, 2] if bdt is None else T[:, 2] - bias * bdt
+    e_th = _wrap_inplace(P[dst, 2] - P[src, 2] - T_th)
+    sol, dbias = _laplacian_solve(n, src, dst, info[:, 2], -e_th[:, None], keep, extra=bdt,
+                                  extra_prior=bias_information, extra_start=float(bias))
+    th = P[:, 2] + sol[:, 0]
+    new_bias = float(bias) + dbias
     c, s = np.cos(th[src]), np.sin(th[src])
     b = np.column_stack([c * T[:, 0] - s * T[:, 1], s * T[:, 0] + c * T[:, 1]])
     # positions relative to the held nodes: solve for the change that makes every link agree
     r = P[dst, :2] - P[src, :2] - b
-    dxy = _laplacian_solve(n, src, dst, 0.5 * (info[:, 0] + info[:, 1]), -r, keep)
+    dxy = _laplacian_solve(n, src, dst, 0.5 * (info[:, 0] + info[:, 1]), -r, keep)[0]
     P[:, :2] += dxy
     P[:, 2] = th
     _wrap_inplace(P[:, 2])
-    return float(np.sqrt(np.max(np.sum(dxy * dxy, axis=1))))
+    return float(np.sqrt(np.max(np.sum(dxy * dxy, axis=1)))), new_bias

@@ -627,3 +627,27 @@ def test_turning_links_hold_the_heading_less_stiffly():
             assert per_m[turning].max() < 0.5 * per_m[straight].min()
             np.testing.assert_allclose(1 / info[turning, 2],
                                        length[turning] / 3620.0 + turn_var * np.abs(tr[turning, 2]))
+
+
+def test_faded_loop_links_are_no_path_for_online_pruning():
+    """Online pruning merges only into nodes within ``prune_graph_radius_m`` along the graph. A
+    loop link the robust kernel has faded is not a path: through a false closure the robot would
+    be merged into nodes a whole loop of drift away, a second false closure as stiff as odometry."""
+
+    def straight_with_closure(side_m: float) -> tuple[CognitiveMap, float]:
+        cmap = CognitiveMap(MapConfig(prune_online=False, solver="lsq"))
+        drive(cmap, square_increments(side=2.0, laps=1)[:-3])  # one 8 m lap of a 2 m square, back near the start
+        assert np.hypot(*(cmap.poses[cmap.current, :2] - cmap.poses[1, :2])) < 0.5
+        assert not np.isfinite(cmap._graph_distance(cmap.current, 3.0)[1])  # 8 m along the lap
+        # a closure naming node 1, side_m to the side of where the map has it
+        tr = compose(between(cmap.poses[cmap.current], cmap.poses[1]), (0.0, side_m, 0.0))  # from the current node
+        d = cmap.propose_loop(LoopHypothesis(node=1, transform=tuple(tr), source="test"))
+        assert d.status == "accepted"
+        return cmap, float(cmap.link_weights()[d.link])
+
+    false_map, w_false = straight_with_closure(0.6)
+    assert w_false < 0.5  # faded at once by the kernel
+    assert not np.isfinite(false_map._graph_distance(false_map.current, 3.0)[1])
+    true_map, w_true = straight_with_closure(0.0)
+    assert w_true >= 0.5
+    assert true_map._graph_distance(true_map.current, 3.0)[1] < 3.0
