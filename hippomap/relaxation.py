@@ -542,9 +542,13 @@ def _laplacian_solve(n: int, src: np.ndarray, dst: np.ndarray, w: np.ndarray, rh
     rhs = (AW @ rhs_links)[idx]
     if extra is not None:
         rhs[-1] -= extra_prior * extra_start
-    lu = spla.splu(L.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
     out = np.zeros((nv, rhs_links.shape[1]))
-    out[idx] = lu.solve(rhs)
+    try:
+        lu = spla.splu(L.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+        out[idx] = lu.solve(rhs)
+    except RuntimeError:  # an exactly zero pivot without pivoting (the dense bias row): pivot, a hair damped
+        reg = sp.diags(np.full(L.shape[0], 1e-9 * max(float(abs(L).max()), 1.0)))
+        out[idx] = spla.splu((L + reg).tocsc()).solve(rhs)
     return out[:n], (float(out[n, 0]) if extra is not None else 0.0)
 
 
