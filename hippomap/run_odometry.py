@@ -20,7 +20,7 @@ import numpy as np
 from .cli import add_progress_argument, progress_enabled
 from .cognitive_map import CognitiveMap, LoopHypothesis
 from .config import HippomapConfig
-from .datasets import OdometryDataset, load_odometry_dataset
+from .datasets import LoopEdge, OdometryDataset, load_odometry_dataset
 from .errors import InputError
 from .evaluation import LOOP_TRUTH_DISTANCE_M, groundtruth_at, trajectory_metrics
 from .exports import export_map, write_json
@@ -44,15 +44,29 @@ class OdometryRun:
     checkpoints: list[tuple[int, np.ndarray]] = field(default_factory=list)
 
 
-def _loops_by_pose(dataset: OdometryDataset) -> dict[int, list[tuple[int, np.ndarray, int]]]:
-    """Index loop proposals by their later pose: {later: [(earlier, earlier-in-later-frame, line)]}."""
-    out: dict[int, list[tuple[int, np.ndarray, int]]] = defaultdict(list)
+def _loop_information(e: LoopEdge) -> tuple[float, float] | None:
+    """The (x/y, heading) information of a proposal from its g2o edge (the mean of the x and y
+    diagonal, and the heading's), or None (the map's default) when the file gives unit
+    information or none that is positive."""
+    i11, _, _, i22, _, i33 = (float(v) for v in e.information)
+    if (i11, i22, i33) == (1.0, 1.0, 1.0) or min(i11, i22, i33) <= 0 or not np.isfinite([i11, i22, i33]).all():
+        return None
+    return (0.5 * (i11 + i22), i33)
+
+
+def _loops_by_pose(dataset: OdometryDataset, use_information: bool = True
+                   ) -> dict[int, list[tuple[int, np.ndarray, int, tuple[float, float] | None]]]:
+    """Index loop proposals by their later pose: {later: [(earlier, earlier-in-later-frame, line,
+    information)]}; the information is the edge's own (:func:`_loop_information`) when
+    ``use_information``, else None (the map's ``loop_information``)."""
+    out: dict[int, list[tuple[int, np.ndarray, int, tuple[float, float] | None]]] = defaultdict(list)
     for e in dataset.graph.loops:
         t = np.asarray(e.transform, dtype=float)
+        info = _loop_information(e) if use_information else None
         if e.i > e.j:
-            out[e.i].append((e.j, t, e.line))
+            out[e.i].append((e.j, t, e.line, info))
         else:  # the edge measures the later pose j in the frame of i: invert it
-            out[e.j].append((e.i, between(t, np.zeros(3)), e.line))
+            out[e.j].append((e.i, between(t, np.zeros(3)), e.line, info))
     return out
 
 
@@ -86,13 +100,13 @@ def run_odometry(dataset: OdometryDataset, config: HippomapConfig | None = None,
             if code is None:
                 no_field += 1
             cmap.update(None if code is None else (code.x, code.y, code.theta), inc[k - 1], float(times[k]))
-        for j, t_kj, line in loops.get(k, ()):
+        for j, t_kj, line, info in loops.get(k, ()):
             # pose of node_at_pose[j] in the frame of the current node, through the two
             # short odometric offsets of the robot from its node at k and at j
             rel = compose(compose(cmap.robot_offset, t_kj), between(offset_at_pose[j], np.zeros(3)))
             hyp = LoopHypothesis(
                 node=int(node_at_pose[j]), transform=tuple(float(v) for v in rel), evidence=1.0,
-                source="dataset", time=float(times[k]), meta={"poses": [k, j], "line": line},
+                source="dataset", time=float(times[k]), meta={"poses": [k, j], "line": line}, information=info,
             )
             cmap.propose_loop(hyp)
         node_at_pose[k] = cmap.current
