@@ -7,7 +7,7 @@ in-process vs Ray, measured in the same run.
 A real server (``python -m server``, SQLite with ``synchronous=FULL``, the default model
 config) runs in a subprocess on 127.0.0.1, once per backend and session count. Each session
 is a robot streaming over its own websocket as fast as acknowledgements allow (window 64):
-``--frames`` camera frames of **640x480** (windows of :func:`server.testing.view`'s textured
+``--frames`` camera frames of **640x480** (windows of :func:`tests.support.synthetic.view`'s textured
 panorama scaled to 640x480, JPEG quality 85, ~60-70 kB) each preceded by
 ``--odometry-per-frame`` odometry readings (the robot circles, so loops are closed).
 Measured: from the first message to the moment every session's mapper has processed its
@@ -41,7 +41,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from hippomap.client import AsyncStream  # noqa: E402
 from hippomap.inputs import Odometry  # noqa: E402
-from server.testing import LiveServer, LocalRayHead, view  # noqa: E402
+from tests.support.live import LiveServer  # noqa: E402
+from tests.support.ray_head import LocalRayHead  # noqa: E402
+from tests.support.synthetic import view  # noqa: E402
 
 
 def make_inputs(frames: int, odo_per_frame: int, rate_hz: float = 20.0, speed: float = 0.5,

@@ -40,7 +40,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from hippomap.client import AsyncStream  # noqa: E402
 from hippomap.inputs import Odometry  # noqa: E402
-from server.testing import LiveServer, view  # noqa: E402
+from tests.support.live import LiveServer  # noqa: E402
+from tests.support.synthetic import view  # noqa: E402
 
 ODO_HZ = 50
 FRAME_HZ = 10

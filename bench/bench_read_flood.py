@@ -29,7 +29,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from server.testing import LiveServer  # noqa: E402
+from tests.support.live import LiveServer  # noqa: E402
 
 ODO_HZ = 50
 

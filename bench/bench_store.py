@@ -4,7 +4,7 @@
 
 Both stores at full durability: SQLite ``synchronous=FULL`` (an fsync of the WAL per commit),
 PostgreSQL ``synchronous_commit=on`` with ``fsync=on`` (a WAL flush per commit) — a private
-cluster started by :class:`server.testing.PostgresCluster` on 127.0.0.1 (TCP, as replicas on
+cluster started by :class:`tests.support.postgres_cluster.PostgresCluster` on 127.0.0.1 (TCP, as replicas on
 other hosts would connect), or ``$HIPPOMAP_TEST_POSTGRES_URL`` with ``--external``.
 
 Each writer thread is one session appending single inputs as a robot's stream arrives: four
@@ -35,7 +35,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from server.postgres_store import PostgresStore  # noqa: E402
 from server.sqlite_store import SQLiteStore  # noqa: E402
 from server.store import InputRecord  # noqa: E402
-from server.testing import PostgresCluster, view  # noqa: E402
+from tests.support.postgres_cluster import PostgresCluster  # noqa: E402
+from tests.support.synthetic import view  # noqa: E402
 
 
 def _payloads() -> tuple[bytes, bytes]:

@@ -39,7 +39,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_load as bl  # noqa: E402
 from hippomap.client import AsyncStream  # noqa: E402
 from hippomap.inputs import Odometry  # noqa: E402
-from server.testing import LiveServer  # noqa: E402
+from tests.support.live import LiveServer  # noqa: E402
 
 TICK = os.sysconf("SC_CLK_TCK")
 

@@ -33,12 +33,10 @@ import numpy as np
 
 from .errors import HippomapError
 from .inputs import Odometry
+from .protocol import pack_frame  # the frame format the server unpacks (one definition)
 
 #: the client's public names: ``from hippomap.client import Client, Odometry`` is all a robot needs
 __all__ = ["AsyncStream", "Client", "Odometry", "ServerError", "Stream", "default_token", "encode_image"]
-
-FRAME_MAGIC = b"HMF1"  # mirrors server.protocol (the client must not import the server)
-
 
 class ServerError(HippomapError):
     """The server refused a request or an input: ``status`` is the HTTP status code."""
@@ -70,12 +68,6 @@ def encode_image(image: bytes | np.ndarray, quality: int = 90) -> bytes:
     if not ok:
         raise HippomapError("could not JPEG-encode the image")
     return buf.tobytes()
-
-
-def pack_frame(message_id: int, t: float, image: bytes) -> bytes:
-    import struct
-
-    return struct.pack("<4sId", FRAME_MAGIC, int(message_id) & 0xFFFFFFFF, float(t)) + image
 
 
 def default_token() -> str | None:

@@ -2,7 +2,8 @@
 
 The server is deliberately thin: it validates inputs, stores them durably, schedules
 them to one :class:`hippomap.mapper.Mapper` per session and serialises the answers.
-All model logic stays in :mod:`hippomap`.
+All model logic stays in :mod:`hippomap`. Test scaffolding (a live server in a subprocess,
+synthetic robot data) is in the repository's ``tests/support``, not in this package.
 
 Modules, one concept each:
 
@@ -13,7 +14,8 @@ Modules, one concept each:
 * :mod:`server.limits`    — request-rate buckets and the body-size guard
 * :mod:`server.ingest`    — parsing and validating odometry and frames (4xx naming the problem)
 * :mod:`server.images`    — image header sniffing (sizes before decoding) and encoding
-* :mod:`server.protocol`  — the websocket stream's messages and binary frame header
+* :mod:`server.protocol`  — the websocket stream's messages; the binary frame header it re-exports from
+  :mod:`hippomap.protocol` (one definition, shared with the client)
 * :mod:`server.model`     — the only module that touches the mapper (create, load, query)
 * :mod:`server.worker`    — one thread per session feeding its mapper in order, snapshotting
 * :mod:`server.mapper_host` — where a session's mapper runs: in process (behind a gate), in child processes
@@ -26,5 +28,4 @@ Modules, one concept each:
 * :mod:`server.api`       — the FastAPI routes; :mod:`server.app` assembles the app (and mounts the
   viewer of package ``web`` at ``/viewer/``)
 * :mod:`server.cli`       — ``hippomap serve``; :mod:`server.demo` its simulated robot (``--demo``)
-* :mod:`server.testing`   — a live server in a subprocess and synthetic robot data, for tests and benchmarks
 """

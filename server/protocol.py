@@ -8,6 +8,8 @@ Client to server:
   ``{"type": "ping", "id": 9}``.
 * **binary** — a camera frame: the 16-byte header :data:`FRAME_HEADER` (magic ``b"HMF1"``,
   ``uint32`` message id, ``float64`` timestamp; little-endian) followed by the JPEG (or PNG).
+  The format is defined once, in :mod:`hippomap.protocol` (the client packs frames with it);
+  this module re-exports its names for the service.
 
 Server to client (all JSON text):
 
@@ -34,36 +36,20 @@ from __future__ import annotations
 
 import json
 import re
-import struct
 from typing import Any
 
 import numpy as np
 
-from hippomap.errors import InputError
-
-FRAME_MAGIC = b"HMF1"
-FRAME_HEADER = struct.Struct("<4sId")
+# the binary frame format, shared with the client (re-exported: server.api uses these names from here)
+from hippomap.protocol import FRAME_HEADER as FRAME_HEADER
+from hippomap.protocol import FRAME_MAGIC as FRAME_MAGIC
+from hippomap.protocol import pack_frame as pack_frame
+from hippomap.protocol import unpack_frame as unpack_frame
 
 CLOSE_UNAUTHORIZED = 4401
 CLOSE_FORBIDDEN = 4403
 CLOSE_NOT_FOUND = 4404
 CLOSE_ELSEWHERE = 4421  # the session is run by another replica (HTTP 421)
-
-
-def pack_frame(message_id: int, t: float, image: bytes) -> bytes:
-    """A binary frame message (used by the Python client)."""
-    return FRAME_HEADER.pack(FRAME_MAGIC, int(message_id) & 0xFFFFFFFF, float(t)) + image
-
-
-def unpack_frame(data: bytes) -> tuple[int, float, bytes]:
-    """``(message id, t, image bytes)`` of a binary message; InputError on a bad header."""
-    if len(data) < FRAME_HEADER.size:
-        raise InputError(
-            f"binary message of {len(data)} bytes is shorter than the {FRAME_HEADER.size}-byte frame header")
-    magic, mid, t = FRAME_HEADER.unpack_from(data)
-    if magic != FRAME_MAGIC:
-        raise InputError(f"binary message does not start with the frame magic {FRAME_MAGIC!r} (got {magic!r})")
-    return int(mid), float(t), data[FRAME_HEADER.size:]
 
 
 _STEP = np.zeros(256, dtype=np.int32)

@@ -10,10 +10,10 @@ if str(ROOT) not in sys.path:
 
 import pytest  # noqa: E402
 
-from server.testing import SERVICE_VARIANTS  # noqa: E402
+from tests.support.variants import SERVICE_VARIANTS  # noqa: E402
 
 
 @pytest.fixture(scope="module", params=SERVICE_VARIANTS, ids=lambda v: v.name)
 def variant(request):
-    """The service under test: each backend x store of ``server.testing.SERVICE_VARIANTS``."""
+    """The service under test: each backend x store of ``tests.support.variants.SERVICE_VARIANTS``."""
     return request.param

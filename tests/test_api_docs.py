@@ -20,7 +20,8 @@ from server.api.docs import ASSETS_URL
 from server.app import create_app
 from server.protocol import pack_frame
 from server.settings import ServerSettings
-from server.testing import LiveServer, view
+from tests.support.live import LiveServer
+from tests.support.synthetic import view
 
 ADMIN = "hm_api_docs_admin_token_0123456789"
 AUTH = {"Authorization": f"Bearer {ADMIN}"}

@@ -29,17 +29,11 @@ from server.mapper_host import InProcessHost
 from server.metrics import ServiceMetrics
 from server.settings import ServerSettings
 from server.sqlite_store import SQLiteStore
-from server.testing import (
-    ROOT,
-    LiveServer,
-    local_ray_head,
-    offline_reference,
-    ray_test_env,
-    session_state,
-    stream_items,
-    synthetic_inputs,
-)
-from worker_harness import assert_host_matches_inprocess, run_worker
+from tests.support.live import ROOT, LiveServer, stream_items
+from tests.support.ray_head import local_ray_head, ray_test_env
+from tests.support.reference import offline_reference, session_state
+from tests.support.synthetic import synthetic_inputs
+from tests.worker_harness import assert_host_matches_inprocess, run_worker
 
 CONFIG = {"mapper": {"keyframe_interval": 3}}
 ITEMS = synthetic_inputs(n_odometry=400, frame_every=3)  # 1.6 laps: loops are closed
@@ -119,7 +113,7 @@ def test_worker_replaces_a_killed_actor_and_ends_in_the_uninterrupted_state(tmp_
 
 # --------------------------------------------------------------------- live server on Ray
 def _ray_server(tmp_path, env=None):
-    from server.testing import LiveServer
+    from tests.support.live import LiveServer
 
     data = tmp_path / "data"
     return LiveServer(data, env={**ray_test_env(data), "HIPPOMAP_SNAPSHOT_EVERY_INPUTS": "60", **(env or {})},

@@ -192,7 +192,7 @@ def test_serve_demo_reuses_its_session_across_restarts_and_says_when_it_finished
     that leaves the finished session alone instead of adding another demo session."""
     from hippomap.client import Client, ServerError
     from server.demo import demo_run
-    from server.testing import LiveServer
+    from tests.support.live import LiveServer
 
     data = tmp_path / "data"
     run = demo_run(10.0, 1, 1)
@@ -236,7 +236,7 @@ def test_serve_demo_reuses_its_session_across_restarts_and_says_when_it_finished
 def test_readme_python_client_example_runs_against_a_live_server(tmp_path):
     """The README's client example, extracted between its markers and run unchanged but for
     the server's address, streams a simulated run and prints the accepted loop closures."""
-    from server.testing import LiveServer
+    from tests.support.live import LiveServer
 
     readme = (ROOT / "README.md").read_text()
     m = re.search(r"<!-- python-client-example -->\n```python\n(.*?)```\n<!-- /python-client-example -->", readme,

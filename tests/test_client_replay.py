@@ -17,7 +17,8 @@ import pytest
 from hippomap.client import ServerError
 from hippomap.datasets import read_folder_dataset
 from hippomap.replay import add_parser
-from server.testing import offline_reference, session_state, synthetic_inputs
+from tests.support.reference import offline_reference, session_state
+from tests.support.synthetic import synthetic_inputs
 
 CONFIG = {"mapper": {"keyframe_interval": 5}}
 ITEMS = synthetic_inputs(n_odometry=160, frame_every=3, seed=3)

@@ -331,7 +331,7 @@ def test_healthcheck_hits_a_real_route_on_the_default_port():
 
 def test_healthcheck_command_against_a_live_server(tmp_path):
     """The image's check, run as written but aimed at a live server: exit 0 while it serves, 1 once it is gone."""
-    from server.testing import LiveServer
+    from tests.support.live import LiveServer
 
     _, code = healthcheck_code()
     srv = LiveServer(tmp_path / "data").start()
@@ -480,9 +480,8 @@ def test_compose_health_dependencies_have_health_checks():
 
 # ------------------------------------------------------------------ runtime dependencies of the image
 #: modules of the installed packages that need more than ``.[server]`` (the image's default EXTRAS):
-#: the scale-out backends, and helpers only tests and docs run
-OPTIONAL_MODULES = {"server/ray_backend.py": ("ray",), "server/postgres_store.py": ("postgres",),
-                    "server/testing.py": ("test", "postgres"), "web/screenshot.py": ("test",)}
+#: the scale-out backends (test scaffolding lives in tests/support, outside the packages)
+OPTIONAL_MODULES = {"server/ray_backend.py": ("ray",), "server/postgres_store.py": ("postgres",)}
 
 
 def _closure(requirements: list[str]) -> set[str]:

@@ -35,10 +35,9 @@ from hippomap.session_export import (
     write_data_dir,
     write_rosbag2,
 )
+from tests.test_cognitive_map import drive, square_increments, true_loops
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "tests"))
-from test_cognitive_map import drive, square_increments, true_loops  # noqa: E402
 
 CONFIG = {"mapper": {"keyframe_interval": 5}}
 
@@ -136,9 +135,9 @@ def _circle_gt(t: float, speed: float = 0.5, radius: float = 1.0) -> tuple[float
 
 
 def recorded_items(n_odometry: int = 300, frame_every: int = 3, seed: int = 3, with_gt: bool = True):
-    """The synthetic circling run of server.testing, readings carrying ground truth (300 readings:
+    """The synthetic circling run of tests.support.synthetic, readings carrying ground truth (300 readings:
     over a lap, so the map closes loops)."""
-    from server.testing import synthetic_inputs
+    from tests.support.synthetic import synthetic_inputs
 
     out = []
     for it in synthetic_inputs(n_odometry=n_odometry, frame_every=frame_every, seed=seed):
@@ -227,7 +226,7 @@ def test_rosbag2_round_trip_gives_the_same_inputs(tmp_path):
 # ----------------------------------------------------------- through the service
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
-    from server.testing import LiveServer
+    from tests.support.live import LiveServer
 
     srv = LiveServer(tmp_path_factory.mktemp("exports")).start()
     yield srv
@@ -239,7 +238,7 @@ def recorded(server):
     """A session fed the simulated run (with ground truth) over the websocket, fully processed."""
     import asyncio
 
-    from server.testing import stream_items
+    from tests.support.live import stream_items
 
     items = recorded_items()
     with server.client() as c:
@@ -267,7 +266,7 @@ def _assert_same_map(map_json: dict, session_map: dict, atol: float) -> None:
 
 def test_session_groundtruth_and_g2o_downloads(server, recorded):
     from hippomap.client import ServerError
-    from server.testing import decoded
+    from tests.support.synthetic import decoded
 
     sid, items = recorded
     readings = [it[1] for it in items if it[0] == "odometry"]

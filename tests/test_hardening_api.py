@@ -34,7 +34,7 @@ from server.logs import JSONFormatter, RedactSecrets, TextFormatter, configure, 
 from server.settings import ServerSettings
 from server.sqlite_store import SQLiteStore
 from server.store import SessionRecord, TokenRecord
-from server.testing import LiveServer
+from tests.support.live import LiveServer
 
 ADMIN = "hm_hardening_admin_token_0123456789"
 AUTH = {"Authorization": f"Bearer {ADMIN}"}
@@ -185,7 +185,7 @@ def test_sessions_orphaned_by_an_older_server_go_to_the_admin(tmp_path, kind):
         store = SQLiteStore(tmp_path / "db.sqlite3")
     else:
         from server.postgres_store import PostgresStore
-        from server.testing import postgres_url_for
+        from tests.support.postgres_cluster import postgres_url_for
 
         store = PostgresStore(postgres_url_for(tmp_path, fresh=True))
     try:

@@ -132,7 +132,7 @@ def test_the_issue_reproduction_on_a_real_server(tmp_path):
 
     from websockets.asyncio.client import connect
 
-    from server.testing import LiveServer
+    from tests.support.live import LiveServer
 
     with LiveServer(tmp_path / "data", token=TOKEN) as srv:
         sid = httpx.post(f"{srv.url}/sessions", json={"config": SMALL}, headers=AUTH, timeout=60).json()["id"]
@@ -260,7 +260,7 @@ sys.exit(cli.main(sys.argv[1:]))
 def test_a_real_server_exits_nonzero_when_its_writer_dies(tmp_path):
     """The process, not only the app: after the writer dies, /health answers 503 and the server
     exits with a non-zero status of its own (a supervisor restarts it)."""
-    from server.testing import LiveServer
+    from tests.support.live import LiveServer
 
     srv = LiveServer(tmp_path / "data", token=TOKEN, env={"HIPPOMAP_FATAL_EXIT_S": "1.5"})
     script = tmp_path / "dying_server.py"
@@ -281,7 +281,7 @@ def test_a_real_server_exits_nonzero_when_its_writer_dies(tmp_path):
 
 def _start_with(srv, script: Path):
     """``srv.start`` running ``script`` (which patches the store, then runs the serve command)."""
-    from server.testing import _BANNER
+    from tests.support.live import _BANNER
 
     def start(timeout: float = 60.0):
         srv.proc = subprocess.Popen(

@@ -254,7 +254,7 @@ def ate_from(client, sid: str, run: sim.SimRun, to_gt: np.ndarray, t0: float) ->
 
 @pytest.fixture(scope="module")
 def service(tmp_path_factory):
-    from server.testing import LiveServer
+    from tests.support.live import LiveServer
 
     srv = LiveServer(tmp_path_factory.mktemp("reuse")).start()
     yield srv
@@ -267,7 +267,7 @@ def test_service_reuse_end_to_end(service, run1, run2):
     base's map does the same through replay; the base never changes; a restart restores it all."""
     import asyncio
 
-    from server.testing import stream_items
+    from tests.support.live import stream_items
 
     client = service.client()
     base = client.create_session("run 1")["id"]

@@ -23,7 +23,8 @@ from hippomap.errors import InputError
 from server import logs
 from server.app import create_app
 from server.settings import ServerSettings
-from server.testing import LiveServer, stream_items, synthetic_inputs
+from tests.support.live import LiveServer, stream_items
+from tests.support.synthetic import synthetic_inputs
 
 TOKEN = "hm_ops_admin_token"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}

@@ -21,8 +21,10 @@ from hippomap.client import AsyncStream
 from server import model
 from server.mapper_host import HostDied, InProcessHost
 from server.process_host import ProcessBackend
-from server.testing import LiveServer, decoded, offline_reference, session_state, synthetic_inputs
-from worker_harness import assert_host_matches_inprocess, run_worker
+from tests.support.live import LiveServer
+from tests.support.reference import offline_reference, session_state
+from tests.support.synthetic import decoded, synthetic_inputs
+from tests.worker_harness import assert_host_matches_inprocess, run_worker
 
 CONFIG = {"mapper": {"keyframe_interval": 3}, "spatial": {"resolution_m": 0.004}}
 ITEMS = synthetic_inputs(n_odometry=240, frame_every=3)

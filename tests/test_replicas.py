@@ -19,14 +19,10 @@ import pytest
 from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed
 
-from server.testing import (
-    LiveServer,
-    offline_reference,
-    postgres_url_for,
-    session_state,
-    stream_items,
-    synthetic_inputs,
-)
+from tests.support.live import LiveServer, stream_items
+from tests.support.postgres_cluster import postgres_url_for
+from tests.support.reference import offline_reference, session_state
+from tests.support.synthetic import synthetic_inputs
 
 CONFIG = {"mapper": {"keyframe_interval": 3}}
 ITEMS = synthetic_inputs(n_odometry=300, frame_every=3)  # closes loops (as in test_server_crash)

@@ -8,7 +8,10 @@ import asyncio
 import time
 
 from hippomap.client import AsyncStream
-from server.testing import LiveServer, ServiceVariant, offline_reference, session_state, stream_items, synthetic_inputs
+from tests.support.live import LiveServer, stream_items
+from tests.support.reference import offline_reference, session_state
+from tests.support.synthetic import synthetic_inputs
+from tests.support.variants import ServiceVariant
 
 CONFIG = {"mapper": {"keyframe_interval": 3}}
 ITEMS = synthetic_inputs(n_odometry=300, frame_every=3)  # loops are closed before and after the crash

@@ -27,7 +27,9 @@ import websockets
 from websockets.asyncio.client import connect
 
 from hippomap.client import ServerError
-from server.testing import LiveServer, offline_reference, session_state, stream_items, synthetic_inputs
+from tests.support.live import LiveServer, stream_items
+from tests.support.reference import offline_reference, session_state
+from tests.support.synthetic import synthetic_inputs
 
 CONFIG = {"mapper": {"keyframe_interval": 5}}
 ITEMS = synthetic_inputs(n_odometry=300, frame_every=3)

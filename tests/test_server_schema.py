@@ -24,7 +24,8 @@ import re
 import subprocess
 import sys
 
-from server.testing import LiveServer, stream_items, synthetic_inputs
+from tests.support.live import LiveServer, stream_items
+from tests.support.synthetic import synthetic_inputs
 
 # what a valid request may be answered besides 2xx/3xx (schemathesis's default list) -- plus 422 for frames
 ACCEPTED = [200, 201, 204, 401, 403, 404, 409, 429]

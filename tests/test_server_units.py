@@ -33,7 +33,7 @@ from server.schemas import OdometryReading
 from server.settings import ServerSettings
 from server.sqlite_store import SQLiteStore
 from server.store import EventRecord, InputRecord, PlaceFieldRecord, SessionRecord, TokenRecord
-from server.testing import postgres_url_for
+from tests.support.postgres_cluster import postgres_url_for
 
 
 @pytest.fixture(params=["sqlite", "postgres"])

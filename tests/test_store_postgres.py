@@ -1,5 +1,5 @@
 """The PostgreSQL store against a real server on loopback (``HIPPOMAP_TEST_POSTGRES_URL``, or a
-private cluster started by ``server.testing``), next to the SQLite store where the contract is
+private cluster started by ``tests.support.postgres_cluster``), next to the SQLite store where the contract is
 shared: group commit with failures inside a batch, many writer threads, session leases raced
 by threads and processes, URL and connection errors, and a connection dropped mid-write."""
 
@@ -21,7 +21,9 @@ from server.postgres_store import PostgresStore, StoreConnectionError, describe_
 from server.settings import ServerSettings
 from server.sqlite_store import SQLiteStore
 from server.store import EventRecord, InputRecord, SessionRecord, TokenRecord
-from server.testing import ROOT, SERVICE_VARIANTS, _free_port, postgres_test_url, postgres_url_for
+from tests.support.live import ROOT, free_port
+from tests.support.postgres_cluster import postgres_test_url, postgres_url_for
+from tests.support.variants import SERVICE_VARIANTS
 
 
 def _location(kind: str, tmp_path) -> str:
@@ -244,7 +246,7 @@ def test_unsupported_scheme_names_accepted_forms_without_the_password(tmp_path):
 
 
 def test_unreachable_server_names_host_and_database_not_password(tmp_path):
-    port = _free_port()  # nothing listens there
+    port = free_port()  # nothing listens there
     url = f"postgresql://robot:hunter2@127.0.0.1:{port}/fleet_maps"
     with pytest.raises(StoreConnectionError) as exc:
         open_store(ServerSettings(data_dir=tmp_path, database=url))
@@ -282,12 +284,12 @@ def test_replicas_opening_a_new_database_together(tmp_path):
 
 
 def test_missing_postgresql_programs_say_what_to_install(tmp_path, monkeypatch):
-    import server.testing as testing
+    import tests.support.postgres_cluster as postgres_cluster
 
-    monkeypatch.setattr(testing, "POSTGRES_LIB", tmp_path / "none")
+    monkeypatch.setattr(postgres_cluster, "POSTGRES_LIB", tmp_path / "none")
     monkeypatch.setenv("PATH", str(tmp_path))
     with pytest.raises(RuntimeError, match=r"apt-get install -y postgresql"):
-        testing.postgres_bin_dir()
+        postgres_cluster.postgres_bin_dir()
 
 
 # ----------------------------------------------------- a dropped connection

@@ -18,6 +18,7 @@ from hippomap import sim
 from hippomap.config import HippomapConfig
 from hippomap.place_cells import SpatialPathway
 from hippomap.visual_memory import VisualMemory
+from tests.support.simfeed import sim_inputs
 from web.chunks import ChunkTracker, chunk_layout
 from web.images import recognition_from_dict, trace_panel
 from web.panel_evidence import evidence_curves
@@ -26,7 +27,6 @@ from web.scene_place_field import field_heatmap
 from web.scene_trajectories import TrajectorySampler
 from web.session_viewer import SessionViewer, ViewerHub
 from web.settings import ViewerSettings
-from web.simfeed import sim_inputs
 from web.snapshot import PlaceFieldView
 from web.source import LocalSession
 

@@ -21,8 +21,8 @@ from playwright.sync_api import sync_playwright
 from hippomap import sim
 from hippomap.client import encode_image
 from hippomap.inputs import Odometry
-from server.testing import ROOT, LiveServer
-from web.simfeed import sim_inputs
+from tests.support.live import ROOT, LiveServer
+from tests.support.simfeed import sim_inputs
 
 CHROMIUM = "/usr/bin/chromium"
 ARGS = ["--no-sandbox", "--enable-unsafe-swiftshader", "--use-angle=swiftshader", "--disable-background-networking",

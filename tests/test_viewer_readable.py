@@ -25,10 +25,10 @@ from playwright.sync_api import sync_playwright
 
 from hippomap import sim
 from hippomap.config import HippomapConfig
-from server.testing import ROOT
+from tests.support.live import ROOT
+from tests.support.simfeed import sim_inputs
 from web.routes import SessionEntry, make_router
 from web.settings import ViewerSettings
-from web.simfeed import sim_inputs
 from web.source import LocalSession
 
 CHROMIUM = "/usr/bin/chromium"
@@ -49,7 +49,7 @@ class _Access:
         return self.session if token == TOKEN and session_id == self.session.session_id else None
 
 
-def _free_port() -> int:
+def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
@@ -67,7 +67,7 @@ def ten_laps():
     app = FastAPI()
     router = make_router(_Access(session), settings=ViewerSettings(idle_timeout_s=120.0))
     app.include_router(router)
-    port = _free_port()
+    port = free_port()
     server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
     thread = threading.Thread(target=server.run, daemon=True)
     thread.start()

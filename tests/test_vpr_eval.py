@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
 
 import cv2
@@ -14,9 +13,7 @@ import pytest
 from hippomap import vpr_eval
 from hippomap.errors import HippomapError, InputError
 from hippomap.vpr_eval import _pr_points, add_parser, evaluate_vpr, load_vpr_dataset
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from test_visual_memory import perturb, scene  # noqa: E402  (the same synthetic scenes)
+from tests.test_visual_memory import perturb, scene  # the same synthetic scenes
 
 
 def _write(path: Path, gray: np.ndarray) -> None:

@@ -12,8 +12,8 @@ from server.ingest import odometry_bytes
 from server.settings import ServerSettings
 from server.sqlite_store import SQLiteStore
 from server.store import InputRecord, SessionRecord
-from server.testing import decoded
 from server.worker import SessionWorker, WorkItem
+from tests.support.synthetic import decoded
 
 
 def records(items: tuple) -> list[InputRecord]:

@@ -1,6 +1,6 @@
 """Screenshot a viewer page in headless Chromium (for docs, e.g. ``docs/viewer-demo.png``).
 
-    python -m web.screenshot URL OUT.png [--wait-s 3] [--size 1400x900]
+    python -m tests.support.screenshot URL OUT.png [--wait-s 3] [--size 1400x900]
 
 Opens ``URL`` (a ``/viewer/{session}/?token=...`` link, as ``hippomap serve --demo`` prints), waits
 until viser has connected and the map's nodes are in the scene (``window.__viserSceneTree``), lets
@@ -44,7 +44,7 @@ def screenshot(url: str, out: str, wait_s: float = 3.0, width: int = 1400, heigh
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m web.screenshot", description=__doc__,
+    ap = argparse.ArgumentParser(prog="python -m tests.support.screenshot", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("url")
     ap.add_argument("out")

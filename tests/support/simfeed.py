@@ -1,4 +1,4 @@
-"""Simulated sessions for the viewer's tests, benchmark and previews: a sim run as mapper inputs.
+"""Simulated sessions for the viewer's tests: a sim run (:mod:`hippomap.sim`) as mapper inputs.
 
 :func:`sim_inputs` turns a :class:`hippomap.sim.SimRun` into the time-ordered inputs a robot would
 send: one :class:`~hippomap.inputs.Odometry` per step (velocities held since the previous step,

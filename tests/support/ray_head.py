@@ -1,0 +1,156 @@
+"""Ray for tests and benchmarks: a private Ray head on loopback that the test servers join.
+
+:func:`local_ray_head` starts one :class:`LocalRayHead` per test run (stopped at exit);
+:func:`ray_test_env` is the environment a Ray-backed test server needs to join it.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+from .live import ROOT
+
+_RAY_LOCK = threading.Lock()
+_RAY_HEAD: "LocalRayHead | None" = None
+
+
+class LocalRayHead:
+    """A private Ray head for tests and benchmarks: ``ray start --head --block`` on 127.0.0.1 at a free
+    port, in its own process group and temporary folder, no dashboard, no usage statistics.
+    :meth:`stop` ends the whole group (head services and every worker/actor process they started);
+    heads left by a killed test run are stopped by the next one (:meth:`remove_stale`)."""
+
+    PREFIX = "hippomap-ray-"
+
+    def __init__(self, num_cpus: int = 2, object_store_bytes: int = 200_000_000) -> None:
+        self.num_cpus = num_cpus
+        self.object_store_bytes = object_store_bytes
+        self.root: Path | None = None
+        self.proc: subprocess.Popen | None = None
+        self.address = ""
+        self.env: dict[str, str] = {}  # what a process needs to join: token authentication
+
+    @classmethod
+    def remove_stale(cls) -> None:
+        import shutil
+        import tempfile
+
+        for pidfile in Path(tempfile.gettempdir()).glob(cls.PREFIX + "*/creator.pid"):
+            try:
+                creator, pgid = (int(v) for v in pidfile.read_text().split())
+            except (OSError, ValueError):
+                continue
+            try:
+                os.kill(creator, 0)
+                continue  # its test run is still going
+            except ProcessLookupError:
+                pass
+            except PermissionError:
+                continue
+            try:
+                os.killpg(pgid, signal.SIGKILL)
+            except (ProcessLookupError, PermissionError):
+                pass
+            shutil.rmtree(pidfile.parent, ignore_errors=True)
+
+    def start(self, timeout: float = 120.0) -> "LocalRayHead":
+        import atexit
+        import socket
+        import tempfile
+        import time
+
+        self.remove_stale()
+        # short path: Ray's unix sockets live under it (107-byte limit)
+        self.root = Path(tempfile.mkdtemp(prefix=self.PREFIX))
+        with socket.socket() as sk:
+            sk.bind(("127.0.0.1", 0))
+            port = int(sk.getsockname()[1])
+        import secrets
+
+        token = self.root / "auth_token"  # a private token: only this run's servers may join
+        token.write_text(secrets.token_hex(32))
+        token.chmod(0o600)
+        self.env = {"RAY_AUTH_MODE": "token", "RAY_AUTH_TOKEN_PATH": str(token)}
+        env = {**os.environ, **self.env, "RAY_USAGE_STATS_ENABLED": "0",
+               "PYTHONPATH": os.pathsep.join(p for p in (str(ROOT), os.environ.get("PYTHONPATH", "")) if p)}
+        log = open(self.root / "head.log", "w")
+        self.proc = subprocess.Popen(
+            [str(Path(sys.executable).parent / "ray"), "start", "--head", "--block", "--node-ip-address=127.0.0.1",
+             f"--port={port}", f"--num-cpus={self.num_cpus}", "--include-dashboard=false", "--disable-usage-stats",
+             f"--object-store-memory={self.object_store_bytes}", f"--temp-dir={self.root}"],
+            cwd=ROOT, env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+        (self.root / "creator.pid").write_text(f"{os.getpid()} {self.proc.pid}")
+        atexit.register(self.stop)
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            text = (self.root / "head.log").read_text()
+            if "Ray runtime started" in text:
+                self.address = f"127.0.0.1:{port}"
+                return self
+            if self.proc.poll() is not None:
+                break
+            time.sleep(0.2)
+        out = (self.root / "head.log").read_text()
+        self.stop()
+        raise RuntimeError("Ray head did not start:\n" + out[-3000:])
+
+    def stop(self) -> None:
+        """SIGTERM to the head's process group, SIGKILL to what is left after a few seconds."""
+        import shutil
+        import time
+
+        proc, root, self.proc, self.root = self.proc, self.root, None, None
+        if proc is not None:
+            for sig, wait_s in ((signal.SIGTERM, 5.0), (signal.SIGKILL, 10.0)):
+                try:
+                    os.killpg(proc.pid, sig)
+                except ProcessLookupError:
+                    break
+                try:
+                    proc.wait(wait_s)
+                except subprocess.TimeoutExpired:
+                    pass
+                deadline = time.monotonic() + wait_s
+                while time.monotonic() < deadline and ray_group_alive(proc.pid):
+                    time.sleep(0.1)
+                if not ray_group_alive(proc.pid):
+                    break
+        if root is not None:
+            shutil.rmtree(root, ignore_errors=True)
+
+
+def ray_group_pids(pgid: int) -> list[int]:
+    """Live (not zombie) processes of process group ``pgid``."""
+    out = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[2]) == pgid and fields[0] != "Z":
+            out.append(int(stat.parent.name))
+    return out
+
+
+def ray_group_alive(pgid: int) -> bool:
+    return bool(ray_group_pids(pgid))
+
+
+def local_ray_head() -> LocalRayHead:
+    """The Ray head of this test run: started on first use, stopped at exit."""
+    global _RAY_HEAD
+    with _RAY_LOCK:
+        if _RAY_HEAD is None or _RAY_HEAD.proc is None:
+            _RAY_HEAD = LocalRayHead().start()
+        return _RAY_HEAD
+
+
+def ray_test_env(data_dir: Path) -> dict[str, str]:
+    """Environment of a Ray-backed test server: join the test run's Ray head."""
+    head = local_ray_head()
+    return {"HIPPOMAP_RAY_ADDRESS": head.address, **head.env}
