@@ -19,9 +19,9 @@ import os
 
 import numpy as np
 import pytest
-from browser_viewer import LEGEND_LABELS, blue, canvas, launch, legend_text, message_types, open_viewer, teal
 from playwright.sync_api import sync_playwright
 
+from browser_viewer import LEGEND_LABELS, blue, canvas, launch, legend_text, message_types, open_viewer, teal
 from hippomap import sim
 from hippomap.client import encode_image
 from hippomap.inputs import Odometry
