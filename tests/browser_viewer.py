@@ -80,3 +80,15 @@ def blue(img: np.ndarray) -> int:
     """Pixels of the map trajectory's blue."""
     b, g, r = (img[:, :, i].astype(int) for i in range(3))
     return int(((b - g > 60) & (b - r > 120)).sum())
+
+
+def tan(img: np.ndarray, panels: bool = False) -> int:
+    """Pixels of the raw odometry's faded orange as the renderer shades it (red over green over blue),
+    outside the control panel (right third) and the legend (bottom left) unless ``panels``."""
+    b, g, r = (img[:, :, i].astype(int) for i in range(3))
+    mask = (r - g > 12) & (g - b > 12) & (r - b > 35) & (r < 240)
+    if not panels:
+        h, w = mask.shape
+        mask[:, int(0.66 * w):] = False
+        mask[int(0.6 * h):, : int(0.2 * w)] = False
+    return int(mask.sum())

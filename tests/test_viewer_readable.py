@@ -5,8 +5,9 @@ A simulated robot drives ten laps of a corridor loop with noisy odometry and gro
 run under uvicorn on a free loopback port, and Debian's Chromium (Playwright, software WebGL)
 opens the viewer. Checked through viser's scene tree and the page text, not pixels where
 possible: the on-canvas legend names every layer, the ground truth is in the scene, loop closures
-are thin lines whose end dots are no larger than a node, the camera is fitted to the map, the
-layer toggles and the time slider act on one browser only, and the place-cell figure is drawn.
+are thin lines whose end dots are no larger than a node, the raw odometry is drawn and can be
+hidden, the camera is fitted to the map, the layer toggles and the time slider act on one browser
+only, and the place-cell figure is drawn.
 Screenshots go to pytest's tmp dir.
 """
 
@@ -22,7 +23,7 @@ import uvicorn
 from fastapi import FastAPI
 from playwright.sync_api import sync_playwright
 
-from browser_viewer import LEGEND_LABELS, blue, canvas, launch, legend_text, message_types, open_viewer, teal
+from browser_viewer import LEGEND_LABELS, blue, canvas, launch, legend_text, message_types, open_viewer, tan, teal
 from hippomap import sim
 from hippomap.config import HippomapConfig
 from web.routes import SessionEntry, make_router
@@ -112,8 +113,9 @@ def test_ten_laps_stay_readable_in_chromium(ten_laps, tmp_path):
             img = canvas(page, tmp_path / "viewer-ten-laps.png")
             page.screenshot(path=str(tmp_path / "viewer-ten-laps-page.png"))
             h, w = img.shape[:2]
-            gt_px, map_px = teal(img), blue(img)
+            gt_px, map_px, odo_px = teal(img), blue(img), tan(img)
             assert gt_px > 300 and map_px > 300, (gt_px, map_px)
+            assert odo_px > 1000, odo_px  # the raw odometry, shown by default (14,408 px measured)
             ink = (np.abs(img.astype(int) - img[5, w // 2].astype(int)).max(axis=2) > 40)
             ink[:, int(0.66 * w):] = False  # the control panel floats over the right third
             ink[: int(0.5 * h), : int(0.2 * w)] = False  # the legend floats top left
@@ -145,7 +147,7 @@ def test_ten_laps_stay_readable_in_chromium(ten_laps, tmp_path):
             assert 0 < theirs.replay.frame.n_nodes < stats["nodes"]
             page.wait_for_timeout(1000)
             after = canvas(page, tmp_path / "viewer-ten-laps-after.png")
-            assert teal(after) > 0.8 * teal(before)
+            assert teal(after) > 0.8 * teal(before) and tan(after) > 0.8 * tan(before)
             assert "replay" not in page.inner_text("body").split("View (this browser)")[-1][:200]
             # back to live in the other browser: the replay is gone, its layers come back as toggled
             theirs.slider.value = 100
@@ -157,6 +159,7 @@ def test_ten_laps_stay_readable_in_chromium(ten_laps, tmp_path):
             other.wait_for_timeout(1500)
             live = canvas(other, tmp_path / "viewer-ten-laps-other-live.png")
             assert blue(live) > 0.5 * map_px and teal(live) < 0.1 * gt_px
+            assert tan(live) < 0.05 * odo_px  # the raw odometry is optional: off in that browser (7 px measured)
             other.screenshot(path=str(tmp_path / "viewer-ten-laps-other-page.png"))
         finally:
             browser.close()
