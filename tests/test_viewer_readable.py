@@ -5,9 +5,10 @@ A simulated robot drives ten laps of a corridor loop with noisy odometry and gro
 run under uvicorn on a free loopback port, and Debian's Chromium (Playwright, software WebGL)
 opens the viewer. Checked through viser's scene tree and the page text, not pixels where
 possible: the on-canvas legend names every layer, the ground truth is in the scene, loop closures
-are thin lines whose end dots are no larger than a node, the camera is fitted to the map, the
-layer toggles and the time slider act on one browser only, and the place-cell figure is drawn.
-Screenshots go to ``test-artifacts/`` (git-ignored).
+are thin lines whose end dots are no larger than a node, the raw odometry is drawn and can be
+hidden, the camera is fitted to the map, the layer toggles and the time slider act on one browser
+only, and the place-cell figure is drawn.
+Screenshots go to pytest's tmp dir.
 """
 
 from __future__ import annotations
@@ -16,7 +17,6 @@ import socket
 import threading
 import time
 
-import cv2
 import numpy as np
 import pytest
 import uvicorn
@@ -25,16 +25,12 @@ from playwright.sync_api import sync_playwright
 
 from hippomap import sim
 from hippomap.config import HippomapConfig
-from tests.support.live import ROOT
+from tests.browser_viewer import LEGEND_LABELS, blue, canvas, launch, legend_text, message_types, open_viewer, tan, teal
 from tests.support.simfeed import sim_inputs
 from web.routes import SessionEntry, make_router
 from web.settings import ViewerSettings
 from web.source import LocalSession
 
-CHROMIUM = "/usr/bin/chromium"
-ARGS = ["--no-sandbox", "--enable-unsafe-swiftshader", "--use-angle=swiftshader", "--disable-background-networking",
-        "--disable-component-update", "--disable-sync", "--no-first-run"]
-ARTIFACTS = ROOT / "test-artifacts"
 TOKEN = "viewer-token"
 
 
@@ -84,64 +80,25 @@ def ten_laps():
 
 
 def _open(browser, url: str, sid: str):
-    page = browser.new_page(viewport={"width": 1400, "height": 900})
-    page.goto(f"{url}/viewer/{sid}/?token={TOKEN}")
-    page.wait_for_function("() => !document.body.innerText.includes('Connecting...')", timeout=60_000)
-    for node in ("/map/nodes/0", "/loops/accepted/0", "/ground_truth/0", "/trajectories/map/0"):
-        page.wait_for_function("n => !!window.__viserSceneTree?.getState()[n]", arg=node, timeout=60_000)
-    page.wait_for_function("() => document.body.innerText.includes('ground truth')", timeout=30_000)
-    page.wait_for_timeout(500)
-    if page.get_by_text("Software WebGL rendering detected").count():  # headless Chromium: close viser's notice
-        close = page.locator(".mantine-Notification-closeButton, button[aria-label='Close']")
-        if close.count():
-            close.first.click()
-    return page
+    return open_viewer(browser, url, sid, TOKEN)
 
 
-def _canvas(page, path: str) -> np.ndarray:
-    png = page.locator("canvas").first.screenshot(path=str(ARTIFACTS / path))
-    return cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
-
-
-def _teal(img: np.ndarray) -> int:
-    """Pixels of the ground truth's teal (green and blue alike, well above red; the renderer shades
-    thin lines, so the hue is matched, not the exact colour)."""
-    b, g, r = (img[:, :, i].astype(int) for i in range(3))
-    return int(((g - r > 50) & (b - r > 50) & (np.abs(g - b) < 25)).sum())
-
-
-def _blue(img: np.ndarray) -> int:
-    """Pixels of the map trajectory's blue."""
-    b, g, r = (img[:, :, i].astype(int) for i in range(3))
-    return int(((b - g > 60) & (b - r > 120)).sum())
-
-
-def test_ten_laps_stay_readable_in_chromium(ten_laps):
+def test_ten_laps_stay_readable_in_chromium(ten_laps, tmp_path):
     url, session, hub, run = ten_laps
     stats = session.mapper.stats()
     assert stats["loop_closures_accepted"] >= 5, "ten laps must close loops"
-    ARTIFACTS.mkdir(exist_ok=True)
     with sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+        browser = launch(p)
         try:
             page = _open(browser, url, session.session_id)
             viewer = hub.get(session.session_id)
             assert viewer is not None
-            page.wait_for_function("() => document.querySelectorAll('.hippomap-legend').length > 0", timeout=30_000)
             # the legend is on the canvas (a floating panel, not inside a collapsed folder): every layer named
-            legend = page.locator(".hippomap-legend").first
-            assert legend.is_visible()
-            text = legend.inner_text()
-            for label in ("map nodes", "map trajectory", "ground truth", "raw odometry", "loop closures (accepted)",
-                          "place field"):
+            text = legend_text(page)
+            for label in LEGEND_LABELS:
                 assert label in text
-            box = legend.bounding_box()
-            canvas_box = page.locator("canvas").first.bounding_box()
-            assert box["x"] < canvas_box["x"] + 0.3 * canvas_box["width"]  # floats over the canvas's left side
             # loop closures are thin lines; their end dots are no larger than a node
-            state = page.evaluate("() => { const s = window.__viserSceneTree.getState();"
-                                  " return Object.fromEntries(Object.entries(s).filter(([k]) => k.startsWith('/loops/')"
-                                  " || k.startsWith('/map/nodes/')).map(([k, v]) => [k, v?.message?.type ?? null])) }")
+            state = message_types(page, "/loops/", "/map/nodes/")
             assert state["/loops/accepted/0"] == "MeshMessage"  # a wireframe mesh: 1-pixel GL lines, no discs
             assert viewer.loops.accepted.style == "thin"
             assert viewer.loops.accepted_ends.point_size <= viewer.map.nodes.point_size
@@ -153,11 +110,12 @@ def test_ten_laps_stay_readable_in_chromium(ten_laps):
             assert np.allclose(gt[0, 1:3], first[1:3], atol=0.2)
             # the camera is fitted: the map's bounding box fills most of the free canvas
             page.wait_for_timeout(2000)
-            img = _canvas(page, "viewer-ten-laps.png")
-            page.screenshot(path=str(ARTIFACTS / "viewer-ten-laps-page.png"))
+            img = canvas(page, tmp_path / "viewer-ten-laps.png")
+            page.screenshot(path=str(tmp_path / "viewer-ten-laps-page.png"))
             h, w = img.shape[:2]
-            gt_px, map_px = _teal(img), _blue(img)
+            gt_px, map_px, odo_px = teal(img), blue(img), tan(img)
             assert gt_px > 300 and map_px > 300, (gt_px, map_px)
+            assert odo_px > 1000, odo_px  # the raw odometry, shown by default (14,408 px measured)
             ink = (np.abs(img.astype(int) - img[5, w // 2].astype(int)).max(axis=2) > 40)
             ink[:, int(0.66 * w):] = False  # the control panel floats over the right third
             ink[: int(0.5 * h), : int(0.2 * w)] = False  # the legend floats top left
@@ -174,7 +132,7 @@ def test_ten_laps_stay_readable_in_chromium(ten_laps):
             views = viewer.views.all()
             assert len(views) == 2
             mine, theirs = sorted(views, key=lambda v: v.client.client_id)
-            before = _canvas(page, "viewer-ten-laps-before.png")
+            before = canvas(page, tmp_path / "viewer-ten-laps-before.png")
             theirs.layers.set("ground_truth", False)
             theirs.layers.set("odometry", False)
             theirs.slider.value = 40
@@ -183,13 +141,13 @@ def test_ten_laps_stay_readable_in_chromium(ten_laps):
             other.wait_for_function("n => !!window.__viserSceneTree?.getState()[n]", arg="/replay/nodes",
                                     timeout=30_000)
             other.wait_for_timeout(1500)
-            replay = _canvas(other, "viewer-ten-laps-replay.png")
-            assert _teal(replay) < 0.1 * gt_px  # hidden in that browser
+            replay = canvas(other, tmp_path / "viewer-ten-laps-replay.png")
+            assert teal(replay) < 0.1 * gt_px  # hidden in that browser
             assert theirs.replay.frame is not None
             assert 0 < theirs.replay.frame.n_nodes < stats["nodes"]
             page.wait_for_timeout(1000)
-            after = _canvas(page, "viewer-ten-laps-after.png")
-            assert _teal(after) > 0.8 * _teal(before)
+            after = canvas(page, tmp_path / "viewer-ten-laps-after.png")
+            assert teal(after) > 0.8 * teal(before) and tan(after) > 0.8 * tan(before)
             assert "replay" not in page.inner_text("body").split("View (this browser)")[-1][:200]
             # back to live in the other browser: the replay is gone, its layers come back as toggled
             theirs.slider.value = 100
@@ -199,8 +157,9 @@ def test_ten_laps_stay_readable_in_chromium(ten_laps):
             other.wait_for_function("n => !window.__viserSceneTree?.getState()[n]", arg="/replay/nodes",
                                     timeout=30_000)
             other.wait_for_timeout(1500)
-            live = _canvas(other, "viewer-ten-laps-other-live.png")
-            assert _blue(live) > 0.5 * map_px and _teal(live) < 0.1 * gt_px
-            other.screenshot(path=str(ARTIFACTS / "viewer-ten-laps-other-page.png"))
+            live = canvas(other, tmp_path / "viewer-ten-laps-other-live.png")
+            assert blue(live) > 0.5 * map_px and teal(live) < 0.1 * gt_px
+            assert tan(live) < 0.05 * odo_px  # the raw odometry is optional: off in that browser (7 px measured)
+            other.screenshot(path=str(tmp_path / "viewer-ten-laps-other-page.png"))
         finally:
             browser.close()

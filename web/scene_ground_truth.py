@@ -4,7 +4,9 @@ A simulated or recorded run may send a ground-truth pose with its odometry (see
 :meth:`web.source.SessionSource` ``ground_truth``). Ground truth lives in its own world frame; it is
 carried into the map frame by the rigid transform that puts its first pose on the robot's first
 odometric pose (the pose the map starts from, at the same time stamp) — the ``--align_origin``
-convention of trajectory evaluation tools. Nothing else is fitted, so the gap between the ground
+convention of trajectory evaluation tools. A run in a saved map starts at an unknown pose of the
+base's frame: its ground truth is put on the first trajectory row that is on the map, at that
+row's map pose, once the run is placed (:mod:`web.placement`). Nothing else is fitted, so the gap between the ground
 truth and the map trajectory is the map's real error (drift before loop closures, residual after).
 
 Sampled like the other trajectories (one pose per ``trajectory_spacing_m`` of path, coarser past

@@ -20,6 +20,7 @@ import numpy as np
 from hippomap.cognitive_map import LoopDecision
 
 from .chunks import ChunkedPoints, ChunkedSegments, ChunkUpdate
+from .placement import decided_while_lost
 from .settings import ViewerSettings
 from .snapshot import MapSnapshot
 
@@ -27,10 +28,13 @@ LOOP_Z = 0.08
 
 
 def loop_segments(decisions: tuple[LoopDecision, ...] | list[LoopDecision], poses: np.ndarray,
-                  status: str) -> np.ndarray:
-    """(K, 2, 3) segments of the decisions with ``status``, in decision order."""
+                  status: str, skip_lost: bool = False) -> np.ndarray:
+    """(K, 2, 3) segments of the decisions with ``status``, in decision order; ``skip_lost`` leaves
+    out the accepted ones made while the robot had no pose on the map (a localising run in a saved
+    map: their ``from_node`` is not a node the robot was near, see :mod:`web.placement`)."""
     n = len(poses)
-    pairs = np.array([(d.from_node, d.hypothesis.node) for d in decisions if d.status == status],
+    pairs = np.array([(d.from_node, d.hypothesis.node) for d in decisions
+                      if d.status == status and not (skip_lost and decided_while_lost(d))],
                      dtype=np.int64).reshape(-1, 2)
     pairs = pairs[(pairs >= 0).all(axis=1) & (pairs < n).all(axis=1)]
     seg = np.empty((len(pairs), 2, 3), np.float32)
@@ -65,9 +69,10 @@ class LoopLayer:
         self._selected: list[Any] = []
         self._selected_key: tuple | None = None
 
-    def update(self, snap: MapSnapshot) -> LoopUpdate:
+    def update(self, snap: MapSnapshot, skip_lost: bool = False) -> LoopUpdate:
+        """Push the decisions of ``snap`` (``skip_lost``: see :func:`loop_segments`)."""
         s = self.settings
-        acc = loop_segments(snap.decisions, snap.node_poses, "accepted")
+        acc = loop_segments(snap.decisions, snap.node_poses, "accepted", skip_lost)
         rej = loop_segments(snap.decisions, snap.node_poses, "rejected")
         a = self.accepted.update(acc, np.broadcast_to(np.uint8(s.color_loop_accepted), (len(acc), 3)))
         ends = acc.reshape(-1, 3)

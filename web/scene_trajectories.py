@@ -113,6 +113,15 @@ def polyline_segments(points: np.ndarray, z: float) -> np.ndarray:
     return seg
 
 
+def map_poses(rows: np.ndarray, node_poses: np.ndarray) -> np.ndarray:
+    """(K, 3) map poses of trajectory ``rows``: their node's pose (+) the robot's offset from it."""
+    n = len(node_poses)
+    if not n or not len(rows):
+        return np.empty((0, 3))
+    nodes = np.clip(rows[:, TRAJ_NODE].astype(np.int64), 0, n - 1)
+    return compose(node_poses[nodes], rows[:, TRAJ_OFFSET])
+
+
 @dataclass(frozen=True)
 class TrajectoryUpdate:
     odometry: ChunkUpdate
@@ -133,17 +142,14 @@ class TrajectoryLayer:
                                          s.trajectory_thickness_m, style="thin", color=s.color_corrected,
                                          tail_size=s.tail_size)
 
-    def update(self, snap: MapSnapshot) -> TrajectoryUpdate:
+    def update(self, snap: MapSnapshot, on_map_from_t: float = -np.inf) -> TrajectoryUpdate:
+        """Push the new rows of ``snap``; the map trajectory is drawn from the rows with ``t >=
+        on_map_from_t`` only (a run in a saved map is on the map from its placement on: see
+        :mod:`web.placement`), the raw odometry from every row."""
         self.sampler.add(snap.trajectory_start, snap.trajectory)
         rows = self.sampler.samples
         raw = polyline_segments(rows[:, TRAJ_RAW][:, :2], ODOMETRY_Z)
-        n = len(snap.node_poses)
-        if n and len(rows):
-            nodes = np.clip(rows[:, TRAJ_NODE].astype(np.int64), 0, n - 1)
-            cor_xy = compose(snap.node_poses[nodes], rows[:, TRAJ_OFFSET])[:, :2]
-        else:
-            cor_xy = np.empty((0, 2))
-        cor = polyline_segments(cor_xy, MAP_Z)
+        cor = polyline_segments(map_poses(rows[rows[:, 0] >= on_map_from_t], snap.node_poses)[:, :2], MAP_Z)
         odo = self.odometry.update(raw)
         cu = self.corrected.update(cor)
         return TrajectoryUpdate(odo, cu)

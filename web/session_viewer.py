@@ -40,12 +40,13 @@ from .panel_loops import LoopsPanel
 from .panel_place_cells import PlaceCellsPanel
 from .panel_stats import StatsPanel
 from .panel_view import ClientViews
+from .placement import Placement, placement
 from .scene_ground_truth import GroundTruthLayer
 from .scene_loops import LoopLayer, LoopUpdate
 from .scene_map import MapGraphLayer, MapUpdate
 from .scene_place_field import PlaceFieldLayer
 from .scene_pose import RobotMarker
-from .scene_trajectories import TrajectoryLayer, TrajectoryUpdate
+from .scene_trajectories import TrajectoryLayer, TrajectoryUpdate, map_poses
 from .settings import ViewerSettings
 from .snapshot import Cursor, MapSnapshot, take_snapshot
 from .source import SessionSource, ground_truth_rows
@@ -246,10 +247,11 @@ class SessionViewer:
                 self.last_update = update
                 self.updates += 1
                 return update
+            placed = placement(snap.stats, snap.decisions)
             with self.server.atomic():
                 mu = self.map.update(snap)
-                tu = self.trajectories.update(snap)
-                lu = self.loops.update(snap)
+                tu = self.trajectories.update(snap, placed.on_map_from_t)
+                lu = self.loops.update(snap, placed.hides_lost_decisions)
                 pf = self.place_field.update(snap.place_field)
                 self.robot.update(snap.robot_pose)
                 rec = snap.last_recognition
@@ -261,8 +263,7 @@ class SessionViewer:
                 self.stats.update(snap.stats, self.source.lag_s())
                 self.loop_list.update(snap.decisions)
                 had_gt = self.ground_truth.present
-                samples = self.trajectories.sampler.samples
-                self.ground_truth.update(gt_rows, samples[0] if len(samples) else None)
+                self.ground_truth.update(gt_rows, self._ground_truth_origin(snap, placed))
                 if self.ground_truth.present and not had_gt:
                     self.legend.content = legend_html(self.layer_specs, ground_truth=True)
                 self._frame_view(snap)
@@ -283,6 +284,21 @@ class SessionViewer:
         """Push the newest camera frame if it changed."""
         frame = self.source.latest_frame()
         return self.camera.update_live(frame)
+
+    def _ground_truth_origin(self, snap: MapSnapshot, placed: Placement) -> np.ndarray | None:
+        """The row (t, x, y, theta) the ground truth's pose at ``t`` is put on (None: not yet).
+
+        A fresh run starts the map: its first trajectory row, at its odometric pose. A run in a saved
+        map starts at an unknown pose of the base's frame, so its ground truth waits for the
+        placement and is put on the first row on the map, at that row's map pose (the origin
+        alignment of trajectory evaluation, taken where the run's map pose begins)."""
+        samples = self.trajectories.sampler.samples
+        if not placed.based:
+            return samples[0] if len(samples) else None
+        on_map = samples[samples[:, 0] >= placed.on_map_from_t][:1]
+        if placed.lost or not len(on_map):
+            return None
+        return np.r_[on_map[0, 0], map_poses(on_map, snap.node_poses)[0]]
 
     def _frame_view(self, snap: MapSnapshot) -> None:
         """Fit the initial ('reset view') camera to the map when it has grown noticeably (each browser's
