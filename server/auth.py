@@ -19,6 +19,7 @@ cannot be probed. Only SHA-256 hashes of secrets are stored.
 
 from __future__ import annotations
 
+import asyncio
 import hashlib
 import os
 import secrets
@@ -165,9 +166,10 @@ def websocket_secret(scope: dict[str, Any]) -> str | None:
 
 class CloseOnRevoke:
     """ASGI middleware: a websocket opened with a valid token is closed (code 4401, "token revoked")
-    once that token is revoked, at its next message either way (checked at most every
-    ``check_every_s``; the token cache makes a revocation through this replica visible at once,
-    through another replica within the cache's lifetime). Without it a revoked robot could keep
+    once that token is revoked, at its next message either way or, on an idle socket, within
+    ``check_every_s`` (checked at most every ``check_every_s``; the token cache makes a
+    revocation through this replica visible at once, through another replica within the
+    cache's lifetime). Without it a revoked robot could keep
     streaming, and a revoked viewer keep watching, over sockets opened before the revocation."""
 
     def __init__(self, app: Any, check_every_s: float = 1.0) -> None:
@@ -200,15 +202,38 @@ class CloseOnRevoke:
             await send({"type": "websocket.close", "code": 4401, "reason": "token revoked"})
             return True
 
+        lock = asyncio.Lock()  # one send at a time: the app's and the watcher's
+        watcher: asyncio.Task[None] | None = None
+
+        async def watch() -> None:
+            # an idle socket (a viewer whose scene does not change, a robot that stopped sending)
+            # carries no message to check at: look every check_every_s all the same
+            while not closed:
+                await asyncio.sleep(self.check_every_s)
+                async with lock:
+                    if await close_if_revoked():
+                        return
+
         async def guarded_send(message: dict[str, Any]) -> None:
-            if closed or (message["type"] == "websocket.send" and await close_if_revoked()):
-                return  # the socket is closed: nothing more goes out
-            await send(message)
+            nonlocal watcher
+            async with lock:
+                if closed or (message["type"] == "websocket.send" and await close_if_revoked()):
+                    return  # the socket is closed: nothing more goes out
+                await send(message)
+            if message["type"] == "websocket.accept" and watcher is None:
+                watcher = asyncio.create_task(watch())
 
         async def guarded_receive() -> dict[str, Any]:
             message = await receive()
-            if message["type"] == "websocket.receive" and await close_if_revoked():
-                return {"type": "websocket.disconnect", "code": 4401}
+            if message["type"] == "websocket.receive":
+                async with lock:
+                    revoked = await close_if_revoked()
+                if revoked:
+                    return {"type": "websocket.disconnect", "code": 4401}
             return message
 
-        await self.app(scope, guarded_receive, guarded_send)
+        try:
+            await self.app(scope, guarded_receive, guarded_send)
+        finally:
+            if watcher is not None:
+                watcher.cancel()

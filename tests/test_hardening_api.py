@@ -394,3 +394,32 @@ def test_session_viewer_refuses_connections_without_its_key():
         assert asyncio.run(attempt({KEY_HEADER: viewer.access_key})) is True  # the proxy's way in: the scene
     finally:
         viewer.close()
+
+
+def test_an_idle_socket_is_closed_when_its_token_is_revoked(client):
+    """A robot that stopped sending (no message to check at) is still closed within about a
+    second of its token's revocation, not at its next message."""
+    writer = client.post("/tokens", json={"role": "writer"}, headers=AUTH).json()
+    w = _bearer(writer["token"])
+    sid = client.post("/sessions", json={"name": "idle socket"}, headers=w).json()["id"]
+    with client.websocket_connect(f"/sessions/{sid}/stream", headers=w) as robot:
+        assert robot.receive_json()["type"] == "hello"
+        assert client.delete(f"/tokens/{writer['id']}", headers=AUTH).status_code == 204
+        closed: list[int] = []
+
+        def wait_close() -> None:
+            try:
+                while True:
+                    msg = robot.receive()
+                    if msg["type"] == "websocket.close":
+                        closed.append(msg.get("code", 1000))
+                        return
+            except WebSocketDisconnect as e:
+                closed.append(e.code)
+
+        reader = threading.Thread(target=wait_close, daemon=True)
+        t0 = time.monotonic()
+        reader.start()
+        reader.join(timeout=15.0)
+        assert closed == [4401]
+        assert time.monotonic() - t0 < 10.0
