@@ -262,7 +262,7 @@ def test_random_hypotheses_are_rejected_and_never_move_nodes():
 
 
 def test_min_support_one_accepts_after_the_gate_and_relocalises():
-    cmap = CognitiveMap(MapConfig(loop_min_support=1, prune_online=False))
+    cmap = CognitiveMap(MapConfig(loop_min_support=1, prune_online=False, loop_relocalise=True))
     inc = square_increments(laps=1)
     drive(cmap, inc)
     # back near the start: node 0 is at the robot's pose (identity transform)
@@ -371,7 +371,7 @@ def test_graph_gated_pruning_avoids_merging_across_a_drifted_loop():
     noisy[:, 2] += 0.002 * (inc[:, 0] > 0)
     first_lap = len(inc) // 2
     errors, nodes = {}, {}
-    common = dict(VERIFIED, solver="lsq", loop_transform_radius_m=3.0, loop_min_support=2)
+    common = dict(VERIFIED, solver="lsq", loop_transform_radius_m=3.0, loop_min_support=2, loop_relocalise=True)
     for name, over in {"none": dict(prune_online=False), "literal": dict(prune_graph_radius_m=None),
                        "gated": dict(prune_graph_radius_m=3.0)}.items():
         cmap = CognitiveMap(MapConfig(**common, **over))
@@ -386,7 +386,8 @@ def test_graph_gated_pruning_avoids_merging_across_a_drifted_loop():
 def test_hypothesis_on_a_node_reached_by_pruning_replaces_the_prune_link():
     """The robot came back and online pruning put it on old node A through an unverified prune
     link; a loop hypothesis naming A (the current node) turns that link into a measured one."""
-    cmap = CognitiveMap(MapConfig(loop_min_support=1, initial_pose=(0.0, 0.25, 0.0), exclude_recent=3))
+    cmap = CognitiveMap(MapConfig(loop_min_support=1, initial_pose=(0.0, 0.25, 0.0), exclude_recent=3,
+                                  loop_relocalise=True))
     out_and_back = np.array([(0.05, 0.0, 0.0)] * 60 + [(0.0, 0.0, math.pi / 10)] * 10 + [(0.05, 0.0, 0.0)] * 30)
     _, _, events = drive(cmap, out_and_back)
     assert isinstance([e for e in events if e.type in ("node_created", "node_merged")][-1], NodeMerged)

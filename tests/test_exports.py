@@ -58,7 +58,8 @@ def _map_with_weak_and_strong_loops() -> CognitiveMap:
                                    source="false", time=h.time + 0.5) for h in out]
         return out
 
-    cmap = CognitiveMap(MapConfig(prune_online=False, loop_min_support=1))
+    # relocalising on the closures: the next node hangs off an old one, so the map is no chain
+    cmap = CognitiveMap(MapConfig(prune_online=False, loop_min_support=1, loop_relocalise=True))
     drive(cmap, inc, hypotheses=hyps)
     cmap.finish()
     return cmap
