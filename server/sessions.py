@@ -303,6 +303,16 @@ class LiveSession:
         }
 
 
+
+def _effective_config(overrides: dict[str, Any]) -> Any:
+    """The model config of a session with ``overrides``, or a 422 naming what is wrong."""
+    try:
+        return model.effective_config(overrides)
+    except ValidationError as exc:
+        raise IngestError(422, f"invalid config: {pydantic_message(exc)}") from None
+    except (ValueError, TypeError) as exc:
+        raise IngestError(422, f"invalid config: {exc}") from None
+
 class SessionManager:
     """All live sessions of the server.
 
@@ -511,12 +521,7 @@ class SessionManager:
             if not isinstance(values, dict):
                 raise IngestError(422, f"invalid config: section {section!r} must be a mapping")
             merged.setdefault(section, {}).update(values)
-        try:
-            config = model.effective_config(merged)
-        except ValidationError as exc:
-            raise IngestError(422, f"invalid config: {pydantic_message(exc)}") from None
-        except (ValueError, TypeError) as exc:
-            raise IngestError(422, f"invalid config: {exc}") from None
+        config = _effective_config(merged)
         if config.visual != base.config.visual:
             raise IngestError(422, "a session started from a base map must keep the base's visual config "
                                    "(its key frames were learned with it)")
@@ -532,12 +537,7 @@ class SessionManager:
 
     async def _create(self, token: TokenRecord, name: str, overrides: dict[str, Any], snapshot: bytes | None = None,
                       inputs_of: LiveSession | None = None, wait_ready: bool = True) -> LiveSession:
-        try:
-            config = model.effective_config(overrides)
-        except ValidationError as exc:
-            raise IngestError(422, f"invalid config: {pydantic_message(exc)}") from None
-        except (ValueError, TypeError) as exc:
-            raise IngestError(422, f"invalid config: {exc}") from None
+        config = _effective_config(overrides)
         if len(json.dumps(overrides)) > MAX_OVERRIDES_CHARS:
             raise IngestError(422, f"config overrides longer than {MAX_OVERRIDES_CHARS} characters")
         owned = [s for s in self.sessions.values() if s.record.owner == token.id and not s.closed]

@@ -21,6 +21,7 @@ import pytest
 
 from hippomap.cli import build_parser, clean_help, main, plain_text, progress_enabled
 from hippomap.sim import cli as sim_cli
+from tests.support.streams import FakeTTY
 
 ROOT = Path(__file__).resolve().parents[1]
 LONG_COMMANDS = ["run", "run-odometry", "eval-vpr", "simulate", "replay"]
@@ -60,18 +61,12 @@ def test_every_long_command_has_the_same_progress_switch(command):
     assert parse().progress is None  # left to the terminal test below
 
 
-class _Stream(io.StringIO):
-    def __init__(self, tty: bool) -> None:
-        super().__init__()
-        self._tty = tty
 
-    def isatty(self) -> bool:
-        return self._tty
 
 
 @pytest.mark.parametrize("tty", [True, False])
 def test_progress_defaults_to_whether_stderr_is_a_terminal(monkeypatch, tty):
-    monkeypatch.setattr(sys, "stderr", _Stream(tty))
+    monkeypatch.setattr(sys, "stderr", FakeTTY(tty))
     assert progress_enabled(argparse.Namespace(progress=None)) is tty
     assert progress_enabled(argparse.Namespace(progress=not tty)) is (not tty)
 

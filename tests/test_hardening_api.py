@@ -131,6 +131,28 @@ def test_revoking_a_writer_revokes_its_viewers_and_hands_its_sessions_to_the_adm
     assert client.delete(f"/sessions/{sid}", headers=AUTH).status_code == 204
 
 
+def _close_watch(ws, seconds: float = 30.0) -> tuple[list[int], threading.Thread]:
+    """A thread that reads ``ws`` (whatever was already on its way, of any kind) until it is
+    closed or ``seconds`` pass, and the list it puts the close code in: a bounded wait, since a
+    receive on a socket that is never closed would block the suite."""
+    codes: list[int] = []
+
+    def read() -> None:
+        end = time.monotonic() + seconds
+        try:
+            while time.monotonic() < end:
+                msg = ws.receive()
+                if msg["type"] == "websocket.close":
+                    codes.append(msg.get("code", 1000))
+                    return
+        except WebSocketDisconnect as e:
+            codes.append(e.code)
+
+    reader = threading.Thread(target=read, daemon=True)
+    reader.start()
+    return codes, reader
+
+
 def test_sockets_opened_before_a_revocation_are_closed(client):
     from server.auth import VIEWER_COOKIE
     from web.routes import COOKIE, SUBPROTOCOL
@@ -150,21 +172,7 @@ def test_sockets_opened_before_a_revocation_are_closed(client):
         assert page.receive_bytes()  # the scene flows
         assert client.delete(f"/tokens/{writer['id']}", headers=AUTH).status_code == 204  # revokes the viewer too
         # bounded waits (a receive on a socket that is never closed would block the suite)
-        page_close: list[int] = []
-
-        def drain_page() -> None:
-            end = time.monotonic() + 30.0
-            try:
-                while time.monotonic() < end:  # whatever was already on its way (any kind), then the close
-                    msg = page.receive()
-                    if msg["type"] == "websocket.close":
-                        page_close.append(msg.get("code", 1000))
-                        return
-            except WebSocketDisconnect as e:
-                page_close.append(e.code)
-
-        reader = threading.Thread(target=drain_page, daemon=True)
-        reader.start()
+        page_close, reader = _close_watch(page)
         deadline = time.monotonic() + 30.0
         robot_close = None
         while robot_close is None and time.monotonic() < deadline:
@@ -405,21 +413,8 @@ def test_an_idle_socket_is_closed_when_its_token_is_revoked(client):
     with client.websocket_connect(f"/sessions/{sid}/stream", headers=w) as robot:
         assert robot.receive_json()["type"] == "hello"
         assert client.delete(f"/tokens/{writer['id']}", headers=AUTH).status_code == 204
-        closed: list[int] = []
-
-        def wait_close() -> None:
-            try:
-                while True:
-                    msg = robot.receive()
-                    if msg["type"] == "websocket.close":
-                        closed.append(msg.get("code", 1000))
-                        return
-            except WebSocketDisconnect as e:
-                closed.append(e.code)
-
-        reader = threading.Thread(target=wait_close, daemon=True)
         t0 = time.monotonic()
-        reader.start()
+        closed, reader = _close_watch(robot)
         reader.join(timeout=15.0)
         assert closed == [4401]
         assert time.monotonic() - t0 < 10.0

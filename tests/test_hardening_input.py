@@ -15,7 +15,6 @@ import math
 import os
 import re
 import struct
-import subprocess
 import sys
 import threading
 import time
@@ -280,26 +279,13 @@ def test_a_real_server_exits_nonzero_when_its_writer_dies(tmp_path):
 
 
 def _start_with(srv, script: Path):
-    """``srv.start`` running ``script`` (which patches the store, then runs the serve command)."""
-    from tests.support.live import _BANNER
+    """``srv.start`` running ``script`` (which patches the store, then runs the serve command), then
+    waiting until the server is ready."""
+    plain_start = srv.start
+    srv.command = [sys.executable, str(script)]
 
     def start(timeout: float = 60.0):
-        srv.proc = subprocess.Popen(
-            [sys.executable, str(script), "--host", "127.0.0.1", "--port", "0", "--data-dir",
-             str(srv.data_dir)], cwd=ROOT, env=srv.env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-        found = threading.Event()
-
-        def pump():
-            for line in srv.proc.stdout:
-                srv.output.append(line)
-                m = _BANNER.search(line)
-                if m and not found.is_set():
-                    srv.url = m.group(1)
-                    found.set()
-            found.set()
-
-        threading.Thread(target=pump, daemon=True).start()
-        assert found.wait(timeout) and srv.url, "".join(srv.output)
+        plain_start(timeout)
         deadline = time.monotonic() + timeout
         while True:
             try:

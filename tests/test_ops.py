@@ -8,7 +8,6 @@ replayed, the metrics the sessions export, and the JSON log lines carrying the s
 from __future__ import annotations
 
 import asyncio
-import io
 import json
 import logging
 import sys
@@ -24,6 +23,7 @@ from server import logs
 from server.app import create_app
 from server.settings import ServerSettings
 from tests.support.live import LiveServer, stream_items
+from tests.support.streams import FakeTTY
 from tests.support.synthetic import synthetic_inputs
 
 TOKEN = "hm_ops_admin_token"
@@ -171,34 +171,28 @@ def test_text_formatter_keeps_the_record_intact():
     assert json.loads(logs.JSONFormatter().format(rec))["message"] == "session s_3 restored"  # msg/args restored
 
 
-class _Stream(io.StringIO):
-    def __init__(self, tty: bool) -> None:
-        super().__init__()
-        self._tty = tty
 
-    def isatty(self) -> bool:
-        return self._tty
 
 
 def test_resolve_format(monkeypatch):
     monkeypatch.delenv(logs.ENV_FORMAT, raising=False)
-    assert logs.resolve_format(None, _Stream(tty=True)) == "text"
-    assert logs.resolve_format(None, _Stream(tty=False)) == "json"
-    assert logs.resolve_format("json", _Stream(tty=True)) == "json"
+    assert logs.resolve_format(None, FakeTTY(tty=True)) == "text"
+    assert logs.resolve_format(None, FakeTTY(tty=False)) == "json"
+    assert logs.resolve_format("json", FakeTTY(tty=True)) == "json"
     monkeypatch.setenv(logs.ENV_FORMAT, "text")
-    assert logs.resolve_format(None, _Stream(tty=False)) == "text"
-    assert logs.resolve_format("json", _Stream(tty=False)) == "json"  # the flag wins over the environment
+    assert logs.resolve_format(None, FakeTTY(tty=False)) == "text"
+    assert logs.resolve_format("json", FakeTTY(tty=False)) == "json"  # the flag wins over the environment
     monkeypatch.setenv(logs.ENV_FORMAT, "yaml")
     with pytest.raises(InputError, match="yaml.*HIPPOMAP_LOG_FORMAT"):
-        logs.resolve_format(None, _Stream(tty=False))
+        logs.resolve_format(None, FakeTTY(tty=False))
     with pytest.raises(InputError, match="xml.*--log-format"):
         logs.resolve_format("xml")
 
 
 def test_configure_routes_every_logger_through_one_handler(clean_logging, monkeypatch):
     monkeypatch.delenv(logs.ENV_FORMAT, raising=False)
-    stream = _Stream(tty=False)
-    logs.configure(None, "info", _Stream(tty=False))
+    stream = FakeTTY(tty=False)
+    logs.configure(None, "info", FakeTTY(tty=False))
     assert logs.configure(None, "info", stream) == "json"  # configured twice: still one handler
     assert [h.get_name() for h in logging.getLogger().handlers].count("hippomap") == 1
     logging.getLogger("hippomap.server").info("session %s deleted", "s_4", extra={"session": "s_4"})

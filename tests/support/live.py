@@ -23,10 +23,12 @@ _BANNER = re.compile(r"hippomap server on (http://\S+)")
 
 
 class LiveServer:
-    """``python -m server`` on 127.0.0.1 with its own data folder and admin token."""
+    """``python -m server`` on 127.0.0.1 with its own data folder and admin token (``command``: another
+    program that takes the serve command's arguments, e.g. a script that patches the server first)."""
 
     def __init__(self, data_dir: str | Path, token: str = "hm_test_admin_token", env: dict[str, str] | None = None,
-                 args: list[str] | None = None) -> None:
+                 args: list[str] | None = None, command: list[str] | None = None) -> None:
+        self.command = command or [sys.executable, "-m", "server"]
         self.data_dir = Path(data_dir)
         self.token = token
         pythonpath = os.pathsep.join(p for p in (str(ROOT), os.environ.get("PYTHONPATH", "")) if p)
@@ -38,8 +40,7 @@ class LiveServer:
 
     def start(self, timeout: float = 60.0) -> "LiveServer":
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "server", "--host", "127.0.0.1", "--port", "0", "--data-dir", str(self.data_dir),
-             *self.args],
+            [*self.command, "--host", "127.0.0.1", "--port", "0", "--data-dir", str(self.data_dir), *self.args],
             cwd=ROOT, env=self.env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         found = threading.Event()
 
