@@ -687,3 +687,88 @@ def test_fitting_the_points_of_a_round_map_fills_more_than_its_box():
     uv = _project(floor, pts_pos, pts_look, fov, aspect)
     assert np.abs(uv[:, 1]).max() <= 1 + 1e-9 and uv[:, 0].min() >= -1 - 1e-9 and uv[:, 0].max() <= 0.4 + 1e-9
     assert np.linalg.norm(pts_pos - pts_look) < np.linalg.norm(box_pos - box_look)  # closer: the circle fills more
+
+
+# ------------------------------------------------------ a run in a saved map: replay and raw odometry
+from hippomap.inputs import Odometry  # noqa: E402
+from hippomap.mapper import Mapper  # noqa: E402
+from web.placement import placement  # noqa: E402
+
+REUSE_NOISE = sim.OdometryNoise(sigma_v=0.02, sigma_omega=0.01, omega_bias=0.01)
+ANCHOR_M = 1.0  # the raw odometry's first point to the map trajectory's (0 measured; 7.1 m in the run's own frame)
+NEAR_PATH_M = 1.0  # the raw odometry's first 3 m to the map trajectory (0.04 m measured: drift only)
+
+
+@pytest.fixture
+def localising_session():
+    """A localisation session in a saved map (the scenario of tests/test_viewer_localise.py), fed
+    nothing yet, and its run: the base is 80 s of the 8 m x 5 m corridor loop, the run starts
+    elsewhere in the same world (a pose the mapper is not told)."""
+    world = sim.loop_world(seed=3, size=(8.0, 5.0))
+    run1 = sim.simulate(world, None, rate_hz=5.0, seed=1, odometry_noise=REUSE_NOISE)
+    base = Mapper()
+    for x in sim_inputs(run1, 0, 400):
+        base.step(x) if isinstance(x, Odometry) else base.observe(x)
+    plan = sim.RoutePlan(((0.0, 5.0), (0.0, 0.0), (8.0, 0.0), (8.0, 5.0)), closed=True, laps=1, seed=2)
+    run2 = sim.simulate(world, plan, rate_hz=5.0, seed=2, odometry_noise=REUSE_NOISE)
+    session = LocalSession("loc", mapper=Mapper.from_base(base.to_bytes(), {"mapper": {"mode": "localise"}}),
+                           title="localising run")
+    return session, run2
+
+
+def test_a_run_in_a_saved_map_is_drawn_from_its_placement_live_and_in_replay(localising_session):
+    session, run = localising_session
+    session.feed(sim_inputs(run, 0, 10))  # 2 s: not placed yet
+    assert session.mapper.lost
+    viewer = SessionViewer(session, ViewerSettings(), start=False)
+    try:
+        n_base = int(session.mapper.stats()["base_nodes"])
+        # while lost: neither the map trajectory nor the raw odometry (the run's own frame is not the map's)
+        assert len(viewer.trajectories.sampler.samples) > 1
+        assert viewer.trajectories.corrected.tracker.n == 0 and viewer.trajectories.odometry.tracker.n == 0
+        # placed, then 8 s more: what the live layers draw then is what the replay must draw later
+        fed = 10
+        while session.mapper.lost and fed < len(run):
+            session.feed(sim_inputs(run, fed, fed + 1))
+            fed += 1
+        assert not session.mapper.lost, "the run should be placed by recognition"
+        session.feed(sim_inputs(run, fed, fed + 40))
+        viewer.update_graph()
+        snap = viewer._snapshot
+        placed = placement(snap.stats, snap.decisions)
+        assert placed.based and placed.localise and math.isfinite(placed.on_map_from_t)
+        t_mid = float(viewer.trajectories.sampler.samples[-1, 0])
+        live_map = viewer.trajectories.corrected.tracker._geom[: viewer.trajectories.corrected.tracker.n].copy()
+        live_odo = viewer.trajectories.odometry.tracker._geom[: viewer.trajectories.odometry.tracker.n].copy()
+        assert len(live_map) > 10 and len(live_odo) == len(live_map)
+        # the raw odometry starts where the map trajectory starts (the placement) and stays near it
+        first_odo, first_map = live_odo[0, :2], live_map[0, :2]
+        assert np.hypot(*(first_odo - first_map)) < ANCHOR_M
+        samples = viewer.trajectories.sampler.samples
+        on = samples[samples[:, 0] >= placed.on_map_from_t]
+        raw_gap = np.hypot(*(on[0, 1:3] - first_map))  # where the run's own odometry frame has it
+        assert raw_gap > 2 * ANCHOR_M, raw_gap  # the check above is a real one
+        path = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(live_odo[:, :2], axis=0).T))])
+        early = live_odo[path < 3.0, :2]
+        near = np.sqrt(((early[:, None, :] - live_map[None, :, :2]) ** 2).sum(-1)).min(axis=1)
+        assert near.max() < NEAR_PATH_M, near.max()
+        # the rest of the run; then replay
+        session.feed(sim_inputs(run, fed + 40, 150))
+        viewer.update_graph()
+        snap, samples, gt = viewer._view_state()
+        tol = viewer.settings.move_tolerance_m + 1e-4
+        before = replay_at(snap, samples, gt, placed.on_map_from_t - 1.0)
+        assert len(before.corrected) == 0 and len(before.odometry) == 0 and before.robot is None
+        assert before.n_nodes == n_base  # the saved map was there from the start
+        assert len(before.accepted) == 0  # the placing decisions are not drawn from the base's last node
+        mid = replay_at(snap, samples, gt, t_mid)
+        assert mid.corrected.shape == live_map.reshape(-1, 2, 3).shape
+        assert np.max(np.abs(mid.corrected.reshape(-1, 6) - live_map)) <= tol
+        assert np.max(np.abs(mid.odometry.reshape(-1, 6) - live_odo)) <= tol
+        assert np.allclose(mid.robot[:2], mid.corrected[-1, 1, :2], atol=1e-4)
+        # at the end the replay is the live view
+        end = replay_at(snap, samples, gt, float(samples[-1, 0]))
+        held = viewer.trajectories.corrected.tracker
+        assert np.max(np.abs(end.corrected.reshape(-1, 6) - held._geom[: held.n])) <= tol
+    finally:
+        viewer.close()

@@ -8,7 +8,8 @@ ground truth on every odometry reading; a session created from it with ``base_se
 session's viewer and the test reads viser's scene tree (the messages the browser holds) and the
 canvas: the legend names every layer; the nodes drawn are exactly the base map's; the ground truth
 lies along them (in the base's frame, not in the run's own odometric frame); the map trajectory
-starts at the placement, not at the guess before it; the loop closures are thin lines. The
+starts at the placement, not at the guess before it, and so does the raw odometry, re-anchored
+on the map there; the loop closures are thin lines. The
 screenshots go to pytest's tmp dir.
 """
 
@@ -31,6 +32,7 @@ from tests.support.simfeed import sim_inputs
 NOISE = sim.OdometryNoise(sigma_v=0.02, sigma_omega=0.01, omega_bias=0.01)
 BASE_STEPS, RUN_STEPS = 400, 150  # 80 s of the base run; 30 s of the localising one (placed after ~7 s)
 NEAR_M = 0.75  # the ground truth's mean distance to the nearest base node (0.18 m measured; 1.55 m in the run's frame)
+ODOMETRY_START_M = 0.1  # raw odometry start to the map trajectory's (0 measured; 7.1 m unanchored: test_viewer.py)
 LOOP_M = 1.5  # longest loop segment drawn (0.64 m measured; a decision made while lost would join the base's last node)
 
 
@@ -110,6 +112,9 @@ def test_localisation_session_draws_the_base_map_and_its_ground_truth(localising
             traj = _scene_points(page, "/trajectories/map")[:, :2]
             assert len(traj)
             assert np.sqrt(((traj[:, None, :] - base_xy[None]) ** 2).sum(-1)).min(axis=1).max() < 1.5
+            # the raw odometry starts there too, re-anchored on the map (not in the run's own frame)
+            odo = _scene_points(page, "/trajectories/odometry")[:, :2]
+            assert len(odo) and np.hypot(*(odo[0] - traj[0])) < ODOMETRY_START_M
             # loop closures: thin lines, the ones made while lost not drawn from the base's last node
             seg = _scene_points(page, "/loops/accepted", but="/loops/accepted/ends").reshape(-1, 2, 3)
             placing = [lc for lc in accepted if lc["decision"]["gate_distance_m"] is None]

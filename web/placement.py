@@ -15,6 +15,13 @@ as current, not one the robot was near.
 
 The placement time is that of the first group of decisions accepted together while lost: the
 newest hypothesis of the group (the one whose proposal made the group consistent).
+
+:func:`drawn_trajectories` applies the rule to trajectory rows, for the live layers
+(:mod:`web.scene_trajectories`) and the time slider's replay (:mod:`web.scene_replay`) alike: the
+map trajectory is drawn from the first row on the map; the raw odometry of a run in a saved map,
+which lives in the run's own odometric frame, is drawn from that row too, moved rigidly so that
+its pose there is that row's map pose (where the run joined the map; it then drifts as odometry
+does). A fresh run's odometry is the frame the map started in: it is drawn as recorded.
 """
 
 from __future__ import annotations
@@ -23,7 +30,12 @@ import math
 from dataclasses import dataclass
 from typing import Any, Sequence
 
+import numpy as np
+
 from hippomap.cognitive_map import LoopDecision
+from hippomap.geometry import between, compose
+
+from .snapshot import TRAJ_NODE, TRAJ_OFFSET, TRAJ_RAW
 
 
 def decided_while_lost(d: LoopDecision) -> bool:
@@ -67,3 +79,31 @@ def placement(stats: dict[str, Any], decisions: Sequence[LoopDecision]) -> Place
     first = min(d.decided_step for d in placing)
     t = max(float(d.hypothesis.time) for d in placing if d.decided_step == first)
     return Placement(based, localise, False, t)
+
+
+def map_poses(rows: np.ndarray, node_poses: np.ndarray) -> np.ndarray:
+    """(K, 3) map poses of trajectory ``rows``: their node's pose (+) the robot's offset from it."""
+    n = len(node_poses)
+    if not n or not len(rows):
+        return np.empty((0, 3))
+    nodes = np.clip(rows[:, TRAJ_NODE].astype(np.int64), 0, n - 1)
+    return compose(node_poses[nodes], rows[:, TRAJ_OFFSET])
+
+
+def drawn_trajectories(rows: np.ndarray, node_poses: np.ndarray, placed: Placement) -> tuple[np.ndarray, np.ndarray]:
+    """(odometry, map): the (K, 3) raw-odometry and (J, 3) map poses the viewer draws for the
+    trajectory ``rows`` (t, raw x y theta, node, offset x y theta) of a run with ``placed``.
+
+    The map poses are those of the rows with ``t >= placed.on_map_from_t``. The odometry is the raw
+    poses of every row for a fresh run; for a run in a saved map it is the raw poses of the rows on
+    the map, composed with the rigid move that puts the first of them on its map pose (nothing
+    before the placement: the run's own frame is not the map's)."""
+    rows = np.asarray(rows, float).reshape(-1, 8)
+    on = rows[rows[:, 0] >= placed.on_map_from_t]
+    poses = map_poses(on, node_poses)
+    if not placed.based:
+        return rows[:, TRAJ_RAW], poses
+    if not len(poses):
+        return np.empty((0, 3)), poses
+    raw = on[:, TRAJ_RAW]
+    return compose(poses[0], between(raw[0], raw)), poses

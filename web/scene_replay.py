@@ -2,9 +2,13 @@
 
 :func:`replay_at` cuts the current map back to time ``t``: the trajectory samples up to ``t``, the
 nodes created by then (node ids are appended in creation order, so they are the nodes up to the
-highest id the robot had reached by ``t``), the links and accepted loop closures among those nodes,
-and the ground truth up to ``t``. Nodes keep their current (relaxed) positions: the replay shows
-how the map grew, not how relaxation moved it.
+highest id the robot had reached by ``t``, and all of a saved map the run started in), the links
+among those nodes, the loop closures accepted among them for hypotheses made by ``t``, and the
+ground truth up to ``t``. Nodes keep their current (relaxed) positions: the replay shows how the
+map grew, not how relaxation moved it. The trajectories, the robot and the loop closures follow
+the live layers' placement rule for a run in a saved map (:mod:`web.placement`): nothing of the
+run's path before its placement, its raw odometry re-anchored there; so the replay at a time
+after the placement draws what the live layers drew then (up to relaxation since).
 
 :class:`ReplayLayer` draws that in one browser's client-scoped scene under ``/replay`` (while the
 shared live layers are shadowed for that browser), each layer only if the browser shows it.
@@ -18,14 +22,14 @@ from typing import Any
 import numpy as np
 
 from hippomap.cognitive_map import LOOP
-from hippomap.geometry import compose
 
+from .placement import drawn_trajectories, placement
 from .scene_ground_truth import GROUND_TRUTH_Z
-from .scene_loops import LOOP_Z
+from .scene_loops import loop_segments
 from .scene_map import LINK_Z, NODE_Z, node_points
 from .scene_trajectories import MAP_Z, ODOMETRY_Z, polyline_segments
 from .settings import ViewerSettings
-from .snapshot import TRAJ_NODE, TRAJ_OFFSET, TRAJ_RAW, MapSnapshot
+from .snapshot import TRAJ_NODE, MapSnapshot
 
 
 @dataclass(frozen=True)
@@ -44,7 +48,7 @@ class ReplayFrame:
     corrected: np.ndarray  # (s, 2, 3) map trajectory up to t
     odometry: np.ndarray
     ground_truth: np.ndarray
-    robot: np.ndarray | None  # (3,) the robot's map pose at t
+    robot: np.ndarray | None  # (3,) the robot's map pose at t (None: not on the map yet)
 
 
 def time_span(samples: np.ndarray) -> tuple[float, float] | None:
@@ -57,12 +61,16 @@ def time_span(samples: np.ndarray) -> tuple[float, float] | None:
 def replay_at(snap: MapSnapshot, samples: np.ndarray, gt_samples: np.ndarray | None, t: float,
               max_nodes: int = 100000) -> ReplayFrame:
     """The map cut back to time ``t`` (see module doc). ``samples`` are the sampled trajectory rows
-    (t, raw x y theta, node, offset x y theta); ``gt_samples`` the ground truth in the map frame."""
+    (t, raw x y theta, node, offset x y theta); ``gt_samples`` the ground truth in the map frame.
+    The run's placement is the one ``snap``'s stats and decisions give (:func:`web.placement.placement`)."""
     span = time_span(samples)
     t0, t1 = span if span is not None else (0.0, 0.0)
     rows = samples[samples[:, 0] <= t] if len(samples) else samples
+    placed = placement(snap.stats, snap.decisions)
     n_all = len(snap.node_poses)
-    k = int(min(rows[:, TRAJ_NODE].max() + 1, n_all)) if len(rows) else 0
+    reached = int(rows[:, TRAJ_NODE].max() + 1) if len(rows) else 0
+    base = int(snap.stats.get("base_nodes") or 0) if placed.based else 0
+    k = min(max(reached, base), n_all)
     idx = np.arange(k)
     if k > max_nodes:
         idx = idx[:: -(-k // max_nodes)]
@@ -74,21 +82,12 @@ def replay_at(snap: MapSnapshot, samples: np.ndarray, gt_samples: np.ndarray | N
         np.empty((0, 2, 3), np.float32)
     seg[:, :, 2] = LINK_Z
     loop = snap.link_kind[inside] == LOOP
-    pairs = np.array([(d.from_node, d.hypothesis.node) for d in snap.decisions if d.status == "accepted"],
-                     dtype=np.int64).reshape(-1, 2)
-    pairs = pairs[(pairs >= 0).all(axis=1) & (pairs < k).all(axis=1)]
-    acc = np.empty((len(pairs), 2, 3), np.float32)
-    acc[:, :, :2] = snap.node_poses[pairs][:, :, :2] if len(pairs) else 0.0
-    acc[:, :, 2] = LOOP_Z
-    robot = None
-    if len(rows) and n_all:
-        nid = np.clip(rows[:, TRAJ_NODE].astype(np.int64), 0, n_all - 1)
-        cor_pose = compose(snap.node_poses[nid], rows[:, TRAJ_OFFSET])
-        corrected = polyline_segments(cor_pose[:, :2], MAP_Z)
-        robot = cor_pose[-1]
-    else:
-        corrected = np.empty((0, 2, 3), np.float32)
-    odometry = polyline_segments(rows[:, TRAJ_RAW][:, :2], ODOMETRY_Z) if len(rows) else np.empty((0, 2, 3), np.float32)
+    made = [d for d in snap.decisions if float(d.hypothesis.time) <= t]
+    acc = loop_segments(made, snap.node_poses[:k], "accepted", placed.hides_lost_decisions)
+    raw, on_map = drawn_trajectories(rows, snap.node_poses, placed)
+    corrected = polyline_segments(on_map[:, :2], MAP_Z)
+    odometry = polyline_segments(raw[:, :2], ODOMETRY_Z)
+    robot = on_map[-1] if len(on_map) else None
     if gt_samples is not None and len(gt_samples):
         g = gt_samples[gt_samples[:, 0] <= t]
         ground_truth = polyline_segments(g[:, 1:3], GROUND_TRUTH_Z)

@@ -6,6 +6,8 @@ corrected one the same step placed on the relaxed map, ``l_node (+) offset`` (as
 :meth:`hippomap.mapper.Mapper.corrected_trajectory`). A step is drawn every
 ``trajectory_spacing_m`` metres of raw path, chosen once and for good, so both polylines are
 append-only: the raw one never moves, the corrected one moves when a relaxation moves its nodes.
+A run in a saved map is drawn from its placement on, its raw odometry re-anchored on the map
+there (:func:`web.placement.drawn_trajectories`).
 A long run is drawn coarser: beyond ``trajectory_budget`` steps the spacing doubles. Both are
 thin native lines (see :class:`web.chunks.ChunkedSegments`).
 """
@@ -17,11 +19,10 @@ from typing import Any
 
 import numpy as np
 
-from hippomap.geometry import compose
-
 from .chunks import ChunkedSegments, ChunkUpdate
+from .placement import Placement, drawn_trajectories, placement
 from .settings import ViewerSettings
-from .snapshot import TRAJ_NODE, TRAJ_OFFSET, TRAJ_RAW, MapSnapshot
+from .snapshot import MapSnapshot
 
 ODOMETRY_Z = 0.03
 MAP_Z = 0.04
@@ -113,15 +114,6 @@ def polyline_segments(points: np.ndarray, z: float) -> np.ndarray:
     return seg
 
 
-def map_poses(rows: np.ndarray, node_poses: np.ndarray) -> np.ndarray:
-    """(K, 3) map poses of trajectory ``rows``: their node's pose (+) the robot's offset from it."""
-    n = len(node_poses)
-    if not n or not len(rows):
-        return np.empty((0, 3))
-    nodes = np.clip(rows[:, TRAJ_NODE].astype(np.int64), 0, n - 1)
-    return compose(node_poses[nodes], rows[:, TRAJ_OFFSET])
-
-
 @dataclass(frozen=True)
 class TrajectoryUpdate:
     odometry: ChunkUpdate
@@ -142,16 +134,15 @@ class TrajectoryLayer:
                                          s.trajectory_thickness_m, style="thin", color=s.color_corrected,
                                          tail_size=s.tail_size)
 
-    def update(self, snap: MapSnapshot, on_map_from_t: float = -np.inf) -> TrajectoryUpdate:
-        """Push the new rows of ``snap``; the map trajectory is drawn from the rows with ``t >=
-        on_map_from_t`` only (a run in a saved map is on the map from its placement on: see
-        :mod:`web.placement`), the raw odometry from every row."""
+    def update(self, snap: MapSnapshot, placed: Placement | None = None) -> TrajectoryUpdate:
+        """Push the new rows of ``snap``, drawn as :func:`web.placement.drawn_trajectories` says for
+        the run's placement ``placed`` (None: the one ``snap``'s stats and decisions give)."""
         self.sampler.add(snap.trajectory_start, snap.trajectory)
-        rows = self.sampler.samples
-        raw = polyline_segments(rows[:, TRAJ_RAW][:, :2], ODOMETRY_Z)
-        cor = polyline_segments(map_poses(rows[rows[:, 0] >= on_map_from_t], snap.node_poses)[:, :2], MAP_Z)
-        odo = self.odometry.update(raw)
-        cu = self.corrected.update(cor)
+        if placed is None:
+            placed = placement(snap.stats, snap.decisions)
+        odometry, on_map = drawn_trajectories(self.sampler.samples, snap.node_poses, placed)
+        odo = self.odometry.update(polyline_segments(odometry[:, :2], ODOMETRY_Z))
+        cu = self.corrected.update(polyline_segments(on_map[:, :2], MAP_Z))
         return TrajectoryUpdate(odo, cu)
 
     def set_visible(self, odometry: bool | None = None, corrected: bool | None = None) -> None:

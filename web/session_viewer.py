@@ -40,13 +40,13 @@ from .panel_loops import LoopsPanel
 from .panel_place_cells import PlaceCellsPanel
 from .panel_stats import StatsPanel
 from .panel_view import ClientViews
-from .placement import Placement, placement
+from .placement import Placement, map_poses, placement
 from .scene_ground_truth import GroundTruthLayer
 from .scene_loops import LoopLayer, LoopUpdate
 from .scene_map import MapGraphLayer, MapUpdate
 from .scene_place_field import PlaceFieldLayer
 from .scene_pose import RobotMarker
-from .scene_trajectories import TrajectoryLayer, TrajectoryUpdate, map_poses
+from .scene_trajectories import TrajectoryLayer, TrajectoryUpdate
 from .settings import ViewerSettings
 from .snapshot import Cursor, MapSnapshot, take_snapshot
 from .source import SessionSource, ground_truth_rows
@@ -250,7 +250,7 @@ class SessionViewer:
             placed = placement(snap.stats, snap.decisions)
             with self.server.atomic():
                 mu = self.map.update(snap)
-                tu = self.trajectories.update(snap, placed.on_map_from_t)
+                tu = self.trajectories.update(snap, placed)
                 lu = self.loops.update(snap, placed.hides_lost_decisions)
                 pf = self.place_field.update(snap.place_field)
                 self.robot.update(snap.robot_pose)
