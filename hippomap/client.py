@@ -53,8 +53,9 @@ def odometry_reading(o: Odometry | dict[str, Any]) -> dict[str, Any]:
         return o
     d: dict[str, Any] = ({"t": o.t, "increment": list(o.increment)} if o.increment is not None
                          else {"t": o.t, "v": o.v, "omega": o.omega})
-    if getattr(o, "gt", None) is not None:
-        d["gt"] = list(o.gt)
+    gt = getattr(o, "gt", None)
+    if gt is not None:
+        d["gt"] = list(gt)
     return d
 
 

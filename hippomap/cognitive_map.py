@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import replace
-from typing import Any
+from typing import Any, Self, cast
 
 import numpy as np
 
@@ -286,7 +286,7 @@ class CognitiveMap:
         measures distance travelled from here, not odometric drift accumulated since the
         node was created."""
         self._cur = int(node)
-        self._delta = tuple(float(v) for v in delta)
+        self._delta = cast("tuple[float, float, float]", tuple(float(v) for v in delta))
         self._t_arrive = t
         self._arrival = int(arrival)
         code = self._robot_code()
@@ -654,7 +654,7 @@ class CognitiveMap:
         info = h.information or (cfg.loop_information if h.transform is not None else cfg.visual_loop_information)
         cand = Candidate(did, h.node, self._cur, link_tr, _between3(self._delta, link_tr), self._odom, self._step,
                          self._arrival if h.node == self._cur else -1, h.transform is not None, self._path,
-                         tuple(float(v) for v in info),
+                         cast("tuple[float, float]", tuple(float(v) for v in info)),
                          cfg.loop_kernel_width if h.transform is not None else cfg.visual_kernel_width)
         t = self._t if self._t is not None else h.time
         base = LoopDecision(did, "pending", "", h, self._cur, proposed_step=self._step)
@@ -812,6 +812,7 @@ class CognitiveMap:
         if not verified:
             book.pending.append(cand)
         else:
+            assert group is not None  # verified
             for c in group:
                 k = book.decisions[c.id].link
                 if k >= 0 and c.node != c.from_node:
@@ -984,9 +985,9 @@ class CognitiveMap:
         remap = lambda c: replace(c, node=int(old_to_new[c.node]), from_node=int(old_to_new[c.from_node]),  # noqa: E731
                                   arrival=-1)
         book = self._loops
-        for c in book.pending:
-            if old_to_new[c.node] == old_to_new[c.from_node]:
-                self._reject(c.id, "prune() merged its node into the node it was proposed from", t)
+        for cand in book.pending:
+            if old_to_new[cand.node] == old_to_new[cand.from_node]:
+                self._reject(cand.id, "prune() merged its node into the node it was proposed from", t)
         book.pending = [remap(c) for c in book.pending if old_to_new[c.node] != old_to_new[c.from_node]]
         book.accepted = [remap(c) for c in book.accepted]
         self._events.append(NodesPruned(n - kn, kn, ml, frames_dropped, t))
@@ -1028,7 +1029,7 @@ class CognitiveMap:
         }
 
     @classmethod
-    def from_state(cls, cfg: MapConfig, state: dict[str, Any]) -> "CognitiveMap":
+    def from_state(cls, cfg: MapConfig, state: dict[str, Any]) -> Self:
         """Rebuild a map from :meth:`state_dict`; it produces the same future outputs."""
         try:
             if state.get("version") != _STATE_VERSION:

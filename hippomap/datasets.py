@@ -10,10 +10,14 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING, Any, Sequence, cast
 
 import numpy as np
 
 from .errors import InputError
+
+if TYPE_CHECKING:
+    from .rosbag import DecodedFrame
 
 
 #: the upper triangle of the 3x3 unit information matrix, as g2o writes it (I11 I12 I13 I22 I23 I33)
@@ -262,7 +266,7 @@ class SensorDataset:
     """Odometry readings, frame references and optional ground truth, each time-sorted."""
 
     odometry: list  # list[hippomap.inputs.Odometry]
-    frames: list[FrameRef]
+    frames: Sequence[FrameRef | DecodedFrame]  # on disk (folders, TUM) or decoded from a ROS bag
     groundtruth: tuple[np.ndarray, np.ndarray] | None
     source: Path
 
@@ -276,8 +280,8 @@ class SensorDataset:
             yield item
 
 
-def _read_csv_rows(path: Path, columns: tuple[str, ...]) -> list[list[str]]:
-    """Rows of a CSV whose header must name ``columns`` (in that order)."""
+def _read_csv_rows(path: Path, columns: tuple[str, ...]) -> list[list[Any]]:
+    """Rows of a CSV whose header must name ``columns`` (in that order): ``[line number, *cells]``."""
     import csv
 
     with path.open(newline="") as fh:
@@ -285,7 +289,7 @@ def _read_csv_rows(path: Path, columns: tuple[str, ...]) -> list[list[str]]:
         header = next(reader, None)
         if header is None or tuple(h.strip() for h in header) != columns:
             raise InputError(f"{path}:1: header must be {','.join(columns)!r}, got {header!r}")
-        rows = []
+        rows: list[list[Any]] = []
         for lineno, row in enumerate(reader, 2):
             if not row or not "".join(row).strip():
                 continue
@@ -359,7 +363,8 @@ def read_tum_rgbd(folder: str | Path) -> SensorDataset:
         arr = _read_tum_like(folder / "odometry.txt")
         poses = _tum_to_se2(arr)
         inc = between(poses[:-1], poses[1:])
-        odometry = [Odometry(float(t), increment=tuple(map(float, d))) for t, d in zip(arr[1:, 0], inc)]
+        odometry = [Odometry(float(t), increment=cast("tuple[float, float, float]", tuple(map(float, d))))
+                    for t, d in zip(arr[1:, 0], inc)]
     elif (folder / "odometry.csv").is_file():
         odometry = read_folder_odometry(folder / "odometry.csv")
     else:

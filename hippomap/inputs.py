@@ -57,6 +57,7 @@ class Odometry:
         half a step early; the arc is exact for a robot holding its command (MODEL.md)."""
         if self.increment is not None:
             return self.increment
+        assert self.v is not None and self.omega is not None  # __post_init__: an increment or both
         th = self.omega * dt
         d = self.v * dt
         half = th / 2

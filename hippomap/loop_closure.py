@@ -31,13 +31,15 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
 from .config import MapConfig
 from .errors import InputError, finite
 from .geometry import between, compose, wrap_angle
+
+_Pose = tuple[float, float, float]  # (x, y, theta): the fixed length the type checker needs
 
 __all__ = ["USED_WEIGHT", "LoopHypothesis", "LoopDecision", "Candidate", "LoopBook", "gate_limit", "cycle_errors", "consistent",
            "align_group", "robust_weight", "se2_compose", "se2_inverse", "se2_between", "vec3", "node_id", "jsonable"]
@@ -208,7 +210,7 @@ class LoopDecision:
                    gate_limit=nan if d.get("gate_limit_m") is None else float(d["gate_limit_m"]),
                    link=int(d.get("link", -1)), proposed_step=int(d.get("proposed_step", 0)),
                    decided_step=int(d.get("decided_step", -1)),
-                   transform=None if tr is None else tuple(float(v) for v in tr))
+                   transform=None if tr is None else cast(_Pose, tuple(float(v) for v in tr)))
 
 
 @dataclass(frozen=True)
@@ -246,10 +248,10 @@ class Candidate:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "Candidate":
-        return cls(int(d["id"]), int(d["node"]), int(d["from_node"]), tuple(map(float, d["link_tr"])),
-                   tuple(map(float, d["M"])), tuple(map(float, d["odom"])), int(d["step"]), int(d.get("arrival", -1)),
+        return cls(int(d["id"]), int(d["node"]), int(d["from_node"]), cast(_Pose, tuple(map(float, d["link_tr"]))),
+                   cast(_Pose, tuple(map(float, d["M"]))), cast(_Pose, tuple(map(float, d["odom"]))), int(d["step"]), int(d.get("arrival", -1)),
                    bool(d.get("measured", False)), float(d.get("path", 0.0)),
-                   tuple(float(v) for v in d.get("info", (100.0, 1000.0))), float(d.get("kernel_width", 1.0)))
+                   cast("tuple[float, float]", tuple(float(v) for v in d.get("info", (100.0, 1000.0)))), float(d.get("kernel_width", 1.0)))
 
 
 # --------------------------------------------------------------------------- verification

@@ -32,7 +32,7 @@ from __future__ import annotations
 import io
 import json
 import math
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -42,7 +42,7 @@ from .config import HippomapConfig
 from .errors import InputError
 from .geometry import compose, wrap_angle
 from .inputs import Frame, Odometry
-from .place_cells import SpatialPathway
+from .place_cells import PlaceCode, SpatialPathway
 from .visual_memory import VisualMemory
 
 FORMAT_VERSION = 1
@@ -119,7 +119,7 @@ class _ReuseMap(CognitiveMap):
         self._code = None
         self._anchor = None
         self._arrival = -1
-        self._odom = tuple(float(v) for v in initial_pose)
+        self._odom = cast("tuple[float, float, float]", tuple(float(v) for v in initial_pose))
         self._code_odom = self._odom
         self._t_arrive = 0.0
         if self.localise_only:
@@ -223,7 +223,7 @@ class Mapper:
         self.frame_path: dict[int, float] = {}  # key-frame id -> odometric path length when it was learned
         self.recognitions: list[dict[str, Any]] = []
         self.place: tuple[float, float, float] | None = None  # latest place code p
-        self.place_field = None  # latest PlaceCode with its field (not persisted)
+        self.place_field: PlaceCode | None = None  # latest PlaceCode with its field (not persisted)
         # per odometry step: t, raw odometric pose, current node, robot offset from it
         self._traj = _Grow(8)
 
@@ -353,7 +353,7 @@ class Mapper:
             node = int(self.cmap.current)
             self.cmap.set_frame(node, fid)
             self.frame_node[int(fid)] = node
-            self.frame_offset[int(fid)] = tuple(float(v) for v in self.cmap.robot_offset)
+            self.frame_offset[int(fid)] = cast("tuple[float, float, float]", tuple(float(v) for v in self.cmap.robot_offset))
             self.frame_path[int(fid)] = float(self.distance)
             events.append({"type": "keyframe_learned", "t": frame.t, "frame": int(fid), "node": node})
         return events
@@ -435,7 +435,7 @@ class Mapper:
     # ------------------------------------------------------------- persistence
     def to_bytes(self) -> bytes:
         """The whole state as bytes (npz of arrays + a JSON header; no pickle)."""
-        arrays: dict[str, np.ndarray] = {}
+        arrays: dict[str, Any] = {}  # (np.ndarray values: Any for numpy's savez_compressed(**kwds) stub)
         meta = {
             "format": FORMAT_VERSION,
             "config": self.config.model_dump(mode="json"),
@@ -492,7 +492,8 @@ class Mapper:
         dk = meta["distance_at_keyframe"]
         self.distance_at_keyframe = -math.inf if dk is None else dk
         self.frame_node = {int(k): int(v) for k, v in meta["frame_node"]}
-        self.frame_offset = {int(k): tuple(float(x) for x in v) for k, v in meta.get("frame_offset", [])}
+        self.frame_offset = {int(k): cast("tuple[float, float, float]", tuple(float(x) for x in v))
+                             for k, v in meta.get("frame_offset", [])}
         self.frame_path = {int(k): float(v) for k, v in meta.get("frame_path", [])}
         self.turn = float(meta.get("turn", 0.0))
         self.turn_at_keyframe = float(meta.get("turn_at_keyframe", 0.0))

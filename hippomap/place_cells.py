@@ -238,7 +238,7 @@ def localise_literal(source: GridCells | RateTables, T, cfg: SpatialConfig | Non
     Same window bounds, order and exact variance test as :meth:`PlaceCells.localise`; used by the tests
     (equality) and by ``bench/bench_spatial.py`` (speed-up).
     """
-    cfg = cfg or source.cfg
+    cfg = cfg or source.cfg  # type: ignore[union-attr]  # a RateTables source needs cfg given (as before)
     t = _resolve_tables(source)
     T = _check_rates(T, t.n_cells)
     lo, hi = window_levels(T, cfg)
@@ -535,7 +535,7 @@ def record_iteration(source: GridCells | RateTables, T, cfg: SpatialConfig | Non
     returns for the same ``T`` (tested). Costs ~10-50 ms at the defaults: call it when a figure is asked
     for, never per step.
     """
-    cfg = cfg or source.cfg
+    cfg = cfg or source.cfg  # type: ignore[union-attr]  # a RateTables source needs cfg given (as before)
     t = _resolve_tables(source)
     T = _check_rates(T, t.n_cells)
     lo, hi = window_levels(T, cfg)

@@ -18,6 +18,8 @@ directly (no pyplot state), so it is safe from any thread; 1-3 s per figure: dra
 
 from __future__ import annotations
 
+from typing import cast
+
 import numpy as np
 
 from .errors import InputError
@@ -35,7 +37,7 @@ def _pool_any(mask: np.ndarray, step: int) -> np.ndarray:
     p = -(-n // step)
     padded = np.zeros((p * step, p * step), bool)
     padded[:n, :n] = mask
-    return padded.reshape(p, step, p, step).any(axis=(1, 3))
+    return np.asarray(padded.reshape(p, step, p, step).any(axis=(1, 3)))
 
 
 def _pool_max(values: np.ndarray, step: int) -> np.ndarray:
@@ -217,7 +219,7 @@ def place_field_figure(record: IterationRecord, *, max_steps: int = 8, view_m: f
         head = title or "Place cells: windows multiplied to one field\n(Eq. 9-10, the paper's Fig. 8)"
     fig.suptitle(head + "\n" + sub, fontsize=9)
     fig.canvas.draw()
-    rgba = np.asarray(fig.canvas.buffer_rgba())
+    rgba = np.asarray(cast(FigureCanvasAgg, fig.canvas).buffer_rgba())  # attached above
     return np.ascontiguousarray(rgba[:, :, :3])
 
 

@@ -490,6 +490,7 @@ def solve_lsq(
             _wrap_inplace(trial[:, 2])
             b_t = b + (float(full[3 * n]) if est else 0.0)
             if est:
+                assert bdt is not None  # est implies bias_dt was given
                 T[:, 2] = T_raw - b_t * bdt
             e_t, c_t, s_t, dx_t, dy_t = _lsq_errors(trial, src, dst, T, sw)
             cost_t = total(e_t, b_t)
@@ -499,6 +500,7 @@ def solve_lsq(
                 break
             lam = 1e-4 if lam == 0 else lam * 10
             if est:
+                assert bdt is not None  # est implies bias_dt was given
                 T[:, 2] = T_raw - b * bdt
             if lam > 1e6 or done >= iterations:
                 return RelaxResult("lsq", done, shift, b)  # no step lowers the cost: keep the poses

@@ -79,8 +79,9 @@ async def replay(dataset: Any, url: str, token: str | None, session_id: str, spe
 
     def watch(fut: asyncio.Future, n: int) -> None:
         def done(f: asyncio.Future) -> None:
-            if f.exception() is not None:
-                errors.append(f.exception())
+            exc = f.exception()
+            if exc is not None:
+                errors.append(exc)
             elif bar is not None:
                 bar.update(n)
         fut.add_done_callback(done)

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any, cast
 
 import numpy as np
 
@@ -79,7 +80,7 @@ def read_rosbag(path: str | Path, image_topic: str, odometry_topic: str, max_fra
                 raise InputError(f"bag {path} has no topic {topic!r}; topics: {sorted(topics)}")
         conns = [c for c in reader.connections if c.topic in wanted]
         for conn, _, raw in reader.messages(connections=conns):
-            msg = reader.deserialize(raw, conn.msgtype)
+            msg: Any = reader.deserialize(raw, conn.msgtype)  # a ROS message of conn.msgtype
             t = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
             if conn.topic == image_topic:
                 if max_frames is None or len(frames) < max_frames:
@@ -104,7 +105,8 @@ def read_rosbag(path: str | Path, image_topic: str, odometry_topic: str, max_fra
     _check_increasing(np.array([f.t for f in frames]), Path(f"{path}[{image_topic}]"))
     arr = np.array(poses)
     inc = between(arr[:-1], arr[1:])
-    odometry = [Odometry(float(t), increment=tuple(map(float, d))) for t, d in zip(stamps[1:], inc)]
+    odometry = [Odometry(float(t), increment=cast("tuple[float, float, float]", tuple(map(float, d))))
+                for t, d in zip(stamps[1:], inc)]
     gt = None
     if gt_t:
         _check_increasing(np.array(gt_t), Path(f"{path}[{groundtruth_topic}]"))

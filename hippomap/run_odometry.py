@@ -13,7 +13,7 @@ import time
 from collections import defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -105,7 +105,8 @@ def run_odometry(dataset: OdometryDataset, config: HippomapConfig | None = None,
             # short odometric offsets of the robot from its node at k and at j
             rel = compose(compose(cmap.robot_offset, t_kj), between(offset_at_pose[j], np.zeros(3)))
             hyp = LoopHypothesis(
-                node=int(node_at_pose[j]), transform=tuple(float(v) for v in rel), evidence=1.0,
+                node=int(node_at_pose[j]), transform=cast("tuple[float, float, float]", tuple(float(v) for v in rel)),
+                evidence=1.0,
                 source="dataset", time=float(times[k]), meta={"poses": [k, j], "line": line}, information=info,
             )
             cmap.propose_loop(hyp)

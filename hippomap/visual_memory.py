@@ -63,7 +63,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any, Iterable, Literal
+from typing import Any, Iterable, Literal, cast
 
 import cv2
 import numpy as np
@@ -701,6 +701,7 @@ class VisualMemory:
             if predicted >= 0 and not np.any(T == predicted):
                 T = np.append(T, predicted)
             # shortlist and statistics sample in one gather
+            assert sub.sample is not None  # set unless exact_all
             extra = np.setdiff1d(sub.sample, T) if sub.is_all else sub.sample
             u = self._drive(patch, np.concatenate([sub.idx[T], extra]))
             uT, uR = u[: T.size], u[T.size :]
@@ -710,6 +711,7 @@ class VisualMemory:
             if sub.exact_all:
                 mean, var = float(uT.mean()), float(uT.var())
             else:  # exact shortlist + stratified estimate of the rest
+                assert uR is not None  # gathered above unless exact_all
                 uR = uR.astype(np.float64)
                 nR = N - T.size
                 mR = float(uR.mean()) if uR.size else 0.0
@@ -718,6 +720,7 @@ class VisualMemory:
                 m2 = (float((uT.astype(np.float64) ** 2).sum()) + nR * m2R) / N
                 var = max(0.0, m2 - mean * mean)
         else:  # candidates: the sensory layer is global, statistics over the library sample
+            assert uR is not None  # gathered with the candidates
             uL = uR.astype(np.float64)
             N = max(self.n_features, 1)
             mean, var = float(uL.mean()), float(uL.var())
@@ -757,8 +760,8 @@ class VisualMemory:
         vals = ut[keep].astype(np.float64) * cfg.softmax_gain
         e = np.exp(vals - vals.max())
         wts = e / e.sum()
-        top = int(surv[int(np.argmax(vals))])
-        return _Sense(True, winner, umax, surv, wts, top, upred)
+        best = int(surv[int(np.argmax(vals))])
+        return _Sense(True, winner, umax, surv, wts, best, upred)
 
     def _microsaccade(self, img: np.ndarray, target: np.ndarray, flc: int) -> np.ndarray | None:
         """Snap the landing point to the best match of the predicted feature within ``tolerance_px``
@@ -863,6 +866,7 @@ class VisualMemory:
                         if pred_err > cfg.max_prediction_errors:
                             reset_reason = "too many wrong predictions"
                     if reset_reason is None and (outcome != "mismatch" or cfg.update_on_mismatch):
+                        assert s.weights is not None  # a fixation with evidence has its survivors' weights
                         g = sub.idx[s.survivors]
                         np.add.at(a, frame_of[g], cfg.kappa * wts[g] * s.weights)
                         np.clip(a, 0.0, 1.0, out=a)
@@ -872,7 +876,7 @@ class VisualMemory:
                             m = self._pos[found].astype(np.int64)  # global remapping onto the feature
                 steps.append(
                     SaccadeStep(
-                        attempt=resets, fixation=to_img(e), target=to_img(target), predicted_frame=pf,
+                        attempt=resets, fixation=cast("tuple[float, float]", to_img(e)), target=to_img(target), predicted_frame=pf,
                         predicted_feature=None if predicted < 0 else int(predicted), found_frame=None if found is None
                         else int(frame_of[found]), found_feature=found, similarity=float(s.umax), outcome=outcome,
                         evidence=leading(),

@@ -129,6 +129,7 @@ def load_baseline_module():
     if not BASELINE_PATH.is_file():
         raise HippomapError(f"the RatSLAM baseline {BASELINE_PATH} is missing: eval-vpr needs a source checkout")
     spec = importlib.util.spec_from_file_location("hippomap_bench_ratslam_baseline", BASELINE_PATH)
+    assert spec is not None  # a .py file that exists (checked above)
     module = importlib.util.module_from_spec(spec)
     assert spec.loader is not None
     sys.modules[spec.name] = module
@@ -252,12 +253,13 @@ def _run_ours(cfg: VisualConfig, ds: VPRDataset, ref_images: list[np.ndarray], q
             skipped.append(i)
         else:
             frame_to_ref[fid] = i
-    rows, recs, t_rec = [], [], []
+    rows: list[dict[str, Any]] = []
+    recs, t_rec = [], []
     for qi, img in enumerate(query_images):
         t0 = time.perf_counter()
         rec = mem.recognise(img)
         t_rec.append(time.perf_counter() - t0)
-        ref = frame_to_ref.get(rec.frame_id) if rec.accepted else None
+        ref = frame_to_ref.get(rec.frame_id) if rec.accepted and rec.frame_id is not None else None
         pos = ds.positives[qi]
         rows.append({"reference": ref, "correct": bool(ref is not None and ref in pos), "confidence": rec.confidence,
                      "fixations": rec.n_fixations, "resets": rec.n_resets})

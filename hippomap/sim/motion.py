@@ -202,7 +202,8 @@ class RoutePlan:
         ahead = q[min(m - 1, look)] - q[0]
         pose = np.array([q[0, 0], q[0, 1], np.arctan2(ahead[1], ahead[0])])
         i = 0
-        vs, ws = [], []
+        vs: list[float] = []
+        ws: list[float] = []
         max_steps = int(10 * m * spacing / (self.speed_mps * dt)) + 100
         while len(vs) < max_steps:
             lo, hi = i, min(m, i + window)
@@ -230,10 +231,10 @@ class RoutePlan:
                 break
         if not vs:
             raise InputError("route is too short to drive")
-        v, w = np.array(vs), np.array(ws)
+        v_arr, w_arr = np.array(vs), np.array(ws)
         start = np.array([q[0, 0], q[0, 1], np.arctan2(ahead[1], ahead[0])])
-        poses = integrate(arc_increments(v, w, dt), start)
-        return Trajectory(np.arange(len(poses)) * dt, poses, velocities=np.stack([v, w], axis=1))
+        poses = integrate(arc_increments(v_arr, w_arr, dt), start)
+        return Trajectory(np.arange(len(poses)) * dt, poses, velocities=np.stack([v_arr, w_arr], axis=1))
 
 
 def measure_odometry(traj: Trajectory, noise: OdometryNoise, rng: np.random.Generator):

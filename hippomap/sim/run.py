@@ -17,7 +17,7 @@ import csv
 import json
 from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
-from typing import Iterator
+from typing import Any, Iterator, cast
 
 import cv2
 import numpy as np
@@ -133,7 +133,7 @@ def simulate(world: World, trajectory=None, config: SimConfig | None = None, **o
         raise InputError(f"world {world.name!r} has no default route: pass a trajectory or drive plan")
     if not hasattr(plan, "sample"):
         raise InputError(f"trajectory must be a Trajectory, DrivePlan or RoutePlan, got {type(plan).__name__}")
-    traj: Trajectory = plan.sample(config.rate_hz)
+    traj: Trajectory = cast(Any, plan).sample(config.rate_hz)  # any plan with .sample (checked above)
     rng = np.random.default_rng([config.seed, 3])
     v, w, inc = measure_odometry(traj, config.odometry_noise, rng)
     odo = np.zeros((len(traj), 3))

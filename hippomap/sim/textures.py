@@ -30,7 +30,7 @@ class MipAtlas:
         strip = np.asarray(strip)
         if strip.ndim != 2 or strip.shape[0] < 2 or strip.shape[1] < 2:
             raise InputError(f"texture strip must be a 2-D image, got shape {strip.shape}")
-        levels = [np.ascontiguousarray(strip, dtype=np.uint8)]
+        levels: list[np.ndarray] = [np.ascontiguousarray(strip, dtype=np.uint8)]
         while len(levels) < max_levels and min(levels[-1].shape) >= 8:
             levels.append(cv2.pyrDown(levels[-1]))
         self.levels = levels

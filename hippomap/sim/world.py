@@ -147,11 +147,11 @@ class World:
         if not segs:
             raise InputError("world has no wall of non-zero length")
         segments = np.vstack(segs)
-        u0 = np.concatenate(u0)
+        u0_all = np.concatenate(u0)
         if strip is None:
             strip = make_strip((u + 1.0) / texture.texels_per_m, texture, seed)
         atlas = MipAtlas(strip)
-        return cls(name, segments, u0, atlas, texture, route=route, seed=seed, floor_seed=seed)
+        return cls(name, segments, u0_all, atlas, texture, route=route, seed=seed, floor_seed=seed)
 
 
 def walls_around_path(
