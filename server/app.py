@@ -15,7 +15,7 @@ import os
 import time
 from contextlib import asynccontextmanager
 from pathlib import Path
-from typing import Any, AsyncIterator
+from typing import Any, AsyncIterator, MutableMapping, cast
 
 from fastapi import FastAPI, Request
 from fastapi.encoders import jsonable_encoder
@@ -164,7 +164,7 @@ def secure_data_files(settings: ServerSettings) -> None:
 BODY_PARSE_ERROR = "There was an error parsing the body"
 
 
-def allowed_methods(app: FastAPI, scope: dict[str, Any]) -> list[str]:
+def allowed_methods(app: FastAPI, scope: MutableMapping[str, Any]) -> list[str]:
     """The methods of every route matching ``scope``'s path (for ``Allow``: Starlette names only the
     first matching route's methods when several routes share a path)."""
     methods = []
@@ -271,7 +271,8 @@ def create_app(settings: ServerSettings | None = None) -> FastAPI:
     async def health() -> dict[str, Any]:
         manager = getattr(app.state, "manager", None)  # answers even before the start-up finished
         if manager is not None and manager.fatal:  # the store's writer died: the process is about to exit
-            return SafeJSONResponse({"status": "failed", "version": __version__, "detail": f"storage stopped: "
+            # a Response passes FastAPI's response model (the annotation, which documents the 200) untouched
+            return SafeJSONResponse({"status": "failed", "version": __version__, "detail": f"storage stopped: "  # type: ignore[return-value]
                                      f"{manager.fatal}"}, status_code=503)
         return {"status": "ok", "version": __version__, "sessions": 0 if manager is None else len(manager.sessions)}
 
@@ -315,8 +316,9 @@ def create_app(settings: ServerSettings | None = None) -> FastAPI:
 
     def openapi() -> dict[str, Any]:
         if app.openapi_schema is None:
-            document_input_bounds(default_openapi(), settings)
-            wsdoc.add_websocket_docs(app.openapi_schema, settings)
+            document_input_bounds(default_openapi(), settings)  # fills app.openapi_schema
+            wsdoc.add_websocket_docs(cast(dict[str, Any], app.openapi_schema), settings)
+        assert app.openapi_schema is not None
         return app.openapi_schema
 
     app.openapi = openapi  # type: ignore[method-assign]

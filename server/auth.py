@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import parse_qs
 
-from .store import SessionRecord, Store, TokenRecord
+from .store import Role, SessionRecord, Store, TokenRecord
 
 ADMIN_ID = "admin"
 TOKEN_PREFIX = "hm_"
@@ -98,7 +98,7 @@ class Authenticator:
         with self._lock:
             self._cache.clear()
 
-    def mint(self, role: str, owner: str | None, session: str | None, label: str = "") -> tuple[str, TokenRecord]:
+    def mint(self, role: Role, owner: str | None, session: str | None, label: str = "") -> tuple[str, TokenRecord]:
         """Create and store a token; returns the secret (shown once) and its record."""
         secret = new_secret()
         rec = TokenRecord(id=new_token_id(), role=role, owner=owner, session=session, label=label, created=time.time())

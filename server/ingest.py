@@ -20,7 +20,7 @@ from __future__ import annotations
 import json
 import math
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Literal
 
 from pydantic import ValidationError
 
@@ -46,7 +46,7 @@ class IngestError(Exception):
 class Accepted:
     """A validated input ready to store: its record bytes and, for the mapper, the parsed value."""
 
-    kind: str  # "odometry" | "frame"
+    kind: Literal["odometry", "frame"]
     t: float
     data: bytes
     value: Odometry | Frame

@@ -151,7 +151,7 @@ class InProcessHost(MapperHost):
         with self.lock:
             t0 = time.perf_counter()
             try:
-                events = self.mapper.step(value) if odometry else self.mapper.observe(value)
+                events = self.mapper.step(value) if isinstance(value, Odometry) else self.mapper.observe(value)
             except InputError as exc:  # validated at ingest, so only a model-side rule can get here
                 events = [{"type": "input_rejected", "t": value.t, "seq": seq, "detail": str(exc)}]
             except Exception as exc:  # noqa: BLE001 - an input the model cannot take must not stop the session

@@ -94,9 +94,9 @@ class ServiceMetrics:
                     metric.remove(session_id, kind)
                 except KeyError:
                     pass
-        for metric in (self._loops, self._restore):
+        for series in (self._loops, self._restore):
             try:
-                metric.remove(session_id)
+                series.remove(session_id)
             except KeyError:
                 pass
 

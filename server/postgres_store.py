@@ -45,6 +45,7 @@ from psycopg.pq import TransactionStatus
 
 from .store import (
     EventRecord,
+    InputKind,
     InputRecord,
     PlaceFieldRecord,
     SessionRecord,
@@ -58,7 +59,7 @@ from .store import (
 SCHEMA_VERSION = 1
 MAX_BATCH = 1024
 POOL_SIZE = 8
-_KINDS = ("odometry", "frame")
+_KINDS: tuple[InputKind, ...] = ("odometry", "frame")
 _SCHEMA_LOCK = 0x68697070  # advisory lock id ("hipp"): replicas starting together create the schema once
 
 # Free-text fields (session name, token label) are bytea: PostgreSQL text cannot hold NUL,
@@ -91,7 +92,7 @@ CREATE TABLE IF NOT EXISTS leases (
     session TEXT PRIMARY KEY, owner TEXT, expires TIMESTAMPTZ NOT NULL);
 """
 
-_CONNECT_OPTIONS = {  # defaults; a URL's own ?connect_timeout=... etc. win
+_CONNECT_OPTIONS: dict[str, Any] = {  # defaults; a URL's own ?connect_timeout=... etc. win
     "connect_timeout": 10,
     "application_name": "hippomap",
     # a database host that vanishes (no RST) is noticed in ~25 s instead of hanging on TCP
@@ -130,7 +131,7 @@ class StoreConnectionError(RuntimeError):
 def describe_url(url: str) -> str:
     """``user@host:port/dbname`` of a libpq URL, without the password (for messages and logs)."""
     try:
-        info = conninfo_to_dict(url)
+        info: dict[str, Any] = conninfo_to_dict(url)
     except psycopg.ProgrammingError:
         return "<unparsable PostgreSQL URL>"
     host = info.get("host") or info.get("hostaddr") or "localhost (unix socket)"
@@ -142,7 +143,7 @@ def describe_url(url: str) -> str:
 
 def _scrub(message: str, url: str) -> str:
     try:
-        password = conninfo_to_dict(url).get("password")
+        password: Any = conninfo_to_dict(url).get("password")
     except psycopg.ProgrammingError:
         password = None
     return message.replace(password, "***") if password else message
@@ -152,6 +153,8 @@ class PostgresStore(Store):
     """:class:`~server.store.Store` on a PostgreSQL database (tables created if missing).
 
     ``url``: a libpq URL, ``postgresql://user:password@host:port/dbname[?options]``."""
+
+    writer: WriterState  # set in __init__ (the base class allows None for backends without a writer thread)
 
     def __init__(self, url: str, durability: str = "full", pool_size: int = POOL_SIZE) -> None:
         if not url.startswith(("postgresql://", "postgres://")):
@@ -203,7 +206,9 @@ class PostgresStore(Store):
             with conn.transaction():
                 conn.execute("SELECT pg_advisory_xact_lock(%s)", (_SCHEMA_LOCK,))
                 row = None
-                if conn.execute("SELECT to_regclass('meta')").fetchone()[0] is not None:
+                meta = conn.execute("SELECT to_regclass('meta')").fetchone()
+                assert meta is not None  # a SELECT without FROM returns one row
+                if meta[0] is not None:
                     row = conn.execute("SELECT value FROM meta WHERE key='schema'").fetchone()
                 if row is None:  # a new database
                     # (no DDL on a live one: even CREATE INDEX IF NOT EXISTS would lock out writers)

@@ -42,6 +42,7 @@ def _child_main(conn: Any) -> None:
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the server ends its children (Ctrl-C reaches the whole group)
     hosts: dict[str, InProcessHost] = {}
+    host: InProcessHost | None
     while True:
         try:
             op, sid, args = pickle.loads(conn.recv_bytes())

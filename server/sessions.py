@@ -29,12 +29,13 @@ import socket
 import threading
 import time
 from collections import Counter
-from typing import Any, Awaitable, Callable
+from typing import Any, Awaitable, Callable, cast
 
 from pydantic import ValidationError
 
 from hippomap.config import HippomapConfig
 from hippomap.errors import InputError
+from hippomap.inputs import Frame
 
 from . import model
 from .auth import can_read, can_write
@@ -268,7 +269,7 @@ class LiveSession:
         key = (image.shape, image.dtype.str)
         if key not in self._frame_shapes_ok:
             try:
-                model.check_frame(self.config, accepted.value)
+                model.check_frame(self.config, cast(Frame, accepted.value))
             except ValueError as exc:
                 raise IngestError(422, str(exc)) from None
             self._frame_shapes_ok.add(key)

@@ -29,6 +29,7 @@ from typing import Any, Callable
 
 from .store import (
     EventRecord,
+    InputKind,
     InputRecord,
     PlaceFieldRecord,
     SessionRecord,
@@ -42,7 +43,7 @@ from .store import (
 SCHEMA_VERSION = 1
 MAX_BATCH = 1024
 CHECKPOINT_EVERY_S = 1.0
-_KINDS = ("odometry", "frame")
+_KINDS: tuple[InputKind, ...] = ("odometry", "frame")
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
@@ -73,6 +74,8 @@ CREATE TABLE IF NOT EXISTS leases (session TEXT PRIMARY KEY, owner TEXT, expires
 
 class SQLiteStore(Store):
     """:class:`~server.store.Store` on a SQLite file (created if missing)."""
+
+    writer: WriterState  # set in __init__ (the base class allows None for backends without a writer thread)
 
     def __init__(self, path: str | Path, durability: str = "full") -> None:
         self.path = Path(path)

@@ -15,7 +15,7 @@ import math
 import numpy as np
 
 
-def map_bounds(*point_sets: np.ndarray, minimum: float = 2.0) -> tuple[np.ndarray, np.ndarray] | None:
+def map_bounds(*point_sets: np.ndarray | None, minimum: float = 2.0) -> tuple[np.ndarray, np.ndarray] | None:
     """(lo, hi) corners of the (x, y) bounding box of the given (N, >=2) arrays, at least ``minimum``
     metres on each side (centred), or None if all are empty."""
     sets = [np.asarray(p, float)[:, :2] for p in point_sets if p is not None and len(p)]

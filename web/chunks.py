@@ -181,7 +181,7 @@ class ChunkedSegments(_ChunkedLayer):
         (fat style; the thin style draws every segment in the layer's colour)."""
         seg = np.asarray(segments, np.float32).reshape(-1, 6)
         if colors is None or self.style == "thin":
-            cols = np.broadcast_to(np.uint8(self.color), (len(seg), 3))
+            cols = np.broadcast_to(np.array(self.color, np.uint8), (len(seg), 3))
         else:
             cols = np.asarray(colors, np.uint8).reshape(-1, 3)
         plan = self.tracker.plan(seg, cols)

@@ -53,7 +53,7 @@ class EvidencePanel:
 
     def __init__(self, gui: Any, threshold: float) -> None:
         self.threshold = float(threshold)
-        series = [{"label": "fixation"}]
+        series: list[dict[str, Any]] = [{"label": "fixation"}]
         series += [{"label": f"hypothesis {i + 1}", "stroke": _COLORS[i], "width": 2} for i in range(N_CURVES)]
         series += [{"label": "θ_dec", "stroke": "#868e96", "width": 1, "dash": [4, 4]}]
         self.caption = gui.add_markdown("No recognition yet.")

@@ -125,7 +125,9 @@ class ClientView:
             snap, samples, gt = self._state()
             if snap is None or not len(samples):
                 return
-            t0, t1 = time_span(samples)
+            span = time_span(samples)
+            assert span is not None  # samples is not empty
+            t0, t1 = span
             t = t0 + (t1 - t0) * float(self.slider.value) / 100.0
             frame = replay_at(snap, samples, gt, t, self.settings.replay_max_nodes)
             with self.client.atomic():

@@ -74,10 +74,10 @@ class LoopLayer:
         s = self.settings
         acc = loop_segments(snap.decisions, snap.node_poses, "accepted", skip_lost)
         rej = loop_segments(snap.decisions, snap.node_poses, "rejected")
-        a = self.accepted.update(acc, np.broadcast_to(np.uint8(s.color_loop_accepted), (len(acc), 3)))
+        a = self.accepted.update(acc, np.broadcast_to(np.array(s.color_loop_accepted, np.uint8), (len(acc), 3)))
         ends = acc.reshape(-1, 3)
-        self.accepted_ends.update(ends, np.broadcast_to(np.uint8(s.color_loop_accepted), (len(ends), 3)))
-        r = self.rejected.update(rej, np.broadcast_to(np.uint8(s.color_loop_rejected), (len(rej), 3)))
+        self.accepted_ends.update(ends, np.broadcast_to(np.array(s.color_loop_accepted, np.uint8), (len(ends), 3)))
+        r = self.rejected.update(rej, np.broadcast_to(np.array(s.color_loop_rejected, np.uint8), (len(rej), 3)))
         return LoopUpdate(a, r)
 
     def select(self, decision: LoopDecision | None, poses: np.ndarray) -> None:
@@ -86,7 +86,8 @@ class LoopLayer:
         key = None
         if decision is not None and 0 <= decision.from_node < n and 0 <= decision.hypothesis.node < n:
             a, b = poses[decision.from_node, :2], poses[decision.hypothesis.node, :2]
-            key = (decision.id, decision.status, *np.round(np.r_[a, b], 2))
+            ab: np.ndarray = np.r_[a, b]
+            key = (decision.id, decision.status, *np.round(ab, 2))
         if key == self._selected_key:
             return
         for h in self._selected:
@@ -95,11 +96,12 @@ class LoopLayer:
         self._selected_key = key
         if key is None:
             return
+        assert decision is not None  # key is set only for a decision
         s = self.settings
         color = s.color_loop_accepted if decision.status == "accepted" else s.color_loop_rejected
         seg = np.array([[[a[0], a[1], LOOP_Z + 0.02], [b[0], b[1], LOOP_Z + 0.02]]], np.float32)
         self._selected = [
-            self.scene.add_line_segments("/loops/selected/segment", seg, np.uint8(color),
+            self.scene.add_line_segments("/loops/selected/segment", seg, np.array(color, np.uint8),
                                          thickness=3 * s.loop_thickness_m),
             self.scene.add_label("/loops/selected/now", f"loop {decision.id}: node {decision.from_node}",
                                  position=(float(a[0]), float(a[1]), 0.3)),

@@ -57,8 +57,8 @@ class MapGraphLayer:
     def update(self, snap: MapSnapshot) -> MapUpdate:
         s = self.settings
         pts = node_points(snap.node_poses)
-        colors = np.where((snap.node_frames >= 0)[:, None], np.uint8(s.color_keyframe_node),
-                          np.uint8(s.color_node)).astype(np.uint8)
+        colors = np.where((snap.node_frames >= 0)[:, None], np.array(s.color_keyframe_node, np.uint8),
+                          np.array(s.color_node, np.uint8)).astype(np.uint8)
         nodes = self.nodes.update(pts, colors)
         n = len(pts)
         if n:

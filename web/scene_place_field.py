@@ -59,6 +59,7 @@ def field_heatmap(view: PlaceFieldView, pixels: int) -> FieldHeatmap:
     """
     code, tables = view.code, view.tables
     field = code.field
+    assert field is not None  # snapshot.py builds a PlaceFieldView only for a code with a field
     N = tables.size
     step = max(1, int(np.ceil(N / pixels)))
     cells = np.asarray(field.cells if field.cells else range(tables.n_cells), dtype=np.int64)

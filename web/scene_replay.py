@@ -132,7 +132,8 @@ class ReplayLayer:
         if self._root is None:
             self._root = self.scene.add_frame("/replay", show_axes=False)
         if on("nodes") and len(frame.nodes):
-            colors = np.where(frame.keyframe[:, None], np.uint8(s.color_keyframe_node), np.uint8(s.color_node))
+            colors = np.where(frame.keyframe[:, None], np.array(s.color_keyframe_node, np.uint8),
+                              np.array(s.color_node, np.uint8))
             self._handles.append(self.scene.add_point_cloud(
                 "/replay/nodes", frame.nodes, np.ascontiguousarray(colors.astype(np.uint8)), point_size=s.node_size_m,
                 point_shape="circle", precision="float32", point_shading="flat"))

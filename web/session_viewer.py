@@ -23,7 +23,7 @@ import secrets
 import threading
 import time
 from dataclasses import dataclass
-from typing import Iterator
+from typing import Iterator, cast
 
 import numpy as np
 import viser
@@ -313,8 +313,9 @@ class SessionViewer:
         self._view_extent = extent
         cam = self.server.initial_camera
         pos, look = fit_camera(lo, hi, float(cam.fov), 1.6, self.settings.fit_margin, covered=0.3, covered_left=0.18)
-        cam.position = tuple(float(v) for v in pos)  # position first: viser may carry look_at along with it
-        cam.look_at = tuple(float(v) for v in look)
+        # position first: viser may carry look_at along with it
+        cam.position = cast(tuple[float, float, float], tuple(float(v) for v in pos))
+        cam.look_at = cast(tuple[float, float, float], tuple(float(v) for v in look))
 
     def _view_state(self) -> tuple[MapSnapshot | None, np.ndarray, np.ndarray | None]:
         """What a browser's view needs: the latest snapshot, the sampled trajectory, the ground truth

@@ -207,7 +207,7 @@ class LocalSession:
         """Feed inputs in order; returns how many were fed."""
         n = 0
         for item in items:
-            (self.step if isinstance(item, Odometry) else self.observe)(item)
+            self.step(item) if isinstance(item, Odometry) else self.observe(item)
             n += 1
         return n
 

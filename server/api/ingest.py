@@ -90,6 +90,7 @@ _FRAME_BODY = {
 async def post_frame(live: deps.WriteSession, request: Request,
                      t: float | None = Query(None, description="timestamp (raw body uploads)")) -> Any:
     ctype = request.headers.get("content-type", "").split(";")[0].strip().lower()
+    t_value: str | float | None
     try:
         if ctype == "multipart/form-data":
             form = await request.form(max_files=1, max_fields=8)

@@ -12,7 +12,7 @@ import asyncio
 import json
 import logging
 import math
-from typing import Any
+from typing import Any, MutableMapping
 
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 from starlette.websockets import WebSocketState
@@ -56,7 +56,7 @@ async def _sender(ws: WebSocket, out: asyncio.Queue) -> None:
             return
 
 
-async def _handle(live: LiveSession, message: dict[str, Any], out: asyncio.Queue) -> None:
+async def _handle(live: LiveSession, message: MutableMapping[str, Any], out: asyncio.Queue) -> None:
     """Validate and submit one websocket message; errors are queued as error messages."""
     mid: Any = None
     settings = live.settings

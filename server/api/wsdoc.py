@@ -17,6 +17,7 @@ from __future__ import annotations
 
 from typing import Any
 
+from pydantic import BaseModel
 from pydantic.json_schema import models_json_schema
 
 from .. import schemas
@@ -55,9 +56,10 @@ def _what(model: type) -> str:
     return " ".join((model.__doc__ or "").split(":", 1)[-1].split()).replace("``", "`")
 
 
-def _type(model: type) -> str:
+def _type(model: type[BaseModel]) -> str:
     """The ``type`` a message model's messages carry (its Literal)."""
-    return model.model_fields["type"].annotation.__args__[0]
+    annotation: Any = model.model_fields["type"].annotation  # a Literal on every message model
+    return annotation.__args__[0]
 
 
 def websocket_description() -> str:
