@@ -412,8 +412,9 @@ class CognitiveMap:
             if window is None:
                 if cfg.lsq_rotation_init:
                     self._rotation_init(P, src, dst, tr, info, bias)
-                res = solve_lsq(P, src, dst, tr, iterations=cfg.lsq_iterations, anchor=0, information=info,
-                                **self._bias_args())
+                    if bias:
+                        bias["bias"] = self._bias  # the initialisation may have moved it
+                res = solve_lsq(P, src, dst, tr, iterations=cfg.lsq_iterations, anchor=0, information=info, **bias)
                 self._bias = res.bias
                 self._local_solves = 0
             else:
@@ -464,17 +465,10 @@ class CognitiveMap:
         estimated), kept only when it lowers the weighted cost (it cannot on a map that is
         already at its optimum)."""
 
-        def cost(poses: np.ndarray, b: float) -> float:
-            if not bias:
-                return graph_cost(poses, src, dst, tr, info)
-            t = tr.copy()
-            t[:, 2] -= b * bias["bias_dt"]
-            return graph_cost(poses, src, dst, t, info) + bias["bias_information"] * b * b
-
-        before = cost(P, self._bias)
+        before = graph_cost(P, src, dst, tr, info, **bias)
         Q = P.copy()
         _, b = rotation_first_init(Q, src, dst, tr, info, anchor=0, **bias)
-        if cost(Q, b) < before:
+        if graph_cost(Q, src, dst, tr, info, **{**bias, "bias": b}) < before:
             P[:] = Q
             if bias:
                 self._bias = b

@@ -365,12 +365,20 @@ def _lsq_errors(P, src, dst, T, sw=None):
     return e, c, s, dx, dy
 
 
-def graph_cost(poses, src, dst, transforms, information=None) -> float:
+def graph_cost(poses, src, dst, transforms, information=None, bias_dt=None, bias: float = 0.0,
+               bias_information: float = 0.0) -> float:
     """Sum of squared link errors in the links' own frames, weighted by ``information`` (M, 3)
-    when given: the objective of :func:`solve_lsq`."""
+    when given: the objective of :func:`solve_lsq`. With ``bias_dt``, each link's heading change
+    is corrected by ``bias · bias_dt`` and the bias's prior ``bias_information · bias²`` is added,
+    as :func:`solve_lsq` does."""
     P, src, dst, T = _as_graph(poses, src, dst, transforms)
+    prior = 0.0
+    if bias_dt is not None:
+        T = T.copy()
+        T[:, 2] -= bias * np.asarray(bias_dt, dtype=float)
+        prior = bias_information * bias * bias
     e = _lsq_errors(P, src, dst, T, _sqrt_information(information, len(src)))[0]
-    return float(np.sum(e * e))
+    return float(np.sum(e * e)) + prior
 
 
 def solve_lsq(

@@ -54,15 +54,17 @@ def _loop_information(e: LoopEdge) -> tuple[float, float] | None:
     return (0.5 * (i11 + i22), i33)
 
 
-def _loops_by_pose(dataset: OdometryDataset, use_information: bool = True
-                   ) -> dict[int, list[tuple[int, np.ndarray, int, tuple[float, float] | None]]]:
+#: a loop proposal indexed by its later pose: earlier pose, its pose in the later frame, g2o line, information
+_Proposal = tuple[int, np.ndarray, int, "tuple[float, float] | None"]
+
+
+def _loops_by_pose(dataset: OdometryDataset) -> dict[int, list[_Proposal]]:
     """Index loop proposals by their later pose: {later: [(earlier, earlier-in-later-frame, line,
-    information)]}; the information is the edge's own (:func:`_loop_information`) when
-    ``use_information``, else None (the map's ``loop_information``)."""
-    out: dict[int, list[tuple[int, np.ndarray, int, tuple[float, float] | None]]] = defaultdict(list)
+    information)]}; the information is the edge's own (:func:`_loop_information`)."""
+    out: dict[int, list[_Proposal]] = defaultdict(list)
     for e in dataset.graph.loops:
         t = np.asarray(e.transform, dtype=float)
-        info = _loop_information(e) if use_information else None
+        info = _loop_information(e)
         if e.i > e.j:
             out[e.i].append((e.j, t, e.line, info))
         else:  # the edge measures the later pose j in the frame of i: invert it
@@ -155,7 +157,7 @@ def summarise(run: OdometryRun, dataset: OdometryDataset) -> dict[str, Any]:
         "steps_without_place_field": run.steps_without_field,
         "run_seconds": round(run.seconds, 3),
         "loop_closures": {
-            "proposed": int(sum(len(v) for v in _loops_by_pose(dataset).values())),
+            "proposed": len(dataset.graph.loops),
             "accepted": status.count("accepted"),
             "used": sum(bool(d.get("used")) for d in run.decisions),
             "rejected": status.count("rejected"),

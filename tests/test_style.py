@@ -22,13 +22,14 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def _tool(name: str) -> str:
-    """The path of console script ``name``: the interpreter's bin folder first, then ``PATH``; skip if absent."""
+    """The path of console script ``name``: the interpreter's bin folder first, then ``PATH``. The tools come
+    with the test extra that the README's test command installs, so a missing one is a failure, not a skip."""
     beside = Path(sys.executable).parent / name
     if beside.is_file():
         return str(beside)
     found = shutil.which(name)
     if found is None:
-        pytest.skip(f"{name} is not installed (it comes with the test extra: pip install -e '.[test]')")
+        pytest.fail(f"{name} is not installed (it comes with the test extra: pip install -e '.[test]')")
     return found
 
 
