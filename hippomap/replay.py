@@ -66,7 +66,9 @@ def _frame_bytes(ref: Any) -> bytes:
 async def replay(dataset: Any, url: str, token: str | None, session_id: str, speed: float | None = None,
                  window: int = 128, resume: bool = False, progress: bool = False) -> dict[str, Any]:
     """Stream ``dataset`` into ``session_id``; returns counts and timing. Raises
-    :class:`~hippomap.client.ServerError` on the first input the server rejects."""
+    :class:`~hippomap.client.ServerError` on the first input the server rejects, and
+    :class:`~hippomap.errors.InputError` before sending anything the session already holds
+    (unless ``resume`` skips it)."""
     from .client import AsyncStream
 
     errors: list[BaseException] = []
@@ -89,8 +91,7 @@ async def replay(dataset: Any, url: str, token: str | None, session_id: str, spe
     gt_at = ground_truth_at(getattr(dataset, "groundtruth", None))
     start = time.perf_counter()
     async with AsyncStream(url, token, session_id, max_in_flight=window) as stream:
-        last = ({"odometry": stream.hello.get("last_odometry_t"), "frame": stream.hello.get("last_frame_t")}
-                if resume else {})
+        last = {"odometry": stream.hello.get("last_odometry_t"), "frame": stream.hello.get("last_frame_t")}
         t0: float | None = None
         batch: list[Odometry] = []
 
@@ -105,6 +106,10 @@ async def replay(dataset: Any, url: str, token: str | None, session_id: str, spe
                 break
             seen = last.get("odometry" if isinstance(item, Odometry) else "frame")
             if seen is not None and item.t <= seen:
+                if not resume:  # refused before sending: pipelined later inputs must not land after a refusal
+                    kind = "odometry" if isinstance(item, Odometry) else "frame"
+                    raise InputError(f"session {session_id} already holds {kind} inputs up to t={seen!r}, and this "
+                                     f"replay starts at t={item.t!r}: pass --resume to skip what is stored")
                 counts["skipped"] += 1
                 continue
             if speed is not None:

@@ -16,6 +16,7 @@ import pytest
 
 from hippomap.client import ServerError
 from hippomap.datasets import read_folder_dataset
+from hippomap.errors import InputError
 from hippomap.replay import add_parser
 from tests.support.reference import offline_reference, session_state
 from tests.support.synthetic import synthetic_inputs
@@ -98,9 +99,10 @@ def test_interrupted_replay_resumes_without_duplicates(server, tmp_path):
     rc, _ = run_replay(str(half), "--server", server.url, "--token", server.token, "--session", sid, "--no-progress",
                        "--no-wait", "--speed", "50")
     assert rc == 0
-    with pytest.raises(ServerError) as e:  # replaying from the start again is refused (timestamps)
+    with pytest.raises(InputError, match="--resume"):  # replaying from the start again is refused before sending
         run_replay(str(full), "--server", server.url, "--token", server.token, "--session", sid, "--no-progress")
-    assert e.value.status == 409
+    with server.client() as c:
+        assert len(c.all_inputs(sid)) == 70  # nothing of the refused replay was stored
     rc, out = run_replay(str(full), "--server", server.url, "--token", server.token, "--session", sid, "--no-progress",
                          "--resume", "--window", "8")
     assert rc == 0 and "skipped 70 already stored" in out
