@@ -285,7 +285,7 @@ def _robust(kernel: str, base):
     raise ValueError(kernel)
 
 
-def run_gtsam(g2o_file: Path, kernel: str, max_iterations: int = 100) -> GtsamResult:
+def run_gtsam(g2o_file: Path, kernel: str, max_iterations: int = 100, upto: int | None = None) -> GtsamResult:
     """Levenberg–Marquardt on the g2o graph (Pose2 between factors, noise from each edge's
     information matrix, a tight prior on pose 0), with ``kernel`` on the loop factors.
     Used closures: with no kernel every closure has weight 1 and is used. With a robust
@@ -293,15 +293,25 @@ def run_gtsam(g2o_file: Path, kernel: str, max_iterations: int = 100) -> GtsamRe
     r (Gaussian whitening by the edge's own information) is within the chi-square gate of
     3 degrees of freedom at 99 % (r <= 3.368), i.e. the map the optimiser settled on holds
     the closure rather than having down-weighted it away. Each closure's r and its final
-    robust weight w(r) are kept as well (``weight``; ``w >= 0.5`` is a stricter reading)."""
+    robust weight w(r) are kept as well (``weight``; ``w >= 0.5`` is a stricter reading).
+    ``upto``: only the poses up to that index and the factors between them (the batch solution a
+    back-end could have had online at that pose)."""
     import gtsam
 
     graph, initial = gtsam.readG2o(str(g2o_file), False)
+    if upto is not None:
+        prefix = gtsam.Values()
+        for key in initial.keys():
+            if int(key) <= upto:
+                prefix.insert(key, initial.atPose2(key))
+        initial = prefix
     g = gtsam.NonlinearFactorGraph()
     loops_meta = []
     for k in range(graph.size()):
         f = graph.at(k)
         i, j = f.keys()
+        if upto is not None and max(int(i), int(j)) > upto:
+            continue
         if abs(int(i) - int(j)) == 1:
             g.add(f)
             continue
