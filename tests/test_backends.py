@@ -24,8 +24,8 @@ from pydantic import ValidationError
 
 from hippomap.client import AsyncStream
 from hippomap.inputs import Odometry
-from server import model
 from server.metrics import ServiceMetrics
+from server.runtime import model
 from server.runtime.mapper_host import InProcessHost
 from server.settings import ServerSettings
 from server.storage.sqlite import SQLiteStore

@@ -31,11 +31,11 @@ from hypothesis import strategies as st
 
 from hippomap.config import HippomapConfig
 from hippomap.grid_cells import GridCells
-from server import sessions as sessions_module
 from server.app import create_app
 from server.formats.images import check_jpeg_strict
 from server.formats.ingest import IngestError, check_frame
 from server.formats.protocol import json_depth, pack_frame, parse_text_message
+from server.runtime import sessions as sessions_module
 from server.security.quotas import SAFE_RANGES, check_config, grid_table_bytes
 from server.settings import ServerSettings
 from server.storage.store import InputRecord, StoreDead
@@ -522,7 +522,7 @@ def _big_frame(w: int = 2000, h: int = 1000) -> bytes:
 
 
 def test_mapper_queue_is_bounded_in_bytes_and_memory_returns_on_delete(tmp_path, monkeypatch):
-    from server import mapper_host
+    from server.runtime import mapper_host
 
     gate = threading.Event()
     original = mapper_host.InProcessHost.process
@@ -564,7 +564,7 @@ def test_mapper_queue_is_bounded_in_bytes_and_memory_returns_on_delete(tmp_path,
 
 
 def test_backpressure_releases_when_the_mapper_catches_up(tmp_path, monkeypatch):
-    from server import mapper_host
+    from server.runtime import mapper_host
 
     gate = threading.Event()
     original = mapper_host.InProcessHost.process

@@ -18,7 +18,7 @@ import time
 import pytest
 
 from hippomap.client import AsyncStream
-from server import model
+from server.runtime import model
 from server.runtime.mapper_host import HostDied, InProcessHost
 from server.runtime.process_host import ProcessBackend
 from tests.support.live import LiveServer

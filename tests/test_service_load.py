@@ -16,8 +16,8 @@ from fastapi.testclient import TestClient
 
 from hippomap.config import HippomapConfig
 from hippomap.inputs import Odometry
-from server import model
 from server.app import create_app
+from server.runtime import model
 from server.runtime.loop_calls import LoopCalls
 from server.runtime.mapper_host import InProcessHost, MapperGate
 from server.settings import ServerSettings

@@ -7,8 +7,8 @@ import os
 import time
 from typing import Any
 
-from server import model
 from server.formats.ingest import odometry_bytes
+from server.runtime import model
 from server.runtime.worker import SessionWorker, WorkItem
 from server.settings import ServerSettings
 from server.storage.sqlite import SQLiteStore

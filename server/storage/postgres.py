@@ -30,36 +30,21 @@ commits if PostgreSQL itself crashes) — the same trade as SQLite's ``synchrono
 
 from __future__ import annotations
 
-import json
 import queue
 import select
 import threading
-import time
 from concurrent.futures import Future
 from contextlib import contextmanager
-from typing import Any, Callable, Iterator
+from typing import Any, Callable, Iterator, Sequence
 
 import psycopg
 from psycopg.conninfo import conninfo_to_dict
 from psycopg.pq import TransactionStatus
 
-from .store import (
-    EventRecord,
-    InputKind,
-    InputRecord,
-    PlaceFieldRecord,
-    SessionRecord,
-    Store,
-    TokenRecord,
-    WriterState,
-    fail_batch,
-    settle_batch,
-)
+from .sql import KINDS, SCHEMA_VERSION, SQLStore
+from .store import InputRecord, WriterState, fail_batch, settle_batch
 
-SCHEMA_VERSION = 1
-MAX_BATCH = 1024
 POOL_SIZE = 8
-_KINDS: tuple[InputKind, ...] = ("odometry", "frame")
 _SCHEMA_LOCK = 0x68697070  # advisory lock id ("hipp"): replicas starting together create the schema once
 
 # Free-text fields (session name, token label) are bytea: PostgreSQL text cannot hold NUL,
@@ -149,12 +134,13 @@ def _scrub(message: str, url: str) -> str:
     return message.replace(password, "***") if password else message
 
 
-class PostgresStore(Store):
-    """:class:`~server.storage.store.Store` on a PostgreSQL database (tables created if missing).
+class PostgresStore(SQLStore):
+    """:class:`~server.storage.store.Store` on a PostgreSQL database (tables created if missing); the
+    SQL it shares with the SQLite store is in :class:`~server.storage.sql.SQLStore`.
 
     ``url``: a libpq URL, ``postgresql://user:password@host:port/dbname[?options]``."""
 
-    writer: WriterState  # set in __init__ (the base class allows None for backends without a writer thread)
+    EMPTY_BLOB = "''::bytea"
 
     def __init__(self, url: str, durability: str = "full", pool_size: int = POOL_SIZE) -> None:
         if not url.startswith(("postgresql://", "postgres://")):
@@ -260,13 +246,18 @@ class PostgresStore(Store):
                                                f"{_scrub(str(exc).strip(), self._url)}") from None
         raise AssertionError("unreachable")  # pragma: no cover
 
-    def _submit(self, fn: Callable[[psycopg.Connection], Any], on_durable: Callable[[], None] | None = None) -> Future:
-        if self._closed:
-            raise RuntimeError("store is closed")
-        return self._enqueue(self._queue, (fn, Future(), on_durable))
+    def _execute(self, conn: psycopg.Connection, sql: str, args: Sequence[Any] = ()) -> psycopg.Cursor:
+        return conn.execute(sql, args)
 
-    def _write_loop(self) -> None:
-        self.writer.run(self._queue, MAX_BATCH, self._write_batch)
+    def _executemany(self, conn: psycopg.Connection, sql: str, rows: list[tuple]) -> None:
+        with conn.cursor() as cur:
+            cur.executemany(sql, rows)
+
+    def _text_in(self, text: str) -> bytes:
+        return text.encode()
+
+    def _text_out(self, value: Any) -> str:
+        return bytes(value).decode()
 
     def _write_batch(self, batch: list) -> None:
         try:
@@ -360,9 +351,6 @@ class PostgresStore(Store):
             return
         settle_batch(batch, outcomes)
 
-    def flush(self) -> None:
-        self._submit(lambda conn: None).result()
-
     def close(self) -> None:
         if self._closed:
             return
@@ -376,179 +364,22 @@ class PostgresStore(Store):
         for conn in idle:
             conn.close()
 
-    # -------------------------------------------------------------- tokens
-    def add_token(self, secret_hash: str, token: TokenRecord) -> Future:
-        row = (secret_hash, token.id, token.role, token.owner, token.session, token.label.encode(), token.created)
-
-        def op(c: psycopg.Connection) -> None:
-            c.execute("INSERT INTO tokens VALUES (%s,%s,%s,%s,%s,%s,%s)", row)
-        return self._submit(op)
-
-    @staticmethod
-    def _token(row: tuple) -> TokenRecord:
-        return TokenRecord(id=row[0], role=row[1], owner=row[2], session=row[3], label=bytes(row[4]).decode(),
-                           created=row[5])
-
-    def token_by_hash(self, secret_hash: str) -> TokenRecord | None:
-        row = self._fetch("SELECT id, role, owner, session, label, created FROM tokens WHERE hash=%s",
-                          (secret_hash,), one=True)
-        return None if row is None else self._token(row)
-
-    def list_tokens(self, owner: str) -> list[TokenRecord]:
-        rows = self._fetch("SELECT id, role, owner, session, label, created FROM tokens "
-                           "WHERE owner=%s OR id=%s ORDER BY created", (owner, owner))
-        return [self._token(r) for r in rows]
-
-    def delete_token(self, token_id: str) -> Future:
-        return self._submit(lambda c: c.execute("DELETE FROM tokens WHERE id=%s", (token_id,)).rowcount)
-
-    def revoke_token(self, token_id: str, heir: str) -> Future:
-        def op(c: psycopg.Connection) -> list[str]:
-            sessions = [r[0] for r in c.execute("SELECT id FROM sessions WHERE owner=%s", (token_id,)).fetchall()]
-            c.execute("UPDATE sessions SET owner=%s WHERE owner=%s", (heir, token_id))
-            c.execute("DELETE FROM tokens WHERE id=%s OR owner=%s", (token_id, token_id))
-            return sessions
-        return self._submit(op)
-
-    # ------------------------------------------------------------ sessions
-    def create_session(self, session: SessionRecord) -> Future:
-        row = (session.id, session.owner, session.name.encode(), json.dumps(session.config), session.created)
-
-        def op(c: psycopg.Connection) -> None:
-            c.execute("INSERT INTO sessions VALUES (%s,%s,%s,%s,%s)", row)
-        return self._submit(op)
-
-    def list_sessions(self) -> list[SessionRecord]:
-        rows = self._fetch("SELECT id, owner, name, config, created FROM sessions ORDER BY created")
-        return [SessionRecord(id=r[0], owner=r[1], name=bytes(r[2]).decode(), config=json.loads(r[3]), created=r[4])
-                for r in rows]
-
-    def delete_session(self, session_id: str) -> Future:
-        def op(c: psycopg.Connection) -> None:
-            for table in ("inputs", "snapshots", "events", "place_fields", "leases"):
-                c.execute(f"DELETE FROM {table} WHERE session=%s", (session_id,))
-            c.execute("DELETE FROM sessions WHERE id=%s", (session_id,))
-            c.execute("DELETE FROM tokens WHERE session=%s", (session_id,))
-        return self._submit(op)
-
     # -------------------------------------------------------------- inputs
     def append_inputs(self, session_id: str, inputs: list[InputRecord],
                       on_durable: Callable[[], None] | None = None) -> Future:
-        rows = [(session_id, r.seq, _KINDS.index(r.kind), float(r.t), r.data) for r in inputs]
+        rows = [(session_id, r.seq, KINDS.index(r.kind), float(r.t), r.data) for r in inputs]
 
         def op(c: psycopg.Connection) -> None:
             _insert_inputs(c, rows)
         op.input_rows = rows  # type: ignore[attr-defined]  # lets a batch merge consecutive appends
         return self._submit(op, on_durable)
 
-    def last_input(self, session_id: str) -> tuple[int, float] | None:
-        row = self._fetch("SELECT seq, t FROM inputs WHERE session=%s ORDER BY seq DESC LIMIT 1", (session_id,),
-                          one=True)
-        return None if row is None else (int(row[0]), float(row[1]))
-
     def last_times(self, session_id: str) -> dict[str, float]:
         # the newest inputs hold both kinds in practice; one index scan per kind finds each
         rows = self._fetch("SELECT k.kind, (SELECT t FROM inputs WHERE session=%s AND kind=k.kind "
                            "ORDER BY seq DESC LIMIT 1) FROM (VALUES (0::smallint), (1::smallint)) AS k(kind)",
                            (session_id,))
-        return {_KINDS[kind]: float(t) for kind, t in rows if t is not None}
-
-    def read_inputs(self, session_id: str, after_seq: int, limit: int, with_data: bool = True) -> list[InputRecord]:
-        data = "data" if with_data else "CASE kind WHEN 0 THEN data ELSE ''::bytea END"
-        rows = self._fetch(f"SELECT seq, kind, t, {data} FROM inputs WHERE session=%s AND seq>%s "
-                           "ORDER BY seq LIMIT %s", (session_id, after_seq, limit))
-        return [InputRecord(seq=r[0], kind=_KINDS[r[1]], t=r[2], data=bytes(r[3])) for r in rows]
-
-    def input_by_seq(self, session_id: str, seq: int) -> InputRecord | None:
-        r = self._fetch("SELECT seq, kind, t, data FROM inputs WHERE session=%s AND seq=%s", (session_id, seq),
-                        one=True)
-        return None if r is None else InputRecord(seq=r[0], kind=_KINDS[r[1]], t=r[2], data=bytes(r[3]))
-
-    def frame_at(self, session_id: str, t: float) -> InputRecord | None:
-        r = self._fetch("SELECT seq, kind, t, data FROM inputs WHERE session=%s AND kind=1 AND t=%s "
-                        "ORDER BY seq LIMIT 1", (session_id, float(t)), one=True)
-        return None if r is None else InputRecord(seq=r[0], kind=_KINDS[r[1]], t=r[2], data=bytes(r[3]))
-
-    # ----------------------------------------------------------- snapshots
-    def put_snapshot(self, session_id: str, seq: int, data: bytes, keep: int) -> Future:
-        def op(c: psycopg.Connection) -> None:
-            c.execute("INSERT INTO snapshots VALUES (%s,%s,%s,%b) ON CONFLICT (session, seq) DO UPDATE "
-                      "SET created=EXCLUDED.created, data=EXCLUDED.data", (session_id, seq, time.time(), data))
-            c.execute("DELETE FROM snapshots WHERE session=%s AND seq NOT IN "
-                      "(SELECT seq FROM snapshots WHERE session=%s ORDER BY seq DESC LIMIT %s)",
-                      (session_id, session_id, keep))
-        return self._submit(op)
-
-    def latest_snapshot(self, session_id: str) -> tuple[int, bytes] | None:
-        r = self._fetch("SELECT seq, data FROM snapshots WHERE session=%s ORDER BY seq DESC LIMIT 1", (session_id,),
-                        one=True)
-        return None if r is None else (int(r[0]), bytes(r[1]))
-
-    # ------------------------------------------------------------- derived
-    def append_derived(self, session_id: str, events: list[EventRecord], fields: list[PlaceFieldRecord]) -> Future:
-        ev = [(session_id, e.id, e.seq, e.type, e.t, e.ref, json.dumps(e.data, allow_nan=True)) for e in events]
-        pf = [(session_id, f.step, f.seq, f.t, f.data) for f in fields]
-
-        def op(c: psycopg.Connection) -> None:
-            with c.cursor() as cur:
-                if ev:
-                    cur.executemany("INSERT INTO events VALUES (%s,%s,%s,%s,%s,%s,%s) ON CONFLICT (session, id) "
-                                    "DO UPDATE SET seq=EXCLUDED.seq, type=EXCLUDED.type, t=EXCLUDED.t, "
-                                    "ref=EXCLUDED.ref, data=EXCLUDED.data", ev)
-                if pf:
-                    cur.executemany("INSERT INTO place_fields VALUES (%s,%s,%s,%s,%b) ON CONFLICT (session, step) "
-                                    "DO UPDATE SET seq=EXCLUDED.seq, t=EXCLUDED.t, data=EXCLUDED.data", pf)
-        return self._submit(op)
-
-    def truncate_derived(self, session_id: str, after_seq: int) -> Future:
-        def op(c: psycopg.Connection) -> None:
-            c.execute("DELETE FROM events WHERE session=%s AND seq>%s", (session_id, after_seq))
-            c.execute("DELETE FROM place_fields WHERE session=%s AND seq>%s", (session_id, after_seq))
-        return self._submit(op)
-
-    def derived_counts(self, session_id: str) -> tuple[int, int]:
-        r = self._fetch("SELECT (SELECT COALESCE(MAX(id) + 1, 0) FROM events WHERE session=%s), "
-                        "(SELECT COALESCE(MAX(step) + 1, 0) FROM place_fields WHERE session=%s)",
-                        (session_id, session_id), one=True)
-        return int(r[0]), int(r[1])
-
-    @staticmethod
-    def _event(r: tuple) -> EventRecord:
-        return EventRecord(id=r[0], seq=r[1], type=r[2], t=r[3], ref=r[4], data=json.loads(r[5]))
-
-    def query_events(self, session_id: str, types: list[str] | None = None, since_id: int = -1,
-                     t_min: float | None = None, t_max: float | None = None, limit: int = 1000) -> list[EventRecord]:
-        sql = "SELECT id, seq, type, t, ref, data FROM events WHERE session=%s AND id>%s"
-        args: list[Any] = [session_id, since_id]
-        if types:
-            sql += " AND type = ANY(%s)"
-            args.append(list(types))
-        if t_min is not None:
-            sql += " AND t>=%s"
-            args.append(float(t_min))
-        if t_max is not None:
-            sql += " AND t<=%s"
-            args.append(float(t_max))
-        sql += " ORDER BY id LIMIT %s"
-        args.append(limit)
-        return [self._event(r) for r in self._fetch(sql, args)]
-
-    def event_by_ref(self, session_id: str, type: str, ref: int) -> EventRecord | None:
-        r = self._fetch("SELECT id, seq, type, t, ref, data FROM events WHERE session=%s AND type=%s AND ref=%s "
-                        "ORDER BY id LIMIT 1", (session_id, type, ref), one=True)
-        return None if r is None else self._event(r)
-
-    def place_fields(self, session_id: str, since_step: int = -1, limit: int = 1000,
-                     with_data: bool = False) -> list[PlaceFieldRecord]:
-        col = "data" if with_data else "''::bytea"
-        rows = self._fetch(f"SELECT step, seq, t, {col} FROM place_fields WHERE session=%s AND step>%s "
-                           "ORDER BY step LIMIT %s", (session_id, since_step, limit))
-        return [PlaceFieldRecord(step=r[0], seq=r[1], t=r[2], data=bytes(r[3])) for r in rows]
-
-    def place_field(self, session_id: str, step: int) -> PlaceFieldRecord | None:
-        r = self._fetch("SELECT step, seq, t, data FROM place_fields WHERE session=%s AND step=%s",
-                        (session_id, step), one=True)
-        return None if r is None else PlaceFieldRecord(step=r[0], seq=r[1], t=r[2], data=bytes(r[3]))
+        return {KINDS[kind]: float(t) for kind, t in rows if t is not None}
 
     # -------------------------------------------------------------- leases
     def claim_session(self, session_id: str, replica: str, ttl_s: float) -> str:

@@ -18,32 +18,18 @@ Why this shape:
 
 from __future__ import annotations
 
-import json
 import queue
 import sqlite3
 import threading
 import time
 from concurrent.futures import Future
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
-from .store import (
-    EventRecord,
-    InputKind,
-    InputRecord,
-    PlaceFieldRecord,
-    SessionRecord,
-    Store,
-    TokenRecord,
-    WriterState,
-    fail_batch,
-    settle_batch,
-)
+from .sql import KINDS, SCHEMA_VERSION, SQLStore, qmark
+from .store import InputRecord, WriterState, fail_batch, settle_batch
 
-SCHEMA_VERSION = 1
-MAX_BATCH = 1024
 CHECKPOINT_EVERY_S = 1.0
-_KINDS: tuple[InputKind, ...] = ("odometry", "frame")
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
@@ -72,10 +58,11 @@ CREATE TABLE IF NOT EXISTS leases (session TEXT PRIMARY KEY, owner TEXT, expires
 """
 
 
-class SQLiteStore(Store):
-    """:class:`~server.storage.store.Store` on a SQLite file (created if missing)."""
+class SQLiteStore(SQLStore):
+    """:class:`~server.storage.store.Store` on a SQLite file (created if missing); the SQL it shares
+    with the PostgreSQL store is in :class:`~server.storage.sql.SQLStore`."""
 
-    writer: WriterState  # set in __init__ (the base class allows None for backends without a writer thread)
+    EMPTY_BLOB = "x''"
 
     def __init__(self, path: str | Path, durability: str = "full") -> None:
         self.path = Path(path)
@@ -113,13 +100,15 @@ class SQLiteStore(Store):
             conn = self._local.conn = self._connect()
         return conn
 
-    def _submit(self, fn: Callable[[sqlite3.Connection], Any], on_durable: Callable[[], None] | None = None) -> Future:
-        if self._closed:
-            raise RuntimeError("store is closed")
-        return self._enqueue(self._queue, (fn, Future(), on_durable))
+    def _fetch(self, sql: str, args: Sequence[Any] = (), one: bool = False) -> Any:
+        cur = self._read().execute(qmark(sql), args)
+        return cur.fetchone() if one else cur.fetchall()
 
-    def _write_loop(self) -> None:
-        self.writer.run(self._queue, MAX_BATCH, self._write_batch)
+    def _execute(self, conn: sqlite3.Connection, sql: str, args: Sequence[Any] = ()) -> sqlite3.Cursor:
+        return conn.execute(qmark(sql), args)
+
+    def _executemany(self, conn: sqlite3.Connection, sql: str, rows: list[tuple]) -> None:
+        conn.executemany(qmark(sql), rows)
 
     def _write_batch(self, batch: list) -> None:
         conn = self._writer_conn
@@ -201,9 +190,6 @@ class SQLiteStore(Store):
         finally:
             conn.close()
 
-    def flush(self) -> None:
-        self._submit(lambda conn: None).result()
-
     def close(self) -> None:
         if self._closed:
             return
@@ -218,70 +204,14 @@ class SQLiteStore(Store):
             pass
         self._writer_conn.close()
 
-    # -------------------------------------------------------------- tokens
-    def add_token(self, secret_hash: str, token: TokenRecord) -> Future:
-        def op(c: sqlite3.Connection) -> None:
-            c.execute("INSERT INTO tokens VALUES (?,?,?,?,?,?,?)", (secret_hash, token.id, token.role, token.owner,
-                                                                   token.session, token.label, token.created))
-        return self._submit(op)
-
-    @staticmethod
-    def _token(row: tuple) -> TokenRecord:
-        return TokenRecord(id=row[0], role=row[1], owner=row[2], session=row[3], label=row[4], created=row[5])
-
-    def token_by_hash(self, secret_hash: str) -> TokenRecord | None:
-        row = self._read().execute("SELECT id, role, owner, session, label, created FROM tokens WHERE hash=?",
-                                   (secret_hash,)).fetchone()
-        return None if row is None else self._token(row)
-
-    def list_tokens(self, owner: str) -> list[TokenRecord]:
-        rows = self._read().execute("SELECT id, role, owner, session, label, created FROM tokens "
-                                    "WHERE owner=? OR id=? ORDER BY created", (owner, owner)).fetchall()
-        return [self._token(r) for r in rows]
-
-    def delete_token(self, token_id: str) -> Future:
-        return self._submit(lambda c: c.execute("DELETE FROM tokens WHERE id=?", (token_id,)).rowcount)
-
-    def revoke_token(self, token_id: str, heir: str) -> Future:
-        def op(c: sqlite3.Connection) -> list[str]:
-            sessions = [r[0] for r in c.execute("SELECT id FROM sessions WHERE owner=?", (token_id,))]
-            c.execute("UPDATE sessions SET owner=? WHERE owner=?", (heir, token_id))
-            c.execute("DELETE FROM tokens WHERE id=? OR owner=?", (token_id, token_id))
-            return sessions
-        return self._submit(op)
-
-    # ------------------------------------------------------------ sessions
-    def create_session(self, session: SessionRecord) -> Future:
-        def op(c: sqlite3.Connection) -> None:
-            c.execute("INSERT INTO sessions VALUES (?,?,?,?,?)", (session.id, session.owner, session.name,
-                                                                 json.dumps(session.config), session.created))
-        return self._submit(op)
-
-    def list_sessions(self) -> list[SessionRecord]:
-        rows = self._read().execute("SELECT id, owner, name, config, created FROM sessions ORDER BY created").fetchall()
-        return [SessionRecord(id=r[0], owner=r[1], name=r[2], config=json.loads(r[3]), created=r[4]) for r in rows]
-
-    def delete_session(self, session_id: str) -> Future:
-        def op(c: sqlite3.Connection) -> None:
-            for table in ("inputs", "snapshots", "events", "place_fields", "leases"):
-                c.execute(f"DELETE FROM {table} WHERE session=?", (session_id,))
-            c.execute("DELETE FROM sessions WHERE id=?", (session_id,))
-            c.execute("DELETE FROM tokens WHERE session=?", (session_id,))
-        return self._submit(op)
-
     # -------------------------------------------------------------- inputs
     def append_inputs(self, session_id: str, inputs: list[InputRecord],
                       on_durable: Callable[[], None] | None = None) -> Future:
-        rows = [(session_id, r.seq, _KINDS.index(r.kind), r.t, r.data) for r in inputs]
+        rows = [(session_id, r.seq, KINDS.index(r.kind), r.t, r.data) for r in inputs]
 
         def op(c: sqlite3.Connection) -> None:
             c.executemany("INSERT INTO inputs VALUES (?,?,?,?,?)", rows)
         return self._submit(op, on_durable)
-
-    def last_input(self, session_id: str) -> tuple[int, float] | None:
-        row = self._read().execute("SELECT seq, t FROM inputs WHERE session=? ORDER BY seq DESC LIMIT 1",
-                                   (session_id,)).fetchone()
-        return None if row is None else (int(row[0]), float(row[1]))
 
     def last_times(self, session_id: str) -> dict[str, float]:
         conn = self._read()
@@ -289,103 +219,12 @@ class SQLiteStore(Store):
         # the newest inputs hold both kinds in practice; look there first, then fall back to a scan
         for kind, t in conn.execute("SELECT kind, t FROM inputs WHERE session=? ORDER BY seq DESC LIMIT 1000",
                                     (session_id,)):
-            out.setdefault(_KINDS[kind], float(t))
-            if len(out) == len(_KINDS):
+            out.setdefault(KINDS[kind], float(t))
+            if len(out) == len(KINDS):
                 return out
         for kind, t in conn.execute("SELECT kind, MAX(t) FROM inputs WHERE session=? GROUP BY kind", (session_id,)):
-            out.setdefault(_KINDS[kind], float(t))
+            out.setdefault(KINDS[kind], float(t))
         return out
-
-    def read_inputs(self, session_id: str, after_seq: int, limit: int, with_data: bool = True) -> list[InputRecord]:
-        cols = "seq, kind, t, data" if with_data else "seq, kind, t, CASE kind WHEN 0 THEN data ELSE x'' END"
-        rows = self._read().execute(f"SELECT {cols} FROM inputs WHERE session=? AND seq>? ORDER BY seq LIMIT ?",
-                                    (session_id, after_seq, limit)).fetchall()
-        return [InputRecord(seq=r[0], kind=_KINDS[r[1]], t=r[2], data=bytes(r[3])) for r in rows]
-
-    def input_by_seq(self, session_id: str, seq: int) -> InputRecord | None:
-        r = self._read().execute("SELECT seq, kind, t, data FROM inputs WHERE session=? AND seq=?",
-                                 (session_id, seq)).fetchone()
-        return None if r is None else InputRecord(seq=r[0], kind=_KINDS[r[1]], t=r[2], data=bytes(r[3]))
-
-    def frame_at(self, session_id: str, t: float) -> InputRecord | None:
-        r = self._read().execute("SELECT seq, kind, t, data FROM inputs WHERE session=? AND kind=1 AND t=? LIMIT 1",
-                                 (session_id, t)).fetchone()
-        return None if r is None else InputRecord(seq=r[0], kind=_KINDS[r[1]], t=r[2], data=bytes(r[3]))
-
-    # ----------------------------------------------------------- snapshots
-    def put_snapshot(self, session_id: str, seq: int, data: bytes, keep: int) -> Future:
-        def op(c: sqlite3.Connection) -> None:
-            c.execute("INSERT OR REPLACE INTO snapshots VALUES (?,?,?,?)", (session_id, seq, time.time(), data))
-            c.execute("DELETE FROM snapshots WHERE session=? AND seq NOT IN "
-                      "(SELECT seq FROM snapshots WHERE session=? ORDER BY seq DESC LIMIT ?)",
-                      (session_id, session_id, keep))
-        return self._submit(op)
-
-    def latest_snapshot(self, session_id: str) -> tuple[int, bytes] | None:
-        r = self._read().execute("SELECT seq, data FROM snapshots WHERE session=? ORDER BY seq DESC LIMIT 1",
-                                 (session_id,)).fetchone()
-        return None if r is None else (int(r[0]), bytes(r[1]))
-
-    # ------------------------------------------------------------- derived
-    def append_derived(self, session_id: str, events: list[EventRecord], fields: list[PlaceFieldRecord]) -> Future:
-        ev = [(session_id, e.id, e.seq, e.type, e.t, e.ref, json.dumps(e.data, allow_nan=True)) for e in events]
-        pf = [(session_id, f.step, f.seq, f.t, f.data) for f in fields]
-
-        def op(c: sqlite3.Connection) -> None:
-            c.executemany("INSERT OR REPLACE INTO events VALUES (?,?,?,?,?,?,?)", ev)
-            c.executemany("INSERT OR REPLACE INTO place_fields VALUES (?,?,?,?,?)", pf)
-        return self._submit(op)
-
-    def truncate_derived(self, session_id: str, after_seq: int) -> Future:
-        def op(c: sqlite3.Connection) -> None:
-            c.execute("DELETE FROM events WHERE session=? AND seq>?", (session_id, after_seq))
-            c.execute("DELETE FROM place_fields WHERE session=? AND seq>?", (session_id, after_seq))
-        return self._submit(op)
-
-    def derived_counts(self, session_id: str) -> tuple[int, int]:
-        c = self._read()
-        ne = c.execute("SELECT COALESCE(MAX(id) + 1, 0) FROM events WHERE session=?", (session_id,)).fetchone()[0]
-        nf = c.execute("SELECT COALESCE(MAX(step) + 1, 0) FROM place_fields WHERE session=?",
-                       (session_id,)).fetchone()[0]
-        return int(ne), int(nf)
-
-    @staticmethod
-    def _event(r: tuple) -> EventRecord:
-        return EventRecord(id=r[0], seq=r[1], type=r[2], t=r[3], ref=r[4], data=json.loads(r[5]))
-
-    def query_events(self, session_id: str, types: list[str] | None = None, since_id: int = -1,
-                     t_min: float | None = None, t_max: float | None = None, limit: int = 1000) -> list[EventRecord]:
-        sql = "SELECT id, seq, type, t, ref, data FROM events WHERE session=? AND id>?"
-        args: list[Any] = [session_id, since_id]
-        if types:
-            sql += f" AND type IN ({','.join('?' * len(types))})"
-            args += list(types)
-        if t_min is not None:
-            sql += " AND t>=?"
-            args.append(t_min)
-        if t_max is not None:
-            sql += " AND t<=?"
-            args.append(t_max)
-        sql += " ORDER BY id LIMIT ?"
-        args.append(limit)
-        return [self._event(r) for r in self._read().execute(sql, args).fetchall()]
-
-    def event_by_ref(self, session_id: str, type: str, ref: int) -> EventRecord | None:
-        r = self._read().execute("SELECT id, seq, type, t, ref, data FROM events WHERE session=? AND type=? AND ref=? "
-                                 "ORDER BY id LIMIT 1", (session_id, type, ref)).fetchone()
-        return None if r is None else self._event(r)
-
-    def place_fields(self, session_id: str, since_step: int = -1, limit: int = 1000,
-                     with_data: bool = False) -> list[PlaceFieldRecord]:
-        col = "data" if with_data else "x''"
-        rows = self._read().execute(f"SELECT step, seq, t, {col} FROM place_fields WHERE session=? AND step>? "
-                                    "ORDER BY step LIMIT ?", (session_id, since_step, limit)).fetchall()
-        return [PlaceFieldRecord(step=r[0], seq=r[1], t=r[2], data=bytes(r[3])) for r in rows]
-
-    def place_field(self, session_id: str, step: int) -> PlaceFieldRecord | None:
-        r = self._read().execute("SELECT step, seq, t, data FROM place_fields WHERE session=? AND step=?",
-                                 (session_id, step)).fetchone()
-        return None if r is None else PlaceFieldRecord(step=r[0], seq=r[1], t=r[2], data=bytes(r[3]))
 
     # -------------------------------------------------------------- leases
     def claim_session(self, session_id: str, replica: str, ttl_s: float) -> str:

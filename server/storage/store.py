@@ -12,7 +12,8 @@ Everything the server must not lose goes through a :class:`Store`:
 Writes return a :class:`concurrent.futures.Future` that completes once the write is durable; the
 embedded backend (:mod:`server.storage.sqlite`) commits many writes per transaction (group commit).
 Writes of one store complete in submission order. Reads are synchronous and thread-safe.
-Implementations: :mod:`server.storage.sqlite` (embedded default) and :mod:`server.storage.postgres`.
+Implementations: :mod:`server.storage.sqlite` (embedded default) and :mod:`server.storage.postgres`,
+whose shared SQL is in :mod:`server.storage.sql`.
 """
 
 from __future__ import annotations
