@@ -35,7 +35,8 @@ from web.settings import ViewerSettings
 from web.source import CameraImage
 
 from .formats.ingest import frame_from_bytes
-from .runtime.sessions import NotFound, ServedElsewhere
+from .runtime.sessions import LiveSession, NotFound, ServedElsewhere
+from .storage.store import Store
 
 T = TypeVar("T")
 
@@ -53,7 +54,7 @@ def _decode(t: float, data: bytes) -> np.ndarray | None:
 class ServiceSession:
     """One live service session as a :class:`~web.source.SessionSource`."""
 
-    def __init__(self, live: Any, store: Any) -> None:
+    def __init__(self, live: LiveSession, store: Store) -> None:
         self.live = live
         self.store = store
         self._lock = threading.Lock()
@@ -90,7 +91,7 @@ class ServiceSession:
             if frames and frames[-1].seq > self._latest_seq:
                 rec = self.store.input_by_seq(self.session_id, frames[-1].seq)
                 image = None if rec is None else _decode(rec.t, rec.data)
-                if image is not None:
+                if rec is not None and image is not None:
                     self._latest = CameraImage(rec.t, image)
                     self._latest_seq = rec.seq
             return self._latest
