@@ -4,15 +4,15 @@
 
 Measured in one run against references measured in the same run:
 
-1. **Frames** (320x240 and 640x480 camera-like JPEGs): ``server.ingest.check_frame`` (header
+1. **Frames** (320x240 and 640x480 camera-like JPEGs): ``server.formats.ingest.check_frame`` (header
    sniffing, the strict libjpeg-turbo decode that refuses corrupt data, OpenCV's decode) against
    OpenCV's decode alone (what the mapper needs anyway). Reported: ms per frame and the ratio.
-2. **Websocket text**: ``server.protocol.parse_text_message`` (length, depth scan, ``json.loads``)
+2. **Websocket text**: ``server.formats.protocol.parse_text_message`` (length, depth scan, ``json.loads``)
    against ``json.loads`` alone, for a single odometry reading, a batch of 1,000 readings, and
    the hostile ``'[' * 100000 + ']' * 100000`` (refused by the scan; ``json.loads`` raises
    RecursionError on it after walking 1,000 levels).
 3. **Memory returned on delete**: RSS of this process before a queue of decoded frames is
-   built, with it, and after it is dropped and ``server.sessions.release_memory`` runs.
+   built, with it, and after it is dropped and ``server.runtime.sessions.release_memory`` runs.
 """
 
 from __future__ import annotations
@@ -29,9 +29,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from server.ingest import check_frame  # noqa: E402
-from server.protocol import parse_text_message  # noqa: E402
-from server.sessions import release_memory  # noqa: E402
+from server.formats.ingest import check_frame  # noqa: E402
+from server.formats.protocol import parse_text_message  # noqa: E402
+from server.runtime.sessions import release_memory  # noqa: E402
 from server.settings import ServerSettings  # noqa: E402
 
 

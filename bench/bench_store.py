@@ -32,9 +32,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from server.postgres_store import PostgresStore  # noqa: E402
-from server.sqlite_store import SQLiteStore  # noqa: E402
-from server.store import InputRecord  # noqa: E402
+from server.storage.postgres import PostgresStore  # noqa: E402
+from server.storage.sqlite import SQLiteStore  # noqa: E402
+from server.storage.store import InputRecord  # noqa: E402
 from tests.support.postgres_cluster import PostgresCluster  # noqa: E402
 from tests.support.synthetic import view  # noqa: E402
 

@@ -43,7 +43,7 @@ import zstandard  # noqa: E402
 
 from hippomap.cognitive_map import CognitiveMap  # noqa: E402
 from hippomap.inputs import Odometry  # noqa: E402
-from web.chunks import chunk_layout  # noqa: E402
+from web.scene.chunks import chunk_layout  # noqa: E402
 from web.session_viewer import SessionViewer  # noqa: E402
 from web.settings import ViewerSettings  # noqa: E402
 from web.source import LocalSession  # noqa: E402

@@ -3,9 +3,9 @@
 * Place cells made visible: recording the iteration at the current pose
   (``SpatialPathway.record``, done only on request) against one step's ``localise`` (the hot
   path, unchanged), and drawing the Fig. 8 figure (side panel and the PNG endpoint's layout).
-* Time slider: cutting a 50k-node map back in time (``web.scene_replay.replay_at``) against
+* Time slider: cutting a 50k-node map back in time (``web.scene.replay.replay_at``) against
   copying the map's snapshot arrays (what every viewer update already does).
-* Camera fit: ``web.camera_fit.fit_camera`` per call.
+* Camera fit: ``web.scene.camera_fit.fit_camera`` per call.
 
     .venv/bin/python bench/bench_views.py [--nodes 50000] [--repeat 5]
 """
@@ -26,8 +26,8 @@ from hippomap.cognitive_map import LINK_KINDS  # noqa: E402
 from hippomap.config import SpatialConfig  # noqa: E402
 from hippomap.place_cells import SpatialPathway  # noqa: E402
 from hippomap.place_field_figure import place_field_figure  # noqa: E402
-from web.camera_fit import fit_camera  # noqa: E402
-from web.scene_replay import replay_at  # noqa: E402
+from web.scene.camera_fit import fit_camera  # noqa: E402
+from web.scene.replay import replay_at  # noqa: E402
 from web.snapshot import MapSnapshot  # noqa: E402
 
 

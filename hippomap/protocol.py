@@ -3,7 +3,7 @@
 A camera frame travels as one binary websocket message: the 16-byte header :data:`FRAME_HEADER`
 (magic :data:`FRAME_MAGIC` ``b"HMF1"``, ``uint32`` message id, ``float64`` timestamp; little-endian)
 followed by the image bytes (JPEG or PNG). The client (:mod:`hippomap.client`) packs it and the
-service (``server.protocol``, which re-exports these names) unpacks it, both from this module, so the
+service (``server.formats.protocol``, which re-exports these names) unpacks it, both from this module, so the
 two ends cannot drift apart. It lives in the model package because the client does and must not
 import the service; it imports nothing but the standard library and :mod:`hippomap.errors`.
 """

@@ -5,27 +5,21 @@ them to one :class:`hippomap.mapper.Mapper` per session and serialises the answe
 All model logic stays in :mod:`hippomap`. Test scaffolding (a live server in a subprocess,
 synthetic robot data) is in the repository's ``tests/support``, not in this package.
 
-Modules, one concept each:
+Sub-packages, one concept each (each one's ``__init__`` lists its modules):
 
-* :mod:`server.settings`  — limits, paths and intervals (one pydantic model)
-* :mod:`server.store`     — the storage interface; :mod:`server.sqlite_store` its embedded backend,
-  :mod:`server.postgres_store` the shared one (replicas; session leases)
-* :mod:`server.auth`      — bearer tokens, roles and who sees which session
-* :mod:`server.limits`    — request-rate buckets and the body-size guard
-* :mod:`server.ingest`    — parsing and validating odometry and frames (4xx naming the problem)
-* :mod:`server.images`    — image header sniffing (sizes before decoding) and encoding
-* :mod:`server.protocol`  — the websocket stream's messages; the binary frame header it re-exports from
-  :mod:`hippomap.protocol` (one definition, shared with the client)
-* :mod:`server.model`     — the only module that touches the mapper (create, load, query)
-* :mod:`server.worker`    — one thread per session feeding its mapper in order, snapshotting
-* :mod:`server.mapper_host` — where a session's mapper runs: in process (behind a gate), in child processes
-  (:mod:`server.process_host`), or a Ray actor (:mod:`server.ray_backend`)
-* :mod:`server.loop_calls` — calls from other threads onto the event loop, one wake-up per burst
-* :mod:`server.metrics`   — Prometheus metrics; :mod:`server.logs` structured (JSON) logs
-* :mod:`server.sessions`  — live sessions: ordering, durability, backpressure, restore
-* :mod:`server.views`     — serialisers: GraphML, g2o, TUM, place fields, saccade images
-* :mod:`server.schemas`   — request/response bodies (the OpenAPI document)
-* :mod:`server.api`       — the FastAPI routes; :mod:`server.app` assembles the app (and mounts the
-  viewer of package ``web`` at ``/viewer/``)
-* :mod:`server.cli`       — ``hippomap serve``; :mod:`server.demo` its simulated robot (``--demo``)
+* :mod:`server.api`      — the FastAPI routes, one module per resource, and their shared dependencies
+* :mod:`server.formats`  — what goes over the wire: inputs parsed and validated (4xx naming the problem),
+  image headers, the websocket messages, request/response bodies, query answers serialised
+* :mod:`server.security` — tokens, roles and who sees which session; request rates; what a session may cost
+* :mod:`server.runtime`  — live sessions (ordering, durability, backpressure, restore), their worker
+  threads, and where each mapper runs (in process, child processes, Ray actors)
+* :mod:`server.storage`  — the storage interface, its shared SQL, SQLite (embedded) and PostgreSQL (replicas)
+
+Top-level modules:
+
+* :mod:`server.app`      — ``create_app``: the app, its lifespan, the routers and the viewer mounted
+* :mod:`server.viewer`   — the one wiring to the viewer (package ``web``): live sessions as its sources
+* :mod:`server.settings` — limits, paths and intervals (one pydantic model)
+* :mod:`server.metrics`  — Prometheus metrics; :mod:`server.logs` structured (JSON) logs
+* :mod:`server.cli`      — ``hippomap serve``; :mod:`server.demo` its simulated robot (``--demo``)
 """

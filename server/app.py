@@ -27,15 +27,15 @@ from starlette.routing import Match
 
 from hippomap import __version__
 
-from . import model
 from .api import docs, ingest, queries, reuse, sessions, stream, tokens, wsdoc
-from .auth import Authenticator, CloseOnRevoke, adopt_orphans, ensure_admin
-from .limits import BodySizeLimit, KeyedBuckets, OriginCheck
 from .metrics import ServiceMetrics
-from .sessions import ServedElsewhere, SessionManager
+from .runtime import model
+from .runtime.sessions import ServedElsewhere, SessionManager
+from .security.auth import Authenticator, CloseOnRevoke, adopt_orphans, ensure_admin
+from .security.limits import BodySizeLimit, KeyedBuckets, OriginCheck
 from .settings import ServerSettings
-from .sqlite_store import SQLiteStore
-from .store import Store
+from .storage.sqlite import SQLiteStore
+from .storage.store import Store
 
 log = logging.getLogger("hippomap.server")
 
@@ -50,7 +50,7 @@ created it (404 for anyone else); viewer tokens (`POST /tokens`) are read-only.
 **Ingest**: `POST /sessions/{id}/odometry`, `POST /sessions/{id}/frames`, or the websocket
 `/sessions/{id}/stream` (JSON odometry, binary frames with a 16-byte header `<4sId`:
 `b"HMF1"`, message id, timestamp; each message is acknowledged with its sequence numbers
-once durable). See `server/protocol.py`.
+once durable). See `server/formats/protocol.py`.
 
 **Operations**: `GET /health` (liveness) and `GET /ready` (readiness: 503 while sessions are
 being restored after a restart) need no token; `GET /metrics` (Prometheus) needs the metrics token
@@ -79,9 +79,10 @@ def open_store(settings: ServerSettings) -> Store:
     scheme = location.split("://", 1)[0].lower() if "://" in location else ""
     if scheme in ("postgresql", "postgres"):
         try:
-            from .postgres_store import PostgresStore
+            from .storage.postgres import PostgresStore
         except ImportError as exc:
-            raise RuntimeError(f"a PostgreSQL database needs psycopg: pip install 'hippomap[postgres]' ({exc})") from None
+            raise RuntimeError("a PostgreSQL database needs psycopg: "
+                               f"pip install 'hippomap[postgres]' ({exc})") from None
         return PostgresStore(location, settings.durability)
     if scheme == "sqlite":
         settings = settings.model_copy(update={"database": location[len("sqlite://"):]})
@@ -99,7 +100,7 @@ def _warm_up() -> None:
     import hippomap.mapper  # noqa: F401
     import hippomap.visual_memory  # noqa: F401
 
-    from . import views  # noqa: F401
+    from .formats import views  # noqa: F401
 
 
 async def _log_restores(manager: SessionManager, started: float, poll_s: float = 0.05) -> None:
@@ -283,7 +284,8 @@ def create_app(settings: ServerSettings | None = None) -> FastAPI:
         manager: SessionManager | None = getattr(app.state, "manager", None)
         if manager is None or not app.state.serving:
             return SafeJSONResponse({"ready": False, "restoring": [],
-                                     "sessions": 0 if manager is None else len(manager.sessions), "reason": "starting" if manager is None else "stopping"}, status_code=503)
+                                     "sessions": 0 if manager is None else len(manager.sessions),
+                                     "reason": "starting" if manager is None else "stopping"}, status_code=503)
         if manager.fatal:
             return SafeJSONResponse({"ready": False, "restoring": [], "sessions": len(manager.sessions),
                                      "reason": f"storage stopped: {manager.fatal}"}, status_code=503)
@@ -322,8 +324,7 @@ def create_app(settings: ServerSettings | None = None) -> FastAPI:
         return app.openapi_schema
 
     app.openapi = openapi  # type: ignore[method-assign]
-    from web.service import landing_router, viewer_router  # the live 3D viewer: /viewer/ (web/routes.py); /
+    from .viewer import mount_viewer  # the live 3D viewer: /viewer/ (web/routes.py); / (web/landing.py)
 
-    app.include_router(viewer_router(app))
-    app.include_router(landing_router)
+    mount_viewer(app)
     return app

@@ -31,7 +31,7 @@ def _data_location(settings: ServerSettings) -> str:
     """Where the sessions are stored, never with a password (a PostgreSQL URL may carry one)."""
     db = settings.database or ""
     if db.startswith(("postgresql://", "postgres://")):
-        from .postgres_store import describe_url
+        from .storage.postgres import describe_url
 
         return f"PostgreSQL {describe_url(db)}"
     return str(settings.database_path)
@@ -67,7 +67,7 @@ async def _serve(args: argparse.Namespace) -> int:
     settings = ServerSettings.from_env(data_dir=args.data_dir, database=args.database, backend=args.backend,
                                        ray_address=args.ray_address)
     if settings.backend == "ray":  # fail now, with the fix, rather than in the app's start-up
-        from .ray_backend import require_ray
+        from .runtime.ray_backend import require_ray
 
         try:
             require_ray()
@@ -78,7 +78,8 @@ async def _serve(args: argparse.Namespace) -> int:
     app = create_app(settings)
     # proto=IPPROTO_TCP matters: asyncio sets TCP_NODELAY only on sockets that say they are TCP, and
     # without it small acks wait for the robot's next message (Nagle + delayed ACK: ~one message period)
-    sock = socket.socket(socket.AF_INET6 if ":" in args.host else socket.AF_INET, socket.SOCK_STREAM, socket.IPPROTO_TCP)
+    family = socket.AF_INET6 if ":" in args.host else socket.AF_INET
+    sock = socket.socket(family, socket.SOCK_STREAM, socket.IPPROTO_TCP)
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
     sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
     sock.bind((args.host, args.port))
@@ -122,8 +123,8 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--port", type=int, default=8000, help="port (default 8000; 0 = any free port)")
     p.add_argument("--data-dir", default=None, help="data folder (default ./hippomap-data or $HIPPOMAP_DATA_DIR)")
     p.add_argument("--database", default=None,
-                   help="SQLite file (default <data-dir>/hippomap.sqlite3) or a PostgreSQL URL postgresql://user:pw@host/db "
-                        "(replicas sharing sessions; needs the 'postgres' extra)")
+                   help="SQLite file (default <data-dir>/hippomap.sqlite3) or a PostgreSQL URL "
+                        "postgresql://user:pw@host/db (replicas sharing sessions; needs the 'postgres' extra)")
     p.add_argument("--backend", default=None, choices=["inprocess", "process", "ray"],
                    help="where sessions' mappers run: in this process (default), in child processes of this server "
                         "($HIPPOMAP_PROCESS_WORKERS, default 1) or one Ray actor per session "

@@ -121,7 +121,8 @@ async def run_demo(url: str, token: str, rate_hz: float = 10.0, laps: int = 10, 
                     return sid
                 if t > skip_odo:
                     _, v, omega = (float(x) for x in run.odometry[k])
-                    gt = cast(tuple[float, float, float], tuple(float(x) for x in run.groundtruth[k]))  # drawn by the viewer, unused by the mapper
+                    # the true pose: drawn by the viewer, unused by the mapper
+                    gt = cast(tuple[float, float, float], tuple(float(x) for x in run.groundtruth[k]))
                     await stream.send_odometry(Odometry(t, v=v, omega=omega, gt=gt))
                 if i is not None and t > skip_frame:
                     img = await asyncio.to_thread(lambda: encode_image(run.frame(i)))

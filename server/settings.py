@@ -67,7 +67,7 @@ class ServerSettings(BaseModel):
         "of years is refused instead of wedging the session with 409s)")
     max_abs_t: float = Field(1e10, gt=0, description="largest |t| of any timestamp, seconds (Unix time fits until "
                              "the year 2286)")
-    # ---- session config overrides (see server/quotas.py for the safe ranges and the memory cost) ----
+    # ---- session config overrides (see server/security/quotas.py for the safe ranges and the memory cost) ----
     max_session_grid_bytes: int = Field(
         512 << 20, ge=1 << 20, description="largest grid-cell rate tables one session's config may need, bytes "
         "(132 MB at the defaults; sessions with the same spatial geometry and seed share one copy)")
@@ -92,16 +92,16 @@ class ServerSettings(BaseModel):
     lease_ttl_s: float = Field(
         15.0, gt=0, description="a session lease lasts this long and is renewed every third of it; a replica that "
         "stops renewing (crashed) loses its sessions to the others after at most this long")
-    # ---- session backend (where each session's mapper runs: server/mapper_host.py, server/ray_backend.py) ----
+    # ---- session backend (where each session's mapper runs: server/runtime/mapper_host.py, ray_backend.py) ----
     backend: Literal["inprocess", "process", "ray"] = Field(
         "inprocess", description="'inprocess': every session's mapper in this process (a thread each); "
         "'process': the mappers in process_workers child processes of this server (the event loop does not share "
-        "its GIL with them: more robots per server, see server/process_host.py); "
+        "its GIL with them: more robots per server, see server/runtime/process_host.py); "
         "'ray': one Ray actor per session (needs the 'ray' extra: pip install \"hippomap[ray]\")")
     mapper_slots: int = Field(
         1, ge=1, le=64, description="in-process backend: how many session mappers step at the same time; the others "
         "wait their turn without holding the GIL, so the event loop (which acknowledges inputs) is not starved by "
-        "mapper threads (server/mapper_host.py, MapperGate)")
+        "mapper threads (server/runtime/mapper_host.py, MapperGate)")
     process_workers: int = Field(
         1, ge=1, le=256, description="process backend: child processes running the sessions' mappers (sessions are "
         "spread over them in turn; each holds its own copy of the grid-cell tables)")

@@ -18,7 +18,7 @@ from starlette.websockets import WebSocketDisconnect
 
 from server.api.docs import ASSETS_URL
 from server.app import create_app
-from server.protocol import pack_frame
+from server.formats.protocol import pack_frame
 from server.settings import ServerSettings
 from tests.support.live import LiveServer
 from tests.support.synthetic import view

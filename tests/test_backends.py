@@ -1,4 +1,4 @@
-"""Session backends (server/mapper_host.py, server/ray_backend.py, server/worker.py).
+"""Session backends (server/runtime/mapper_host.py, server/runtime/ray_backend.py, server/runtime/worker.py).
 
 * the in-process and the Ray host give the same results for the same inputs;
 * a session worker whose Ray actor is killed (``ray.kill``) restores a new one from the
@@ -24,11 +24,11 @@ from pydantic import ValidationError
 
 from hippomap.client import AsyncStream
 from hippomap.inputs import Odometry
-from server import model
-from server.mapper_host import InProcessHost
 from server.metrics import ServiceMetrics
+from server.runtime import model
+from server.runtime.mapper_host import InProcessHost
 from server.settings import ServerSettings
-from server.sqlite_store import SQLiteStore
+from server.storage.sqlite import SQLiteStore
 from tests.support.live import ROOT, LiveServer, stream_items
 from tests.support.ray_head import local_ray_head, ray_test_env
 from tests.support.reference import offline_reference, session_state
@@ -47,7 +47,7 @@ def ray_driver():
     os.environ.update(head.env)  # before Ray is imported: it reads its auth mode then
     import ray
 
-    from server.ray_backend import RayBackend
+    from server.runtime.ray_backend import RayBackend
 
     backend = RayBackend(ServerSettings(backend="ray", ray_address=head.address, ray_max_batch=8))
     backend.start()
@@ -217,7 +217,7 @@ def test_sigterm_with_a_local_ray_shuts_down_gracefully(tmp_path):
 # ---------------------------------------------------------------------------- errors
 def test_missing_ray_is_a_clear_error(monkeypatch, tmp_path, capsys):
     from server import cli
-    from server.ray_backend import RayBackend, require_ray
+    from server.runtime.ray_backend import RayBackend, require_ray
 
     monkeypatch.setitem(sys.modules, "ray", None)  # `import ray` now raises ImportError
     with pytest.raises(RuntimeError, match=r'pip install "hippomap\[ray\]"'):
@@ -262,7 +262,7 @@ print("ok")
 
 
 def test_a_closed_ray_host_is_dead_and_batches_split_over_calls_keep_their_order(ray_driver):
-    from server.mapper_host import HostDied
+    from server.runtime.mapper_host import HostDied
 
     config = model.effective_config({})
     host, local = ray_driver.factory("odo"), InProcessHost()

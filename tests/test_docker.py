@@ -269,7 +269,7 @@ def test_dockerignore_keeps_the_context_small():
     for heavy in (".venv/lib/python3.11/site-packages/numpy/__init__.py", ".git/HEAD", "tests/conftest.py",
                   "bench/bench_mapper.py", "docs/MODEL.md", "test-artifacts/x.png", "hippomap/__pycache__/a.pyc"):
         assert dockerignore_excludes(heavy, patterns), heavy
-    for needed in ("hippomap/mapper.py", "server/app.py", "web/service.py", "pyproject.toml"):
+    for needed in ("hippomap/mapper.py", "server/app.py", "server/viewer.py", "pyproject.toml"):
         assert (ROOT / needed).exists() and not dockerignore_excludes(needed, patterns), needed
 
 
@@ -481,7 +481,7 @@ def test_compose_health_dependencies_have_health_checks():
 # ------------------------------------------------------------------ runtime dependencies of the image
 #: modules of the installed packages that need more than ``.[server]`` (the image's default EXTRAS):
 #: the scale-out backends (test scaffolding lives in tests/support, outside the packages)
-OPTIONAL_MODULES = {"server/ray_backend.py": ("ray",), "server/postgres_store.py": ("postgres",)}
+OPTIONAL_MODULES = {"server/runtime/ray_backend.py": ("ray",), "server/storage/postgres.py": ("postgres",)}
 
 
 def _closure(requirements: list[str]) -> set[str]:

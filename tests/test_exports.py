@@ -335,7 +335,7 @@ def test_rosbag2_zip_reads_back_as_the_sessions_inputs(server, recorded, tmp_pat
         assert got.t == pytest.approx(sent[1], abs=1e-9)
         np.testing.assert_array_equal(got.image, decode_jpeg(sent[2]))
     np.testing.assert_allclose(ds.groundtruth[1], [o.gt for o in readings], atol=1e-12)
-    from server import model
+    from server.runtime import model
 
     m = _mapper_on(ds, CONFIG)
     _assert_same_map(json.loads(json.dumps(model.json_safe(model.graph(m)))), session_map, atol=1e-6)

@@ -28,12 +28,12 @@ from fastapi.testclient import TestClient
 from starlette.websockets import WebSocketDisconnect
 
 from server.app import create_app
-from server.auth import adopt_orphans, hash_secret
-from server.limits import OriginCheck
 from server.logs import JSONFormatter, RedactSecrets, TextFormatter, configure, redact
+from server.security.auth import adopt_orphans, hash_secret
+from server.security.limits import OriginCheck
 from server.settings import ServerSettings
-from server.sqlite_store import SQLiteStore
-from server.store import SessionRecord, TokenRecord
+from server.storage.sqlite import SQLiteStore
+from server.storage.store import SessionRecord, TokenRecord
 from tests.support.live import LiveServer
 
 ADMIN = "hm_hardening_admin_token_0123456789"
@@ -154,7 +154,7 @@ def _close_watch(ws, seconds: float = 30.0) -> tuple[list[int], threading.Thread
 
 
 def test_sockets_opened_before_a_revocation_are_closed(client):
-    from server.auth import VIEWER_COOKIE
+    from server.security.auth import VIEWER_COOKIE
     from web.routes import COOKIE, SUBPROTOCOL
 
     assert COOKIE == VIEWER_COOKIE
@@ -192,7 +192,7 @@ def test_sessions_orphaned_by_an_older_server_go_to_the_admin(tmp_path, kind):
     if kind == "sqlite":
         store = SQLiteStore(tmp_path / "db.sqlite3")
     else:
-        from server.postgres_store import PostgresStore
+        from server.storage.postgres import PostgresStore
         from tests.support.postgres_cluster import postgres_url_for
 
         store = PostgresStore(postgres_url_for(tmp_path, fresh=True))

@@ -31,14 +31,14 @@ from hypothesis import strategies as st
 
 from hippomap.config import HippomapConfig
 from hippomap.grid_cells import GridCells
-from server import sessions as sessions_module
 from server.app import create_app
-from server.images import check_jpeg_strict
-from server.ingest import IngestError, check_frame
-from server.protocol import json_depth, pack_frame, parse_text_message
-from server.quotas import SAFE_RANGES, check_config, grid_table_bytes
+from server.formats.images import check_jpeg_strict
+from server.formats.ingest import IngestError, check_frame
+from server.formats.protocol import json_depth, pack_frame, parse_text_message
+from server.runtime import sessions as sessions_module
+from server.security.quotas import SAFE_RANGES, check_config, grid_table_bytes
 from server.settings import ServerSettings
-from server.store import InputRecord, StoreDead
+from server.storage.store import InputRecord, StoreDead
 
 TOKEN = "hm_hardening_admin_token"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}  # websocket_connect adds to the dict it gets: pass it dict(AUTH)
@@ -239,8 +239,8 @@ def test_dead_writer_turns_health_and_ready_503_and_exits(tmp_path, monkeypatch)
 _DYING_SERVER = """
 import sys
 from server import cli
-from server.sqlite_store import SQLiteStore
-from server.store import TokenRecord
+from server.storage.sqlite import SQLiteStore
+from server.storage.store import TokenRecord
 
 original = SQLiteStore.add_token
 
@@ -522,7 +522,7 @@ def _big_frame(w: int = 2000, h: int = 1000) -> bytes:
 
 
 def test_mapper_queue_is_bounded_in_bytes_and_memory_returns_on_delete(tmp_path, monkeypatch):
-    from server import mapper_host
+    from server.runtime import mapper_host
 
     gate = threading.Event()
     original = mapper_host.InProcessHost.process
@@ -564,7 +564,7 @@ def test_mapper_queue_is_bounded_in_bytes_and_memory_returns_on_delete(tmp_path,
 
 
 def test_backpressure_releases_when_the_mapper_catches_up(tmp_path, monkeypatch):
-    from server import mapper_host
+    from server.runtime import mapper_host
 
     gate = threading.Event()
     original = mapper_host.InProcessHost.process
@@ -691,7 +691,7 @@ def test_the_strict_check_decodes_the_frame_replay_decodes(quality, colour):
     hippomap.inputs.decode_jpeg. The two must agree pixel for pixel, or a restored session
     would not be the session that was acknowledged."""
     from hippomap.inputs import decode_jpeg
-    from server.images import check_jpeg_strict
+    from server.formats.images import check_jpeg_strict
 
     rng = np.random.default_rng(quality)
     img = cv2.GaussianBlur(rng.integers(0, 255, (240, 320, 3) if colour else (240, 320), dtype=np.uint8), (5, 5), 0)

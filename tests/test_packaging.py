@@ -54,7 +54,7 @@ def test_wheel_holds_every_product_module(wheel):
     names = set(wheel)
     modules = {p.relative_to(ROOT).as_posix() for pkg in PACKAGES for p in (ROOT / pkg).rglob("*.py")
                if "__pycache__" not in p.parts}
-    assert "hippomap/protocol.py" in modules and "server/protocol.py" in modules
+    assert "hippomap/protocol.py" in modules and "server/formats/protocol.py" in modules
     assert not modules - names, f"modules missing from the wheel: {sorted(modules - names)}"
     version = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["version"]
     tops = {n.split("/")[0] for n in names}

@@ -1,4 +1,4 @@
-"""The process session backend (server/process_host.py): the sessions' mappers in child processes.
+"""The process session backend (server/runtime/process_host.py): the sessions' mappers in child processes.
 
 * a process host gives the same results as the in-process host for the same inputs, answers
   queries given as lambdas, and its snapshot restores in process to the same mapper;
@@ -18,9 +18,9 @@ import time
 import pytest
 
 from hippomap.client import AsyncStream
-from server import model
-from server.mapper_host import HostDied, InProcessHost
-from server.process_host import ProcessBackend
+from server.runtime import model
+from server.runtime.mapper_host import HostDied, InProcessHost
+from server.runtime.process_host import ProcessBackend
 from tests.support.live import LiveServer
 from tests.support.reference import offline_reference, session_state
 from tests.support.synthetic import decoded, synthetic_inputs

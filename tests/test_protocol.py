@@ -1,7 +1,7 @@
 """The binary frame message: one format (hippomap.protocol) that the client packs and the service parses.
 
 The client (``hippomap.client``, which must not import the service) and the service
-(``server.protocol``) both take the format from :mod:`hippomap.protocol`. These tests feed what the
+(``server.formats.protocol``) both take the format from :mod:`hippomap.protocol`. These tests feed what the
 client packs to the service's parser, directly and over the service's websocket stream (in-process,
 TestClient), and check that a message with a bad magic or a short header is refused with the
 error naming the problem.
@@ -18,7 +18,7 @@ from fastapi.testclient import TestClient
 
 import hippomap.client as client
 import hippomap.protocol as protocol
-import server.protocol as server_protocol
+import server.formats.protocol as server_protocol
 from hippomap.errors import InputError
 from server.app import create_app
 from server.settings import ServerSettings

@@ -16,9 +16,8 @@ from hypothesis import strategies as st
 
 from hippomap.errors import InputError
 from hippomap.inputs import Odometry
-from server.auth import Authenticator, can_read, can_write, ensure_admin, hash_secret
-from server.images import image_dimensions
-from server.ingest import (
+from server.formats.images import image_dimensions
+from server.formats.ingest import (
     IngestError,
     check_frame,
     check_odometry,
@@ -26,13 +25,14 @@ from server.ingest import (
     odometry_from_bytes,
     parse_odometry_message,
 )
-from server.limits import TokenBucket
-from server.postgres_store import PostgresStore
-from server.protocol import pack_frame, unpack_frame
-from server.schemas import OdometryReading
+from server.formats.protocol import pack_frame, unpack_frame
+from server.formats.schemas import OdometryReading
+from server.security.auth import Authenticator, can_read, can_write, ensure_admin, hash_secret
+from server.security.limits import TokenBucket
 from server.settings import ServerSettings
-from server.sqlite_store import SQLiteStore
-from server.store import EventRecord, InputRecord, PlaceFieldRecord, SessionRecord, TokenRecord
+from server.storage.postgres import PostgresStore
+from server.storage.sqlite import SQLiteStore
+from server.storage.store import EventRecord, InputRecord, PlaceFieldRecord, SessionRecord, TokenRecord
 from tests.support.postgres_cluster import postgres_url_for
 
 

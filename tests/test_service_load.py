@@ -16,13 +16,13 @@ from fastapi.testclient import TestClient
 
 from hippomap.config import HippomapConfig
 from hippomap.inputs import Odometry
-from server import model
 from server.app import create_app
-from server.loop_calls import LoopCalls
-from server.mapper_host import InProcessHost, MapperGate
+from server.runtime import model
+from server.runtime.loop_calls import LoopCalls
+from server.runtime.mapper_host import InProcessHost, MapperGate
 from server.settings import ServerSettings
-from server.sqlite_store import SQLiteStore
-from server.store import InputRecord
+from server.storage.sqlite import SQLiteStore
+from server.storage.store import InputRecord
 
 TOKEN = "hm_load_admin_token"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}

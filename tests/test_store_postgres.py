@@ -17,10 +17,10 @@ import psycopg
 import pytest
 
 from server.app import open_store
-from server.postgres_store import PostgresStore, StoreConnectionError, describe_url
 from server.settings import ServerSettings
-from server.sqlite_store import SQLiteStore
-from server.store import EventRecord, InputRecord, SessionRecord, TokenRecord
+from server.storage.postgres import PostgresStore, StoreConnectionError, describe_url
+from server.storage.sqlite import SQLiteStore
+from server.storage.store import EventRecord, InputRecord, SessionRecord, TokenRecord
 from tests.support.live import ROOT, free_port
 from tests.support.postgres_cluster import postgres_test_url, postgres_url_for
 from tests.support.variants import SERVICE_VARIANTS
@@ -196,8 +196,8 @@ def test_lease_race_between_threads_with_own_connections(location):
 
 _CLAIMER = """
 import sys, time
-from server.postgres_store import PostgresStore
-from server.sqlite_store import SQLiteStore
+from server.storage.postgres import PostgresStore
+from server.storage.sqlite import SQLiteStore
 loc, name, start = sys.argv[1], sys.argv[2], float(sys.argv[3])
 s = PostgresStore(loc) if loc.startswith("postgresql://") else SQLiteStore(loc)
 time.sleep(max(0.0, start - time.time()))

@@ -19,12 +19,12 @@ from hippomap.config import HippomapConfig
 from hippomap.place_cells import SpatialPathway
 from hippomap.visual_memory import VisualMemory
 from tests.support.simfeed import sim_inputs
-from web.chunks import ChunkTracker, chunk_layout
 from web.images import recognition_from_dict, trace_panel
-from web.panel_evidence import evidence_curves
+from web.panels.evidence import evidence_curves
 from web.routes import SUBPROTOCOL, SessionEntry, make_router
-from web.scene_place_field import field_heatmap
-from web.scene_trajectories import TrajectorySampler
+from web.scene.chunks import ChunkTracker, chunk_layout
+from web.scene.place_field import field_heatmap
+from web.scene.trajectories import TrajectorySampler
 from web.session_viewer import SessionViewer, ViewerHub
 from web.settings import ViewerSettings
 from web.snapshot import PlaceFieldView
@@ -291,7 +291,7 @@ def test_viewer_mirrors_the_mapper_and_sends_only_changes(fed_session):
         assert accepted, "the simulated loop should close"
         assert viewer.loops.accepted.tracker.n == len(accepted)
         assert viewer.loops.rejected.tracker.n == len(rejected)
-        # the shared scene holds both; each browser hides the rejected ones by default (web.panel_layers)
+        # the shared scene holds both; each browser hides the rejected ones by default (web.panels.layers)
         assert viewer.loops.rejected.visible and viewer.loops.accepted.visible
         defaults = {sp.key: sp.visible for sp in viewer.layer_specs}
         assert defaults["rejected"] is False and defaults["accepted"] is True
@@ -451,10 +451,10 @@ def test_websocket_proxy_forwards_the_viser_protocol(client):
 
 
 # ------------------------------------------------- readable views: camera, ground truth, replay, layers
-from web.camera_fit import fit_camera, map_bounds  # noqa: E402
-from web.panel_layers import ClientLayers, layer_specs, legend_html  # noqa: E402
-from web.scene_ground_truth import GroundTruthLayer, origin_alignment  # noqa: E402
-from web.scene_replay import replay_at  # noqa: E402
+from web.panels.layers import ClientLayers, layer_specs, legend_html  # noqa: E402
+from web.scene.camera_fit import fit_camera, map_bounds  # noqa: E402
+from web.scene.ground_truth import GroundTruthLayer, origin_alignment  # noqa: E402
+from web.scene.replay import replay_at  # noqa: E402
 
 
 def _project(points, pos, look, fov, aspect):
@@ -641,7 +641,7 @@ def test_ground_truth_travels_with_odometry_and_never_reaches_the_mapper():
     from hippomap.client import odometry_reading
     from hippomap.errors import InputError
     from hippomap.inputs import Odometry
-    from server.ingest import odometry_bytes, odometry_from_bytes
+    from server.formats.ingest import odometry_bytes, odometry_from_bytes
 
     o = Odometry(1.5, v=0.2, omega=0.1, gt=(1.0, -2.0, 0.5))
     assert odometry_from_bytes(odometry_bytes(o)) == o
@@ -692,7 +692,7 @@ def test_fitting_the_points_of_a_round_map_fills_more_than_its_box():
 # ------------------------------------------------------ a run in a saved map: replay and raw odometry
 from hippomap.inputs import Odometry  # noqa: E402
 from hippomap.mapper import Mapper  # noqa: E402
-from web.placement import placement  # noqa: E402
+from web.scene.placement import placement  # noqa: E402
 
 REUSE_NOISE = sim.OdometryNoise(sigma_v=0.02, sigma_omega=0.01, omega_bias=0.01)
 ANCHOR_M = 1.0  # the raw odometry's first point to the map trajectory's (0 measured; 7.1 m in the run's own frame)

@@ -7,12 +7,12 @@ import os
 import time
 from typing import Any
 
-from server import model
-from server.ingest import odometry_bytes
+from server.formats.ingest import odometry_bytes
+from server.runtime import model
+from server.runtime.worker import SessionWorker, WorkItem
 from server.settings import ServerSettings
-from server.sqlite_store import SQLiteStore
-from server.store import InputRecord, SessionRecord
-from server.worker import SessionWorker, WorkItem
+from server.storage.sqlite import SQLiteStore
+from server.storage.store import InputRecord, SessionRecord
 from tests.support.synthetic import decoded
 
 
@@ -58,7 +58,7 @@ def assert_host_matches_inprocess(remote, kind: str, items: tuple, config_overri
     """``remote`` (a host of another kind: ``kind``) gives the in-process host's results on ``items``:
     the same step results, map and trajectory, and a snapshot it takes restores in process.
     Returns the in-process host, fed the same items."""
-    from server.mapper_host import InProcessHost
+    from server.runtime.mapper_host import InProcessHost
 
     values = decoded(items)
     config = model.effective_config(config_overrides)

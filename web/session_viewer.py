@@ -30,23 +30,23 @@ import viser
 
 from hippomap.cognitive_map import LoopDecision
 
-from .camera_fit import fit_camera, map_bounds
-from .chunks import ChunkUpdate
 from .images import pair_panel, placeholder
-from .panel_camera import CameraPanel
-from .panel_evidence import EvidencePanel
-from .panel_layers import layer_specs, legend_html
-from .panel_loops import LoopsPanel
-from .panel_place_cells import PlaceCellsPanel
-from .panel_stats import StatsPanel
-from .panel_view import ClientViews
-from .placement import Placement, map_poses, placement
-from .scene_ground_truth import GroundTruthLayer
-from .scene_loops import LoopLayer, LoopUpdate
-from .scene_map import MapGraphLayer, MapUpdate
-from .scene_place_field import PlaceFieldLayer
-from .scene_pose import RobotMarker
-from .scene_trajectories import TrajectoryLayer, TrajectoryUpdate
+from .panels.camera import CameraPanel
+from .panels.evidence import EvidencePanel
+from .panels.layers import layer_specs, legend_html
+from .panels.loops import LoopsPanel
+from .panels.place_cells import PlaceCellsPanel
+from .panels.stats import StatsPanel
+from .panels.view import ClientViews
+from .scene.camera_fit import fit_camera, map_bounds
+from .scene.chunks import ChunkUpdate
+from .scene.ground_truth import GroundTruthLayer
+from .scene.loops import LoopLayer, LoopUpdate
+from .scene.map import MapGraphLayer, MapUpdate
+from .scene.place_field import PlaceFieldLayer
+from .scene.placement import Placement, map_poses, placement
+from .scene.pose import RobotMarker
+from .scene.trajectories import TrajectoryLayer, TrajectoryUpdate
 from .settings import ViewerSettings
 from .snapshot import Cursor, MapSnapshot, take_snapshot
 from .source import SessionSource, ground_truth_rows
@@ -188,7 +188,7 @@ class SessionViewer:
                 self.place_cells = PlaceCellsPanel(gui, self._record_place_cells)
             with gui.add_folder("Loop closures"):
                 self.loop_list = LoopsPanel(gui, self._select_loop, s.max_loops_listed, s.thumbnail_width)
-        # per browser: layer toggles, time slider, camera fitted to the map (web.panel_view)
+        # per browser: layer toggles, time slider, camera fitted to the map (web.panels.view)
         self.views = ClientViews(self.server, self.layer_specs, s, self._view_state)
         self.created = time.monotonic()
         self.last_seen = self.created
@@ -302,7 +302,7 @@ class SessionViewer:
 
     def _frame_view(self, snap: MapSnapshot) -> None:
         """Fit the initial ('reset view') camera to the map when it has grown noticeably (each browser's
-        own camera is fitted by :mod:`web.panel_view`)."""
+        own camera is fitted by :mod:`web.panels.view`)."""
         box = map_bounds(snap.node_poses, self.ground_truth.samples[:, 1:3])
         if box is None:
             return

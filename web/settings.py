@@ -23,7 +23,7 @@ class ViewerSettings:
     """A viewer with no browser connected for this long is closed (its viser server stopped)."""
     chunk_size: int = 4096
     """Items (nodes, links, trajectory samples) per sealed scene chunk: sent once, resent only when a
-    relaxation moves one of its items (see :mod:`web.chunks`)."""
+    relaxation moves one of its items (see :mod:`web.scene.chunks`)."""
     tail_size: int = 256
     """Items per tail chunk (the growing end of a layer): an append resends at most this many."""
     move_tolerance_m: float = 0.01

@@ -9,10 +9,10 @@ from fastapi import Depends, HTTPException, Path, Query, Request
 from fastapi.responses import JSONResponse
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
-from ..auth import Authenticator
-from ..sessions import Forbidden, LiveSession, NotFound, SessionManager
+from ..runtime.sessions import Forbidden, LiveSession, NotFound, SessionManager
+from ..security.auth import Authenticator
 from ..settings import ServerSettings
-from ..store import Store, TokenRecord
+from ..storage.store import Store, TokenRecord
 
 bearer = HTTPBearer(auto_error=False, description="a hippomap token (admin, writer or viewer)")
 
@@ -41,8 +41,10 @@ def settings(request: Request) -> ServerSettings:
 
 def token(request: Request,
           credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(bearer)] = None,
-          query_token: Annotated[str | None, Query(alias="token", description="token for browsers (GET only; "
-                                                   "one longer than 512 characters is unknown)")] = None) -> TokenRecord:
+          query_token: Annotated[str | None, Query(
+              alias="token",
+              description="token for browsers (GET only; one longer than 512 characters is unknown)")] = None,
+          ) -> TokenRecord:
     """The caller's token, from ``Authorization: Bearer`` (or ``?token=`` on GET requests)."""
     auth: Authenticator = request.app.state.auth
     secret = credentials.credentials if credentials is not None else None

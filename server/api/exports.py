@@ -19,11 +19,17 @@ from fastapi.responses import StreamingResponse
 
 from hippomap.errors import InputError
 from hippomap.inputs import Odometry
-from hippomap.session_export import (GROUNDTRUTH_TOPIC, IMAGE_TOPIC, ODOM_TOPIC, EncodedFrame, write_data_zip,
-                                     write_rosbag2_zip)
+from hippomap.session_export import (
+    GROUNDTRUTH_TOPIC,
+    IMAGE_TOPIC,
+    ODOM_TOPIC,
+    EncodedFrame,
+    write_data_zip,
+    write_rosbag2_zip,
+)
 
-from ..ingest import odometry_from_bytes
-from ..sessions import LiveSession
+from ..formats.ingest import odometry_from_bytes
+from ..runtime.sessions import LiveSession
 from . import deps
 
 router = APIRouter()  # included by the queries router: its operations are tagged "queries"

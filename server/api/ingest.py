@@ -7,9 +7,9 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Body, HTTPException, Query, Request
 from starlette.datastructures import UploadFile
 
-from ..ingest import Accepted, IngestError, check_odometry
-from ..schemas import IngestAck, OdometryBatch, OdometryReading
-from ..sessions import LiveSession, NotFound
+from ..formats.ingest import Accepted, IngestError, check_odometry
+from ..formats.schemas import IngestAck, OdometryBatch, OdometryReading
+from ..runtime.sessions import LiveSession, NotFound
 from . import deps
 from .docs import EXAMPLE_FRAME_URLS
 
@@ -105,7 +105,8 @@ async def post_frame(live: deps.WriteSession, request: Request,
             if t_value is None:
                 raise IngestError(422, "frame timestamp missing: pass ?t=<seconds>")
         else:
-            raise IngestError(415, f"unsupported content type {ctype!r}: send image/jpeg, image/png or multipart/form-data")
+            raise IngestError(415, f"unsupported content type {ctype!r}: "
+                                   "send image/jpeg, image/png or multipart/form-data")
         item = await live.validate_frame(data, t_value)
     except IngestError as exc:
         live.rejected[exc.status] += 1

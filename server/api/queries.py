@@ -10,9 +10,10 @@ from typing import Annotated, Any, Literal
 from fastapi import APIRouter, HTTPException, Path, Query, Request
 from fastapi.responses import PlainTextResponse, Response
 
-from .. import model, views
-from ..schemas import Event, LoopClosure, MapGraph, PlaceField, PlaceFieldInfo, RecognitionInfo
-from ..sessions import LiveSession
+from ..formats import views
+from ..formats.schemas import Event, LoopClosure, MapGraph, PlaceField, PlaceFieldInfo, RecognitionInfo
+from ..runtime import model
+from ..runtime.sessions import LiveSession
 from . import deps, exports
 
 router = APIRouter(prefix="/sessions/{session_id}", tags=["queries"])
@@ -102,7 +103,8 @@ async def get_loop_closures(live: deps.ReadSession, request: Request, since_id: 
     for r in rows:
         if r["id"] <= since_id or (status and r["status"] != status):
             continue
-        if (t_min is not None and (r["t"] is None or r["t"] < t_min)) or (t_max is not None and (r["t"] is None or r["t"] > t_max)):
+        if ((t_min is not None and (r["t"] is None or r["t"] < t_min))
+                or (t_max is not None and (r["t"] is None or r["t"] > t_max))):
             continue
         out.append({**r, "saccades": None if r["recognition"] is None else f"{base}{r['recognition']}"})
         if len(out) >= limit:

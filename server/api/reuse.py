@@ -2,7 +2,7 @@
 
 * ``POST /sessions/{id}/merge {"from": other}`` makes a new session holding ``other``'s run merged
   into ``id``'s map: a new run in a copy of ``id``'s map fed ``other``'s stored inputs (see
-  :meth:`server.sessions.SessionManager.merge`); the recognitions of ``id``'s key frames go through
+  :meth:`server.runtime.sessions.SessionManager.merge`); the recognitions of ``id``'s key frames go through
   the same loop-closure path as every other closure. Neither session changes.
 * ``GET /sessions/{id}/snapshot`` is the session's mapper state (``Mapper.to_bytes``): the saved
   map of ``hippomap run DATA --base-map FILE``.
@@ -19,9 +19,9 @@ from typing import Any
 from fastapi import APIRouter, HTTPException, Request, Response
 from pydantic import ConfigDict, Field
 
-from ..ingest import IngestError
-from ..schemas import SessionDetail, _In
-from ..sessions import Forbidden
+from ..formats.ingest import IngestError
+from ..formats.schemas import SessionDetail, _In
+from ..runtime.sessions import Forbidden
 from . import deps
 from .sessions import _info, _links
 

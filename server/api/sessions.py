@@ -7,10 +7,10 @@ from typing import Any
 
 from fastapi import APIRouter, HTTPException, Request, Response
 
-from ..ingest import IngestError
-from ..sessions import Forbidden, LiveSession, NotFound
-from ..store import SessionRecord
-from ..schemas import SessionCreate, SessionDetail, SessionInfo, Stats
+from ..formats.ingest import IngestError
+from ..formats.schemas import SessionCreate, SessionDetail, SessionInfo, Stats
+from ..runtime.sessions import Forbidden, LiveSession, NotFound
+from ..storage.store import SessionRecord
 from . import deps
 
 router = APIRouter(prefix="/sessions", tags=["sessions"])
@@ -29,7 +29,8 @@ def _links(request: Request, sid: str) -> dict[str, str]:
     base = str(request.base_url).rstrip("/") + f"/sessions/{sid}"
     return {
         "self": base, "stats": f"{base}/stats", "odometry": f"{base}/odometry", "frames": f"{base}/frames",
-        "stream": base.replace("http", "ws", 1) + "/stream", "map": f"{base}/map", "loop_closures": f"{base}/loop-closures",
+        "stream": base.replace("http", "ws", 1) + "/stream", "map": f"{base}/map",
+        "loop_closures": f"{base}/loop-closures",
         "place_field": f"{base}/place-field", "events": f"{base}/events",
         "viewer": str(request.base_url).rstrip("/") + f"/viewer/{sid}/",
     }

@@ -1,4 +1,4 @@
-"""The websocket stream (protocol in :mod:`server.protocol`): odometry and frames on one connection.
+"""The websocket stream (protocol in :mod:`server.formats.protocol`): odometry and frames on one connection.
 
 The receive loop validates each message and submits it; a sender task awaits each
 message's durability future *in message order* and only then sends its ack, so an ack
@@ -19,10 +19,17 @@ from starlette.websockets import WebSocketState
 
 from hippomap.errors import InputError
 
-from ..ingest import IngestError, parse_odometry_message
-from ..protocol import (CLOSE_ELSEWHERE, CLOSE_FORBIDDEN, CLOSE_NOT_FOUND, CLOSE_UNAUTHORIZED, MessageError,
-                        parse_text_message, unpack_frame)
-from ..sessions import Forbidden, LiveSession, NotFound, ServedElsewhere
+from ..formats.ingest import IngestError, parse_odometry_message
+from ..formats.protocol import (
+    CLOSE_ELSEWHERE,
+    CLOSE_FORBIDDEN,
+    CLOSE_NOT_FOUND,
+    CLOSE_UNAUTHORIZED,
+    MessageError,
+    parse_text_message,
+    unpack_frame,
+)
+from ..runtime.sessions import Forbidden, LiveSession, NotFound, ServedElsewhere
 
 router = APIRouter(tags=["ingest"])
 log = logging.getLogger("hippomap.server")

@@ -9,8 +9,8 @@ from typing import Annotated, Any
 
 from fastapi import APIRouter, HTTPException, Path, Request, Response
 
-from ..schemas import TokenCreate, TokenCreated, TokenInfo
-from ..sessions import NotFound
+from ..formats.schemas import TokenCreate, TokenCreated, TokenInfo
+from ..runtime.sessions import NotFound
 from . import deps
 
 router = APIRouter(prefix="/tokens", tags=["tokens"])

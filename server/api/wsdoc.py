@@ -6,10 +6,10 @@ FastAPI leaves websocket routes out of ``/openapi.json``. This module adds them 
   ``/docs`` and ``/redoc`` show the stream's protocol to a person;
 * :func:`add_websocket_docs` — an ``x-websockets`` extension at the top of the document, keyed by
   path like ``paths``, with each message's JSON schema (the models ``Ws*`` of
-  :mod:`server.schemas`, added to ``components/schemas``), the binary frame header, the close codes
+  :mod:`server.formats.schemas`, added to ``components/schemas``), the binary frame header, the close codes
   and this server's message limits, so that a program can read the protocol too.
 
-Both are built from the same constants the stream uses (:mod:`server.protocol`), so they cannot
+Both are built from the same constants the stream uses (:mod:`server.formats.protocol`), so they cannot
 drift from it silently.
 """
 
@@ -20,8 +20,15 @@ from typing import Any
 from pydantic import BaseModel
 from pydantic.json_schema import models_json_schema
 
-from .. import schemas
-from ..protocol import CLOSE_ELSEWHERE, CLOSE_FORBIDDEN, CLOSE_NOT_FOUND, CLOSE_UNAUTHORIZED, FRAME_HEADER, FRAME_MAGIC
+from ..formats import schemas
+from ..formats.protocol import (
+    CLOSE_ELSEWHERE,
+    CLOSE_FORBIDDEN,
+    CLOSE_NOT_FOUND,
+    CLOSE_UNAUTHORIZED,
+    FRAME_HEADER,
+    FRAME_MAGIC,
+)
 from ..settings import ServerSettings
 
 STREAM_PATH = "/sessions/{session_id}/stream"
@@ -67,6 +74,9 @@ def websocket_description() -> str:
     client = "\n".join(f"| text | `{_name(m)}` | {_what(m)} |" for m in CLIENT_MESSAGES)
     server = "\n".join(f"| `{_type(m)}` | `{_name(m)}` | {_what(m)} |" for m in SERVER_MESSAGES)
     closes = "\n".join(f"| {code} | {why} |" for code, why in CLOSE_CODES.items())
+    binary = (f"| binary | — | a camera frame: the {FRAME_HEADER.size}-byte header `{FRAME_HEADER.format}` "
+              f"(magic `{FRAME_MAGIC.decode()}`, uint32 message id, float64 timestamp; little-endian) "
+              "followed by the JPEG or PNG bytes |")
     return f"""
 ## Websockets
 
@@ -83,7 +93,7 @@ wait for an ack before sending the next message.
 | client → server | schema | what |
 | --- | --- | --- |
 {client}
-| binary | — | a camera frame: the {FRAME_HEADER.size}-byte header `{FRAME_HEADER.format}` (magic `{FRAME_MAGIC.decode()}`, uint32 message id, float64 timestamp; little-endian) followed by the JPEG or PNG bytes |
+{binary}
 
 | server → client `type` | schema | what |
 | --- | --- | --- |

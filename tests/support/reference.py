@@ -18,7 +18,7 @@ def offline_reference(items: tuple, overrides: dict[str, Any] | None = None) -> 
     import json
 
     from hippomap.inputs import Odometry as _Odo
-    from server import model
+    from server.runtime import model
 
     m = model.new_mapper(model.effective_config(overrides))
     for value in decoded(items):

@@ -1,0 +1,116 @@
+"""Loop closures in 3D: accepted ones highlighted, rejected ones on demand, the selected one marked.
+
+A loop decision joins the node that was current when the hypothesis was made
+(``LoopDecision.from_node``) and the recognised node (``hypothesis.node``); it is drawn between
+their map poses, above the map so it stays visible. Both are thin native lines (one pixel, in the
+layer's colour) so that ten laps of closures do not bury the map, and an accepted closure's two
+ends are marked by dots no larger than a node (a closed loop pulls its nodes together, so its
+segment may be very short). Accepted closures are shown, rejected ones are hidden by default in
+each browser (:mod:`web.panels.layers`), pending ones are not drawn. The loop chosen in the panel's
+list gets a thick marker and labels.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from hippomap.cognitive_map import LoopDecision
+
+from ..settings import ViewerSettings
+from ..snapshot import MapSnapshot
+from .chunks import ChunkedPoints, ChunkedSegments, ChunkUpdate
+from .placement import decided_while_lost
+
+LOOP_Z = 0.08
+
+
+def loop_segments(decisions: tuple[LoopDecision, ...] | list[LoopDecision], poses: np.ndarray,
+                  status: str, skip_lost: bool = False) -> np.ndarray:
+    """(K, 2, 3) segments of the decisions with ``status``, in decision order; ``skip_lost`` leaves
+    out the accepted ones made while the robot had no pose on the map (a localising run in a saved
+    map: their ``from_node`` is not a node the robot was near, see :mod:`web.scene.placement`)."""
+    n = len(poses)
+    pairs = np.array([(d.from_node, d.hypothesis.node) for d in decisions
+                      if d.status == status and not (skip_lost and decided_while_lost(d))],
+                     dtype=np.int64).reshape(-1, 2)
+    pairs = pairs[(pairs >= 0).all(axis=1) & (pairs < n).all(axis=1)]
+    seg = np.empty((len(pairs), 2, 3), np.float32)
+    seg[:, :, :2] = poses[pairs][:, :, :2]
+    seg[:, :, 2] = LOOP_Z
+    return seg
+
+
+@dataclass(frozen=True)
+class LoopUpdate:
+    accepted: ChunkUpdate
+    rejected: ChunkUpdate
+
+
+class LoopLayer:
+    """Scene nodes ``/loops/accepted/<k>`` (with ``/loops/accepted/ends/<k>``), ``/loops/rejected/<k>``
+    and ``/loops/selected``."""
+
+    def __init__(self, scene: Any, settings: ViewerSettings) -> None:
+        s = settings
+        self.scene, self.settings = scene, s
+        self.accepted = ChunkedSegments(scene, "/loops/accepted", s.chunk_size, s.move_tolerance_m,
+                                        s.loop_thickness_m, style="thin", color=s.color_loop_accepted,
+                                        tail_size=s.tail_size)
+        # a closed loop pulls its two nodes together, so its segment is short: mark its ends too,
+        # with dots smaller than a node (the node stays visible around its loop mark)
+        self.accepted_ends = ChunkedPoints(scene, "/loops/accepted/ends", s.chunk_size, s.move_tolerance_m,
+                                           0.6 * s.node_size_m, tail_size=s.tail_size)
+        self.rejected = ChunkedSegments(scene, "/loops/rejected", s.chunk_size, s.move_tolerance_m,
+                                        s.loop_thickness_m, style="thin", color=s.color_loop_rejected,
+                                        tail_size=s.tail_size)
+        self._selected: list[Any] = []
+        self._selected_key: tuple | None = None
+
+    def update(self, snap: MapSnapshot, skip_lost: bool = False) -> LoopUpdate:
+        """Push the decisions of ``snap`` (``skip_lost``: see :func:`loop_segments`)."""
+        s = self.settings
+        acc = loop_segments(snap.decisions, snap.node_poses, "accepted", skip_lost)
+        rej = loop_segments(snap.decisions, snap.node_poses, "rejected")
+        a = self.accepted.update(acc, np.broadcast_to(np.array(s.color_loop_accepted, np.uint8), (len(acc), 3)))
+        ends = acc.reshape(-1, 3)
+        self.accepted_ends.update(ends, np.broadcast_to(np.array(s.color_loop_accepted, np.uint8), (len(ends), 3)))
+        r = self.rejected.update(rej, np.broadcast_to(np.array(s.color_loop_rejected, np.uint8), (len(rej), 3)))
+        return LoopUpdate(a, r)
+
+    def select(self, decision: LoopDecision | None, poses: np.ndarray) -> None:
+        """Mark one loop closure (or none) with a thick segment and its two node labels."""
+        n = len(poses)
+        key = None
+        if decision is not None and 0 <= decision.from_node < n and 0 <= decision.hypothesis.node < n:
+            a, b = poses[decision.from_node, :2], poses[decision.hypothesis.node, :2]
+            ab: np.ndarray = np.r_[a, b]
+            key = (decision.id, decision.status, *np.round(ab, 2))
+        if key == self._selected_key:
+            return
+        for h in self._selected:
+            h.remove()
+        self._selected = []
+        self._selected_key = key
+        if key is None:
+            return
+        assert decision is not None  # key is set only for a decision
+        s = self.settings
+        color = s.color_loop_accepted if decision.status == "accepted" else s.color_loop_rejected
+        seg = np.array([[[a[0], a[1], LOOP_Z + 0.02], [b[0], b[1], LOOP_Z + 0.02]]], np.float32)
+        self._selected = [
+            self.scene.add_line_segments("/loops/selected/segment", seg, np.array(color, np.uint8),
+                                         thickness=3 * s.loop_thickness_m),
+            self.scene.add_label("/loops/selected/now", f"loop {decision.id}: node {decision.from_node}",
+                                 position=(float(a[0]), float(a[1]), 0.3)),
+            self.scene.add_label("/loops/selected/then", f"node {decision.hypothesis.node}",
+                                 position=(float(b[0]), float(b[1]), 0.3)),
+        ]
+
+    def set_visible(self, accepted: bool | None = None, rejected: bool | None = None) -> None:
+        if accepted is not None:
+            self.accepted.visible = accepted
+        if rejected is not None:
+            self.rejected.visible = rejected
