@@ -45,14 +45,14 @@ from typing import Any
 import cv2
 import numpy as np
 
-from .cli import add_progress_argument, progress_enabled
-from .config import HippomapConfig, VisualConfig
-from .errors import HippomapError, InputError
-from .visual_memory import VisualMemory, draw_frame_features, draw_trace
+from ..cli import add_progress_argument, progress_enabled
+from ..config import HippomapConfig, VisualConfig
+from ..errors import HippomapError, InputError
+from ..visual_memory import VisualMemory, draw_frame_features, draw_trace
 
 __all__ = ["VPRDataset", "load_vpr_dataset", "evaluate_vpr", "add_parser", "load_baseline_module"]
 
-_REPO_ROOT = Path(__file__).resolve().parents[1]
+_REPO_ROOT = Path(__file__).resolve().parents[2]
 BASELINE_PATH = _REPO_ROOT / "bench" / "ratslam_baseline.py"
 
 

@@ -22,9 +22,9 @@ from typing import cast
 
 import numpy as np
 
-from .errors import InputError
-from .grid_cells import GridCells
-from .place_cells import IterationRecord, IterationStep
+from ..errors import InputError
+from ..grid_cells import GridCells
+from ..place_cells import IterationRecord, IterationStep
 
 #: colours of the binarised panels: 0 (dark) and 1 (bright), shown by each row's colour scale
 _OFF, _ON = "#141428", "#ffd23c"

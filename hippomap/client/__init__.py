@@ -31,9 +31,9 @@ from typing import Any, Iterable
 
 import numpy as np
 
-from .errors import HippomapError
-from .inputs import Odometry
-from .protocol import pack_frame  # the frame format the server unpacks (one definition)
+from ..errors import HippomapError
+from ..inputs import Odometry
+from ..protocol import pack_frame  # the frame format the server unpacks (one definition)
 
 #: the client's public names: ``from hippomap.client import Client, Odometry`` is all a robot needs
 __all__ = ["AsyncStream", "Client", "Odometry", "ServerError", "Stream", "default_token", "encode_image"]
@@ -178,7 +178,8 @@ class Client:
         return self._json("POST", f"/sessions/{session_id}/odometry",
                           {"readings": [odometry_reading(r) for r in readings]})
 
-    def send_frame(self, session_id: str, t: float, image: bytes | np.ndarray, multipart: bool = False) -> dict[str, Any]:
+    def send_frame(self, session_id: str, t: float, image: bytes | np.ndarray,
+                   multipart: bool = False) -> dict[str, Any]:
         """Store one frame (JPEG/PNG bytes, or an image array encoded here)."""
         data = encode_image(image)
         if multipart:
@@ -232,7 +233,8 @@ class Client:
         return content
 
     def place_fields(self, session_id: str, since_step: int = -1, limit: int = 1000) -> list[dict[str, Any]]:
-        return self._json("GET", f"/sessions/{session_id}/place-fields", params={"since_step": since_step, "limit": limit})
+        return self._json("GET", f"/sessions/{session_id}/place-fields",
+                          params={"since_step": since_step, "limit": limit})
 
     def events(self, session_id: str, since_id: int = -1, types: list[str] | None = None,
                limit: int = 1000) -> list[dict[str, Any]]:
@@ -279,7 +281,7 @@ class Client:
 
     def export_rosbag2_zip(self, session_id: str, target: Any) -> Any:
         """Save the session's recorded inputs as a zipped ROS 2 bag (topics in
-        :mod:`hippomap.session_export`) to ``target``; returns its path."""
+        :mod:`hippomap.io.session_export`) to ``target``; returns its path."""
         return self._download(f"/sessions/{session_id}/export/rosbag2.zip", target)
 
     # -------------------------------------------------------------- tokens

@@ -12,7 +12,7 @@ import re
 import sys
 from importlib.metadata import PackageNotFoundError, entry_points, version
 
-from .errors import HippomapError
+from ..errors import HippomapError
 
 GROUP = "hippomap.commands"
 
@@ -89,7 +89,9 @@ def clean_help(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog="hippomap", description="hippomap: bio-inspired SLAM after the rat hippocampus (grid cells, place cells, visual recognition memory, cognitive map).")
+        prog="hippomap",
+        description="hippomap: bio-inspired SLAM after the rat hippocampus (grid cells, place cells, "
+                    "visual recognition memory, cognitive map).")
     parser.add_argument("--version", action="version", version=f"hippomap {package_version()}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for ep in sorted(entry_points(group=GROUP), key=lambda e: e.name):

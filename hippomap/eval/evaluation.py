@@ -6,8 +6,8 @@ from typing import Any
 
 import numpy as np
 
-from .errors import InputError
-from .exports import to_evo
+from ..errors import InputError
+from ..io.exports import to_evo
 
 #: a loop closure is true when ground truth puts its two places closer than this [ours]
 LOOP_TRUTH_DISTANCE_M = 2.0
