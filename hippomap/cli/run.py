@@ -21,6 +21,7 @@ import numpy as np
 from ..config import HippomapConfig
 from ..errors import InputError
 from ..eval.evaluation import LOOP_TRUTH_DISTANCE_M, groundtruth_at, trajectory_metrics
+from ..extras import check
 from ..geometry import between
 from ..inputs import Odometry
 from ..io.datasets import SensorDataset, read_folder_dataset, read_tum_rgbd
@@ -177,6 +178,7 @@ def base_mapper(snapshot: str | Path, config_file: str | None = None) -> Mapper:
 
 
 def _cmd(args: argparse.Namespace) -> int:
+    check("eval", "hippomap run (TUM files, metrics, map plot)")
     dataset = open_dataset(args.data_dir, args.image_topic, args.odom_topic, args.groundtruth_topic)
     if args.base_map:
         base = base_mapper(args.base_map, args.config)

@@ -21,6 +21,7 @@ from ..cognitive_map import CognitiveMap, LoopHypothesis
 from ..config import HippomapConfig
 from ..errors import InputError
 from ..eval.evaluation import LOOP_TRUTH_DISTANCE_M, groundtruth_at, trajectory_metrics
+from ..extras import check
 from ..geometry import between, compose, integrate
 from ..io.datasets import LoopEdge, OdometryDataset, load_odometry_dataset
 from ..io.exports import export_map, write_json
@@ -201,6 +202,7 @@ def write_outputs(run: OdometryRun, dataset: OdometryDataset, out_dir: str | Pat
 
 
 def _cmd(args: argparse.Namespace) -> int:
+    check("eval", "hippomap run-odometry (TUM files, metrics, map plot)")
     dataset = load_odometry_dataset(args.data_dir, args.loops)
     run = run_odometry(dataset, HippomapConfig.from_file(args.config), progress=progress_enabled(args))
     metrics = write_outputs(run, dataset, args.out)

@@ -32,6 +32,7 @@ from typing import Any, Iterable
 import numpy as np
 
 from ..errors import HippomapError
+from ..extras import requires
 from ..inputs import Odometry
 from ..protocol import pack_frame  # the frame format the server unpacks (one definition)
 
@@ -106,7 +107,8 @@ class Client:
     """Synchronous HTTP client; :meth:`stream` opens a websocket stream."""
 
     def __init__(self, url: str, token: str | None = None, timeout: float = 30.0) -> None:
-        import httpx
+        with requires("client", "the HTTP client"):
+            import httpx
 
         self.url = url.rstrip("/")
         self.token = token or default_token()
@@ -314,7 +316,8 @@ class AsyncStream:
         self._closed_error: BaseException | None = None
 
     async def connect(self) -> "AsyncStream":
-        from websockets.asyncio.client import connect
+        with requires("client", "the websocket stream"):
+            from websockets.asyncio.client import connect
 
         headers = {"Authorization": f"Bearer {self.token}"} if self.token else {}
         self._ws = await connect(self.url, additional_headers=headers, max_size=None, compression=None)

@@ -17,6 +17,7 @@ from typing import Any, cast
 import numpy as np
 
 from ..errors import InputError
+from ..extras import requires
 from ..geometry import between
 from ..inputs import Frame, Odometry
 from .datasets import SensorDataset, _check_increasing
@@ -61,8 +62,9 @@ def read_rosbag(path: str | Path, image_topic: str, odometry_topic: str, max_fra
     ``groundtruth_topic`` (optional: ``geometry_msgs/PoseStamped`` or ``nav_msgs/Odometry``,
     e.g. what :func:`hippomap.io.session_export.write_rosbag2` writes) becomes the data set's
     ground truth."""
-    from rosbags.highlevel import AnyReader
-    from rosbags.typesys import Stores, get_typestore
+    with requires("rosbag", "reading a ROS bag"):
+        from rosbags.highlevel import AnyReader
+        from rosbags.typesys import Stores, get_typestore
 
     path = Path(path)
     if not path.exists():

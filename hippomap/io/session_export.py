@@ -37,6 +37,7 @@ from typing import IO, Any
 import numpy as np
 
 from ..errors import InputError
+from ..extras import requires
 from ..geometry import compose
 from ..inputs import Odometry
 
@@ -193,7 +194,8 @@ class _BagMessages:
     """Builds the messages of the bags' three kinds from rosbags' ROS 2 Humble types."""
 
     def __init__(self) -> None:
-        from rosbags.typesys import Stores, get_typestore
+        with requires("rosbag", "writing a ROS 2 bag"):
+            from rosbags.typesys import Stores, get_typestore
 
         self.ts = get_typestore(Stores.ROS2_HUMBLE)
         self.T = self.ts.types
@@ -238,7 +240,8 @@ def write_rosbag2(path: str | Path, inputs: Iterable[Input], image_topic: str = 
     topic carries poses: the origin :data:`ORIGIN_LEAD_S` before the first reading, then the
     readings' increments (:func:`increments`) chained, so that the bag reader's increments
     between consecutive messages are the readings again. Returns the message counts."""
-    from rosbags.rosbag2 import Writer
+    with requires("rosbag", "writing a ROS 2 bag"):
+        from rosbags.rosbag2 import Writer
 
     path = Path(path)
     if path.exists():
