@@ -181,3 +181,22 @@ def test_check_finds_a_missing_package_without_importing_it(tmp_path):
     """, tmp_path)
     assert out == {"raised": "hippomap run BAG needs rosbags, which is not installed: pip install 'hippomap[rosbag]'",
                    "evo_imported": False}
+
+
+def test_the_import_contracts_cover_every_model_module():
+    """The two contracts that keep the model apart from the sub-packages and from the extras' packages
+    (``[tool.importlinter]``) list the model's modules by name: every top-level module of ``hippomap``
+    but the package's entry files, so a new model module cannot be left out of them."""
+    import tomllib
+
+    config = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["importlinter"]
+    model = {f"hippomap.{p.stem}" for p in (ROOT / "hippomap").glob("*.py") if p.stem not in ("__init__", "__main__")}
+    subpackages = {f"hippomap.{p.parent.name}" for p in (ROOT / "hippomap").glob("*/__init__.py")}
+    assert subpackages == {"hippomap.cli", "hippomap.io", "hippomap.eval", "hippomap.viz", "hippomap.client",
+                           "hippomap.sim"}
+    contracts = {c["name"]: c for c in config["contracts"] if c["type"] == "forbidden"}
+    around = [c for c in contracts.values() if set(c["forbidden_modules"]) == subpackages]
+    extras = [c for c in contracts.values() if set(c["forbidden_modules"]) == set(EXTRA_MODULES)]
+    assert len(around) == 1 and len(extras) == 1, sorted(contracts)
+    for contract in around + extras:
+        assert set(contract["source_modules"]) == model, contract["name"]
