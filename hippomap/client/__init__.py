@@ -14,8 +14,9 @@
 The token defaults to ``$HIPPOMAP_TOKEN``, then to the admin token a local ``hippomap serve``
 saved in ``./hippomap-data/admin.token``. An acknowledgement means the input is stored
 durably on the server. A rejected input raises
-:class:`ServerError` with the server's status and message. The web libraries are imported
-lazily, so ``import hippomap`` never pulls them in.
+:class:`ServerError` with the server's status and message. The web libraries (httpx,
+websockets: ``pip install 'hippomap[client]'``) are imported lazily, so ``import hippomap`` never
+pulls them in, and a missing one raises :class:`~hippomap.extras.MissingExtraError` naming the extra.
 """
 
 from __future__ import annotations
