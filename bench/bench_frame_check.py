@@ -17,9 +17,9 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from hippomap import visual_memory as vm  # noqa: E402
+from hippomap.cli.run import open_dataset  # noqa: E402
 from hippomap.inputs import Odometry  # noqa: E402
 from hippomap.mapper import Mapper  # noqa: E402
-from hippomap.run import open_dataset  # noqa: E402
 
 
 def main() -> int:

@@ -24,7 +24,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from hippomap import sim  # noqa: E402
 from hippomap.config import HippomapConfig  # noqa: E402
-from hippomap.evaluation import trajectory_metrics  # noqa: E402
+from hippomap.eval.evaluation import trajectory_metrics  # noqa: E402
 from hippomap.inputs import Frame, Odometry, decode_jpeg  # noqa: E402
 from hippomap.mapper import Mapper  # noqa: E402
 

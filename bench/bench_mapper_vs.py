@@ -41,9 +41,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import hippomap  # noqa: E402
+import hippomap.cli.run  # noqa: E402
 import hippomap.inputs  # noqa: E402
 import hippomap.mapper  # noqa: E402
-import hippomap.run  # noqa: E402
 
 
 def load_revision(rev: str) -> ModuleType:
@@ -173,7 +173,7 @@ def main() -> int:
     ap.add_argument("--limit", type=int, default=0, help="use only the first N frames (0 = all)")
     args = ap.parse_args()
     old_pkg = load_revision(args.against)
-    ds = hippomap.run.open_dataset(args.data)
+    ds = hippomap.cli.run.open_dataset(args.data)
     events: list[tuple[str, float, Any]] = []
     n_frames = 0
     for it in ds.events():

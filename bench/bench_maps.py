@@ -5,13 +5,13 @@ Part 1, simulated camera runs. For every world x seed x image size x wall textur
 --sigma-omega 0.01 --sigma-v 0.02``; rendered folders are cached, keyed by their
 arguments and the simulator's source). On the SAME frames and odometry:
 
-- hippomap: :func:`hippomap.run.run_dataset` + :func:`hippomap.run.write_run` (what
+- hippomap: :func:`hippomap.cli.run.run_dataset` + :func:`hippomap.cli.run.write_run` (what
   ``hippomap run`` does) with the default config, or ``--config FILE``;
 - OpenRatSLAM (built once from the peer's source into the bench cache) with its stock
   St Lucia config for the image size, and over a sweep of ``vt_match_threshold``; the
   stock row and the best-threshold row (lowest ATE) are reported.
 
-Both trajectories are scored by :func:`hippomap.evaluation.trajectory_metrics` against
+Both trajectories are scored by :func:`hippomap.eval.evaluation.trajectory_metrics` against
 the simulator's ground truth (ATE rmse after SE(2)/SE(3) alignment without scale; RPE
 over 10 m). Loop closures: hippomap's accepted loop decisions and, of those, the ones it
 still *uses* (robust weight >= its ``USED_WEIGHT``); OpenRatSLAM's experience-map links
@@ -67,12 +67,12 @@ sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import peers  # noqa: E402
+from hippomap.cli.run import open_dataset, run_dataset, write_run  # noqa: E402
 from hippomap.config import HippomapConfig  # noqa: E402
-from hippomap.evaluation import groundtruth_at, trajectory_metrics  # noqa: E402
+from hippomap.eval.evaluation import groundtruth_at, trajectory_metrics  # noqa: E402
 from hippomap.geometry import between, wrap_angle  # noqa: E402
 from hippomap.inputs import Frame, Odometry  # noqa: E402
 from hippomap.mapper import Mapper  # noqa: E402
-from hippomap.run import open_dataset, run_dataset, write_run  # noqa: E402
 
 #: odometry noise of every simulated run (the issue's reference setting)
 NOISE = {"omega_bias": 0.01, "sigma_omega": 0.01, "sigma_v": 0.02}
@@ -369,7 +369,7 @@ def online_reference(case: dict[str, Any], g2o_file: Path, dataset: Any,
 
 
 def bicocca_case(case: dict[str, Any]) -> list[dict[str, Any]]:
-    from hippomap.datasets import load_odometry_dataset
+    from hippomap.io.datasets import load_odometry_dataset
 
     data = Path(case["shared"]) / "data" / "bicocca25b"
     fname = case["file"]

@@ -118,7 +118,7 @@ ABLATION = {
 
 
 def ablation(data_dirs: list[str], seeds: int) -> int:
-    from hippomap.vpr_eval import _read, _run_ours, load_vpr_dataset
+    from hippomap.eval.vpr_eval import _read, _run_ours, load_vpr_dataset
 
     sets = []
     for d in data_dirs:

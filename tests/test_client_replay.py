@@ -15,9 +15,9 @@ import httpx
 import pytest
 
 from hippomap.client import ServerError
-from hippomap.datasets import read_folder_dataset
+from hippomap.client.replay import add_parser
 from hippomap.errors import InputError
-from hippomap.replay import add_parser
+from hippomap.io.datasets import read_folder_dataset
 from tests.support.reference import offline_reference, session_state
 from tests.support.synthetic import synthetic_inputs
 

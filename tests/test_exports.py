@@ -16,17 +16,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from hippomap.cli.run import open_dataset, run_dataset, write_run
 from hippomap.cognitive_map import CognitiveMap, LoopHypothesis
 from hippomap.config import HippomapConfig, MapConfig
-from hippomap.datasets import UNIT_INFORMATION, read_folder_dataset, read_g2o
 from hippomap.errors import InputError
-from hippomap.exports import link_information, read_tum, write_g2o
 from hippomap.geometry import compose, integrate, wrap_angle
 from hippomap.inputs import Odometry, decode_jpeg
-from hippomap.mapper import Mapper
-from hippomap.rosbag import read_rosbag
-from hippomap.run import open_dataset, run_dataset, write_run
-from hippomap.session_export import (
+from hippomap.io.datasets import UNIT_INFORMATION, read_folder_dataset, read_g2o
+from hippomap.io.exports import link_information, read_tum, write_g2o
+from hippomap.io.rosbag import read_rosbag
+from hippomap.io.session_export import (
     GROUNDTRUTH_TOPIC,
     IMAGE_TOPIC,
     ODOM_TOPIC,
@@ -35,6 +34,7 @@ from hippomap.session_export import (
     write_data_dir,
     write_rosbag2,
 )
+from hippomap.mapper import Mapper
 from tests.test_cognitive_map import drive, square_increments, true_loops
 
 ROOT = Path(__file__).resolve().parents[1]

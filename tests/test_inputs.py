@@ -8,10 +8,10 @@ import cv2
 import numpy as np
 import pytest
 
-from hippomap.datasets import read_folder_dataset, read_tum_rgbd
 from hippomap.errors import InputError
 from hippomap.geometry import integrate
 from hippomap.inputs import Frame, Odometry, TimeOrder, decode_jpeg
+from hippomap.io.datasets import read_folder_dataset, read_tum_rgbd
 
 
 @pytest.mark.parametrize(

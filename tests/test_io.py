@@ -7,11 +7,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from hippomap.datasets import load_odometry_dataset, read_g2o, read_groundtruth_csv, read_timestamps
 from hippomap.errors import InputError
-from hippomap.evaluation import trajectory_metrics
-from hippomap.exports import graph_dict, link_transforms, plot_map, read_tum, write_g2o, write_tum
+from hippomap.eval.evaluation import trajectory_metrics
 from hippomap.geometry import between, compose, integrate, wrap_angle
+from hippomap.io.datasets import load_odometry_dataset, read_g2o, read_groundtruth_csv, read_timestamps
+from hippomap.io.exports import graph_dict, link_transforms, plot_map, read_tum, write_g2o, write_tum
 
 poses_st = st.lists(
     st.tuples(st.floats(-50, 50), st.floats(-50, 50), st.floats(-3.1, 3.1)), min_size=1, max_size=20

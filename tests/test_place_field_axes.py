@@ -1,6 +1,6 @@
 """The place-field figure's axes are in metres of the coding area, not matrix cells.
 
-:func:`hippomap.place_field_figure.place_field_figure` draws with matplotlib into a figure it
+:func:`hippomap.viz.place_field_figure.place_field_figure` draws with matplotlib into a figure it
 does not return; the figures it creates are collected (matplotlib's own ``Figure.__init__``,
 wrapped, still runs) and their image panels read: each is labelled ``x (m)`` / ``y (m)`` and spans
 the requested view in metres (10 cm around the field, or the whole 40 cm area; the close-up of the
@@ -14,7 +14,7 @@ from matplotlib.figure import Figure
 
 from hippomap.config import SpatialConfig
 from hippomap.place_cells import SpatialPathway
-from hippomap.place_field_figure import place_field_figure
+from hippomap.viz.place_field_figure import place_field_figure
 
 
 @pytest.fixture()

@@ -18,7 +18,7 @@ from hippomap.place_cells import (
     record_iteration,
     record_stored_field,
 )
-from hippomap.place_field_figure import place_field_figure, place_field_png
+from hippomap.viz.place_field_figure import place_field_figure, place_field_png
 
 # a small coding area (121 x 121) keeps the tables quick to build; the algebra is the same
 SMALL = dict(area_size_m=0.06, resolution_m=0.0005, n_modules=4, cells_per_module=3)

@@ -11,7 +11,7 @@ from rosbags.typesys import Stores, get_typestore
 
 from hippomap.errors import InputError
 from hippomap.geometry import integrate
-from hippomap.rosbag import read_rosbag
+from hippomap.io.rosbag import read_rosbag
 
 TS = get_typestore(Stores.ROS2_HUMBLE)
 

@@ -14,10 +14,10 @@ import numpy as np
 import pytest
 
 from hippomap.cli import main
-from hippomap.datasets import load_odometry_dataset
-from hippomap.exports import read_tum
+from hippomap.cli.run_odometry import run_odometry
 from hippomap.geometry import between, integrate
-from hippomap.run_odometry import run_odometry
+from hippomap.io.datasets import load_odometry_dataset
+from hippomap.io.exports import read_tum
 
 
 def _rectangle_increments(laps: int, v: float = 0.5, rate: float = 5.0) -> np.ndarray:

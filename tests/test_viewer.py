@@ -664,7 +664,7 @@ def test_ground_truth_travels_with_odometry_and_never_reaches_the_mapper():
 
 
 def test_replay_interpolates_a_data_sets_ground_truth_for_each_reading():
-    from hippomap.replay import ground_truth_at
+    from hippomap.client.replay import ground_truth_at
 
     assert ground_truth_at(None) is None
     t = np.array([0.0, 1.0, 2.0])

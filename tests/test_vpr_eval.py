@@ -10,9 +10,9 @@ import cv2
 import numpy as np
 import pytest
 
-from hippomap import vpr_eval
 from hippomap.errors import HippomapError, InputError
-from hippomap.vpr_eval import _pr_points, add_parser, evaluate_vpr, load_vpr_dataset
+from hippomap.eval import vpr_eval
+from hippomap.eval.vpr_eval import _pr_points, add_parser, evaluate_vpr, load_vpr_dataset
 from tests.test_visual_memory import perturb, scene  # the same synthetic scenes
 
 

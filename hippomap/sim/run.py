@@ -33,7 +33,7 @@ from .world import World
 class SimRun:
     """A simulated run. ``times`` (N,), ``groundtruth`` (N, 3), ``odometry`` (N, 3) rows
     ``t, v, omega`` (causal, see module doc), ``increments`` (N-1, 3) relative poses
-    i -> i+1 in the frame of i (as ``hippomap.datasets.G2OGraph.odometry``), and camera
+    i -> i+1 in the frame of i (as ``hippomap.io.datasets.G2OGraph.odometry``), and camera
     frames at the odometry steps ``frame_steps``, rendered only when asked for."""
 
     world: World

@@ -7,9 +7,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..datasets import read_g2o, read_groundtruth_csv, read_timestamps
 from ..errors import InputError
 from ..geometry import wrap_angle
+from ..io.datasets import read_g2o, read_groundtruth_csv, read_timestamps
 from .motion import RoutePlan, Trajectory
 from .params import TextureParams
 from .world import World, walls_around_path

@@ -1,7 +1,7 @@
 """Exports of a session's recorded inputs: ground truth as TUM, the inputs as a data folder or a
 ROS 2 bag (zipped), so a run recorded by the service can be re-run offline with ``hippomap run``.
 
-The writers live in the model package (:mod:`hippomap.session_export`); the routes here read
+The writers live in the model package (:mod:`hippomap.io.session_export`); the routes here read
 the stored inputs page by page (up to the last durable one when the export starts), write the
 archive to an anonymous temporary file in a worker thread and stream it from there.
 """
@@ -19,7 +19,7 @@ from fastapi.responses import StreamingResponse
 
 from hippomap.errors import InputError
 from hippomap.inputs import Odometry
-from hippomap.session_export import (
+from hippomap.io.session_export import (
     GROUNDTRUTH_TOPIC,
     IMAGE_TOPIC,
     ODOM_TOPIC,

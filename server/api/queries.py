@@ -61,7 +61,7 @@ async def get_map_graphml(live: deps.ReadSession) -> Response:
 
 
 def _g2o_arrays(m: Any) -> dict[str, Any]:
-    from hippomap.exports import link_information
+    from hippomap.io.exports import link_information
 
     return {**model.graph_arrays(m), "information": link_information(m.cmap)}
 

@@ -35,9 +35,9 @@ def graphml(arrays: dict[str, np.ndarray]) -> str:
 
 
 def g2o(arrays: dict[str, np.ndarray]) -> str:
-    """The map as g2o VERTEX_SE2/EDGE_SE2 lines (``hippomap.exports.write_g2o``), each edge with
-    ``arrays["information"]`` (M, 3) when given (``hippomap.exports.link_information``), else unit."""
-    from hippomap.exports import write_g2o
+    """The map as g2o VERTEX_SE2/EDGE_SE2 lines (``hippomap.io.exports.write_g2o``), each edge with
+    ``arrays["information"]`` (M, 3) when given (``hippomap.io.exports.link_information``), else unit."""
+    from hippomap.io.exports import write_g2o
 
     info = arrays.get("information")
     with tempfile.TemporaryDirectory() as tmp:
@@ -47,8 +47,8 @@ def g2o(arrays: dict[str, np.ndarray]) -> str:
 
 
 def tum(times: np.ndarray, poses: np.ndarray) -> str:
-    """A trajectory as a TUM file (``hippomap.exports.write_tum``, evo's writer)."""
-    from hippomap.exports import write_tum
+    """A trajectory as a TUM file (``hippomap.io.exports.write_tum``, evo's writer)."""
+    from hippomap.io.exports import write_tum
 
     if len(times) == 0:
         return ""
@@ -71,13 +71,13 @@ def place_field_npy(rec: Any) -> bytes:
 
 def place_field_png(rec: Any, spatial: Any = None) -> bytes:
     """The place cells' iteration that formed the field, drawn like the paper's Fig. 8
-    (:mod:`hippomap.place_field_figure`), given the session's ``SpatialConfig``; without it, the
+    (:mod:`hippomap.viz.place_field_figure`), given the session's ``SpatialConfig``; without it, the
     position matrix alone (white = field, y up like the map)."""
     meta, idx = model.place_field_from_blob(rec.data)
     if spatial is not None:
         from hippomap.grid_cells import GridCells
         from hippomap.place_cells import record_stored_field
-        from hippomap.place_field_figure import place_field_png as figure_png
+        from hippomap.viz.place_field_figure import place_field_png as figure_png
 
         record = record_stored_field(GridCells(spatial).tables, spatial, idx)
         x, y, _ = meta.get("place_code", (0.0, 0.0, 0.0))

@@ -71,8 +71,8 @@ def stats(m: MapperPort) -> dict[str, Any]:
 
 # ------------------------------------------------------------------ the map
 def graph(m: Any) -> dict[str, Any]:
-    """Nodes and links as JSON (``hippomap.exports.graph_dict``)."""
-    from hippomap.exports import graph_dict
+    """Nodes and links as JSON (``hippomap.io.exports.graph_dict``)."""
+    from hippomap.io.exports import graph_dict
 
     cm = m.cmap
     links = cm.links

@@ -2,7 +2,7 @@
 
 The spatial pathway re-runs the iteration of Eq. 9-10 at the robot's current pose with recording
 (:meth:`hippomap.place_cells.SpatialPathway.record`, a copy under the session lock, tens of
-milliseconds, no noise drawn), and :func:`hippomap.place_field_figure.place_field_figure` draws
+milliseconds, no noise drawn), and :func:`hippomap.viz.place_field_figure.place_field_figure` draws
 the grid cells' binarised matrices and the position matrix shrinking to one field, with metres on
 the axes and the agreement map's colour scale. Drawing takes 1-3 s (matplotlib), so the figure is made
 once when the first place field exists and then when a browser presses the button — never per step.
@@ -45,7 +45,7 @@ class PlaceCellsPanel:
         if not self._busy.acquire(blocking=False):
             return False
         try:
-            from hippomap.place_field_figure import place_field_figure
+            from hippomap.viz.place_field_figure import place_field_figure
 
             rec = self._record()
             if rec is None or rec.field is None:

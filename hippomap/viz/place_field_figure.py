@@ -22,9 +22,10 @@ from typing import cast
 
 import numpy as np
 
-from .errors import InputError
-from .grid_cells import GridCells
-from .place_cells import IterationRecord, IterationStep
+from ..errors import InputError
+from ..extras import requires
+from ..grid_cells import GridCells
+from ..place_cells import IterationRecord, IterationStep
 
 #: colours of the binarised panels: 0 (dark) and 1 (bright), shown by each row's colour scale
 _OFF, _ON = "#141428", "#ffd23c"
@@ -63,9 +64,10 @@ def place_field_figure(record: IterationRecord, *, max_steps: int = 8, view_m: f
     grid spacing (0.5-2 cm) is tens of matrix cells, so a 10 cm view shows the matrices at their own
     resolution; the whole 40 cm area must be shrunk and its finest lattices alias. ``vertical`` stacks
     the products downwards (MB | POS per row, for a narrow side panel) instead of across."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.colors import ListedColormap
-    from matplotlib.figure import Figure
+    with requires("viz", "the place-field figure"):
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.colors import ListedColormap
+        from matplotlib.figure import Figure
 
     if max_steps < 2:
         raise InputError(f"max_steps = {max_steps} must be >= 2")

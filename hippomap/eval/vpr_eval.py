@@ -45,14 +45,15 @@ from typing import Any
 import cv2
 import numpy as np
 
-from .cli import add_progress_argument, progress_enabled
-from .config import HippomapConfig, VisualConfig
-from .errors import HippomapError, InputError
-from .visual_memory import VisualMemory, draw_frame_features, draw_trace
+from ..cli import add_progress_argument, progress_enabled
+from ..config import HippomapConfig, VisualConfig
+from ..errors import HippomapError, InputError
+from ..extras import check, requires
+from ..visual_memory import VisualMemory, draw_frame_features, draw_trace
 
 __all__ = ["VPRDataset", "load_vpr_dataset", "evaluate_vpr", "add_parser", "load_baseline_module"]
 
-_REPO_ROOT = Path(__file__).resolve().parents[1]
+_REPO_ROOT = Path(__file__).resolve().parents[2]
 BASELINE_PATH = _REPO_ROOT / "bench" / "ratslam_baseline.py"
 
 
@@ -211,10 +212,11 @@ def _side_by_side(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def _plot_pr(path: Path, name: str, ours: dict[str, Any], op: tuple[float, float], base: dict[str, Any],
              base2: dict[str, Any] | None = None) -> None:
-    import matplotlib
+    with requires("eval", "the precision-recall plot"):
+        import matplotlib
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(5.5, 4.5), dpi=120)
     if base["pr_curve"]["recall"]:
@@ -480,6 +482,7 @@ def _parse_overrides(items: list[str] | None) -> dict[str, Any]:
 
 
 def _run(args: argparse.Namespace) -> int:
+    check("eval", "hippomap eval-vpr (precision-recall plot)")
     overrides: dict[str, Any] = {}
     if args.config:
         try:

@@ -17,15 +17,16 @@ from typing import Any, cast
 
 import numpy as np
 
-from .cli import add_progress_argument, progress_enabled
-from .cognitive_map import CognitiveMap, LoopHypothesis
-from .config import HippomapConfig
-from .datasets import LoopEdge, OdometryDataset, load_odometry_dataset
-from .errors import InputError
-from .evaluation import LOOP_TRUTH_DISTANCE_M, groundtruth_at, trajectory_metrics
-from .exports import export_map, write_json
-from .geometry import between, compose, integrate
-from .place_cells import SpatialPathway
+from ..cognitive_map import CognitiveMap, LoopHypothesis
+from ..config import HippomapConfig
+from ..errors import InputError
+from ..eval.evaluation import LOOP_TRUTH_DISTANCE_M, groundtruth_at, trajectory_metrics
+from ..extras import check
+from ..geometry import between, compose, integrate
+from ..io.datasets import LoopEdge, OdometryDataset, load_odometry_dataset
+from ..io.exports import export_map, write_json
+from ..place_cells import SpatialPathway
+from . import add_progress_argument, progress_enabled
 
 
 @dataclass
@@ -188,7 +189,7 @@ def summarise(run: OdometryRun, dataset: OdometryDataset) -> dict[str, Any]:
 
 
 def write_outputs(run: OdometryRun, dataset: OdometryDataset, out_dir: str | Path) -> dict[str, Any]:
-    """Write the exports (see :func:`hippomap.exports.export_map`) and metrics.json."""
+    """Write the exports (see :func:`hippomap.io.exports.export_map`) and metrics.json."""
     metrics = summarise(run, dataset)
     accepted = [d["hypothesis"]["meta"]["poses"] for d in run.decisions if d["used"]]
     segs = [[run.corrected[a, :2], run.corrected[b, :2]] for a, b in accepted]
@@ -201,6 +202,7 @@ def write_outputs(run: OdometryRun, dataset: OdometryDataset, out_dir: str | Pat
 
 
 def _cmd(args: argparse.Namespace) -> int:
+    check("eval", "hippomap run-odometry (TUM files, metrics, map plot)")
     dataset = load_odometry_dataset(args.data_dir, args.loops)
     run = run_odometry(dataset, HippomapConfig.from_file(args.config), progress=progress_enabled(args))
     metrics = write_outputs(run, dataset, args.out)

@@ -24,9 +24,9 @@ import time
 from pathlib import Path
 from typing import Any
 
-from .cli import add_progress_argument, progress_enabled
-from .errors import InputError
-from .inputs import Odometry
+from ..cli import add_progress_argument, progress_enabled
+from ..errors import InputError
+from ..inputs import Odometry
 
 #: consecutive odometry readings sent as one message when not replaying in real time
 FAST_BATCH = 200
@@ -58,7 +58,7 @@ def _frame_bytes(ref: Any) -> bytes:
     path = getattr(ref, "path", None)
     if path is not None and Path(path).suffix.lower() in (".jpg", ".jpeg", ".png"):
         return Path(path).read_bytes()
-    from .client import encode_image
+    from . import encode_image
 
     return encode_image(ref.load().image)
 
@@ -69,7 +69,7 @@ async def replay(dataset: Any, url: str, token: str | None, session_id: str, spe
     :class:`~hippomap.client.ServerError` on the first input the server rejects, and
     :class:`~hippomap.errors.InputError` before sending anything the session already holds
     (unless ``resume`` skips it)."""
-    from .client import AsyncStream
+    from . import AsyncStream
 
     errors: list[BaseException] = []
     counts = {"odometry": 0, "frames": 0, "skipped": 0, "messages": 0}
@@ -148,8 +148,8 @@ def viewer_url(session: dict[str, Any], server: str) -> str:
 
 
 def _cmd(args: argparse.Namespace) -> int:
-    from .client import Client
-    from .run import open_dataset
+    from ..cli.run import open_dataset
+    from . import Client
 
     if args.speed is not None and not args.speed > 0:
         raise InputError(f"--speed must be > 0, got {args.speed}")

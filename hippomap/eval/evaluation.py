@@ -6,8 +6,9 @@ from typing import Any
 
 import numpy as np
 
-from .errors import InputError
-from .exports import to_evo
+from ..errors import InputError
+from ..extras import requires
+from ..io.exports import to_evo
 
 #: a loop closure is true when ground truth puts its two places closer than this [ours]
 LOOP_TRUTH_DISTANCE_M = 2.0
@@ -32,8 +33,9 @@ def trajectory_metrics(est_times: Any, est_poses: Any, ref_times: Any, ref_poses
     """ATE (translation, after an SE(3) Umeyama alignment without scale, evo's ``-a``)
     and RPE (translation over ``rpe_delta_m`` metres of travel) of an estimate against
     ground truth. Poses are associated by nearest timestamp within ``max_time_diff``."""
-    from evo.core import metrics, sync
-    from evo.core.units import Unit
+    with requires("eval", "the trajectory metrics"):
+        from evo.core import metrics, sync
+        from evo.core.units import Unit
 
     est = to_evo(est_times, est_poses, "estimate")
     ref = to_evo(ref_times, ref_poses, "reference")

@@ -3,7 +3,7 @@
 An image topic (``sensor_msgs/Image`` mono8/bgr8/rgb8 or ``sensor_msgs/CompressedImage``)
 and an odometry topic (``nav_msgs/Odometry``: the planar pose of each message becomes
 the increment from the previous one) are turned into the same time-ordered
-:class:`~hippomap.datasets.SensorDataset` the other readers produce. Frames are decoded
+:class:`~hippomap.io.datasets.SensorDataset` the other readers produce. Frames are decoded
 when the data set is read (bags are small on a robot's time scale; a long bag can be
 limited with ``max_frames``).
 """
@@ -16,15 +16,16 @@ from typing import Any, cast
 
 import numpy as np
 
+from ..errors import InputError
+from ..extras import requires
+from ..geometry import between
+from ..inputs import Frame, Odometry
 from .datasets import SensorDataset, _check_increasing
-from .errors import InputError
-from .geometry import between
-from .inputs import Frame, Odometry
 
 
 @dataclass(frozen=True)
 class DecodedFrame:
-    """A frame already in memory (same interface as :class:`~hippomap.datasets.FrameRef`)."""
+    """A frame already in memory (same interface as :class:`~hippomap.io.datasets.FrameRef`)."""
 
     t: float
     image: np.ndarray
@@ -59,10 +60,11 @@ def read_rosbag(path: str | Path, image_topic: str, odometry_topic: str, max_fra
                 groundtruth_topic: str | None = None) -> SensorDataset:
     """Read a ROS 1 (``.bag``) or ROS 2 (folder) bag. Times are the messages' header stamps.
     ``groundtruth_topic`` (optional: ``geometry_msgs/PoseStamped`` or ``nav_msgs/Odometry``,
-    e.g. what :func:`hippomap.session_export.write_rosbag2` writes) becomes the data set's
+    e.g. what :func:`hippomap.io.session_export.write_rosbag2` writes) becomes the data set's
     ground truth."""
-    from rosbags.highlevel import AnyReader
-    from rosbags.typesys import Stores, get_typestore
+    with requires("rosbag", "reading a ROS bag"):
+        from rosbags.highlevel import AnyReader
+        from rosbags.typesys import Stores, get_typestore
 
     path = Path(path)
     if not path.exists():

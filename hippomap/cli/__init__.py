@@ -12,7 +12,8 @@ import re
 import sys
 from importlib.metadata import PackageNotFoundError, entry_points, version
 
-from .errors import HippomapError
+from ..errors import HippomapError
+from ..extras import extra_for
 
 GROUP = "hippomap.commands"
 
@@ -89,22 +90,28 @@ def clean_help(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog="hippomap", description="hippomap: bio-inspired SLAM after the rat hippocampus (grid cells, place cells, visual recognition memory, cognitive map).")
+        prog="hippomap",
+        description="hippomap: bio-inspired SLAM after the rat hippocampus (grid cells, place cells, "
+                    "visual recognition memory, cognitive map).")
     parser.add_argument("--version", action="version", version=f"hippomap {package_version()}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for ep in sorted(entry_points(group=GROUP), key=lambda e: e.name):
         try:
             register = ep.load()
         except ImportError as exc:  # e.g. `serve` without the server extra installed
-            _unavailable(sub, ep.name, exc)
+            _unavailable(sub, ep.name, exc, own=ep.value.startswith("hippomap."))
             continue
         register(sub)
     return clean_help(parser)
 
 
-def _unavailable(sub: argparse._SubParsersAction, name: str, exc: ImportError) -> None:
-    """Keep a command whose dependencies are missing visible, with the way to fix it."""
-    message = f"needs a missing dependency ({exc.name or exc}); install it with: pip install 'hippomap[server]'"
+def _unavailable(sub: argparse._SubParsersAction, name: str, exc: ImportError, own: bool = False) -> None:
+    """Keep a command whose dependencies are missing visible, with the way to fix it: for a command of
+    this package (``own``), the extra that installs the missing module (:func:`~hippomap.extras.extra_for`);
+    for the others (``serve``, registered by the server package), the ``server`` extra."""
+    extra = extra_for(exc.name) if own and exc.name else None
+    message = (f"needs a missing dependency ({exc.name or exc}); install it with: "
+               f"pip install 'hippomap[{extra or 'server'}]'")
     p = sub.add_parser(name, help=f"(unavailable: {message})")
 
     def fail(args: argparse.Namespace) -> int:

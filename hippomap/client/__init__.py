@@ -14,8 +14,9 @@
 The token defaults to ``$HIPPOMAP_TOKEN``, then to the admin token a local ``hippomap serve``
 saved in ``./hippomap-data/admin.token``. An acknowledgement means the input is stored
 durably on the server. A rejected input raises
-:class:`ServerError` with the server's status and message. The web libraries are imported
-lazily, so ``import hippomap`` never pulls them in.
+:class:`ServerError` with the server's status and message. The web libraries (httpx,
+websockets: ``pip install 'hippomap[client]'``) are imported lazily, so ``import hippomap`` never
+pulls them in, and a missing one raises :class:`~hippomap.extras.MissingExtraError` naming the extra.
 """
 
 from __future__ import annotations
@@ -31,9 +32,10 @@ from typing import Any, Iterable
 
 import numpy as np
 
-from .errors import HippomapError
-from .inputs import Odometry
-from .protocol import pack_frame  # the frame format the server unpacks (one definition)
+from ..errors import HippomapError
+from ..extras import requires
+from ..inputs import Odometry
+from ..protocol import pack_frame  # the frame format the server unpacks (one definition)
 
 #: the client's public names: ``from hippomap.client import Client, Odometry`` is all a robot needs
 __all__ = ["AsyncStream", "Client", "Odometry", "ServerError", "Stream", "default_token", "encode_image"]
@@ -106,7 +108,8 @@ class Client:
     """Synchronous HTTP client; :meth:`stream` opens a websocket stream."""
 
     def __init__(self, url: str, token: str | None = None, timeout: float = 30.0) -> None:
-        import httpx
+        with requires("client", "the HTTP client"):
+            import httpx
 
         self.url = url.rstrip("/")
         self.token = token or default_token()
@@ -178,7 +181,8 @@ class Client:
         return self._json("POST", f"/sessions/{session_id}/odometry",
                           {"readings": [odometry_reading(r) for r in readings]})
 
-    def send_frame(self, session_id: str, t: float, image: bytes | np.ndarray, multipart: bool = False) -> dict[str, Any]:
+    def send_frame(self, session_id: str, t: float, image: bytes | np.ndarray,
+                   multipart: bool = False) -> dict[str, Any]:
         """Store one frame (JPEG/PNG bytes, or an image array encoded here)."""
         data = encode_image(image)
         if multipart:
@@ -232,7 +236,8 @@ class Client:
         return content
 
     def place_fields(self, session_id: str, since_step: int = -1, limit: int = 1000) -> list[dict[str, Any]]:
-        return self._json("GET", f"/sessions/{session_id}/place-fields", params={"since_step": since_step, "limit": limit})
+        return self._json("GET", f"/sessions/{session_id}/place-fields",
+                          params={"since_step": since_step, "limit": limit})
 
     def events(self, session_id: str, since_id: int = -1, types: list[str] | None = None,
                limit: int = 1000) -> list[dict[str, Any]]:
@@ -279,7 +284,7 @@ class Client:
 
     def export_rosbag2_zip(self, session_id: str, target: Any) -> Any:
         """Save the session's recorded inputs as a zipped ROS 2 bag (topics in
-        :mod:`hippomap.session_export`) to ``target``; returns its path."""
+        :mod:`hippomap.io.session_export`) to ``target``; returns its path."""
         return self._download(f"/sessions/{session_id}/export/rosbag2.zip", target)
 
     # -------------------------------------------------------------- tokens
@@ -312,7 +317,8 @@ class AsyncStream:
         self._closed_error: BaseException | None = None
 
     async def connect(self) -> "AsyncStream":
-        from websockets.asyncio.client import connect
+        with requires("client", "the websocket stream"):
+            from websockets.asyncio.client import connect
 
         headers = {"Authorization": f"Bearer {self.token}"} if self.token else {}
         self._ws = await connect(self.url, additional_headers=headers, max_size=None, compression=None)

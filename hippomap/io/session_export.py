@@ -10,11 +10,11 @@ a run recorded by the service can be re-run offline:
   Readings sent as velocities give ``odometry.csv`` ``t,v,omega``; a run with any reading
   sent as an increment gives ``t,dx,dy,dtheta`` for all of them (each velocity reading
   turned into the increment the mapper integrated from it), which
-  :func:`hippomap.datasets.read_folder_odometry` also reads.
+  :func:`hippomap.io.datasets.read_folder_odometry` also reads.
 * :func:`write_rosbag2`: a ROS 2 bag (``rosbags``' writer) with the frames as
   ``sensor_msgs/CompressedImage`` (the stored JPEG/PNG bytes), the odometry as
   ``nav_msgs/Odometry`` poses (the readings' increments chained from the origin), and the
-  ground truth as ``geometry_msgs/PoseStamped``; :func:`hippomap.rosbag.read_rosbag` turns
+  ground truth as ``geometry_msgs/PoseStamped``; :func:`hippomap.io.rosbag.read_rosbag` turns
   it back into the same inputs.
 
 Inputs arrive as an iterable of :class:`~hippomap.inputs.Odometry` and
@@ -36,9 +36,10 @@ from typing import IO, Any
 
 import numpy as np
 
-from .errors import InputError
-from .geometry import compose
-from .inputs import Odometry
+from ..errors import InputError
+from ..extras import requires
+from ..geometry import compose
+from ..inputs import Odometry
 
 #: topics of the bags written here (pass them to ``hippomap run BAG --image-topic ... --odom-topic ...``)
 IMAGE_TOPIC = "/camera/image/compressed"
@@ -193,7 +194,8 @@ class _BagMessages:
     """Builds the messages of the bags' three kinds from rosbags' ROS 2 Humble types."""
 
     def __init__(self) -> None:
-        from rosbags.typesys import Stores, get_typestore
+        with requires("rosbag", "writing a ROS 2 bag"):
+            from rosbags.typesys import Stores, get_typestore
 
         self.ts = get_typestore(Stores.ROS2_HUMBLE)
         self.T = self.ts.types
@@ -238,7 +240,8 @@ def write_rosbag2(path: str | Path, inputs: Iterable[Input], image_topic: str = 
     topic carries poses: the origin :data:`ORIGIN_LEAD_S` before the first reading, then the
     readings' increments (:func:`increments`) chained, so that the bag reader's increments
     between consecutive messages are the readings again. Returns the message counts."""
-    from rosbags.rosbag2 import Writer
+    with requires("rosbag", "writing a ROS 2 bag"):
+        from rosbags.rosbag2 import Writer
 
     path = Path(path)
     if path.exists():

@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, Any, Sequence, cast
 
 import numpy as np
 
-from .errors import InputError
+from ..errors import InputError
 
 if TYPE_CHECKING:
     from .rosbag import DecodedFrame
@@ -44,7 +44,7 @@ class G2OGraph:
     (N-1, 3) the relative increments of the edges ``i -> i+1`` (in the frame of pose
     ``i``), ``loops`` every other edge (loop-closure proposals). ``odometry_information``
     (N-1, 6) holds the odometry edges' information (upper triangle, g2o's order), so a
-    file written with each link's information (:func:`hippomap.exports.write_g2o`) reads
+    file written with each link's information (:func:`hippomap.io.exports.write_g2o`) reads
     back with it. Read with ``chain=False``, a graph need not be a chain: a missing
     ``i -> i+1`` edge leaves a NaN row in ``odometry`` and ``odometry_information``.
     """
@@ -111,7 +111,8 @@ def read_g2o(path: str | Path, chain: bool = True) -> G2OGraph:
             elif tag == "EDGE_SE2":
                 if len(tokens) != 12:
                     raise InputError(
-                        f"{path}:{lineno}: EDGE_SE2 needs 'i j dx dy dtheta' and 6 information values, got {line.strip()!r}"
+                        f"{path}:{lineno}: EDGE_SE2 needs 'i j dx dy dtheta' and 6 information values, "
+                        f"got {line.strip()!r}"
                     )
                 i = _int(tokens[1], path, lineno, line)
                 j = _int(tokens[2], path, lineno, line)
@@ -253,7 +254,7 @@ class FrameRef:
         """Decode to a :class:`~hippomap.inputs.Frame` (grayscale)."""
         import cv2
 
-        from .inputs import Frame
+        from ..inputs import Frame
 
         img = cv2.imread(str(self.path), cv2.IMREAD_GRAYSCALE)
         if img is None:
@@ -338,8 +339,8 @@ def read_tum_rgbd(folder: str | Path) -> SensorDataset:
     the wheel odometry as ``odometry.txt`` (TUM poses, e.g. the Pioneer sequences' /pose
     topic exported) or ``odometry.csv`` (``t,v,omega``). The poses' yaw and x-y are used
     (planar robot)."""
-    from .geometry import between
-    from .inputs import Odometry
+    from ..geometry import between
+    from ..inputs import Odometry
 
     folder = Path(folder)
     if not (folder / "rgb.txt").is_file():
@@ -380,7 +381,7 @@ def read_folder_odometry(path: Path) -> list:
     """``odometry.csv``: ``t,v,omega`` (velocities, m/s and rad/s, held from the previous row's
     time) or ``t,dx,dy,dtheta`` (relative pose increments in the previous pose's frame, as a
     session fed increments exports them); the header says which."""
-    from .inputs import Odometry
+    from ..inputs import Odometry
 
     with path.open(newline="") as fh:
         first = fh.readline()

@@ -18,16 +18,16 @@ from typing import Any
 
 import numpy as np
 
-from .cli import add_progress_argument, progress_enabled
-from .config import HippomapConfig
-from .datasets import SensorDataset, read_folder_dataset, read_tum_rgbd
-from .errors import InputError
-from .evaluation import LOOP_TRUTH_DISTANCE_M, groundtruth_at, trajectory_metrics
-from .exports import export_map, write_json, write_tum
-from .geometry import between
-from .inputs import Odometry
-from .mapper import Mapper
-
+from ..config import HippomapConfig
+from ..errors import InputError
+from ..eval.evaluation import LOOP_TRUTH_DISTANCE_M, groundtruth_at, trajectory_metrics
+from ..extras import check
+from ..geometry import between
+from ..inputs import Odometry
+from ..io.datasets import SensorDataset, read_folder_dataset, read_tum_rgbd
+from ..io.exports import export_map, write_json, write_tum
+from ..mapper import Mapper
+from . import add_progress_argument, progress_enabled
 
 
 def open_dataset(path: str | Path, image_topic: str | None = None, odom_topic: str | None = None,
@@ -43,7 +43,7 @@ def open_dataset(path: str | Path, image_topic: str | None = None, odom_topic: s
     if path.suffix == ".bag" or (path.is_dir() and (path / "metadata.yaml").is_file()):
         if not (image_topic and odom_topic):
             raise InputError("a ROS bag needs --image-topic and --odom-topic")
-        from .rosbag import read_rosbag
+        from ..io.rosbag import read_rosbag
 
         return read_rosbag(path, image_topic, odom_topic, groundtruth_topic=groundtruth_topic)
     raise InputError(f"{path}: not a hippomap data folder (frames.csv), a TUM RGB-D folder (rgb.txt) or a ROS bag")
@@ -114,8 +114,9 @@ def link_error(gt: tuple[np.ndarray, np.ndarray], t_from: float, t_to: float, tr
     return {"link_error_m": float(np.hypot(e[0], e[1])), "link_error_rad": float(abs(e[2]))}
 
 
-def write_run(m: Mapper, dataset: SensorDataset, out_dir: str | Path, timing: dict[str, Any] | None = None) -> dict[str, Any]:
-    """Write the exports (see :func:`hippomap.exports.export_map`), ``groundtruth.tum`` (when
+def write_run(m: Mapper, dataset: SensorDataset, out_dir: str | Path,
+              timing: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Write the exports (see :func:`hippomap.io.exports.export_map`), ``groundtruth.tum`` (when
     the data set has ground truth) and metrics.json."""
     t = m.trajectory_times
     odo = m.odometry_trajectory()
@@ -131,10 +132,12 @@ def write_run(m: Mapper, dataset: SensorDataset, out_dir: str | Path, timing: di
         metrics["map"] = trajectory_metrics(t, cor, *dataset.groundtruth)
         metrics["map_ate_ratio"] = metrics["map"]["ate"]["rmse"] / max(metrics["odometry"]["ate"]["rmse"], 1e-12)
         judged = [r for r in accepted if "groundtruth_distance_m" in r]
-        metrics["loop_closures"]["accepted_false"] = sum(r["groundtruth_distance_m"] >= LOOP_TRUTH_DISTANCE_M for r in judged)
+        metrics["loop_closures"]["accepted_false"] = sum(r["groundtruth_distance_m"] >= LOOP_TRUTH_DISTANCE_M
+                                                         for r in judged)
         metrics["loop_closures"]["used_false"] = sum(r["groundtruth_distance_m"] >= LOOP_TRUTH_DISTANCE_M
                                                      for r in judged if r["used"])
-        metrics["loop_closures"]["max_accepted_distance_m"] = max((r["groundtruth_distance_m"] for r in judged), default=None)
+        metrics["loop_closures"]["max_accepted_distance_m"] = max((r["groundtruth_distance_m"] for r in judged),
+                                                                  default=None)
         errs = [r["link_error_m"] for r in used if "link_error_m" in r]
         if errs:
             metrics["loop_closures"]["link_error_m"] = {"mean": float(np.mean(errs)), "median": float(np.median(errs)),
@@ -175,6 +178,7 @@ def base_mapper(snapshot: str | Path, config_file: str | None = None) -> Mapper:
 
 
 def _cmd(args: argparse.Namespace) -> int:
+    check("eval", "hippomap run (TUM files, metrics, map plot)")
     dataset = open_dataset(args.data_dir, args.image_topic, args.odom_topic, args.groundtruth_topic)
     if args.base_map:
         base = base_mapper(args.base_map, args.config)
@@ -187,7 +191,8 @@ def _cmd(args: argparse.Namespace) -> int:
     line = (f"{s['nodes']} nodes, {s['keyframes']} key frames, loop closures accepted {lc['accepted']} "
             f"(used {lc['used']}) / rejected {lc['rejected']}")
     if "map" in metrics:
-        line += f"; ATE rmse odometry {metrics['odometry']['ate']['rmse']:.3f} m -> map {metrics['map']['ate']['rmse']:.3f} m"
+        line += (f"; ATE rmse odometry {metrics['odometry']['ate']['rmse']:.3f} m"
+                 f" -> map {metrics['map']['ate']['rmse']:.3f} m")
     print(line)
     return 0
 

@@ -12,7 +12,8 @@ from typing import Any
 
 import numpy as np
 
-from .errors import InputError
+from ..errors import InputError
+from ..extras import requires
 
 
 def _as_poses(poses: Any, name: str) -> np.ndarray:
@@ -26,7 +27,8 @@ def _as_poses(poses: Any, name: str) -> np.ndarray:
 
 def to_evo(times: Any, poses: Any, name: str = "trajectory"):
     """(N,) times and (N, 3) poses -> evo ``PoseTrajectory3D`` (z = 0, yaw quaternion)."""
-    from evo.core.trajectory import PoseTrajectory3D
+    with requires("eval", "an evo trajectory"):
+        from evo.core.trajectory import PoseTrajectory3D
 
     t = np.asarray(times, dtype=float)
     p = _as_poses(poses, name)
@@ -47,7 +49,8 @@ def from_evo(traj) -> tuple[np.ndarray, np.ndarray]:
 
 def write_tum(path: str | Path, times: Any, poses: Any) -> Path:
     """Write a TUM trajectory file (``t x y z qx qy qz qw``) through evo's writer."""
-    from evo.tools import file_interface
+    with requires("eval", "writing a TUM file"):
+        from evo.tools import file_interface
 
     path = Path(path)
     file_interface.write_tum_trajectory_file(path, to_evo(times, poses, path.name))
@@ -56,7 +59,8 @@ def write_tum(path: str | Path, times: Any, poses: Any) -> Path:
 
 def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     """Read a TUM trajectory file through evo's reader -> (times, (N, 3) poses)."""
-    from evo.tools import file_interface
+    with requires("eval", "reading a TUM file"):
+        from evo.tools import file_interface
 
     return from_evo(file_interface.read_tum_trajectory_file(str(path)))
 
@@ -141,10 +145,11 @@ def plot_map(path: str | Path, odometry: Any, corrected: Any, groundtruth: Any |
              loops: Any | None = None, title: str = "hippomap") -> Path:
     """PNG of raw odometry vs corrected map (vs ground truth when given); ``loops`` are
     (M, 2, 2) segments drawn between the two ends of each accepted loop closure."""
-    import matplotlib
+    with requires("viz", "the map plot"):
+        import matplotlib
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(8, 8), dpi=110)
     odo = _as_poses(odometry, "odometry")
@@ -175,7 +180,8 @@ def plot_map(path: str | Path, odometry: Any, corrected: Any, groundtruth: Any |
 def align_to(ref_times: Any, ref_poses: Any, times: Any, poses: Any) -> np.ndarray | None:
     """``ref`` (e.g. ground truth) rigidly aligned onto ``(times, poses)`` for plotting;
     None when the two cannot be matched by timestamp."""
-    from evo.core import sync
+    with requires("eval", "aligning the ground truth onto the map"):
+        from evo.core import sync
 
     try:
         ref, est = sync.associate_trajectories(to_evo(ref_times, ref_poses, "ref"), to_evo(times, poses, "est"),

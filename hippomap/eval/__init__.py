@@ -1,0 +1,5 @@
+"""Evaluation of a map against ground truth: trajectory metrics through evo (:mod:`~hippomap.eval.evaluation`:
+ATE, RPE) and place-recognition precision/recall (:mod:`~hippomap.eval.vpr_eval`, ``hippomap eval-vpr``).
+
+Needs the ``eval`` extra (evo, matplotlib): ``pip install 'hippomap[eval]'``.
+"""
