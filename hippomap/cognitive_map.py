@@ -303,8 +303,8 @@ class CognitiveMap:
         """One step: robot-frame odometry ``increment`` (dx, dy, dθ) since the last call, the
         place code (x, y, θ) of this step or ``None`` (no single place field), time ``t``.
 
-        Returns the events of this step, preceded by any queued since the last call (loop
-        decisions made by :meth:`propose_loop`, frames assigned).
+        Returns the events of this step, preceded by any queued since the last call and not
+        taken with :meth:`take_events` (loop decisions made by :meth:`propose_loop`, frames assigned).
         """
         inc = _vec3(increment, "odometry increment")
         code = None if place_code is None else _vec3(place_code, "place code")
@@ -592,6 +592,13 @@ class CognitiveMap:
         events.extend(self._optimise(self._t if self._t is not None else 0.0, force=True, sweeps=iterations))
         return events
 
+    def take_events(self) -> list[MapEvent]:
+        """The events queued since the last call that returned events (by :meth:`propose_loop`,
+        :meth:`set_frame`, :meth:`prune`), emptying the queue: a caller returns them from the call
+        that caused them instead of the next :meth:`update`."""
+        events, self._events = self._events, []
+        return events
+
     # ------------------------------------------------------------------ loop closure
     def robot_map_pose(self) -> tuple[float, float, float]:
         """The robot's pose on the map: the current node's pose composed with the offset."""
@@ -613,7 +620,8 @@ class CognitiveMap:
         return ids if limit is None else ids[:limit]
 
     def propose_loop(self, h: LoopHypothesis) -> LoopDecision:
-        """Offer a loop closure; returns the decision (its events come out of the next :meth:`update`).
+        """Offer a loop closure; returns the decision. Its events are queued: the caller takes them
+        with :meth:`take_events` (else they come out of the next :meth:`update`).
 
         Checks, in order (see :mod:`hippomap.loop_closure`):
 

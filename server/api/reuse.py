@@ -19,6 +19,7 @@ from typing import Any
 from fastapi import APIRouter, HTTPException, Request, Response
 from pydantic import ConfigDict, Field
 
+from .. import model
 from ..ingest import IngestError
 from ..schemas import SessionDetail, _In
 from ..sessions import Forbidden
@@ -54,15 +55,11 @@ async def merge_sessions(body: MergeRequest, live: deps.ReadSession, request: Re
             "links": _links(request, merged.id)}
 
 
-def _snapshot(mapper: Any) -> bytes:
-    return mapper.to_bytes()
-
-
 @router.get("/{session_id}/snapshot", responses={**deps.ERRORS, 200: {"content": {"application/octet-stream": {}},
             "description": "the mapper state (npz of arrays and a JSON header)"}},
             summary="The session's mapper state, for `hippomap run --base-map`", response_class=Response)
 async def session_snapshot(live: deps.ReadSession) -> Response:
-    data = await asyncio.to_thread(live.worker.query, _snapshot)
+    data = await asyncio.to_thread(live.worker.query, model.queries.MapperState())
     if data is None:
         raise HTTPException(503, f"session {live.id} is being restored; retry shortly", headers={"Retry-After": "1"})
     return Response(data, media_type="application/octet-stream",
