@@ -179,10 +179,11 @@ class ViewerState(Query[MapView]):
     def run(self, mapper: "Mapper") -> MapView:
         cm = mapper.cmap
         links = cm.links
+        stats = mapper.stats()
         start = self.trajectory_start
+        if start > stats["odometry_steps"]:  # beyond the history (a cursor of another mapper): restart
+            start = 0
         rows = mapper.trajectory_rows(start)
-        if start > mapper.trajectory_times.shape[0]:  # history shrank (should not happen): restart
-            start, rows = 0, mapper.trajectory_rows(0)
         recs = mapper.recognitions
         code = mapper.place_field
         return MapView(
@@ -201,7 +202,7 @@ class ViewerState(Query[MapView]):
             place_code=code if code is not None and code.field is not None else None,
             spatial=mapper.pathway.cfg,
             odometric_pose=np.array(mapper.pathway.pose, dtype=float),
-            stats=dict(mapper.stats()),
+            stats=stats,
         )
 
 
