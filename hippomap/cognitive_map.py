@@ -303,8 +303,8 @@ class CognitiveMap:
         """One step: robot-frame odometry ``increment`` (dx, dy, dθ) since the last call, the
         place code (x, y, θ) of this step or ``None`` (no single place field), time ``t``.
 
-        Returns the events of this step, preceded by any queued since the last call (loop
-        decisions made by :meth:`propose_loop`, frames assigned).
+        Returns the events of this step, preceded by any queued since the last call and not
+        taken with :meth:`take_events` (loop decisions made by :meth:`propose_loop`, frames assigned).
         """
         inc = _vec3(increment, "odometry increment")
         code = None if place_code is None else _vec3(place_code, "place code")
@@ -569,6 +569,14 @@ class CognitiveMap:
         weight for loop links (0 < w ≤ 1; a false closure fades towards 0)."""
         return self._w[: self._m].copy()
 
+    def weighted_link_information(self) -> np.ndarray:
+        """(M, 3) diagonal information (x, y, θ) the map gives each link when it solves: the
+        solver's weights (:meth:`link_information`; unit information when ``lsq_weighted`` is
+        off) times each link's robust weight (a faded loop link counts for little). This is what
+        the g2o export writes on each edge."""
+        info = self.link_information() if self.cfg.lsq_weighted else np.ones((self._m, 3))
+        return info * self._w[: self._m, None]
+
     def link_information(self) -> np.ndarray:
         """(M, 3) diagonal information of every link (x, y, θ) for the weighted solver: odometric
         and prune links ``odometry_information_per_m / length`` (variance grows with the path;
@@ -592,6 +600,13 @@ class CognitiveMap:
         events.extend(self._optimise(self._t if self._t is not None else 0.0, force=True, sweeps=iterations))
         return events
 
+    def take_events(self) -> list[MapEvent]:
+        """The events queued since the last call that returned events (by :meth:`propose_loop`,
+        :meth:`set_frame`, :meth:`prune`), emptying the queue: a caller returns them from the call
+        that caused them instead of the next :meth:`update`."""
+        events, self._events = self._events, []
+        return events
+
     # ------------------------------------------------------------------ loop closure
     def robot_map_pose(self) -> tuple[float, float, float]:
         """The robot's pose on the map: the current node's pose composed with the offset."""
@@ -613,7 +628,8 @@ class CognitiveMap:
         return ids if limit is None else ids[:limit]
 
     def propose_loop(self, h: LoopHypothesis) -> LoopDecision:
-        """Offer a loop closure; returns the decision (its events come out of the next :meth:`update`).
+        """Offer a loop closure; returns the decision. Its events are queued: the caller takes them
+        with :meth:`take_events` (else they come out of the next :meth:`update`).
 
         Checks, in order (see :mod:`hippomap.loop_closure`):
 

@@ -10,8 +10,11 @@ is that pose (turned by the image shift of the saccade correspondences when the 
 of view is known), which the loop closing (:mod:`hippomap.loop_closure`) verifies and fits
 before the map closes the loop and relaxes.
 
-Inputs must come in time order; every call returns a list of events (plain dicts with a
-``type`` key, JSON-ready) and never mutates state when it raises ``InputError``.
+Inputs must come in time order; every call returns the events it caused, typed
+(:mod:`hippomap.map_events`: the map's, raised while the call ran, and the mapper's own;
+``MapEvent.to_dict`` makes them JSON) and never mutates state when it raises ``InputError``.
+The reads a service needs are typed query values (:mod:`hippomap.mapper_queries`,
+:meth:`Mapper.answer`).
 The whole state serialises to bytes (:meth:`Mapper.to_bytes`) and restores to a mapper
 whose future outputs are identical.
 
@@ -32,7 +35,7 @@ from __future__ import annotations
 import io
 import json
 import math
-from typing import Any, cast
+from typing import TYPE_CHECKING, Any, TypeVar, cast
 
 import numpy as np
 
@@ -42,10 +45,15 @@ from .config import HippomapConfig
 from .errors import InputError
 from .geometry import compose, wrap_angle
 from .inputs import Frame, Odometry
+from .map_events import KeyframeLearned, LoopDecided, MapEvent, RecognitionMade
 from .place_cells import PlaceCode, SpatialPathway
 from .visual_memory import VisualMemory
 
+if TYPE_CHECKING:
+    from .mapper_queries import Query
+
 FORMAT_VERSION = 1
+T = TypeVar("T")
 
 
 class _Grow:
@@ -287,7 +295,7 @@ class Mapper:
         if last is not None and not t > last:
             raise InputError(f"{what} timestamp {t!r} does not follow the previous {what} at {last!r}")
 
-    def step(self, odometry: Odometry) -> list[dict[str, Any]]:
+    def step(self, odometry: Odometry) -> list[MapEvent]:
         """Feed one odometry reading; returns the events it caused."""
         if not isinstance(odometry, Odometry):
             raise InputError(f"step() takes an Odometry, got {type(odometry).__name__}")
@@ -302,8 +310,8 @@ class Mapper:
         code = self.pathway.step_increment(*inc)
         self.distance += math.hypot(inc[0], inc[1])
         self.turn += abs(inc[2])
-        events = [e.to_dict() for e in self.cmap.update(  # localising: no place code, so no new node
-            None if code is None or self.localise_only else (code.x, code.y, code.theta), inc, t)]
+        events = self.cmap.update(  # localising: no place code, so no new node
+            None if code is None or self.localise_only else (code.x, code.y, code.theta), inc, t)
         if code is not None:
             self.place = (code.x, code.y, code.theta)
             self.place_field = code
@@ -311,8 +319,10 @@ class Mapper:
         self._traj.append([t, pose[0], pose[1], pose[2], self.cmap.current, *self.cmap.robot_offset])
         return events
 
-    def observe(self, frame: Frame) -> list[dict[str, Any]]:
-        """Feed one camera frame; on a key frame: recognise near the place code, then learn."""
+    def observe(self, frame: Frame) -> list[MapEvent]:
+        """Feed one camera frame; on a key frame: recognise near the place code, then learn.
+        Returns the events of this frame: the recognition, the loop decision with the map's
+        events it raised (loop pending/accepted/rejected, relaxation), the learned key frame."""
         if not isinstance(frame, Frame):
             raise InputError(f"observe() takes a Frame, got {type(frame).__name__}")
         self._check_time(frame.t, self.last_frame_t, "frame")
@@ -322,7 +332,7 @@ class Mapper:
         self.frames_seen += 1
         if not self._is_keyframe():
             return []
-        events: list[dict[str, Any]] = []
+        events: list[MapEvent] = []
         recognised = False
         if self.place is not None and self.memory.frame_count:
             if self.cmap.lost:  # no pose on the map yet: any key frame of the saved map may be the place
@@ -333,9 +343,9 @@ class Mapper:
             if candidates:
                 rec = self.memory.recognise(gray, candidates=candidates)
                 rec_id = len(self.recognitions)
-                rec_dict = {"id": rec_id, "t": frame.t, "node": int(self.cmap.current), **rec.to_dict()}
-                self.recognitions.append(rec_dict)
-                events.append({"type": "recognition", **rec_dict})
+                made = RecognitionMade(rec_id, frame.t, int(self.cmap.current), rec.to_dict())
+                self.recognitions.append(made.record())
+                events.append(made)
                 if rec.frame is not None:
                     hyp = LoopHypothesis(node=self.frame_node[int(rec.frame)], transform=None,
                                          evidence=float(rec.evidence), source="visual", time=frame.t,
@@ -343,7 +353,8 @@ class Mapper:
                                          offset=self._visual_offset(rec, gray.shape[1]))
                     decision = self.cmap.propose_loop(hyp)
                     recognised = decision.status != "rejected"
-                    events.append({"type": "loop_decision", **decision.to_dict()})
+                    events.append(LoopDecided(frame.t, decision))
+                    events.extend(self.cmap.take_events())
         self.distance_at_keyframe = self.distance
         self.turn_at_keyframe = self.turn
         if self.localise_only or (recognised and not self.config.mapper.learn_recognised):
@@ -355,7 +366,8 @@ class Mapper:
             self.frame_node[int(fid)] = node
             self.frame_offset[int(fid)] = cast("tuple[float, float, float]", tuple(float(v) for v in self.cmap.robot_offset))
             self.frame_path[int(fid)] = float(self.distance)
-            events.append({"type": "keyframe_learned", "t": frame.t, "frame": int(fid), "node": node})
+            events.append(KeyframeLearned(frame.t, int(fid), node))
+            events.extend(self.cmap.take_events())
         return events
 
     def _recognisable(self, frames: np.ndarray) -> list[int]:
@@ -431,6 +443,12 @@ class Mapper:
             "distance_m": float(self.distance),
             "last_t": self.last_t,
         }
+
+    def answer(self, query: "Query[T]") -> T:
+        """The answer to a typed read (:mod:`hippomap.mapper_queries`); InputError for anything else."""
+        from .mapper_queries import run_query
+
+        return run_query(self, query)
 
     # ------------------------------------------------------------- persistence
     def to_bytes(self) -> bytes:

@@ -6,7 +6,8 @@ only place in ``server`` that imports ``web`` (an import-linter contract in ``py
 the dependency runs one way, from the service to the viewer.
 
 The service keeps one :class:`server.runtime.sessions.LiveSession` per session, whose worker
-thread feeds a Mapper under ``worker.lock`` and answers ``worker.query(fn)`` between inputs; every
+thread feeds a Mapper under ``worker.lock`` and answers ``worker.query(query)`` (a typed read of
+:mod:`hippomap.mapper_queries`) between inputs; every
 input it acknowledged is in its store (frames as received). This module adapts that to the
 viewer's two interfaces, reading ``app.state`` lazily (it is filled by the app's lifespan):
 
@@ -23,11 +24,12 @@ from __future__ import annotations
 
 import json
 import threading
-from typing import Any, Callable, TypeVar
+from typing import Any, TypeVar
 
 import numpy as np
 from fastapi import APIRouter, FastAPI
 
+from hippomap.mapper_queries import LastInputTime, Query
 from web.landing import router as landing_router
 from web.routes import SessionEntry, make_router
 from web.session_viewer import ViewerHub
@@ -77,9 +79,9 @@ class ServiceSession:
     def closed(self) -> bool:
         return bool(self.live.closed)
 
-    def read(self, fn: Callable[[Any], T]) -> T:
-        """``fn(mapper)`` between two inputs of the worker (None while the session restores)."""
-        return self.live.worker.query(fn)
+    def read(self, query: Query[T]) -> T | None:
+        """The answer to ``query`` between two inputs of the worker (None while the session restores)."""
+        return self.live.worker.query(query)
 
     def latest_frame(self) -> CameraImage | None:
         seq = int(self.live.worker.processed_seq)
@@ -107,7 +109,7 @@ class ServiceSession:
                     evs = self.store.query_events(self.session_id, types=["keyframe_learned"],
                                                   since_id=self._events_seen, limit=1000)
                     for e in evs:
-                        self._keyframe_t[int(e.data["frame"])] = float(e.data["t"])
+                        self._keyframe_t[int(e.data["frame"])] = float(e.data["t"])  # KeyframeLearned
                     if not evs:
                         break
                     self._events_seen = evs[-1].id
@@ -134,7 +136,7 @@ class ServiceSession:
     def lag_s(self) -> float | None:
         """Stream seconds between the newest input received and the newest the mapper processed."""
         received = self.live.last_t
-        processed = self.read(lambda m: m.last_t)
+        processed = self.read(LastInputTime())
         if received is None or processed is None:
             return None
         return max(0.0, float(received) - float(processed))

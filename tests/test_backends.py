@@ -273,8 +273,8 @@ def test_a_closed_ray_host_is_dead_and_batches_split_over_calls_keep_their_order
         res = host.process(batch[:7]) + host.process(batch[7:20]) + host.process(batch[20:])
         assert [r.seq for r in res] == list(range(40))
         assert [r.events for r in res] == [r.events for r in local.process(batch)]
-        assert host.query(model.stats) == local.query(model.stats)
+        assert host.query(model.queries.Stats()) == local.query(model.queries.Stats())
     finally:
         host.close()
     with pytest.raises(HostDied):
-        host.query(model.stats)
+        host.query(model.queries.Stats())

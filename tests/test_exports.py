@@ -338,7 +338,8 @@ def test_rosbag2_zip_reads_back_as_the_sessions_inputs(server, recorded, tmp_pat
     from server.runtime import model
 
     m = _mapper_on(ds, CONFIG)
-    _assert_same_map(json.loads(json.dumps(model.json_safe(model.graph(m)))), session_map, atol=1e-6)
+    graph = model.graph(m.answer(model.queries.GraphArrays()))
+    _assert_same_map(json.loads(json.dumps(model.json_safe(graph))), session_map, atol=1e-6)
 
 
 def test_exports_refuse_what_they_cannot_write(server):

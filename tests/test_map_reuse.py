@@ -46,7 +46,7 @@ def sim_inputs(run: sim.SimRun, n: int) -> list[Odometry | Frame]:
 def feed(m: Mapper, items) -> list[dict]:
     events: list[dict] = []
     for item in items:
-        events.extend(m.step(item) if isinstance(item, Odometry) else m.observe(item))
+        events.extend(e.to_dict() for e in (m.step(item) if isinstance(item, Odometry) else m.observe(item)))
     return events
 
 
@@ -98,7 +98,7 @@ def run_second(snapshot: bytes, items, overrides=None) -> tuple[Mapper, int | No
     keyframes, placed, step = 0, None, None
     for item in items:
         events = m.step(item) if isinstance(item, Odometry) else m.observe(item)
-        keyframes += any(e["type"] == "recognition" for e in events)
+        keyframes += any(e.type == "recognition" for e in events)
         if placed is None and not m.lost:
             placed, step = keyframes, len(m.trajectory_times)
     return m, placed, step

@@ -35,7 +35,7 @@ def feed(m: Mapper, items) -> list[str]:
     events = []
     for item in items:
         ev = m.step(item) if isinstance(item, Odometry) else m.observe(item)
-        events.extend(json.dumps(e, sort_keys=True, default=float) for e in ev)
+        events.extend(json.dumps(e.to_dict(), sort_keys=True, default=float) for e in ev)
     return events
 
 
@@ -124,7 +124,7 @@ def _recognised_path_gaps(cfg: HippomapConfig, inputs) -> list[float]:
         if isinstance(item, Odometry):
             m.step(item)
             continue
-        for e in m.observe(item):
+        for e in (ev.to_dict() for ev in m.observe(item)):
             if e["type"] == "keyframe_learned":
                 learned[e["frame"]] = m.distance
             elif e["type"] == "recognition" and e["frame_id"] is not None:
@@ -155,7 +155,7 @@ def test_only_novel_views_are_learned(inputs):
                                                               "learn_recognised": learn_recognised}}))
         events = []
         for item in inputs:
-            events.extend(m.step(item) if isinstance(item, Odometry) else m.observe(item))
+            events.extend(e.to_dict() for e in (m.step(item) if isinstance(item, Odometry) else m.observe(item)))
         return m, events
 
     novel, events = run(False)
@@ -165,3 +165,40 @@ def test_only_novel_views_are_learned(inputs):
     assert closed and not closed & learned
     every, _ = run(True)
     assert novel.memory.frame_count < every.memory.frame_count
+
+
+def test_events_come_out_of_the_call_that_caused_them(inputs):
+    """The map's events raised while a frame is observed (the loop decision's pending, accepted or
+    rejected event, the relaxation it triggered, the key frame's assignment) are returned by that
+    observe(), not by the next step(); every event has the one time key ``t``."""
+    from hippomap.map_events import (
+        EVENT_TYPES,
+        FrameAssigned,
+        KeyframeLearned,
+        LoopAccepted,
+        LoopDecided,
+        LoopPending,
+        LoopRejected,
+    )
+
+    m = Mapper(CONFIG)
+    statuses: list[str] = []
+    for item in inputs:
+        if isinstance(item, Odometry):
+            events = m.step(item)
+            # a step only rejects (pending hypotheses that expired); it decides nothing of a frame's
+            assert not [e for e in events if isinstance(e, (LoopPending, LoopAccepted, FrameAssigned))]
+        else:
+            events = m.observe(item)
+            decisions = {e.decision.id: e.decision for e in events if isinstance(e, LoopDecided)}
+            for d in decisions.values():
+                statuses.append(d.status)
+                own = {"pending": LoopPending, "accepted": LoopAccepted, "rejected": LoopRejected}[d.status]
+                assert [e for e in events if isinstance(e, own) and e.decision == d.id], d
+            learned = [e.frame for e in events if isinstance(e, KeyframeLearned)]
+            assert learned == [e.frame for e in events if isinstance(e, FrameAssigned)]
+        for e in events:
+            d = e.to_dict()
+            assert isinstance(d["t"], float) and "time" not in d and d["type"] in EVENT_TYPES
+            assert type(e).from_dict(json.loads(json.dumps(d))).to_dict() == d  # one schema, both ways
+    assert "accepted" in statuses and m.stats()["loop_closures_accepted"] > 0

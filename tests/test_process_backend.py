@@ -1,7 +1,8 @@
 """The process session backend (server/runtime/process_host.py): the sessions' mappers in child processes.
 
-* a process host gives the same results as the in-process host for the same inputs, answers
-  queries given as lambdas, and its snapshot restores in process to the same mapper;
+* a process host gives the same results as the in-process host for the same inputs, answers the
+  model's typed queries (with no cloudpickle installed: the standard pickle carries them), refuses
+  anything else before sending it, and its snapshot restores in process to the same mapper;
 * a session worker whose mapper process is SIGKILLed restores a new one from the store and ends
   in the uninterrupted state, every input reported once and in order;
 * a live server with ``--backend process``: a robot streams while the mapper process is killed;
@@ -13,11 +14,15 @@ from __future__ import annotations
 import asyncio
 import os
 import signal
+import subprocess
+import sys
 import time
+from pathlib import Path
 
 import pytest
 
 from hippomap.client import AsyncStream
+from hippomap.errors import InputError
 from server.runtime import model
 from server.runtime.mapper_host import HostDied, InProcessHost
 from server.runtime.process_host import ProcessBackend
@@ -42,11 +47,59 @@ def test_process_and_inprocess_hosts_give_identical_results(backend):
     remote = backend.factory("unit")
     try:
         local = assert_host_matches_inprocess(remote, "process", ITEMS[:120], CONFIG)
-        with pytest.raises(ZeroDivisionError):  # an error in a query reaches the caller; the host goes on
-            remote.query(lambda m: 1 / 0)
-        assert remote.query(model.stats) == local.query(model.stats)
+        with pytest.raises(InputError, match="unknown config section"):  # raised in the child, reaches the caller
+            remote.query(model.queries.BaseSnapshot({"nosuch": {}}))
+        with pytest.raises(InputError, match="unknown mapper query"):  # a function is refused before it is sent
+            remote.query(lambda m: m.to_bytes())  # type: ignore[arg-type]
+        assert remote.query(model.queries.Stats()) == local.query(model.queries.Stats())  # the host goes on
     finally:
         remote.close()
+
+
+def test_process_backend_answers_queries_without_cloudpickle(tmp_path):
+    """Queries are values the standard pickle carries: with cloudpickle made unimportable (in the
+    server and, through the environment, in its spawned mapper process) a process host still answers
+    every query the routes and the viewer make, as the in-process host does."""
+    (tmp_path / "cloudpickle.py").write_text('raise ImportError("cloudpickle is blocked in this test")\n')
+    root = Path(__file__).resolve().parents[1]
+    code = """
+import sys
+import numpy as np
+np.set_printoptions(threshold=sys.maxsize)  # repr compares whole arrays
+from hippomap import mapper_queries as mq
+from server.runtime import model
+from server.runtime.mapper_host import InProcessHost
+from server.runtime.process_host import ProcessBackend
+from tests.support.synthetic import decoded, synthetic_inputs
+try:
+    import cloudpickle  # noqa: F401
+    raise SystemExit("cloudpickle is importable")
+except ImportError:
+    pass
+config = model.effective_config({"mapper": {"keyframe_interval": 3}, "spatial": {"resolution_m": 0.004}})
+batch = list(enumerate(decoded(synthetic_inputs(n_odometry=240, frame_every=3))))
+backend = ProcessBackend(workers=1, max_batch=8)
+backend.start()
+try:
+    remote, local = backend.factory("s"), InProcessHost()
+    remote.restore(None, config)
+    local.restore(None, config)
+    assert [r.events for r in remote.process(batch)] == [r.events for r in local.process(batch)]
+    for q in (mq.Stats(), mq.Recognitions(), mq.RecognitionById(0), mq.LastInputTime(), mq.MapperState()):
+        assert remote.query(q) == local.query(q), q
+    for q in (mq.GraphArrays(information=True), mq.ViewerState(5)):
+        a, b = remote.query(q), local.query(q)
+        assert repr(a) == repr(b), q
+    assert model.loop_closures(remote.query(mq.LoopDecisions())) == model.loop_closures(local.query(mq.LoopDecisions()))
+    assert remote.query(mq.PlaceCellIteration()) is not None
+    assert "cloudpickle" not in sys.modules or sys.modules["cloudpickle"] is None
+finally:
+    backend.shutdown()
+print("ok")
+"""
+    res = subprocess.run([sys.executable, "-c", code], cwd=root, capture_output=True, text=True, timeout=240,
+                         env={**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), str(root)])})
+    assert res.returncode == 0 and res.stdout.strip().endswith("ok"), res.stdout + res.stderr
 
 
 def test_a_killed_mapper_process_is_reported_and_replaced(backend):

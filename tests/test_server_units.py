@@ -268,3 +268,23 @@ def test_odometry_record_roundtrip_is_exact():
     o = Odometry(0.1 + 0.2, v=1 / 3, omega=-2 / 7)
     assert odometry_from_bytes(odometry_bytes(o)) == o
     assert json.loads(odometry_bytes(o))["t"] == 0.1 + 0.2
+
+
+def test_the_worker_stores_each_event_under_the_input_that_caused_it(tmp_path):
+    """A key frame's assignment to its node (an event of the map, raised while the frame was observed)
+    is stored under that frame's sequence number, beside the key frame it assigns; every stored
+    event has its time in ``t``, and a query that is not one of the model's is refused."""
+    from server.runtime.mapper_host import InProcessHost
+    from tests.support.synthetic import synthetic_inputs
+    from tests.worker_harness import run_worker
+
+    items = synthetic_inputs(n_odometry=120, frame_every=3)
+    _, _, w, events, _ = run_worker(tmp_path, items, {"mapper": {"keyframe_interval": 3}},
+                                    lambda sid: InProcessHost())
+    learned = {e.data["frame"]: e.seq for e in events if e.type == "keyframe_learned"}
+    assigned = {e.data["frame"]: e.seq for e in events if e.type == "frame_assigned"}
+    assert learned and assigned == learned
+    assert all(items[seq][0] == "frame" for seq in learned.values())
+    assert all(e.t == e.data["t"] and isinstance(e.t, float) and "time" not in e.data for e in events)
+    with pytest.raises(InputError, match="unknown mapper query"):
+        w.query(lambda m: m.stats())  # type: ignore[arg-type]

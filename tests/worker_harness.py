@@ -7,6 +7,7 @@ import os
 import time
 from typing import Any
 
+from hippomap import mapper_queries as mq
 from server.formats.ingest import odometry_bytes
 from server.runtime import model
 from server.runtime.worker import SessionWorker, WorkItem
@@ -46,7 +47,7 @@ def run_worker(tmp_path, items: tuple, config: dict[str, Any], host_factory, kil
     while w.processed_seq < len(items) - 1 and w.error is None and time.monotonic() < deadline:
         time.sleep(0.02)
     assert w.error is None
-    state = {"graph": w.query(model.graph), "stats": w.query(model.stats)}
+    state = {"graph": model.graph(w.query(mq.GraphArrays())), "stats": w.query(mq.Stats())}
     w.stop(snapshot=True)
     events = store.query_events(sid, limit=100_000)
     fields = store.place_fields(sid, limit=100_000, with_data=True)
@@ -70,10 +71,14 @@ def assert_host_matches_inprocess(remote, kind: str, items: tuple, config_overri
     assert [r.seq for r in b] == list(range(len(values)))
     assert [(r.kind, r.t, r.events, r.field) for r in a] == [(r.kind, r.t, r.events, r.field) for r in b]
     assert any(r.field is not None for r in b) and any(r.events for r in b)
-    assert local.query(model.graph) == remote.query(model.graph)
-    assert remote.query(lambda m: model.trajectory(m, "map"))[0].tolist() == \
-        local.query(lambda m: model.trajectory(m, "map"))[0].tolist()
+    assert model.graph(local.query(mq.GraphArrays())) == model.graph(remote.query(mq.GraphArrays()))
+    for source in ("map", "odometry"):
+        (ta, pa), (tb, pb) = local.query(mq.Trajectory(source)), remote.query(mq.Trajectory(source))
+        assert ta.tolist() == tb.tolist() and pa.tolist() == pb.tolist()
+    assert local.query(mq.Recognitions()) == remote.query(mq.Recognitions())
+    assert [d.to_dict() for d in local.query(mq.LoopDecisions())] == \
+        [d.to_dict() for d in remote.query(mq.LoopDecisions())]
     again = InProcessHost()  # a snapshot taken remotely restores locally to the same mapper
     again.restore(remote.snapshot(), config)
-    assert again.query(model.stats) == local.query(model.stats)
+    assert again.query(mq.Stats()) == local.query(mq.Stats())
     return local

@@ -29,6 +29,7 @@ import numpy as np
 import viser
 
 from hippomap.cognitive_map import LoopDecision
+from hippomap.mapper_queries import MapperConfig, PlaceCellIteration, RecognitionById
 
 from .images import pair_panel, placeholder
 from .panels.camera import CameraPanel
@@ -222,8 +223,8 @@ class SessionViewer:
         return self._stop.is_set()
 
     def _decision_threshold(self) -> float:
-        value = self.source.read(lambda m: m.config.visual.decision_threshold)
-        return float(value) if value is not None else 0.9
+        config = self.source.read(MapperConfig())
+        return float(config.visual.decision_threshold) if config is not None else 0.9
 
     # ------------------------------------------------------------------ updates
     def update_graph(self) -> GraphUpdate | None:
@@ -233,7 +234,7 @@ class SessionViewer:
         with self._update_lock:
             t0 = time.perf_counter()
             cursor = self._cursor
-            snap = self.source.read(lambda m: take_snapshot(m, cursor))
+            snap = take_snapshot(self.source, cursor)
             if snap is None:
                 return None
             t1 = time.perf_counter()
@@ -325,7 +326,7 @@ class SessionViewer:
 
     def _record_place_cells(self):
         """The current step's place-cell iteration, recorded (None before the first odometry step)."""
-        return self.source.read(lambda m: m.pathway.record() if m.place_field is not None else None)
+        return self.source.read(PlaceCellIteration())
 
     def _select_loop(self, decision_id: int | None) -> None:
         """Panel callback: show a loop closure's frames and trace, and mark it in the scene."""
@@ -342,7 +343,7 @@ class SessionViewer:
         rid = d.hypothesis.meta.get("recognition")
         rec = None
         if rid is not None:
-            rec = self.source.read(lambda m: m.recognitions[rid] if 0 <= rid < len(m.recognitions) else None)
+            rec = self.source.read(RecognitionById(int(rid)))
         w = self.settings.thumbnail_width
         if rec is not None:
             query = self.source.frame_at(float(rec["t"]))

@@ -1,7 +1,7 @@
-"""A consistent copy of what the viewer draws, taken from a Mapper under the session's lock.
+"""A consistent copy of what the viewer draws, taken from a session's mapper between two inputs.
 
-:func:`take_snapshot` is the only code that touches a live :class:`~hippomap.mapper.Mapper`. It
-copies arrays and nothing else (a few hundred microseconds for a 50k-node map), so the worker
+:func:`take_snapshot` asks the session for one typed read, :class:`~hippomap.mapper_queries.ViewerState`,
+which copies arrays and nothing else (a few hundred microseconds for a 50k-node map), so the worker
 thread is held as briefly as possible; the viewer then builds geometry and images from the copy
 in its own thread.
 
@@ -22,9 +22,11 @@ import numpy as np
 
 from hippomap.cognitive_map import LoopDecision
 from hippomap.config import SpatialConfig
-from hippomap.grid_cells import RateTables
-from hippomap.mapper import Mapper
+from hippomap.grid_cells import GridCells, RateTables
+from hippomap.mapper_queries import MapView, ViewerState
 from hippomap.place_cells import PlaceCode
+
+from .source import SessionSource
 
 #: columns of a trajectory row: time, raw odometric pose, current node, robot offset from it
 TRAJ_T, TRAJ_RAW, TRAJ_NODE, TRAJ_OFFSET = 0, slice(1, 4), 4, slice(5, 8)
@@ -99,52 +101,35 @@ class MapSnapshot:
                 and np.array_equal(self.link_target, prev.link_target))
 
 
-def _trajectory_rows(mapper: Mapper, start: int) -> np.ndarray:
-    """Trajectory rows ``start:`` as a copy.
-
-    ``Mapper`` exposes the whole trajectory (``odometry_trajectory()``, ``corrected_trajectory()``)
-    but copying and re-composing every step five times a second would hold the worker; the rows
-    are append-only, so only the new ones are copied. Uses ``Mapper.trajectory_rows`` when the
-    Mapper offers it, else its private row store.
-    """
-    rows = getattr(mapper, "trajectory_rows", None)
-    if rows is not None:
-        return np.array(rows(start), dtype=float, copy=True)
-    return np.array(mapper._traj.view[start:], dtype=float, copy=True)  # noqa: SLF001 (see docstring)
-
-
-def take_snapshot(mapper: Mapper, cursor: Cursor = Cursor()) -> MapSnapshot:
-    """Copy what the viewer needs from ``mapper`` (call under the session lock)."""
-    cm = mapper.cmap
-    links = cm.links
-    start = cursor.trajectory
-    rows = _trajectory_rows(mapper, start)
-    total = start + len(rows)
-    if total < start or rows.shape[1:] != (8,):  # history shrank (should not happen): restart
-        rows = _trajectory_rows(mapper, 0)
-        start, total = 0, len(rows)
-    recs = mapper.recognitions
+def from_view(view: MapView) -> MapSnapshot:
+    """The viewer's snapshot of a :class:`~hippomap.mapper_queries.MapView` (the ``ViewerState``
+    answer). The grid cells' tables come from the model's shared cache for the view's spatial
+    config, not across the query: they are the same for every step, and large."""
     place = None
-    code = mapper.place_field
-    if code is not None and code.field is not None:
-        place = PlaceFieldView(code=code, tables=mapper.pathway.place_cells.tables,
-                               spatial=mapper.pathway.cfg,
-                               odometric_pose=np.asarray(mapper.pathway.pose, float),
-                               map_pose=np.asarray(cm.robot_pose, float))
+    if view.place_code is not None:
+        place = PlaceFieldView(code=view.place_code, tables=GridCells(view.spatial).tables, spatial=view.spatial,
+                               odometric_pose=view.odometric_pose, map_pose=view.robot_pose)
     return MapSnapshot(
-        node_poses=np.array(cm.poses, dtype=float, copy=True),
-        node_frames=np.array(cm.frames, dtype=np.int64, copy=True),
-        link_source=np.array(links["source"], dtype=np.int64, copy=True),
-        link_target=np.array(links["target"], dtype=np.int64, copy=True),
-        link_kind=np.array(links["kind_code"], dtype=np.int8, copy=True),
-        trajectory_start=start,
-        trajectory=rows,
-        trajectory_total=total,
-        current_node=int(cm.current),
-        robot_pose=np.asarray(cm.robot_pose, float),
-        decisions=tuple(cm.loop_decisions),
-        recognition_count=len(recs),
-        last_recognition=recs[-1] if recs else None,
+        node_poses=view.node_poses,
+        node_frames=view.node_frames,
+        link_source=view.link_source,
+        link_target=view.link_target,
+        link_kind=view.link_kind,
+        trajectory_start=view.trajectory_start,
+        trajectory=view.trajectory,
+        trajectory_total=view.trajectory_start + len(view.trajectory),
+        current_node=view.current_node,
+        robot_pose=view.robot_pose,
+        decisions=view.decisions,
+        recognition_count=view.recognition_count,
+        last_recognition=view.last_recognition,
         place_field=place,
-        stats=dict(mapper.stats()),
+        stats=view.stats,
     )
+
+
+def take_snapshot(source: SessionSource, cursor: Cursor = Cursor()) -> MapSnapshot | None:
+    """Copy what the viewer needs from ``source``'s mapper (one ``ViewerState`` query, answered
+    between two inputs); None while the session has no mapper."""
+    view = source.read(ViewerState(cursor.trajectory))
+    return None if view is None else from_view(view)

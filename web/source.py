@@ -1,9 +1,10 @@
 """What a session viewer reads: the :class:`SessionSource` interface, and an in-process session.
 
 A session's :class:`~hippomap.mapper.Mapper` is mutated by the session's worker thread. The viewer
-never holds it longer than a copy takes: :meth:`SessionSource.read` runs a function on the
-mapper under the session's lock, and the function only copies arrays (see :mod:`web.snapshot`);
-everything heavier (geometry, colour maps, JPEG) happens afterwards in the viewer's thread.
+never holds it longer than a copy takes: :meth:`SessionSource.read` answers a typed read
+(:mod:`hippomap.mapper_queries`) between two inputs, and every such read only copies (see
+:mod:`web.snapshot`); everything heavier (geometry, colour maps, JPEG) happens afterwards in the
+viewer's thread. A read is a value, not a function, so it reaches a mapper in another process too.
 
 The mapper keeps no camera images (the visual memory stores fovea patches only), so images come
 from the source too: the service reads them from its store (every frame it received is kept);
@@ -16,13 +17,15 @@ import threading
 import time
 from collections import OrderedDict
 from dataclasses import dataclass
-from typing import Any, Callable, Iterable, Protocol, TypeVar, runtime_checkable
+from typing import Any, Iterable, Protocol, TypeVar, runtime_checkable
 
 import numpy as np
 
 from hippomap.config import HippomapConfig
 from hippomap.inputs import Frame, Odometry
+from hippomap.map_events import KeyframeLearned, MapEvent, RecognitionMade
 from hippomap.mapper import Mapper
+from hippomap.mapper_queries import Query
 
 T = TypeVar("T")
 
@@ -50,8 +53,8 @@ class SessionSource(Protocol):
     def closed(self) -> bool:
         """True once the session is gone (its viewer is then closed)."""
 
-    def read(self, fn: Callable[[Mapper], T]) -> T | None:
-        """Run ``fn(mapper)`` under the lock the worker mutates the mapper under; ``fn`` only copies.
+    def read(self, query: Query[T]) -> T | None:
+        """The answer to ``query`` between two inputs of the session (queries only copy).
         None if the session has no mapper yet (e.g. while it is restored)."""
 
     def latest_frame(self) -> CameraImage | None:
@@ -163,11 +166,11 @@ class LocalSession:
     def close(self) -> None:
         self._closed = True
 
-    def read(self, fn: Callable[[Mapper], T]) -> T:
+    def read(self, query: Query[T]) -> T:
         with self.lock:
-            return fn(self.mapper)
+            return self.mapper.answer(query)
 
-    def step(self, odometry: Odometry, gt: tuple[float, float, float] | None = None) -> list[dict[str, Any]]:
+    def step(self, odometry: Odometry, gt: tuple[float, float, float] | None = None) -> list[MapEvent]:
         """Feed one odometry reading; ``gt`` (or the reading's own ``gt``, if it has one) is the true
         pose at its time, kept for the viewer (the mapper never sees it)."""
         self._received = time.monotonic()
@@ -190,16 +193,16 @@ class LocalSession:
         """Ground-truth rows ``start:`` (t, x, y, theta), or None if the session has none."""
         return self._ground_truth.since(start) if len(self._ground_truth) else None
 
-    def observe(self, frame: Frame) -> list[dict[str, Any]]:
+    def observe(self, frame: Frame) -> list[MapEvent]:
         self._received = time.monotonic()
         with self.lock:
             events = self.mapper.observe(frame)
         self._processed = time.monotonic()
         self._latest = CameraImage(frame.t, frame.image)
         for e in events:
-            if e.get("type") == "keyframe_learned":
-                self._keyframes.put(int(e["frame"]), frame.image)
-            elif e.get("type") == "recognition":
+            if isinstance(e, KeyframeLearned):
+                self._keyframes.put(int(e.frame), frame.image)
+            elif isinstance(e, RecognitionMade):
                 self._queries.put(float(frame.t), frame.image)
         return events
 

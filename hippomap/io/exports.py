@@ -72,16 +72,10 @@ def link_transforms(d: Any, heading: Any, facing: Any) -> np.ndarray:
 
 
 def link_information(cmap: Any) -> np.ndarray:
-    """(M, 3) diagonal information (x, y, θ) the map gives each link when it solves: the
-    solver's weights (:meth:`~hippomap.cognitive_map.CognitiveMap.link_information`:
-    odometric links ``odometry_information_per_m`` over their length, loop links their own
-    information; unit information when ``lsq_weighted`` is off) times each link's robust
-    weight (:meth:`~hippomap.cognitive_map.CognitiveMap.link_weights`: a faded loop link
-    counts for little). This is what :func:`write_g2o` writes on each edge."""
-    m = len(cmap.links["source"])
-    weighted = getattr(cmap.cfg, "lsq_weighted", True)
-    info = np.asarray(cmap.link_information(), dtype=float) if weighted else np.ones((m, 3))
-    return info * np.asarray(cmap.link_weights(), dtype=float)[:, None]
+    """(M, 3) diagonal information (x, y, θ) the map gives each link when it solves, times its
+    robust weight (:meth:`~hippomap.cognitive_map.CognitiveMap.weighted_link_information`). This
+    is what :func:`write_g2o` writes on each edge."""
+    return np.asarray(cmap.weighted_link_information(), dtype=float)
 
 
 def write_g2o(path: str | Path, poses: Any, sources: Any, targets: Any, transforms: Any,

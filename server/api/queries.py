@@ -10,6 +10,8 @@ from typing import Annotated, Any, Literal
 from fastapi import APIRouter, HTTPException, Path, Query, Request
 from fastapi.responses import PlainTextResponse, Response
 
+from hippomap import mapper_queries as mq
+
 from ..formats import views
 from ..formats.schemas import Event, LoopClosure, MapGraph, PlaceField, PlaceFieldInfo, RecognitionInfo
 from ..runtime import model
@@ -30,8 +32,9 @@ def _not_found(what: str) -> HTTPException:
     return HTTPException(404, f"{what} not found")
 
 
-async def _query(live: LiveSession, fn: Any) -> Any:
-    return await asyncio.to_thread(live.worker.query, fn)
+async def _query(live: LiveSession, query: mq.Query[Any]) -> Any:
+    """The answer to a typed mapper query (None while the session is first restored)."""
+    return await asyncio.to_thread(live.worker.query, query)
 
 
 def _binary(media: str) -> dict[int | str, dict[str, Any]]:
@@ -41,12 +44,12 @@ def _binary(media: str) -> dict[int | str, dict[str, Any]]:
 # ---------------------------------------------------------------------- map
 @router.get("/map", response_model=MapGraph, responses=deps.ERRORS, summary="The cognitive map: nodes and links")
 async def get_map(live: deps.ReadSession) -> Any:
-    g = await _query(live, model.graph)
-    return model.json_safe(g) if g is not None else {"nodes": [], "links": []}
+    arrays = await _query(live, mq.GraphArrays())
+    return model.json_safe(model.graph(arrays)) if arrays is not None else {"nodes": [], "links": []}
 
 
 async def _arrays(live: LiveSession) -> dict[str, Any]:
-    arrays = await _query(live, model.graph_arrays)
+    arrays = await _query(live, mq.GraphArrays())
     if arrays is None:
         raise HTTPException(503, "the session is still loading")
     return arrays
@@ -60,17 +63,11 @@ async def get_map_graphml(live: deps.ReadSession) -> Response:
                     headers={"Content-Disposition": f'attachment; filename="{live.id}.graphml"'})
 
 
-def _g2o_arrays(m: Any) -> dict[str, Any]:
-    from hippomap.io.exports import link_information
-
-    return {**model.graph_arrays(m), "information": link_information(m.cmap)}
-
-
 @router.get("/map.g2o", response_class=PlainTextResponse, responses=_binary("text/plain"),
             summary="The map as a g2o pose graph (VERTEX_SE2 / EDGE_SE2), each edge with the information the map "
                     "gives its link (odometric: by length; loop: its information x robust weight)")
 async def get_map_g2o(live: deps.ReadSession) -> Response:
-    arrays = await _query(live, _g2o_arrays)
+    arrays = await _query(live, mq.GraphArrays(information=True))
     if arrays is None:
         raise HTTPException(503, "the session is still loading")
     text = await asyncio.to_thread(views.g2o, arrays)
@@ -86,7 +83,7 @@ async def get_trajectory_tum(live: deps.ReadSession,
     if source == "groundtruth":
         res = await asyncio.to_thread(exports.groundtruth, live)
     else:
-        res = await _query(live, lambda m: model.trajectory(m, source))
+        res = await _query(live, mq.Trajectory(source))
     text = "" if res is None else await asyncio.to_thread(views.tum, *res)
     return PlainTextResponse(text, headers={"Content-Disposition": f'attachment; filename="{live.id}-{source}.tum"'})
 
@@ -97,7 +94,8 @@ async def get_trajectory_tum(live: deps.ReadSession,
 async def get_loop_closures(live: deps.ReadSession, request: Request, since_id: SinceId = -1, t_min: TMin = None,
                             t_max: TMax = None, limit: Limit = 1000,
                             status: Literal["accepted", "rejected", "pending"] | None = None) -> Any:
-    rows = await _query(live, model.loop_closures) or []
+    decisions = await _query(live, mq.LoopDecisions())
+    rows = model.loop_closures(decisions) if decisions is not None else []
     base = str(request.base_url).rstrip("/") + f"/sessions/{live.id}/saccades/"
     out = []
     for r in rows:
@@ -116,7 +114,7 @@ async def get_loop_closures(live: deps.ReadSession, request: Request, since_id: 
             summary="Visual recognitions (one per checked key frame), newest last")
 async def get_recognitions(live: deps.ReadSession, request: Request, since_id: SinceId = -1,
                            limit: Limit = 1000) -> Any:
-    recs = await _query(live, lambda m: model.recognitions(m, since_id, limit)) or []
+    recs = model.json_safe(await _query(live, mq.Recognitions(since_id, limit)) or [])
     base = str(request.base_url).rstrip("/") + f"/sessions/{live.id}/saccades/"
     return [{"id": r["id"], "t": r.get("t"), "node": r.get("node"), "accepted": r.get("accepted"),
              "frame_id": r.get("frame_id"), "evidence": r.get("evidence"), "n_fixations": r.get("n_fixations"),
@@ -129,10 +127,10 @@ RecId = Annotated[int, Path(ge=0, le=MAX_ID, description="recognition id")]
 @router.get("/saccades/{recognition_id}", responses=deps.ERRORS,
             summary="A recognition's saccade trace: every fixation, prediction, outcome and the evidence after it")
 async def get_saccades(live: deps.ReadSession, recognition_id: RecId) -> dict[str, Any]:
-    rec = await _query(live, lambda m: model.recognition(m, recognition_id))
+    rec = await _query(live, mq.RecognitionById(recognition_id))
     if rec is None:
         raise _not_found(f"recognition {recognition_id}")
-    return rec
+    return model.json_safe(rec)
 
 
 @router.get("/saccades/{recognition_id}/image", response_class=Response, responses=_binary("image/jpeg"),
@@ -140,9 +138,10 @@ async def get_saccades(live: deps.ReadSession, recognition_id: RecId) -> dict[st
 async def get_saccade_image(live: deps.ReadSession, recognition_id: RecId,
                             attempt: str = Query("last", pattern=r"^(last|all|\d{1,4})$",
                                                  description="'last', 'all' or an attempt number")) -> Response:
-    rec = await _query(live, lambda m: model.recognition(m, recognition_id))
+    rec = await _query(live, mq.RecognitionById(recognition_id))
     if rec is None:
         raise _not_found(f"recognition {recognition_id}")
+    rec = model.json_safe(rec)
     frame = await asyncio.to_thread(live.store.frame_at, live.id, float(rec["t"]))
     if frame is None:
         raise _not_found(f"the frame of recognition {recognition_id}")

@@ -21,6 +21,7 @@ from pydantic import ConfigDict, Field
 
 from ..formats.ingest import IngestError
 from ..formats.schemas import SessionDetail, _In
+from ..runtime import model
 from ..runtime.sessions import Forbidden
 from . import deps
 from .sessions import _info, _links
@@ -54,15 +55,11 @@ async def merge_sessions(body: MergeRequest, live: deps.ReadSession, request: Re
             "links": _links(request, merged.id)}
 
 
-def _snapshot(mapper: Any) -> bytes:
-    return mapper.to_bytes()
-
-
 @router.get("/{session_id}/snapshot", responses={**deps.ERRORS, 200: {"content": {"application/octet-stream": {}},
             "description": "the mapper state (npz of arrays and a JSON header)"}},
             summary="The session's mapper state, for `hippomap run --base-map`", response_class=Response)
 async def session_snapshot(live: deps.ReadSession) -> Response:
-    data = await asyncio.to_thread(live.worker.query, _snapshot)
+    data = await asyncio.to_thread(live.worker.query, model.queries.MapperState())
     if data is None:
         raise HTTPException(503, f"session {live.id} is being restored; retry shortly", headers={"Retry-After": "1"})
     return Response(data, media_type="application/octet-stream",

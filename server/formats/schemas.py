@@ -137,11 +137,14 @@ class MapGraph(BaseModel):
 
 
 class Event(BaseModel):
+    """One event of the session (``hippomap.map_events``), stored under the input that caused it."""
+
     id: int = Field(description="event number in the session, from 0")
     seq: int = Field(description="the input that caused it")
-    type: str
-    t: float | None
-    data: dict[str, Any]
+    type: str = Field(description="what happened: node_created, loop_accepted, recognition, keyframe_learned, ...")
+    t: float | None = Field(description="the event's time, s (its data's 't'; null if not finite)")
+    data: dict[str, Any] = Field(description="the event's fields, the same for every event type: 'type', the "
+                                             "time 't', then its own fields")
 
 
 class LoopClosure(BaseModel):

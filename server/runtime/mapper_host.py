@@ -5,11 +5,13 @@ which inputs to feed, in which order, the derived records and snapshots it write
 store, restore and replay — and talks to the mapper only through a host:
 
 * :meth:`MapperHost.restore` — load a snapshot (or start a fresh mapper from the config);
-* :meth:`MapperHost.process` — feed a batch of inputs in order; per input, the JSON-ready
-  events, the place-field blob of an odometry step whose field changed, and the seconds the
-  mapper spent (measured where the mapper runs);
+* :meth:`MapperHost.process` — feed a batch of inputs in order; per input, the events it caused
+  (``MapEvent.to_dict``, JSON-ready: one schema, one time key ``t``), the place-field blob of an
+  odometry step whose field changed, and the seconds the mapper spent (measured where the mapper
+  runs);
 * :meth:`MapperHost.snapshot` — the mapper state as bytes (``Mapper.to_bytes``);
-* :meth:`MapperHost.query` — ``fn(mapper)`` between two inputs (None before a restore);
+* :meth:`MapperHost.query` — the answer to a typed read (a :mod:`hippomap.mapper_queries` value,
+  picklable by the standard library) between two inputs (None before a restore);
 * :meth:`MapperHost.close`.
 
 Two implementations: :class:`InProcessHost` (the mapper in the server process; the default)
@@ -26,18 +28,21 @@ import logging
 import threading
 import time
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any, Callable, TypeVar
 
 from hippomap.config import HippomapConfig
 from hippomap.errors import InputError
 from hippomap.inputs import Frame, Odometry
+from hippomap.map_events import InputFailed, InputRejected, MapEvent
 
 from . import model
 
 log = logging.getLogger("hippomap.server")
 
 #: event type of an input the mapper raised on (recorded, skipped; the session goes on)
-INPUT_FAILED = "input_failed"
+INPUT_FAILED = InputFailed.type
+
+T = TypeVar("T")
 
 
 class HostDied(RuntimeError):
@@ -46,7 +51,7 @@ class HostDied(RuntimeError):
 
 @dataclass(frozen=True)
 class StepResult:
-    """What one input produced: ``events`` (JSON-ready dicts), ``field`` (place-field blob of an
+    """What one input produced: ``events`` (``MapEvent.to_dict``, JSON-ready), ``field`` (place-field blob of an
     odometry step whose place field changed, else None) and ``seconds`` of mapper time."""
 
     seq: int
@@ -77,7 +82,9 @@ class MapperHost(abc.ABC):
     def snapshot(self) -> bytes: ...
 
     @abc.abstractmethod
-    def query(self, fn: Callable[[Any], Any]) -> Any: ...
+    def query(self, query: model.queries.Query[T]) -> T | None:
+        """The answer to ``query`` between two inputs (None before a restore); InputError for a
+        value that is not one of the model's queries."""
 
     def info(self) -> dict[str, Any]:
         """Where the mapper runs (shown in the session's stats)."""
@@ -150,15 +157,16 @@ class InProcessHost(MapperHost):
         odometry = isinstance(value, Odometry)
         with self.lock:
             t0 = time.perf_counter()
+            events: list[MapEvent]
             try:
                 events = self.mapper.step(value) if isinstance(value, Odometry) else self.mapper.observe(value)
             except InputError as exc:  # validated at ingest, so only a model-side rule can get here
-                events = [{"type": "input_rejected", "t": value.t, "seq": seq, "detail": str(exc)}]
+                events = [InputRejected(value.t, seq, str(exc))]
             except Exception as exc:  # noqa: BLE001 - an input the model cannot take must not stop the session
                 # (deterministic: a replay of the same inputs fails, and is skipped, the same way)
                 log.exception("input seq %d (t=%r) failed in the mapper (skipped): %s: %s", seq, value.t,
                               type(exc).__name__, exc)
-                events = [{"type": INPUT_FAILED, "t": value.t, "seq": seq, "detail": f"{type(exc).__name__}: {exc}"}]
+                events = [InputFailed(value.t, seq, f"{type(exc).__name__}: {exc}")]
             seconds = time.perf_counter() - t0
             field = self.mapper.place_field if odometry else None
         blob = None
@@ -167,7 +175,7 @@ class InProcessHost(MapperHost):
                 blob = model.place_field_blob(field)
             self._last_field = field
         return StepResult(seq, "odometry" if odometry else "frame", float(value.t),
-                          [model.json_safe(ev) for ev in events], blob, seconds)
+                          [model.event_dict(ev) for ev in events], blob, seconds)
 
     def snapshot(self) -> bytes:
         with self.lock:
@@ -175,11 +183,12 @@ class InProcessHost(MapperHost):
                 raise RuntimeError("snapshot() before restore()")
             return self.mapper.to_bytes()
 
-    def query(self, fn: Callable[[Any], Any]) -> Any:
+    def query(self, query: model.queries.Query[T]) -> T | None:
+        model.queries.check_query(query)
         with self.lock:
             if self.mapper is None:
                 return None
-            return fn(self.mapper)
+            return self.mapper.answer(query)
 
     def close(self) -> None:
         with self.lock:

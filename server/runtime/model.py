@@ -1,9 +1,11 @@
 """The server's only window on the model: create, restore and query a session's mapper.
 
 Everything the server needs from :class:`hippomap.mapper.Mapper` goes through this module,
-so the sessions, the worker and the routes see a small interface (:class:`MapperPort` plus
-the query functions below) and a change in the model touches one file. No model logic
-lives here: only calls and conversions to plain, JSON-ready data.
+so the sessions, the worker and the routes see a small interface (:class:`MapperPort`) and a
+change in the model touches one file. Reads are typed query values
+(:mod:`hippomap.mapper_queries`, re-exported here as ``model.queries``) that the worker hands
+to the session's host, wherever the mapper runs; the functions below turn their answers into
+plain, JSON-ready data. No model logic lives here.
 """
 
 from __future__ import annotations
@@ -11,22 +13,36 @@ from __future__ import annotations
 import json
 import math
 import struct
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol, TypeVar
 
 import numpy as np
 
+from hippomap import mapper_queries as queries
 from hippomap.config import HippomapConfig
 from hippomap.inputs import Frame, Odometry
+from hippomap.loop_closure import LoopDecision
+from hippomap.map_events import MapEvent
+
+if TYPE_CHECKING:
+    from hippomap.place_cells import PlaceCode
+
+__all__ = ["MapperPort", "queries", "effective_config", "new_mapper", "load_mapper", "follows", "check_frame",
+           "graph", "loop_closures", "draw_saccades", "place_field_blob", "place_field_from_blob",
+           "place_field_dense", "json_safe", "event_dict"]
+
+T = TypeVar("T")
 
 
 class MapperPort(Protocol):
-    """What the session worker uses of a mapper."""
+    """What the session's host uses of a mapper: inputs in, typed events out, typed reads, bytes."""
 
-    place_field: Any  # the latest PlaceCode (with its field), or None
+    place_field: "PlaceCode | None"  # the latest place code (with its field), or None
 
-    def step(self, odometry: Odometry) -> list[dict[str, Any]]: ...
+    def step(self, odometry: Odometry) -> list[MapEvent]: ...
 
-    def observe(self, frame: Frame) -> list[dict[str, Any]]: ...
+    def observe(self, frame: Frame) -> list[MapEvent]: ...
+
+    def answer(self, query: queries.Query[T]) -> T: ...
 
     def to_bytes(self) -> bytes: ...
 
@@ -65,46 +81,24 @@ def check_frame(config: HippomapConfig, frame: Frame) -> None:
     prepare_image(frame.image, config.visual, name=f"frame at t={frame.t}")
 
 
-def stats(m: MapperPort) -> dict[str, Any]:
-    return _finite(m.stats())
-
-
-# ------------------------------------------------------------------ the map
-def graph(m: Any) -> dict[str, Any]:
-    """Nodes and links as JSON (``hippomap.io.exports.graph_dict``)."""
+# ------------------------------------------------------------- query answers
+def graph(arrays: dict[str, np.ndarray]) -> dict[str, Any]:
+    """Nodes and links as JSON (``hippomap.io.exports.graph_dict``) from a ``GraphArrays`` answer."""
     from hippomap.io.exports import graph_dict
 
-    cm = m.cmap
-    links = cm.links
-    codes = np.asarray(cm.place_codes, dtype=float).reshape(-1, 3)
+    codes = np.asarray(arrays["place_codes"], dtype=float).reshape(-1, 3)
     known = np.isfinite(codes).all(axis=1)  # a node made before the first odometry step has no place code yet
-    g = graph_dict(cm.poses, np.where(known[:, None], codes, 0.0), cm.frames, cm.times, links["source"],
-                   links["target"], links["transform"], links["kind"])
+    g = graph_dict(arrays["poses"], np.where(known[:, None], codes, 0.0), arrays["frames"], arrays["times"],
+                   arrays["source"], arrays["target"], arrays["transform"], arrays["kind"])
     for i in np.flatnonzero(~known):
         g["nodes"][i]["place_code"] = None
     return g
 
 
-def graph_arrays(m: Any) -> dict[str, np.ndarray]:
-    """Copies of the map's arrays: poses, place_codes, frames, times; link source/target/transform/kind."""
-    cm = m.cmap
-    links = cm.links
-    return {"poses": np.array(cm.poses), "place_codes": np.array(cm.place_codes), "frames": np.array(cm.frames),
-            "times": np.array(cm.times), "source": np.array(links["source"]), "target": np.array(links["target"]),
-            "transform": np.array(links["transform"]), "kind": np.array(links["kind"])}
-
-
-def trajectory(m: Any, source: str) -> tuple[np.ndarray, np.ndarray]:
-    """``(times, (N, 3) poses)`` of every odometry step: on the corrected map or raw odometry."""
-    poses = m.corrected_trajectory() if source == "map" else m.odometry_trajectory()
-    return m.trajectory_times, poses
-
-
-# ------------------------------------------------------------ loop closures
-def loop_closures(m: Any) -> list[dict[str, Any]]:
-    """Every loop decision (latest status), JSON-ready, with the recognition behind it."""
+def loop_closures(decisions: tuple[LoopDecision, ...]) -> list[dict[str, Any]]:
+    """Every loop decision of a ``LoopDecisions`` answer, JSON-ready, with the recognition behind it."""
     out = []
-    for d in m.cmap.loop_decisions:
+    for d in decisions:
         row = _finite(d.to_dict())
         h = row["hypothesis"]
         meta = h.get("meta") or {}
@@ -112,15 +106,6 @@ def loop_closures(m: Any) -> list[dict[str, Any]]:
                     "nodes": [row.get("from_node"), h.get("node")], "evidence": h.get("evidence"),
                     "source": h.get("source"), "recognition": meta.get("recognition"), "decision": row})
     return out
-
-
-def recognition(m: Any, rid: int) -> dict[str, Any] | None:
-    recs = m.recognitions
-    return _finite(recs[rid]) if 0 <= rid < len(recs) else None
-
-
-def recognitions(m: Any, since_id: int, limit: int) -> list[dict[str, Any]]:
-    return [_finite(r) for r in m.recognitions[max(since_id + 1, 0): max(since_id + 1, 0) + limit]]
 
 
 def draw_saccades(image: np.ndarray, rec: dict[str, Any], attempt: Any = "last") -> np.ndarray:
@@ -185,3 +170,8 @@ def _finite(obj: Any) -> Any:
 
 
 json_safe = _finite
+
+
+def event_dict(event: MapEvent) -> dict[str, Any]:
+    """An event as the store and the REST API keep it: ``MapEvent.to_dict``, JSON-safe."""
+    return _finite(event.to_dict())

@@ -11,7 +11,8 @@ batches (``host.max_batch``) over a pipe.
 A child runs :class:`~server.runtime.mapper_host.InProcessHost` objects, one per session, so the mapper
 logic is the same code as the in-process backend. Requests to one child are served one at a
 time (a query waits for the batch being processed: between two batches, never inside one).
-Query functions may be lambdas: they are pickled with ``cloudpickle``. A child that dies (killed,
+Queries are typed values (:mod:`hippomap.mapper_queries`), checked before they are sent and
+pickled by the standard library like every request. A child that dies (killed,
 out of memory) surfaces as :class:`~server.runtime.mapper_host.HostDied` on its sessions' next call; the
 next host made for one of them starts a new child, and the worker restores the session from the
 store (snapshot + replay), as for a dead Ray actor.
@@ -24,12 +25,15 @@ import multiprocessing as mp
 import os
 import pickle
 import threading
-from typing import Any, Callable
+from typing import Any, TypeVar
 
 from hippomap.config import HippomapConfig
 from hippomap.inputs import Frame, Odometry
 
+from . import model
 from .mapper_host import HostDied, InProcessHost, MapperHost, StepResult
+
+T = TypeVar("T")
 
 log = logging.getLogger("hippomap.server")
 
@@ -37,8 +41,6 @@ log = logging.getLogger("hippomap.server")
 def _child_main(conn: Any) -> None:
     """A child's loop: ``(op, session, args)`` requests in, ``("ok", result)`` / ``("err", exc)`` out."""
     import signal
-
-    import cloudpickle
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the server ends its children (Ctrl-C reaches the whole group)
     hosts: dict[str, InProcessHost] = {}
@@ -61,7 +63,7 @@ def _child_main(conn: Any) -> None:
                 res = hosts[sid].snapshot()
             elif op == "query":
                 host = hosts.get(sid)
-                res = None if host is None else host.query(cloudpickle.loads(args))
+                res = None if host is None else host.query(args)
             elif op == "close":
                 host = hosts.pop(sid, None)
                 if host is not None:
@@ -143,10 +145,9 @@ class ProcessHost(MapperHost):
     def snapshot(self) -> bytes:
         return self._call("snapshot")
 
-    def query(self, fn: Callable[[Any], Any]) -> Any:
-        import cloudpickle
-
-        return self._call("query", cloudpickle.dumps(fn))
+    def query(self, query: model.queries.Query[T]) -> T | None:
+        model.queries.check_query(query)  # refused here, before it is sent
+        return self._call("query", query)
 
     def info(self) -> dict[str, Any]:
         return {"kind": "process", "pid": self.child.proc.pid}

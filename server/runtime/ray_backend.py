@@ -32,13 +32,16 @@ import signal
 import sys
 import threading
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any, Iterator, TypeVar
 
 from hippomap.config import HippomapConfig
 from hippomap.inputs import Frame, Odometry
 
 from ..settings import ServerSettings
+from . import model
 from .mapper_host import HostDied, InProcessHost, MapperHost, StepResult
+
+T = TypeVar("T")
 
 log = logging.getLogger("hippomap.server")
 
@@ -83,8 +86,8 @@ class MapperActor:
     def snapshot(self) -> bytes:
         return self.host.snapshot()
 
-    def query(self, fn: Callable[[Any], Any]) -> Any:
-        return self.host.query(fn)
+    def query(self, query: model.queries.Query[T]) -> T | None:
+        return self.host.query(query)
 
     def info(self) -> dict[str, Any]:
         import ray
@@ -126,8 +129,9 @@ class RayHost(MapperHost):
     def snapshot(self) -> bytes:
         return self._call("snapshot")
 
-    def query(self, fn: Callable[[Any], Any]) -> Any:
-        return self._call("query", fn)
+    def query(self, query: model.queries.Query[T]) -> T | None:
+        model.queries.check_query(query)  # refused here, before it is sent
+        return self._call("query", query)
 
     def info(self) -> dict[str, Any]:
         return dict(self._info)

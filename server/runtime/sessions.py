@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import asyncio
 import ctypes
-import functools
 import gc
 import json
 import logging
@@ -60,12 +59,6 @@ def exit_process(code: int) -> None:
     """End the process at once (no graceful shutdown: it would wait for writes that cannot happen)."""
     logging.shutdown()
     os._exit(code)
-
-
-def based_snapshot(mapper: Any, overrides: dict[str, Any]) -> bytes:
-    """Run in a session's mapper host: the state of a new run in a copy of its map
-    (``Mapper.from_base``, which only reads the mapper) with config ``overrides``."""
-    return type(mapper).from_base(mapper, overrides).to_bytes()
 
 
 class NotFound(Exception):
@@ -282,7 +275,7 @@ class LiveSession:
     # ---------------------------------------------------------------- state
     def stats(self) -> dict[str, Any]:
         w = self.worker
-        mapper_stats = w.query(model.stats) or {}
+        mapper_stats = model.json_safe(w.query(model.queries.Stats()) or {})
         return {
             "session": self.id,
             "inputs_stored": self.stored_seq + 1,
@@ -533,7 +526,7 @@ class SessionManager:
         if base.error:
             raise IngestError(409, f"base session {base.id} has failed: {base.error}")
         try:
-            data = await asyncio.to_thread(base.worker.query, functools.partial(based_snapshot, overrides=overrides))
+            data = await asyncio.to_thread(base.worker.query, model.queries.BaseSnapshot(overrides))
         except InputError as exc:  # the model's refusal, e.g. a base whose own run was never placed on its map
             raise IngestError(409, f"session {base.id} cannot be a base map: {exc}") from None
         if data is None:

@@ -24,8 +24,13 @@ Lifecycle of a worker:
    mapper only after it was durable, so the store has them all). ``restarts`` counts this;
    after ``backend_max_restarts`` deaths without progress the session stops with an error.
 
-Queries (:meth:`SessionWorker.query`) run ``fn(mapper)`` between two inputs; while a dead
-host is being replaced they wait, so they never see a mapper older than ``processed_seq``.
+Queries (:meth:`SessionWorker.query`) are typed values (:mod:`hippomap.mapper_queries`) the host
+answers between two inputs; while a dead host is being replaced they wait, so they never see a
+mapper older than ``processed_seq``.
+
+Events: an input's events are the ones the mapper's call on it returned (the map's events
+included, e.g. a loop closed while a frame was observed), so each is stored under the sequence
+number of the input that caused it, with its one time key ``t``.
 """
 
 from __future__ import annotations
@@ -35,7 +40,7 @@ import queue
 import threading
 import time
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any, Callable, TypeVar
 
 from hippomap.config import HippomapConfig
 from hippomap.inputs import Frame, Odometry
@@ -43,6 +48,7 @@ from hippomap.inputs import Frame, Odometry
 from ..formats.ingest import frame_from_bytes, odometry_from_bytes
 from ..settings import ServerSettings
 from ..storage.store import EventRecord, PlaceFieldRecord, Store
+from . import model
 from .mapper_host import INPUT_FAILED, HostDied, HostFactory, MapperHost, StepResult, inprocess_factory
 
 log = logging.getLogger("hippomap.server")
@@ -51,6 +57,8 @@ REPLAY_CHUNK = 256
 DERIVED_FLUSH = 256
 BATCH_BYTES = 16 << 20  # most image bytes handed to a host in one call
 QUERY_WAIT_S = 120.0  # longest a query waits for a dead host to be replaced
+
+T = TypeVar("T")
 
 
 @dataclass(frozen=True)
@@ -316,15 +324,14 @@ class SessionWorker:
                 if r.field is not None:
                     self._fields.append(PlaceFieldRecord(step=self._next_step, seq=r.seq, t=r.t, data=r.field))
                 self._next_step += 1
-            for ev in r.events:
-                if ev.get("type") == INPUT_FAILED and r.seq > self._reported:
+            for ev in r.events:  # MapEvent.to_dict: "type", the time "t" (None if not finite), the fields
+                etype = ev["type"]
+                if etype == INPUT_FAILED and r.seq > self._reported:
                     self.input_errors += 1
-                    self.last_input_error = f"seq {r.seq}: {ev.get('detail')}"
-                t = ev.get("t", ev.get("time"))
-                ref = ev.get("id") if isinstance(ev.get("id"), int) else None
-                etype = str(ev.get("type", "event"))
-                self._events.append(EventRecord(id=self._next_event, seq=r.seq, type=etype,
-                                                t=t if isinstance(t, (int, float)) else None, data=ev, ref=ref))
+                    self.last_input_error = f"seq {r.seq}: {ev['detail']}"
+                ref = ev.get("id") if isinstance(ev.get("id"), int) else None  # recognition, loop decision
+                self._events.append(EventRecord(id=self._next_event, seq=r.seq, type=etype, t=ev["t"], data=ev,
+                                                ref=ref))
                 self._next_event += 1
             self._host_seq = r.seq
             self.processed_seq = max(self.processed_seq, r.seq)
@@ -332,7 +339,7 @@ class SessionWorker:
                 self._flush_derived()
             if r.seq > self._reported:  # a live input, processed for the first time (a replayed one was counted
                 self._reported = r.seq  # then, or before this server started)
-                loops += sum(1 for ev in r.events if ev.get("type") == "loop_accepted")
+                loops += sum(1 for ev in r.events if ev["type"] == "loop_accepted")
                 if self.metrics is not None:
                     self.metrics.step_observed(self.session_id, r.kind, r.seconds)
                 if self.on_processed is not None:
@@ -372,9 +379,11 @@ class SessionWorker:
         self._snapshot_t = time.monotonic()
 
     # --------------------------------------------------------------- queries
-    def query(self, fn: Callable[[Any], Any]) -> Any:
-        """``fn(mapper)`` between two inputs (call from a thread, not the event loop); None while the
-        session is first restored. ``fn`` may be a lambda: a remote host pickles it (cloudpickle)."""
+    def query(self, query: model.queries.Query[T]) -> T | None:
+        """The answer to ``query`` (a :mod:`hippomap.mapper_queries` value) between two inputs (call
+        from a thread, not the event loop); None while the session is first restored. InputError
+        for anything that is not one of the model's queries, before any host sees it."""
+        model.queries.check_query(query)
         for _ in range(2):
             if not self._serving.wait(QUERY_WAIT_S):
                 return None
@@ -383,7 +392,7 @@ class SessionWorker:
             if host is None:
                 return None
             try:
-                return host.query(fn)
+                return host.query(query)
             except HostDied:
                 self._inbox.put(_Recover(gen))  # the worker may be idle: make it replace the host now
                 with self._cond:

@@ -1,7 +1,7 @@
 """What a session fed some inputs must report, and what it does report, in the same shape.
 
-:func:`offline_reference` runs the same mapper in-process through the service's own query
-functions; :func:`session_state` asks a live server (through the Python client). The service
+:func:`offline_reference` runs the same mapper in-process through the service's own queries
+and converters; :func:`session_state` asks a live server (through the Python client). The service
 tests compare the two.
 """
 
@@ -23,9 +23,10 @@ def offline_reference(items: tuple, overrides: dict[str, Any] | None = None) -> 
     m = model.new_mapper(model.effective_config(overrides))
     for value in decoded(items):
         (m.step if isinstance(value, _Odo) else m.observe)(value)
-    out = {"map": model.graph(m), "stats": model.stats(m),
-           "loop_closures": [r["decision"] for r in model.loop_closures(m)],
-           "recognitions": model.recognitions(m, -1, 10**9)}
+    q = model.queries
+    out = {"map": model.graph(m.answer(q.GraphArrays())), "stats": m.answer(q.Stats()),
+           "loop_closures": [r["decision"] for r in model.loop_closures(m.answer(q.LoopDecisions()))],
+           "recognitions": m.answer(q.Recognitions(-1, 10**9))}
     return json.loads(json.dumps(model.json_safe(out)))
 
 
