@@ -378,14 +378,19 @@ def group_order(n_groups: int, a: np.ndarray, b: np.ndarray, keep: np.ndarray) -
     cols = np.concatenate([pb, pa, np.arange(nk)])
     vals = np.concatenate([-np.ones(2 * len(pa)), deg + 1.0])
     C = sp.csc_matrix((vals, (rows, cols)), shape=(nk, nk))
-    lu = spla.splu(C, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+    lu = spla.splu(C, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, relax=1, panel_size=1,
+                   options={"SymmetricMode": True})
     return kept[np.argsort(lu.perm_c, kind="stable")]
 
 
 def _spd_factor(A: sp.spmatrix):
     """Sparse LU of a symmetric positive definite matrix whose rows and columns are already in a
-    fill-reducing order (:func:`group_order`): symmetric mode, no pivoting, no re-ordering."""
-    return spla.splu(sp.csc_matrix(A), permc_spec="NATURAL", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+    fill-reducing order (:func:`group_order`): symmetric mode, no pivoting, no re-ordering, and
+    no relaxed supernodes or panels (``relax=1, panel_size=1``): a pose graph's factor has only
+    small supernodes, and SuperLU's defaults made the factorisation of a 400-node map 1.7 × slower
+    (0.73 vs 0.44 ms CPU, same fill)."""
+    return spla.splu(sp.csc_matrix(A), permc_spec="NATURAL", diag_pivot_thresh=0.0, relax=1, panel_size=1,
+                     options={"SymmetricMode": True})
 
 
 def _normal_pattern(col: np.ndarray, src: np.ndarray, dst: np.ndarray, bias_col: int, damp: np.ndarray):
