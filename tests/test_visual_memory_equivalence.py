@@ -2,10 +2,11 @@
 
 :class:`ReferenceMemory` keeps, in this file, the plain implementation of every part the fast code
 replaces: the FLC drive as one ``np.take`` over freshly gathered patches for every fixation, the
-saccade vector decoded from the two grid codes every time, the retina run on every call, and
-``dataclasses.asdict`` for a trace step. Recognitions (winning frame, evidence, every step of the
-saccade trace, correspondences) and the learned state must be identical, bit for bit, for the exact
-path, the index path, candidate subsets, a decoder variant and rejected queries.
+saccade vector decoded from the two grid codes every time, the retina run on every call, no drive
+remembered per fixation point, and ``dataclasses.asdict`` for a trace step. Recognitions (winning
+frame, evidence, every step of the saccade trace, correspondences) and the learned state must be
+identical, bit for bit, for the exact path, the index path, candidate subsets, a decoder variant
+and rejected queries.
 """
 
 from __future__ import annotations
@@ -39,6 +40,10 @@ class ReferenceMemory(vm.VisualMemory):
         if self.config.decoder == "svc":
             return self.spatial_view_cells.decode(g_cur, g_tgt)
         return self.grid.decode(g_cur, g_tgt)
+
+    def _sense(self, img, pos, sub, predicted):
+        sub.drives.clear()  # nothing remembered: every fixation computes its drive
+        return super()._sense(img, pos, sub, predicted)
 
     def _views(self, image):
         gray, work, scale = vm.prepare_views(image, self.config)
@@ -113,6 +118,32 @@ def test_recognise_then_learn_the_same_frame_equals_the_reference():
     assert fast.learn(img) == ref.learn(img)
     _same_state(fast, ref)
     assert fast.recognise(img).to_dict() == ref.recognise(img).to_dict()
+
+
+def test_a_point_fixated_again_reuses_its_drive(monkeypatch):
+    """A saccade that lands on a point fixated before in the same recognition gets the drive
+    remembered there (read only), not a second gather; the results equal the reference (above)."""
+    fast, ref = _pair(VisualConfig())
+    calls = {"sense": 0, "drive": 0}
+    sense, drive = vm.VisualMemory._sense, vm.VisualMemory._drive_rows
+
+    def count_sense(self, *a):
+        calls["sense"] += 1
+        return sense(self, *a)
+
+    def count_drive(self, *a):
+        calls["drive"] += 1
+        return drive(self, *a)
+
+    monkeypatch.setattr(vm.VisualMemory, "_sense", count_sense)
+    monkeypatch.setattr(vm.VisualMemory, "_drive_rows", count_drive)
+    img = shapes_scene(4001)  # never learned: every reset is used, and a point is fixated twice
+    a = fast.recognise(img).to_dict()
+    assert 0 < calls["drive"] < calls["sense"]
+    fixations = [tuple(st["fixation"]) for st in a["steps"]]
+    assert calls["drive"] == len(set(fixations))  # one gather per distinct point
+    monkeypatch.undo()
+    assert a == ref.recognise(img).to_dict()
 
 
 def test_remembered_decodes_are_private_copies():
