@@ -112,7 +112,7 @@ class LoopHypothesis:
     ``transform``: a *measured* pose of ``node`` in the frame of the CURRENT node (at the time of
     the proposal), as a data set's loop edge gives; or ``None`` for a visual recognition, which
     says "same place": then ``offset`` is the proposer's estimate of the robot's pose in the
-    node's frame (where the matched key frame was taken, turned by the image shift), ``None``
+    node's frame (where the matched key frame was taken, moved along its view by the looming and turned by the image shift), ``None``
     meaning "exactly on the node". ``information``: (x/y in m⁻², heading in rad⁻²) of the
     estimate, ``None`` for the map's default of its kind (``loop_information`` for a measured
     transform, ``visual_loop_information`` for a visual one). ``evidence``: the proposer's score. ``source``: who proposed
