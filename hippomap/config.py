@@ -344,6 +344,12 @@ class MapperConfig(_Frozen):
         None, gt=0, lt=180, description="horizontal field of view of the camera; when known, the image shift of a "
         "recognition's saccade correspondences turns into the robot's heading relative to the matched key frame "
         "[ours]")
+    view_distance_m: float | None = Field(
+        3.0, gt=0, description="typical distance from the camera to the scene it sees; the scale change of a "
+        "recognition's saccade correspondences (looming) times this is how far the robot stands ahead of or behind "
+        "the matched key frame along its view, so a visual loop link is not off by up to a key-frame spacing along "
+        "the track. None = the robot is taken to be at the key frame [ours: fitted on the simulated tuning runs, "
+        "docs/MODEL.md]")
     mode: Literal["map", "localise"] = Field(
         "map", description="'map': build the map (new nodes, key frames, loop links); 'localise': recognise places "
         "and relocalise the robot through the same loop-closure path, but add no node, link or key frame and never "

@@ -5,8 +5,9 @@ this module holds what decides which loop links it gets and how much it trusts t
 
 * :class:`LoopHypothesis` — a proposal "the robot is back near node ``node``", with a measured
   transform (a data set's loop edge) or, for a visual recognition, the robot's estimated
-  offset from the node (where the matched key frame was learned, turned by the image shift
-  of the saccade correspondences).
+  offset from the node (where the matched key frame was learned, moved along its view by the
+  image's scale change and turned by its shift, from the saccade correspondences:
+  :func:`looming_offset`).
 * :class:`Candidate` — what verification needs of a gated hypothesis: the robot's
   dead-reckoned pose and path at the proposal, the node's pose in the robot's frame.
 * :func:`gate_limit` — the radius a hypothesis must fall within: a base radius plus an
@@ -42,7 +43,7 @@ from .geometry import between, compose, wrap_angle
 _Pose = tuple[float, float, float]  # (x, y, theta): the fixed length the type checker needs
 
 __all__ = ["USED_WEIGHT", "LoopHypothesis", "LoopDecision", "Candidate", "LoopBook", "gate_limit", "cycle_errors", "consistent",
-           "align_group", "robust_weight", "se2_compose", "se2_inverse", "se2_between", "vec3", "node_id", "jsonable"]
+           "align_group", "looming_offset", "robust_weight", "se2_compose", "se2_inverse", "se2_between", "vec3", "node_id", "jsonable"]
 
 
 #: a loop link whose robust weight is at least this counts as used (applied); below, it has faded
@@ -111,7 +112,7 @@ class LoopHypothesis:
     ``transform``: a *measured* pose of ``node`` in the frame of the CURRENT node (at the time of
     the proposal), as a data set's loop edge gives; or ``None`` for a visual recognition, which
     says "same place": then ``offset`` is the proposer's estimate of the robot's pose in the
-    node's frame (where the matched key frame was taken, turned by the image shift), ``None``
+    node's frame (where the matched key frame was taken, moved along its view by the looming and turned by the image shift), ``None``
     meaning "exactly on the node". ``information``: (x/y in m⁻², heading in rad⁻²) of the
     estimate, ``None`` for the map's default of its kind (``loop_information`` for a measured
     transform, ``visual_loop_information`` for a visual one). ``evidence``: the proposer's score. ``source``: who proposed
@@ -353,6 +354,39 @@ def align_group(odom: np.ndarray, targets: np.ndarray, min_spread_m: float) -> n
     c, s = math.cos(phi), math.sin(phi)
     t = cb - np.array([c * ca[0] - s * ca[1], s * ca[0] + c * ca[1]])
     return np.array([t[0], t[1], phi])
+
+
+def looming_offset(query: Any, memory: Any, view_distance_m: float, min_separation_px: float = 10.0) -> float | None:
+    """How far the camera stands ahead of where a key frame was taken, along the key frame's
+    view (m; negative: behind it), from the scale change of the scene between the two images.
+
+    ``query``, ``memory`` (K, 2): the same K scene points in the query and in the key frame
+    (a recognition's saccade correspondences, px). A camera that moves ``d`` towards a surface
+    ``D`` away sees it magnified by ``s = D / (D - d)`` (looming), so ``d = D (1 - 1 / s)``.
+    ``s`` is the median ratio of the distances between pairs of points in the query and in
+    memory (pairs closer than ``min_separation_px`` in memory are left out: their ratio is
+    pixel noise); a pairwise ratio ignores the image shift that a turn causes. The scene's
+    depth is not measured: ``view_distance_m`` stands for it (one typical distance, a model
+    parameter). The result is bounded by ±``view_distance_m`` / 2 (a scale change beyond
+    2 : 3 is no plausible recognition). ``None`` with fewer than three points or no usable
+    pair: then the recognition says nothing about the along-view offset."""
+    if not (math.isfinite(view_distance_m) and view_distance_m > 0):
+        raise InputError(f"view_distance_m must be a positive number, got {view_distance_m!r}")
+    q = np.asarray(query, dtype=float).reshape(-1, 2)
+    m = np.asarray(memory, dtype=float).reshape(-1, 2)
+    if q.shape != m.shape:
+        raise InputError(f"looming_offset: {len(q)} query points but {len(m)} memory points")
+    if len(q) < 3:
+        return None
+    i, j = np.triu_indices(len(q), 1)
+    dm = np.hypot(m[i, 0] - m[j, 0], m[i, 1] - m[j, 1])
+    dq = np.hypot(q[i, 0] - q[j, 0], q[i, 1] - q[j, 1])
+    ok = (dm >= min_separation_px) & (dq > 0)
+    if not ok.any():
+        return None
+    scale = math.exp(float(np.median(np.log(dq[ok] / dm[ok]))))
+    d = view_distance_m * (1.0 - 1.0 / scale)
+    return float(min(max(d, -0.5 * view_distance_m), 0.5 * view_distance_m))
 
 
 # --------------------------------------------------------------------------- robust weighting

@@ -6,8 +6,8 @@ Odometry drives the place code (grid cells -> place cells). A frame becomes a ke
 key frames of the nodes the map's loop gate admits (:meth:`CognitiveMap.loop_candidates`) and
 then learned into the visual memory, together with where it was taken relative to its node.
 An accepted recognition becomes a :class:`~hippomap.loop_closure.LoopHypothesis` whose offset
-is that pose (turned by the image shift of the saccade correspondences when the camera's field
-of view is known), which the loop closing (:mod:`hippomap.loop_closure`) verifies and fits
+is that pose, moved along the key frame's view by the image's scale change (looming) and turned
+by the image shift of the saccade correspondences when the camera's field of view is known, which the loop closing (:mod:`hippomap.loop_closure`) verifies and fits
 before the map closes the loop and relaxes.
 
 Inputs must come in time order; every call returns the events it caused, typed
@@ -40,7 +40,7 @@ from typing import TYPE_CHECKING, Any, TypeVar, cast
 import numpy as np
 
 from .cognitive_map import CognitiveMap
-from .loop_closure import LoopBook, LoopDecision, LoopHypothesis, se2_between, se2_compose, se2_inverse
+from .loop_closure import LoopBook, LoopDecision, LoopHypothesis, looming_offset, se2_between, se2_compose, se2_inverse
 from .config import HippomapConfig
 from .errors import InputError
 from .geometry import compose, wrap_angle
@@ -393,16 +393,27 @@ class Mapper:
 
     def _visual_offset(self, rec: Any, width: int) -> tuple[float, float, float]:
         """The robot's pose in the matched node's frame as recognition tells it: where the
-        matched key frame was taken, turned by the heading the horizontal image shift of the
-        saccade correspondences implies (a feature further right in the query than in memory
-        means the robot has turned left), when the camera's field of view is known."""
+        matched key frame was taken, moved along the key frame's view by the looming of the
+        saccade correspondences (:func:`~hippomap.loop_closure.looming_offset`: the scene
+        appears larger when the robot stands ahead of the key frame) when
+        ``mapper.view_distance_m`` is set, and turned by the heading the horizontal image shift
+        of the correspondences implies (a feature further right in the query than in memory
+        means the robot has turned left) when the camera's field of view is known."""
         off = self.frame_offset.get(int(rec.frame), (0.0, 0.0, 0.0))
+        ahead, turn = 0.0, 0.0
+        view = self.config.mapper.view_distance_m
+        pairs = getattr(rec, "correspondences", None) or []
+        if view is not None and pairs:
+            d = looming_offset([c["query"] for c in pairs], [c["memory"] for c in pairs], view)
+            ahead = 0.0 if d is None else d
         hfov = self.config.mapper.camera_hfov_deg
         shift = getattr(rec, "shift", None)
-        if hfov is None or not shift or shift.get("n", 0) < 2:
+        if hfov is not None and shift and shift.get("n", 0) >= 2:
+            focal = 0.5 * width / math.tan(math.radians(hfov) / 2)
+            turn = math.atan2(float(shift["x"]), focal)
+        if ahead == 0.0 and turn == 0.0:
             return off
-        focal = 0.5 * width / math.tan(math.radians(hfov) / 2)
-        return (off[0], off[1], off[2] + math.atan2(float(shift["x"]), focal))
+        return se2_compose(off, (ahead, 0.0, turn))
 
     # ----------------------------------------------------------------- queries
     @property
