@@ -124,6 +124,24 @@ class MapperGate:
         time.sleep(0)  # release the GIL now: a waiting event loop runs before the next step
 
 
+class RemoteHost(MapperHost):
+    """A host whose mapper lives elsewhere (a child process, a Ray actor): every call is one
+    request through :meth:`_call`; a query is checked here, before it is sent."""
+
+    @abc.abstractmethod
+    def _call(self, op: str, *args: Any) -> Any: ...
+
+    def process(self, batch: list[tuple[int, Odometry | Frame]]) -> list[StepResult]:
+        return self._call("process", batch)
+
+    def snapshot(self) -> bytes:
+        return self._call("snapshot")
+
+    def query(self, query: model.queries.Query[T]) -> T | None:
+        model.queries.check_query(query)  # refused here, before it is sent
+        return self._call("query", query)
+
+
 class InProcessHost(MapperHost):
     """The mapper in this process. :attr:`lock` is held while one input is processed, so a query
     always sees the mapper between two inputs; ``gate`` (shared by a server's hosts) bounds how

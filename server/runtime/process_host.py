@@ -28,10 +28,8 @@ import threading
 from typing import Any, TypeVar
 
 from hippomap.config import HippomapConfig
-from hippomap.inputs import Frame, Odometry
 
-from . import model
-from .mapper_host import HostDied, InProcessHost, MapperHost, StepResult
+from .mapper_host import HostDied, InProcessHost, MapperHost, RemoteHost
 
 T = TypeVar("T")
 
@@ -122,7 +120,7 @@ class _Child:
             self.proc.join(10)
 
 
-class ProcessHost(MapperHost):
+class ProcessHost(RemoteHost):
     """A :class:`~server.runtime.mapper_host.MapperHost` whose mapper lives in a child process."""
 
     def __init__(self, session_id: str, child: _Child, max_batch: int) -> None:
@@ -131,23 +129,13 @@ class ProcessHost(MapperHost):
         self.max_batch = max_batch
         self._closed = False
 
-    def _call(self, op: str, args: Any = None) -> Any:
+    def _call(self, op: str, *args: Any) -> Any:
         if self._closed:
             raise HostDied(f"the host of session {self.session_id} was closed")
-        return self.child.call(op, self.session_id, args)
+        return self.child.call(op, self.session_id, args[0] if len(args) == 1 else (args or None))
 
     def restore(self, snapshot: bytes | None, config: HippomapConfig) -> dict[str, Any]:
         return self._call("restore", (snapshot, config))
-
-    def process(self, batch: list[tuple[int, Odometry | Frame]]) -> list[StepResult]:
-        return self._call("process", batch)
-
-    def snapshot(self) -> bytes:
-        return self._call("snapshot")
-
-    def query(self, query: model.queries.Query[T]) -> T | None:
-        model.queries.check_query(query)  # refused here, before it is sent
-        return self._call("query", query)
 
     def info(self) -> dict[str, Any]:
         return {"kind": "process", "pid": self.child.proc.pid}

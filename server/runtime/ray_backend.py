@@ -39,7 +39,7 @@ from hippomap.inputs import Frame, Odometry
 
 from ..settings import ServerSettings
 from . import model
-from .mapper_host import HostDied, InProcessHost, MapperHost, StepResult
+from .mapper_host import HostDied, InProcessHost, MapperHost, RemoteHost, StepResult
 
 T = TypeVar("T")
 
@@ -95,7 +95,7 @@ class MapperActor:
         return {"kind": "ray", "pid": os.getpid(), "node": ray.get_runtime_context().get_node_id()}
 
 
-class RayHost(MapperHost):
+class RayHost(RemoteHost):
     """A :class:`~server.runtime.mapper_host.MapperHost` whose mapper lives in a :class:`MapperActor`."""
 
     def __init__(self, backend: "RayBackend", session_id: str) -> None:
@@ -122,16 +122,6 @@ class RayHost(MapperHost):
         stats = self._call("restore", snapshot, config)
         self._info = self._call("info")
         return stats
-
-    def process(self, batch: list[tuple[int, Odometry | Frame]]) -> list[StepResult]:
-        return self._call("process", batch)
-
-    def snapshot(self) -> bytes:
-        return self._call("snapshot")
-
-    def query(self, query: model.queries.Query[T]) -> T | None:
-        model.queries.check_query(query)  # refused here, before it is sent
-        return self._call("query", query)
 
     def info(self) -> dict[str, Any]:
         return dict(self._info)
