@@ -156,6 +156,11 @@ class CognitiveMap:
         return v
 
     @property
+    def path_since_verified(self) -> float:
+        """Odometric path (m) since the last verified loop closure, or since the start."""
+        return self._path - (self._loops.last_verified_path or 0.0)
+
+    @property
     def node_count(self) -> int:
         return self._n
 
@@ -669,6 +674,7 @@ class CognitiveMap:
         t = self._t if self._t is not None else h.time
         base = LoopDecision(did, "pending", "", h, self._cur, proposed_step=self._step)
         reason = ""
+        outside = False
         if h.node != self._cur and h.node >= n - cfg.exclude_recent:
             reason = f"node {h.node} is among the {cfg.exclude_recent} most recent nodes"
         else:
@@ -679,7 +685,10 @@ class CognitiveMap:
                 base = replace(base, gate_distance=dist, gate_limit=limit)
                 if not dist < limit:
                     reason = f"{what} distance {dist:.3f} m exceeds the gate {limit:.3f} m"
+                    outside = True
         book.decisions.append(base)
+        if outside and h.meta.get("search") == "global" and not h.measured and cfg.outside_min_support > 0:
+            return self._propose_outside(cand, t, reason)
         if reason:
             return self._reject(did, reason, t)
         if cfg.loop_accept == "robust":
@@ -703,6 +712,52 @@ class CognitiveMap:
         book.decisions[did] = replace(base, support=tuple(c.id for c in ok_pend))
         self._events.append(LoopPending(did, h.node, cand.from_node, len(ok_pend), t))
         return book.decisions[did]
+
+    def _propose_outside(self, cand: Candidate, t: float, gate_reason: str) -> LoopDecision:
+        """A visual hypothesis from a global search (``meta['search'] == 'global'``) that names a
+        node outside the gate: after a long excursion the map's drift exceeds any gate, so the
+        gate cannot judge it. It waits, without a link, for ``outside_min_support`` − 1 others of
+        the same kind within ``outside_window_m`` of path that agree with it in space
+        (:func:`consistent`: the distance driven between two proposals equals the distance between
+        the places they name) and in sequence (the old path between the two named nodes is as long
+        as the path driven between the proposals, within ``loop_consistency_m`` + 10 %); the group
+        must then fit one SE(2) transform (:meth:`_fit_group`). A fitted group
+        becomes verified loop links at weight 1 and the whole map is solved; a lone or
+        contradicted hypothesis expires without touching the map."""
+        cfg, book = self.cfg, self._loops
+        P, S = self._P, self._S
+        self._expire_outside(t)
+        older = [c for c in book.outside if c.step != cand.step]
+        # consistent in space, and in sequence: a revisit retraces the old path, so the old path between
+        # the two named nodes is as long as the robot's path between the two proposals
+        ok = [c for c, good in zip(older, consistent(cfg, older, cand, P, S))
+              if good and abs((S[cand.node] - S[c.node]) - (cand.path - c.path))
+              < cfg.loop_consistency_m + 0.1 * abs(cand.path - c.path)]
+        group = self._fit_group(ok + [cand], []) if 1 + len(ok) >= cfg.outside_min_support else None
+        if group is None:
+            book.outside.append(cand)
+            d = replace(book.decisions[cand.id], reason=f"{gate_reason}: waits for consistent global recognitions",
+                        support=tuple(c.id for c in ok))
+            book.decisions[cand.id] = d
+            self._events.append(LoopPending(cand.id, cand.node, cand.from_node, len(ok), t))
+            return d
+        ids = {c.id for c in group}
+        for c in sorted(group, key=lambda c: c.id):
+            link = self._add_loop_link(c)
+            if link >= 0:
+                self._trust(link)
+            sup = tuple(sorted(ids - {c.id}))
+            book.decisions[c.id] = replace(book.decisions[c.id], status="accepted", link=link, support=sup,
+                                           reason="outside the gate; verified by a group of consistent global "
+                                                  "recognitions", decided_step=self._step, transform=c.link_tr)
+            self._events.append(LoopAccepted(c.id, c.node, c.from_node, link, sup, False, t))
+        book.outside = [c for c in book.outside if c.id not in ids]
+        book.accepted.extend(group)
+        book.last_verified_path = self._path
+        self._version += 1
+        self._dirty = True
+        self._events.extend(self._optimise(t))  # the links disagree with the map by far: a whole solve
+        return book.decisions[cand.id]
 
     def _gate(self, c: Candidate) -> tuple[float | None, float, str]:
         """(distance, limit, what) of the gate for candidate ``c``; distance None: cannot gate."""
@@ -872,12 +927,18 @@ class CognitiveMap:
         return self._add_link(int(self._src[k]), c.node, tr, LOOP, 0.0, allow_duplicate=True, info=c.info,
                                   kernel_width=c.kernel_width)
 
+    def _expire_outside(self, t: float) -> None:
+        w = self.cfg.outside_window_m
+        for c in self._loops.expired_outside(self._path, w):
+            self._reject(c.id, f"outside the gate, and no consistent support within {w:g} m of path", t)
+
     def _expire(self) -> list[MapEvent]:
         w = self.cfg.loop_support_window_m
         t = self._t if self._t is not None else 0.0
         for c in self._loops.expired(self._path, w):
             if self.cfg.loop_accept == "verified":
                 self._reject(c.id, f"expired: no consistent support within {w:g} m of path", t)
+        self._expire_outside(t)
         out, self._events = self._events, []
         return out
 

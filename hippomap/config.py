@@ -226,6 +226,14 @@ class MapConfig(_Frozen):
         5.0, gt=0, description="metres of path a hypothesis waits for support, and an accepted one backs newer ones; "
         "in metres, not steps or frames, so that it means the same at any speed, frame rate and key-frame spacing "
         "(B25b: the former 50 steps of 0.09 m) [ours]")
+    outside_min_support: int = Field(
+        3, ge=0, description="mutually consistent hypotheses from global searches needed before a group that names "
+        "nodes outside the gate becomes loop links (0: such hypotheses are rejected like any other outside the gate); "
+        "docs/MODEL.md [ours]")
+    outside_window_m: float = Field(
+        15.0, gt=0, description="metres of path an outside-the-gate hypothesis waits for consistent support "
+        "(global searches run every mapper.global_search_every_m, and recognise a true revisit about one time in "
+        "three on the simulated worlds) [ours]")
     loop_gate: Literal["map", "place_code"] = Field(
         "map", description="what the gate compares: the robot's map pose with the node's ('map': the map learns from "
         "loop closures, the place code does not) or the two place codes (Eq. 13 [S]); docs/MODEL.md [ours]")
@@ -336,6 +344,13 @@ class MapperConfig(_Frozen):
         5.0, ge=0, description="a key frame can be recognised only after the robot has travelled this far since "
         "learning it: the camera still sees the scene it took a few metres back (such matches are not loop "
         "closures); chosen on the simulated tuning worlds, docs/MODEL.md [ours]")
+    global_search_after_m: float | None = Field(
+        None, ge=0, description="after this much odometric path without a verified loop closure, a key frame that "
+        "the gated search did not recognise is also searched against every recognisable key frame outside the "
+        "gate (its hypotheses need a consistent group: map.outside_min_support); None: never [ours, docs/MODEL.md]")
+    global_search_every_m: float = Field(
+        1.0, gt=0, description="metres of path between two global searches (each costs a recognition against the "
+        "whole visual memory) [ours]")
     learn_recognised: bool = Field(
         False, description="also learn a key frame that was recognised: False learns only novel views (as "
         "[ORS]'s view templates), so a key frame is always anchored to the node of the pass that first saw it, "

@@ -412,6 +412,9 @@ class LoopBook:
         self.pending: list[Candidate] = []
         self.accepted: list[Candidate] = []
         self.last_verified_path: float | None = None
+        #: hypotheses from a global search that named a node outside the gate: no link until a group
+        #: of them agrees (:meth:`CognitiveMap.propose_loop`)
+        self.outside: list[Candidate] = []
 
     def expired(self, path: float, window_m: float) -> list[Candidate]:
         """Drop pending candidates older than ``window_m`` metres of path (returned, to be
@@ -422,10 +425,17 @@ class LoopBook:
         self.accepted = [c for c in self.accepted if path - c.path <= window_m]
         return old
 
+    def expired_outside(self, path: float, window_m: float) -> list[Candidate]:
+        """Drop the outside-the-gate candidates older than ``window_m`` metres of path (returned)."""
+        old = [c for c in self.outside if path - c.path > window_m]
+        if old:
+            self.outside = [c for c in self.outside if path - c.path <= window_m]
+        return old
+
     def state_dict(self) -> dict[str, Any]:
         return {"decisions": [d.to_dict() for d in self.decisions], "pending": [c.to_dict() for c in self.pending],
                 "accepted": [c.to_dict() for c in self.accepted],
-                "last_verified_path": self.last_verified_path}
+                "last_verified_path": self.last_verified_path, "outside": [c.to_dict() for c in self.outside]}
 
     @classmethod
     def from_state(cls, d: dict[str, Any]) -> "LoopBook":
@@ -435,4 +445,5 @@ class LoopBook:
         book.accepted = [Candidate.from_dict(x) for x in d["accepted"]]
         lv = d.get("last_verified_path")
         book.last_verified_path = None if lv is None else float(lv)
+        book.outside = [Candidate.from_dict(x) for x in d.get("outside", [])]
         return book

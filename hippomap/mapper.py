@@ -223,6 +223,7 @@ class Mapper:
         self.frames_seen = 0
         self.distance = 0.0  # odometric path length, metres
         self.distance_at_keyframe = -math.inf
+        self.global_search_path = -math.inf  # odometric path at the last global search
         self.turn = 0.0  # odometric turn, |radians| summed
         self.turn_at_keyframe = 0.0
         self._frame_distance = self._frame_turn = 0.0  # distance and turn at the previous frame
@@ -276,7 +277,7 @@ class Mapper:
         m.last_t = m.last_odometry_t = m.last_frame_t = None
         m.frames_seen = 0
         m.distance += cfg.mapper.recognition_min_path_m
-        m.distance_at_keyframe = -math.inf
+        m.distance_at_keyframe = m.global_search_path = -math.inf
         m.turn_at_keyframe = m.turn
         m._frame_distance, m._frame_turn = m.distance, m.turn
         m.recognitions = []
@@ -341,20 +342,13 @@ class Mapper:
                 frames = self.cmap.frames[self.cmap.loop_candidates()]
             candidates = self._recognisable(frames[frames >= 0])
             if candidates:
-                rec = self.memory.recognise(gray, candidates=candidates)
-                rec_id = len(self.recognitions)
-                made = RecognitionMade(rec_id, frame.t, int(self.cmap.current), rec.to_dict())
-                self.recognitions.append(made.record())
-                events.append(made)
-                if rec.frame is not None:
-                    hyp = LoopHypothesis(node=self.frame_node[int(rec.frame)], transform=None,
-                                         evidence=float(rec.evidence), source="visual", time=frame.t,
-                                         meta={"recognition": rec_id, "frame": int(rec.frame)},
-                                         offset=self._visual_offset(rec, gray.shape[1]))
-                    decision = self.cmap.propose_loop(hyp)
-                    recognised = decision.status != "rejected"
-                    events.append(LoopDecided(frame.t, decision))
-                    events.extend(self.cmap.take_events())
+                recognised = self._recognise(gray, frame.t, candidates, events)
+            if not recognised and self._global_search_due():
+                self.global_search_path = self.distance
+                gated = set(candidates)
+                others = [f for f in self._recognisable(self.cmap.frames[self.cmap.frames >= 0]) if f not in gated]
+                if others:
+                    recognised = self._recognise(gray, frame.t, others, events, search="global")
         self.distance_at_keyframe = self.distance
         self.turn_at_keyframe = self.turn
         if self.localise_only or (recognised and not self.config.mapper.learn_recognised):
@@ -369,6 +363,37 @@ class Mapper:
             events.append(KeyframeLearned(frame.t, int(fid), node))
             events.extend(self.cmap.take_events())
         return events
+
+    def _recognise(self, gray: np.ndarray, t: float, candidates: list[int], events: list[MapEvent],
+                   search: str = "gated") -> bool:
+        """Recognise ``gray`` among ``candidates``; a match is offered to the map as a loop
+        hypothesis. Appends the events; True when the map did not reject the hypothesis."""
+        rec = self.memory.recognise(gray, candidates=candidates)
+        rec_id = len(self.recognitions)
+        made = RecognitionMade(rec_id, t, int(self.cmap.current), rec.to_dict())
+        self.recognitions.append(made.record())
+        events.append(made)
+        if rec.frame is None:
+            return False
+        meta: dict[str, Any] = {"recognition": rec_id, "frame": int(rec.frame)}
+        if search != "gated":
+            meta["search"] = search
+        hyp = LoopHypothesis(node=self.frame_node[int(rec.frame)], transform=None, evidence=float(rec.evidence),
+                             source="visual", time=t, meta=meta, offset=self._visual_offset(rec, gray.shape[1]))
+        decision = self.cmap.propose_loop(hyp)
+        events.append(LoopDecided(t, decision))
+        events.extend(self.cmap.take_events())
+        return decision.status != "rejected"
+
+    def _global_search_due(self) -> bool:
+        """A global search (every recognisable key frame, gate or not) is due: the map has gone
+        ``global_search_after_m`` of path without a verified closure, and the last global search
+        is ``global_search_every_m`` behind. Not while localising in a saved map (it already
+        searches the whole saved map while lost)."""
+        m = self.config.mapper
+        return (m.global_search_after_m is not None and not self.localise_only and not self.cmap.lost
+                and self.cmap.path_since_verified >= m.global_search_after_m
+                and self.distance - self.global_search_path >= m.global_search_every_m)
 
     def _recognisable(self, frames: np.ndarray) -> list[int]:
         """The key frames a recognition may name, sorted: those learned at least
@@ -477,6 +502,7 @@ class Mapper:
             "frames_seen": self.frames_seen,
             "distance": self.distance,
             "distance_at_keyframe": None if math.isinf(self.distance_at_keyframe) else self.distance_at_keyframe,
+            "global_search_path": None if math.isinf(self.global_search_path) else self.global_search_path,
             "frame_node": [[k, v] for k, v in self.frame_node.items()],
             "frame_offset": [[k, list(v)] for k, v in self.frame_offset.items()],
             "frame_path": [[k, v] for k, v in self.frame_path.items()],
@@ -520,6 +546,8 @@ class Mapper:
         self.distance = meta["distance"]
         dk = meta["distance_at_keyframe"]
         self.distance_at_keyframe = -math.inf if dk is None else dk
+        gs = meta.get("global_search_path")
+        self.global_search_path = -math.inf if gs is None else float(gs)
         self.frame_node = {int(k): int(v) for k, v in meta["frame_node"]}
         self.frame_offset = {int(k): cast("tuple[float, float, float]", tuple(float(x) for x in v))
                              for k, v in meta.get("frame_offset", [])}

@@ -241,3 +241,90 @@ def test_visual_offset_moves_the_robot_along_the_key_frames_view():
     off = Mapper(HippomapConfig.with_overrides({"mapper": {"view_distance_m": None}}))
     off.frame_offset[4] = (0.3, -0.1, 0.5)
     assert off._visual_offset(Rec(), 320) == (0.3, -0.1, 0.5)
+
+
+# ------------------------------------------------------------------ outside the gate (global searches)
+def _drifting_square():
+    """Two laps of a 20 m square with a heading drift of 0.02 rad per metre: on the second lap the
+    robot's map pose is metres away from the first lap's nodes, beyond any gate."""
+    inc = square_increments(side=20.0, laps=2)
+    gt = integrate(inc)
+    noisy = inc.copy()
+    noisy[:, 2] += 0.002 * (inc[:, 0] > 0)
+    return inc, gt, integrate(noisy), noisy
+
+
+def _visual(gt, node_at, off, k, j, search="global"):
+    """A visual hypothesis from pose k naming the node of pose j, with the true offset of the robot
+    in that node's frame (as a recognition's fitted offset would be)."""
+    node_pose = compose(gt[j], between(off[j], np.zeros(3)))
+    meta = {"poses": [k, j]} | ({"search": search} if search else {})
+    return LoopHypothesis(node=int(node_at[j]), transform=None, source="visual", time=float(k), meta=meta,
+                          offset=tuple(between(node_pose, gt[k])))
+
+
+@pytest.mark.parametrize("search, support", [("global", 3), ("global", 0), (None, 3)])
+def test_global_recognitions_outside_the_gate_close_the_loop_only_as_a_consistent_group(search, support):
+    inc, gt, odo, noisy = _drifting_square()
+    first_lap = len(inc) // 2
+
+    def hyps(k, cmap, node_at, off):
+        if k <= first_lap + 20 or k % 5:
+            return []
+        return [_visual(gt, node_at, off, k, k - first_lap, search)]
+
+    cmap = CognitiveMap(MapConfig(outside_min_support=support))
+    node_at, off, _ = drive(cmap, noisy, hypotheses=hyps)
+    rows = cmap.loop_rows()
+    assert rows and max(r["gate_distance_m"] for r in rows) > 10.0  # far outside the gate
+    accepted = [r for r in rows if r["status"] == "accepted"]
+    if search == "global" and support:
+        assert len(accepted) > 0.8 * len(rows)
+        assert all("outside the gate" in r["reason"] for r in accepted[:3])
+        assert rms_xy(corrected(cmap, node_at, off), gt) < 0.15 * rms_xy(odo, gt)  # measured 1.9 vs 15.2 m
+    else:  # a gated search's hypothesis, or outside support switched off: the gate rejects them all
+        assert not accepted and all("exceeds the gate" in r["reason"] for r in rows)
+        assert cmap.link_count == cmap.node_count - 1
+
+
+def test_inconsistent_global_recognitions_expire_without_touching_the_map():
+    inc, gt, odo, noisy = _drifting_square()
+    first_lap = len(inc) // 2
+    rng = np.random.default_rng(0)
+
+    # each says the robot stands at a random first-lap node, one every 2.5 m of the second lap (global searches
+    # of a simulated Bicocca run named a wrong place about once in 200 searches, every metre)
+    def hyps(k, cmap, node_at, off):
+        if k <= first_lap + 20 or k % 25:
+            return []
+        j = int(rng.integers(0, first_lap - 50))
+        return [LoopHypothesis(node=int(node_at[j]), transform=None, source="false", time=float(k),
+                               meta={"poses": [k, j], "search": "global"}, offset=(0.2, 0.0, 0.0))]
+
+    cmap = CognitiveMap(MapConfig())
+    node_at, off, _ = drive(cmap, noisy, hypotheses=hyps)
+    rows = cmap.loop_rows()
+    assert len(rows) > 25
+    expired = [r for r in rows if r["status"] == "rejected" and "no consistent support" in r["reason"]]
+    assert len(expired) > 0.5 * len(rows)
+    # the few that happened to name a node inside the gate took the gated path (a link the robust kernel
+    # weighs); no group outside the gate was ever accepted
+    linked = [r for r in rows if r.get("link", -1) >= 0]
+    assert all(r["reason"].startswith("gate;") for r in linked)
+    assert cmap.link_count == cmap.node_count - 1 + len(linked)
+
+
+def test_the_global_search_schedule_survives_a_snapshot():
+    cfg = HippomapConfig.with_overrides({"mapper": {"global_search_after_m": 20.0, "global_search_every_m": 2.0}})
+    m = Mapper(cfg)
+    assert not m._global_search_due()  # no path yet
+    m.distance = 30.0
+    m.cmap._path = 30.0
+    assert m._global_search_due()
+    m.global_search_path = 29.0
+    assert not m._global_search_due()  # the last search is 1 m back, fewer than 2
+    r = Mapper.from_bytes(m.to_bytes())
+    assert r.global_search_path == 29.0
+    off = Mapper.from_bytes(Mapper(HippomapConfig()).to_bytes())
+    off.distance = off.cmap._path = 1e6
+    assert not off._global_search_due()  # None (the default): never
