@@ -345,9 +345,10 @@ class MapperConfig(_Frozen):
         "learning it: the camera still sees the scene it took a few metres back (such matches are not loop "
         "closures); chosen on the simulated tuning worlds, docs/MODEL.md [ours]")
     global_search_after_m: float | None = Field(
-        None, ge=0, description="after this much odometric path without a verified loop closure, a key frame that "
+        60.0, ge=0, description="after this much odometric path without a verified loop closure, a key frame that "
         "the gated search did not recognise is also searched against every recognisable key frame outside the "
-        "gate (its hypotheses need a consistent group: map.outside_min_support); None: never [ours, docs/MODEL.md]")
+        "gate (its hypotheses need a consistent group: map.outside_min_support); None: never. 60 m chosen among "
+        "30 / 60 / 100 m on the simulated tuning runs (docs/MODEL.md item 38) [ours]")
     global_search_every_m: float = Field(
         1.0, gt=0, description="metres of path between two global searches (each costs a recognition against the "
         "whole visual memory) [ours]")
