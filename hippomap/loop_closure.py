@@ -1,4 +1,4 @@
-"""Loop closing: hypotheses, their relative pose, verification and robust weighting.
+"""Loop-closure data and maths: hypotheses, their relative pose, verification and robust weighting.
 
 The cognitive map (:mod:`hippomap.cognitive_map`) keeps nodes, links, relaxation and pruning, and
 decides on loop hypotheses in :mod:`hippomap.loop_closing`; this module holds the data and the
