@@ -1,7 +1,8 @@
-"""Loop closing: hypotheses, their relative pose, verification and robust weighting.
+"""Loop-closure data and maths: hypotheses, their relative pose, verification and robust weighting.
 
-The cognitive map (:mod:`hippomap.cognitive_map`) keeps nodes, links, relaxation and pruning;
-this module holds what decides which loop links it gets and how much it trusts them:
+The cognitive map (:mod:`hippomap.cognitive_map`) keeps nodes, links, relaxation and pruning, and
+decides on loop hypotheses in :mod:`hippomap.loop_closing`; this module holds the data and the
+maths those decisions use, free of the map's state:
 
 * :class:`LoopHypothesis` — a proposal "the robot is back near node ``node``", with a measured
   transform (a data set's loop edge) or, for a visual recognition, the robot's estimated
@@ -21,7 +22,7 @@ this module holds what decides which loop links it gets and how much it trusts t
   Procrustes fit); each hypothesis' offset is then where the fit puts the robot relative to
   its node. Single matches are off along the track by up to the key-frame spacing; the fit
   averages that out, and the heading comes from the shape of the path.
-* :func:`robust_weight` — the Cauchy weight of a loop link from its whitened residual, which
+* :func:`robust_weight` / :func:`kernel_weights` — the Cauchy weight of a loop link from its whitened residual, which
   the map revises as the map converges (iteratively reweighted relaxation), so a true closure
   is applied fully and a false one fades.
 * :class:`LoopBook` — the decisions, pending and recently accepted candidates, and their
@@ -43,7 +44,7 @@ from .geometry import between, compose, wrap_angle
 _Pose = tuple[float, float, float]  # (x, y, theta): the fixed length the type checker needs
 
 __all__ = ["USED_WEIGHT", "LoopHypothesis", "LoopDecision", "Candidate", "LoopBook", "gate_limit", "cycle_errors", "consistent",
-           "align_group", "looming_offset", "robust_weight", "se2_compose", "se2_inverse", "se2_between", "vec3", "node_id", "jsonable"]
+           "align_group", "looming_offset", "robust_weight", "kernel_weights", "se2_compose", "se2_inverse", "se2_between", "vec3", "node_id", "jsonable"]
 
 
 #: a loop link whose robust weight is at least this counts as used (applied); below, it has faded
@@ -401,6 +402,14 @@ def robust_weight(whitened_sq, kernel: str = "cauchy"):
     if kernel == "none":
         return np.ones_like(r2)
     raise InputError(f"unknown robust kernel {kernel!r}")
+
+
+def kernel_weights(e: np.ndarray, info: np.ndarray, width: np.ndarray, kernel: str = "cauchy") -> np.ndarray:
+    """Kernel weights of loop links with residuals ``e`` (K, 3), information ``info`` (K, 2)
+    and kernel widths ``width`` (K,): whitened by both (isotropic in x/y, so the residual's
+    frame does not matter), floored so that no link is divided away entirely."""
+    chi2 = ((e[:, 0] ** 2 + e[:, 1] ** 2) * info[:, 0] + e[:, 2] ** 2 * info[:, 1]) / width ** 2
+    return np.maximum(robust_weight(chi2, kernel), 1e-4)
 
 
 # --------------------------------------------------------------------------- bookkeeping

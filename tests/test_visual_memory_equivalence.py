@@ -16,6 +16,7 @@ import dataclasses
 import numpy as np
 import pytest
 
+from hippomap import feature_store
 from hippomap import visual_memory as vm
 from hippomap.config import VisualConfig
 from hippomap.retina import imadjust
@@ -158,14 +159,14 @@ def test_remembered_decodes_are_private_copies():
 
 @pytest.mark.parametrize("lut16", [True, False], ids=["opencv-lut", "numpy-take"])
 def test_table_gather_equals_numpy_take(monkeypatch, lut16):
-    if lut16 and not vm._LUT16:
+    if lut16 and not feature_store._LUT16:
         pytest.skip("this OpenCV has no 16-bit LUT")
-    monkeypatch.setattr(vm, "_LUT16", lut16)
+    monkeypatch.setattr(feature_store, "_LUT16", lut16)
     rng = np.random.default_rng(0)
     table = rng.normal(size=65536).astype(np.float32)
     idx = rng.integers(0, 65536, size=(37, 961)).astype(np.uint16)
     idx[0, :2] = (0, 65535)
-    out = vm._gather_k(table, idx)
+    out = feature_store._gather_k(table, idx)
     assert out.dtype == np.float32 and out.shape == idx.shape
     assert np.array_equal(out, np.take(table, idx))
 

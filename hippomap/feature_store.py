@@ -1,0 +1,454 @@
+"""The visual memory's feature store: feature label cells (FLCs), their frames, drive and index.
+
+Learning one-shot (:meth:`FeatureStore.learn`, [BBc] adapted to key frames): a frame's fixation
+points (top Shi-Tomasi corners, or random points as in [S]) become FLCs whose sensory weights are
+the Gaussian-tuned response of the sensory cells to the *blurred* fovea patch, connected to a new
+frame node. Storage is struct-of-arrays, grown by doubling.
+
+An FLC's drive ``u_k = W_k . s(I)`` reduces exactly to ``sum_p K[I~_{k,p}, I_p] / Z_k`` with the
+256 x 256 table ``K = S S^T`` of the sensory cells (:meth:`FeatureStore._drive`): the sensory
+cells are simulated exactly but never materialised. Above ``index_shortlist + stats_sample`` FLCs
+an index is used (:meth:`FeatureStore._population_drive`): OpenCV's ``batchDistance`` finds the
+``index_shortlist`` nearest 8 x 8 area-averaged patch descriptors, whose drive is computed
+exactly, and the population's statistics (the ``N_std`` rule) are estimated from them plus a fixed
+stratified sample of ``stats_sample`` other units. :class:`FlcSubset` is the set of FLCs one
+recognition may use (all, or the candidate frames').
+
+The saccade loop that reads this store is :class:`~hippomap.visual_memory.VisualMemory`.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Self
+
+import cv2
+import numpy as np
+
+from .config import VisualConfig
+from .errors import InputError
+from .retina import imadjust
+from .visual_images import prepare_views, working_size
+
+__all__ = ["FeatureStore", "FlcSubset", "STATE_VERSION"]
+
+STATE_VERSION = 1
+
+
+def _lut16_works() -> bool:
+    """Whether this OpenCV's ``LUT`` takes a 65,536-entry table indexed by uint16 (OpenCV >= 5)."""
+    try:
+        out = cv2.LUT(np.array([[0, 65535]], np.uint16), np.arange(65536, dtype=np.float32).reshape(1, -1))
+    except cv2.error:
+        return False
+    return out.dtype == np.float32 and out.tolist() == [[0.0, 65535.0]]
+
+
+_LUT16 = _lut16_works()
+
+
+def _channel0(img: np.ndarray) -> np.ndarray:
+    """The ganglion (centre-surround) image of a sensory image with or without orientation channels."""
+    return img[..., 0] if img.ndim == 3 else img
+
+
+def _gather_k(table: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """``table[idx]`` for a flat float32 table of 65,536 entries and a 2-D uint16 index array.
+
+    OpenCV's 16-bit ``LUT`` reads the uint16 indices directly; ``np.take`` first converts them all to
+    64-bit integers, which costs more than the gather itself. The values are the same either way."""
+    if _LUT16 and idx.ndim == 2 and idx.dtype == np.uint16:
+        return cv2.LUT(idx, table.reshape(1, -1))
+    return np.take(table, idx)
+
+
+class FlcSubset:
+    """The FLCs a recognition may use (all, or those of the candidate frames)."""
+
+    def __init__(self, mem: FeatureStore, frames: np.ndarray | None):
+        n = mem.n_features
+        if frames is None:
+            self.idx = np.arange(n, dtype=np.int64)
+            self.desc = mem._desc[:n]
+        else:
+            starts = mem._fstart[frames]
+            counts = mem._fcount[frames]
+            self.idx = (
+                np.concatenate([np.arange(s, s + c) for s, c in zip(starts, counts)]).astype(np.int64)
+                if len(frames)
+                else np.zeros(0, np.int64)
+            )
+            self.desc = mem._desc[self.idx]
+        self.n = int(self.idx.size)
+        self.is_all = frames is None
+        cfg = mem.config
+        self.exact_all = self.n <= cfg.index_shortlist + cfg.stats_sample
+        if self.is_all:
+            # stratified sample of the units outside the shortlist (local = global indices)
+            self.sample = None if self.exact_all else np.unique(
+                np.linspace(0, self.n - 1, cfg.stats_sample).round().astype(np.int64))
+        else:
+            # the sensory layer is global: N_std statistics over the whole library, not the candidates
+            n_all = mem.n_features
+            self.sample = (np.arange(n_all, dtype=np.int64) if n_all <= cfg.index_shortlist + cfg.stats_sample
+                           else np.unique(np.linspace(0, n_all - 1, cfg.stats_sample).round().astype(np.int64)))
+        # the FLCs whose drive is computed exactly at every fixation are fixed for the whole recognition when
+        # no index is used: their learned patches (shifted into the high byte of the drive table's index)
+        # and normalisers are gathered once here, not once per fixation
+        self.rows: np.ndarray | None = None
+        # drives of the rows per fixation point, for this recognition: a saccade lands on a point
+        # fixated before (a microsaccade snaps onto the same feature) about one time in eight
+        self.drives: dict[tuple[int, int], np.ndarray] = {}
+        if self.exact_all:
+            self.rows = self.idx if self.is_all else np.concatenate([self.idx, self.sample])
+            self.rows_hi = mem._patch[self.rows].astype(np.uint16) << 8
+            self.rows_z = mem._z[self.rows]
+            self.rows_buf = np.empty_like(self.rows_hi)
+
+    def local(self, global_index: int) -> int:
+        """Index of a global FLC in this subset, or -1 (``idx`` is sorted: frames ascending)."""
+        if self.is_all:
+            return int(global_index)
+        i = int(np.searchsorted(self.idx, global_index))
+        return i if i < self.n and int(self.idx[i]) == int(global_index) else -1
+
+
+class FeatureStore:
+    """The FLCs of the learned key frames, their frames, and their drive by a fovea patch."""
+
+    def __init__(self, config: VisualConfig | None = None):
+        self.config = cfg = config or VisualConfig()
+        if cfg.fovea % 2 == 0:
+            raise InputError(f"fovea must be odd (2h+1), got {cfg.fovea}")
+        self.h = cfg.fovea // 2
+        # a feature unit's sensory field: the fovea of the ganglion image, then the fovea of each
+        # orientation channel sampled every v1_stride px (prepare_views stacks them in this order)
+        self.P0 = cfg.fovea * cfg.fovea
+        self._n_ori = cfg.v1_orientations if cfg.retina_mode != "none" else 0
+        self._ori_side = len(range(0, cfg.fovea, cfg.v1_stride))
+        self.P = self.P0 + self._n_ori * self._ori_side**2
+        self.D = cfg.index_side * cfg.index_side
+        # sensory cells: s_a(v) = exp(-((a - v)/sigma)^2), cut below the cutoff ([BBc])
+        v = np.arange(256, dtype=np.float64)
+        S = np.exp(-(((v[:, None] - v[None, :]) / cfg.sensory_sigma) ** 2))
+        S[S < cfg.sensory_cutoff] = 0.0
+        self._K = (S @ S.T).astype(np.float32).ravel()  # K[a, b] flattened, a = learned, b = seen
+        self._n = S.sum(axis=1).astype(np.float32)  # sum_v s_a(v)
+        self._rng = np.random.default_rng(cfg.seed)
+        self._last_views: tuple[np.ndarray, np.ndarray, float, np.ndarray] | None = None  # see _views
+        cap = 64
+        self._patch = np.zeros((cap, self.P), np.uint8)
+        self._desc = np.zeros((cap, self.D), np.float32)
+        self._z = np.zeros(cap, np.float32)
+        self._pos = np.zeros((cap, 2), np.int32)
+        self._frame = np.zeros(cap, np.int32)
+        self._w = np.zeros(cap, np.float32)
+        self._nf = 0
+        fcap = 16
+        self._fstart = np.zeros(fcap, np.int64)
+        self._fcount = np.zeros(fcap, np.int64)
+        self._fsize = np.zeros((fcap, 2), np.int32)
+        self._fscale = np.ones(fcap, np.float32)  # input px per working px of each learned frame
+        self._nframes = 0
+
+    # -- sizes ------------------------------------------------------------------------
+    @property
+    def n_frames(self) -> int:
+        return self._nframes
+
+    @property
+    def n_features(self) -> int:
+        return self._nf
+
+    @property
+    def frame_count(self) -> int:
+        """Alias of :attr:`n_frames` (used by :mod:`hippomap.mapper`)."""
+        return self._nframes
+
+    def check_image(self, image: Any, name: str = "image") -> None:
+        """Raise :class:`InputError` if ``image`` could not be learned or recognised (no state change).
+        Only the checks: the retina runs when a key frame is recognised or learned, not on every frame."""
+        working_size(image, self.config, name)
+
+    def __len__(self) -> int:
+        return self._nframes
+
+    def memory_bytes(self) -> int:
+        """Bytes held per the stored arrays (used part, not the preallocated capacity)."""
+        n, f = self._nf, self._nframes
+        per_flc = self.P + self.D * 4 + 4 + 8 + 4 + 4  # patch, descriptor, Z, position, frame, W_FLC->ID
+        return n * per_flc + f * (8 + 8 + 8 + 4)
+
+    def frame_features(self, frame_id: int) -> dict[str, np.ndarray]:
+        """The learned fixation points (working px, learning order) and FLC ids of a frame."""
+        fid = self._check_frame(frame_id)
+        s, c = int(self._fstart[fid]), int(self._fcount[fid])
+        return {"features": np.arange(s, s + c), "points": self._pos[s : s + c].copy(), "size": self._fsize[fid].copy()}
+
+    def _check_frame(self, frame_id: Any) -> int:
+        try:
+            fid = int(frame_id)
+        except (TypeError, ValueError):
+            raise InputError(f"frame id must be an integer, got {frame_id!r}") from None
+        if fid != frame_id or not 0 <= fid < self._nframes:
+            raise InputError(f"unknown frame id {frame_id!r}; the memory holds frames 0..{self._nframes - 1}")
+        return fid
+
+    # -- views and patches -------------------------------------------------------------
+    def _views(self, image: Any) -> tuple[np.ndarray, float, np.ndarray]:
+        """``(work, scale, corner image)`` of a frame: :func:`prepare_views`, then the image whose corners
+        become fixation points (``corner_source``).
+
+        The mapper recognises a key frame and then learns the same frame: the views of the last frame
+        are kept with a copy of it, and a frame equal to it (same shape, dtype and pixels) gets them
+        again instead of another pass through the retina. The kept arrays are read-only."""
+        cfg = self.config
+        last = self._last_views
+        if (last is not None and isinstance(image, np.ndarray) and image.shape == last[0].shape
+                and image.dtype == last[0].dtype and np.array_equal(image, last[0])):
+            return last[1], last[2], last[3]
+        gray, work, scale = prepare_views(image, cfg)
+        cimg = _channel0(work) if cfg.corner_source == "retina" else imadjust(gray, cfg.contrast_clip)
+        for a in (work, cimg):
+            a.flags.writeable = False
+        self._last_views = (np.array(image, copy=True), work, scale, cimg)
+        return work, scale, cimg
+
+    def _descriptor(self, patches: np.ndarray) -> np.ndarray:
+        f, s = self.config.fovea, self.config.index_side
+        out = np.empty((patches.shape[0], self.D), np.float32)
+        for i, p in enumerate(patches[:, : self.P0].reshape(-1, f, f)):  # the ganglion part indexes
+            out[i] = cv2.resize(p, (s, s), interpolation=cv2.INTER_AREA).astype(np.float32).ravel()
+        return out
+
+    def _blur(self, img: np.ndarray) -> np.ndarray:
+        b = self.config.blur
+        return cv2.blur(img, (b, b), borderType=cv2.BORDER_REFLECT) if b > 1 else img
+
+    def _margin(self) -> int:
+        return self.h + 1
+
+    def _corners(self, img: np.ndarray, k: int, min_dist: float) -> np.ndarray:
+        m = self._margin()
+        H, W = img.shape
+        mask = np.zeros_like(img)
+        mask[m : H - m, m : W - m] = 255
+        pts = cv2.goodFeaturesToTrack(
+            img, maxCorners=int(k), qualityLevel=self.config.corner_quality, minDistance=float(min_dist),
+            mask=mask, blockSize=self.config.corner_block,
+        )
+        if pts is None:
+            return np.zeros((0, 2), np.int32)
+        return np.rint(pts.reshape(-1, 2)).astype(np.int32)
+
+    def _random_points(self, shape: tuple[int, int], k: int) -> np.ndarray:
+        m = self._margin()
+        H, W = shape[:2]
+        cand = self._rng.integers([m, m], [W - m, H - m], size=(40 * k, 2))
+        chosen: list[np.ndarray] = []
+        for c in cand:  # k accepted points: a tiny loop, not a hot path
+            if all(np.abs(c - q).max() >= self.h for q in chosen):
+                chosen.append(c)
+                if len(chosen) == k:
+                    break
+        return np.array(chosen, np.int32).reshape(-1, 2)
+
+    def _patch_at(self, img: np.ndarray, x: int, y: int) -> np.ndarray:
+        """The sensory field of a fovea at (x, y): ganglion fovea, then each orientation channel's
+        fovea sampled every ``v1_stride`` px (``P`` uint8 values)."""
+        h = self.h
+        if img.ndim == 2:
+            return img[y - h : y + h + 1, x - h : x + h + 1].ravel()
+        st = self.config.v1_stride
+        g = img[y - h : y + h + 1, x - h : x + h + 1, 0].ravel()
+        o = img[y - h : y + h + 1 : st, x - h : x + h + 1 : st, 1:]
+        return np.concatenate([g, o.transpose(2, 0, 1).ravel()])
+
+    def _patches(self, img: np.ndarray, pts: np.ndarray) -> np.ndarray:
+        return np.stack([self._patch_at(img, int(x), int(y)) for x, y in pts]) if len(pts) else np.zeros(
+            (0, self.P), np.uint8
+        )
+
+    def _reserve(self, n_features: int, n_frames: int) -> None:
+        """Grow the arrays (doubling) to hold at least this many feature units and frames."""
+        if n_features > self._patch.shape[0]:
+            cap = max(n_features, 2 * self._patch.shape[0])
+            for name in ("_patch", "_desc", "_z", "_pos", "_frame", "_w"):
+                a = getattr(self, name)
+                b = np.zeros((cap,) + a.shape[1:], a.dtype)
+                b[: self._nf] = a[: self._nf]
+                setattr(self, name, b)
+        if n_frames > self._fstart.shape[0]:
+            cap = max(n_frames, 2 * self._fstart.shape[0])
+            for name in ("_fstart", "_fcount", "_fsize", "_fscale"):
+                a = getattr(self, name)
+                b = np.zeros((cap,) + a.shape[1:], a.dtype)
+                b[: self._nframes] = a[: self._nframes]
+                setattr(self, name, b)
+
+    # -- learning ----------------------------------------------------------------------
+    def learn(self, image: Any) -> int | None:
+        """Learn a key frame one-shot; returns its frame id, or ``None`` when fewer than
+        ``min_fixations`` fixation points were found (textureless frame, spec §2)."""
+        cfg = self.config
+        work, in_scale, cimg = self._views(image)
+        if cfg.fixation_mode == "corners":
+            pts = self._corners(cimg, cfg.n_fixations, cfg.min_distance if cfg.min_distance else self.h)
+        else:
+            pts = self._random_points(work.shape, cfg.n_fixations)
+        if len(pts) < cfg.min_fixations:
+            return None
+        pts = pts[self._rng.permutation(len(pts))]  # learned in random order ([BBc] randperm)
+        blurred = self._blur(work)
+        patches = self._patches(blurred, pts)
+        k = len(pts)
+        self._reserve(self._nf + k, self._nframes + 1)
+        s = self._nf
+        fid = self._nframes
+        self._patch[s : s + k] = patches
+        desc = self._descriptor(patches)
+        self._desc[s : s + k] = desc
+        self._z[s : s + k] = self._n[patches].sum(axis=1)
+        self._pos[s : s + k] = pts
+        self._frame[s : s + k] = fid
+        self._w[s : s + k] = 1.0 - self._rng.uniform(0.0, cfg.weight_jitter, k)
+        self._fstart[fid] = s
+        self._fcount[fid] = k
+        self._fsize[fid] = (work.shape[1], work.shape[0])
+        self._fscale[fid] = in_scale
+        self._nf += k
+        self._nframes += 1
+        return fid
+
+    # -- drive -------------------------------------------------------------------------
+    def _drive(self, patch: np.ndarray, flc: np.ndarray) -> np.ndarray:
+        """Exact FLC drive u_k of a fovea patch (uint8, P) for global FLC indices ``flc``."""
+        if flc.size == 0:
+            return np.zeros(0, np.float32)
+        # flat index a * 256 + b into K, built in uint16 (fast gather; 255 * 256 + 255 fits)
+        idx = (self._patch[flc].astype(np.uint16) << 8) | patch[None, :]
+        return _gather_k(self._K, idx).sum(axis=1) / self._z[flc]
+
+    def _drive_rows(self, patch: np.ndarray, sub: FlcSubset) -> np.ndarray:
+        """:meth:`_drive` of ``sub.rows`` from the subset's gathered patches (same numbers, no row gather)."""
+        if sub.rows is None or sub.rows.size == 0:
+            return np.zeros(0, np.float32)
+        idx = np.bitwise_or(sub.rows_hi, patch[None, :], out=sub.rows_buf)
+        return _gather_k(self._K, idx).sum(axis=1) / sub.rows_z
+
+    def _shortlist_drive(self, patch: np.ndarray, x: int, y: int, sub: FlcSubset,
+                         predicted: int) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """``(T, uT, uR)``: the local indices ``T`` of the FLCs whose drive is computed exactly at
+        fixation (x, y) (all of the subset, or the index's shortlist plus the ``predicted`` unit),
+        their drive ``uT``, and the drive ``uR`` of the statistics sample (None: the subset is the
+        whole library, computed exactly)."""
+        cfg = self.config
+        uR = None
+        if sub.exact_all:
+            T = np.arange(sub.n)
+            # the drive of the same rows at the same point of the same image: remembered (read only)
+            u = sub.drives.get((x, y))
+            if u is None:
+                u = self._drive_rows(patch, sub)
+                u.flags.writeable = False
+                sub.drives[(x, y)] = u
+            if sub.is_all:
+                uT = u
+            else:  # candidates and the library sample of the statistics in one gather
+                uT, uR = u[: sub.n], u[sub.n :]
+        else:
+            q = self._descriptor(patch[None, :])
+            M = cfg.index_shortlist
+            # index: the M nearest descriptors (L2) in one vectorised OpenCV call (no BLAS threads)
+            _, nidx = cv2.batchDistance(q, sub.desc, cv2.CV_32F, normType=cv2.NORM_L2SQR, K=M)
+            T = nidx.ravel().astype(np.int64)
+            T = T[T >= 0]
+            if predicted >= 0 and not np.any(T == predicted):
+                T = np.append(T, predicted)
+            # shortlist and statistics sample in one gather
+            assert sub.sample is not None  # set unless exact_all
+            extra = np.setdiff1d(sub.sample, T) if sub.is_all else sub.sample
+            u = self._drive(patch, np.concatenate([sub.idx[T], extra]))
+            uT, uR = u[: T.size], u[T.size :]
+        return T, uT, uR
+
+    def _drive_stats(self, sub: FlcSubset, T: np.ndarray, uT: np.ndarray,
+                     uR: np.ndarray | None) -> tuple[float, float, int]:
+        """``(mean, var, N)`` of the drive over the population of ``N`` FLCs (the ``N_std`` rule):
+        exact, or the exact shortlist plus a stratified estimate of the rest; with candidates the
+        sensory layer is global, so the statistics are those of the library sample."""
+        if sub.is_all:
+            N = sub.n
+            if sub.exact_all:
+                mean, var = float(uT.mean()), float(uT.var())
+            else:  # exact shortlist + stratified estimate of the rest
+                assert uR is not None  # gathered above unless exact_all
+                uR = uR.astype(np.float64)
+                nR = N - T.size
+                mR = float(uR.mean()) if uR.size else 0.0
+                m2R = float((uR**2).mean()) if uR.size else 0.0
+                mean = (float(uT.sum()) + nR * mR) / N
+                m2 = (float((uT.astype(np.float64) ** 2).sum()) + nR * m2R) / N
+                var = max(0.0, m2 - mean * mean)
+        else:  # candidates: the sensory layer is global, statistics over the library sample
+            assert uR is not None  # gathered with the candidates
+            uL = uR.astype(np.float64)
+            N = max(self.n_features, 1)
+            mean, var = float(uL.mean()), float(uL.var())
+        return mean, var, N
+
+    # -- persistence -------------------------------------------------------------------
+    def state_dict(self) -> dict[str, Any]:
+        """Everything needed to restore an identical memory (arrays are copies)."""
+        n, f = self._nf, self._nframes
+        return {
+            "version": STATE_VERSION,
+            "config": self.config.model_dump(mode="json"),
+            "patch": self._patch[:n].copy(),
+            "desc": self._desc[:n].copy(),
+            "pos": self._pos[:n].copy(),
+            "frame": self._frame[:n].copy(),
+            "w": self._w[:n].copy(),
+            "fstart": self._fstart[:f].copy(),
+            "fcount": self._fcount[:f].copy(),
+            "fsize": self._fsize[:f].copy(),
+            "fscale": self._fscale[:f].copy(),
+            "rng": self._rng.bit_generator.state,
+        }
+
+    @classmethod
+    def from_state(cls, config: VisualConfig | None, state: dict[str, Any]) -> Self:
+        """Restore a memory from :meth:`state_dict`; its future outputs (rng included) are identical."""
+        mem = cls(config)
+        try:
+            if int(state.get("version", -1)) != STATE_VERSION:
+                raise InputError(f"visual memory state version {state.get('version')!r} is not {STATE_VERSION}")
+            patch = np.asarray(state["patch"], np.uint8)
+            n = patch.shape[0]
+            f = np.asarray(state["fstart"]).shape[0]
+            if patch.ndim != 2 or patch.shape[1] != mem.P:
+                raise InputError(f"state patches have shape {patch.shape}, expected (n, {mem.P}) for the configured "
+                                 "fovea")
+            mem._reserve(n, f)
+            mem._patch[:n] = patch
+            desc = np.asarray(state["desc"], np.float32)
+            if desc.shape != (n, mem.D):
+                raise InputError(f"state descriptors have shape {desc.shape}, expected ({n}, {mem.D})")
+            mem._desc[:n] = desc
+            mem._z[:n] = mem._n[patch].sum(axis=1)
+            mem._pos[:n] = np.asarray(state["pos"], np.int32).reshape(n, 2)
+            mem._frame[:n] = np.asarray(state["frame"], np.int32).reshape(n)
+            mem._w[:n] = np.asarray(state["w"], np.float32).reshape(n)
+            mem._fstart[:f] = np.asarray(state["fstart"], np.int64)
+            mem._fcount[:f] = np.asarray(state["fcount"], np.int64)
+            mem._fsize[:f] = np.asarray(state["fsize"], np.int32).reshape(f, 2)
+            # older states lack the input scale of each frame: assume the working size (scale 1)
+            mem._fscale[:f] = np.asarray(state.get("fscale", np.ones(f)), np.float32).reshape(f)
+            if int(mem._fcount[:f].sum()) != n:
+                raise InputError("state frame table does not add up to the stored features")
+            mem._nf, mem._nframes = n, f
+            mem._rng.bit_generator.state = state["rng"]
+        except (KeyError, TypeError, ValueError) as exc:
+            if isinstance(exc, InputError):
+                raise
+            raise InputError(f"malformed visual memory state: {exc!r}") from exc
+        return mem

@@ -1,0 +1,431 @@
+"""Loop closing on the map: hypotheses gated, verified, linked and weighted (paper §2.4; spec §4).
+
+The layer of :class:`~hippomap.cognitive_map.CognitiveMap` that decides which loop links the map
+gets and how much it trusts them (the data and maths it uses are in :mod:`hippomap.loop_closure`).
+Loop closures enter through one door, :meth:`LoopClosing.propose_loop`, and are checked by (a) a
+place-code gate whose radius grows with the path travelled since the matched node and (b) cycle
+consistency between hypotheses; an accepted group of visual hypotheses has its relative pose
+fitted before it becomes loop links. With ``loop_accept = 'robust'`` a gated hypothesis becomes a
+link at once, weighted by the robust kernel (revised by :mod:`hippomap.map_correction` as the map
+converges); hypotheses of a global search that fall outside the gate wait for a consistent group.
+Every decision is kept in :attr:`LoopClosing.loop_decisions`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+from typing import Any, cast
+
+import numpy as np
+
+from .errors import InputError
+from .geometry import compose, wrap_angle
+from .loop_closure import (
+    USED_WEIGHT,
+    Candidate,
+    LoopDecision,
+    LoopHypothesis,
+    align_group,
+    consistent,
+    drift_path,
+    gate_limit,
+    place_of,
+    se2_between,
+    se2_compose,
+    se2_inverse,
+)
+from .map_correction import MapCorrection
+from .map_events import LoopAccepted, LoopPending, LoopRejected, MapEvent
+from .map_graph import LOOP, PRUNE
+
+__all__ = ["LoopClosing"]
+
+_compose3, _inv3, _between3 = se2_compose, se2_inverse, se2_between
+
+
+class LoopClosing(MapCorrection):
+    """Loop hypotheses and their decisions, over :class:`~hippomap.map_correction.MapCorrection`."""
+
+    @property
+    def path_since_verified(self) -> float:
+        """Odometric path (m) since the last verified loop closure, or since the start."""
+        return self._path - (self._loops.last_verified_path or 0.0)
+
+    @property
+    def loop_decisions(self) -> list[LoopDecision]:
+        """One decision per proposed hypothesis (index = decision id), latest status."""
+        return list(self._loops.decisions)
+
+    @property
+    def pending_count(self) -> int:
+        return len(self._loops.pending)
+
+    def loop_candidates(self, limit: int | None = None) -> np.ndarray:
+        """Ids of the nodes a visual hypothesis made now could name and pass the gate with:
+        within :func:`~hippomap.loop_closure.gate_limit` of the robot (unmeasured hypothesis, no
+        offset), not current nor among the last ``N_excl`` nodes; nearest first."""
+        n = self._n
+        r = self.robot_map_pose()
+        d = np.hypot(self._P[:n, 0] - r[0], self._P[:n, 1] - r[1])
+        lim = gate_limit(self.cfg, False, drift_path(self._path, self._S[:n], self._loops.last_verified_path))
+        mask = d < lim
+        mask[max(0, n - self.cfg.exclude_recent):] = False
+        mask[self._cur] = False
+        ids = np.flatnonzero(mask)
+        ids = ids[np.argsort(d[ids], kind="stable")]
+        return ids if limit is None else ids[:limit]
+
+    def propose_loop(self, h: LoopHypothesis) -> LoopDecision:
+        """Offer a loop closure; returns the decision. Its events are queued: the caller takes them
+        with :meth:`take_events` (else they come out of the next :meth:`update`).
+
+        Checks, in order (see :mod:`hippomap.loop_closure`):
+
+        * ``node`` must be an existing node, not the current one nor among the last ``N_excl``.
+        * (a) gate: where the hypothesis puts the node (the robot's map pose ⊕ the node's pose in
+          the robot's frame) must lie within :func:`~hippomap.loop_closure.gate_limit` of the
+          node's map pose (``loop_gate = 'map'``), or of its place code from the robot's place
+          code (``'place_code'``, Eq. 13 as in [S]).
+        * (b) with ``loop_min_support`` ≥ 2, cycle consistency with the other hypotheses made
+          within ``loop_support_window_m`` metres of path: with ``loop_min_support`` − 1
+          consistent pending ones, or one consistent accepted one, it is accepted; if it
+          contradicts every loop accepted in the window it is rejected; else it waits.
+
+        Accepting a group of visual hypotheses first fits their relative pose together
+        (:func:`~hippomap.loop_closure.align_group`), then adds a ``loop`` link per hypothesis
+        from the node that was current at the proposal to ``node``; the newest relocalises the
+        robot (current = its node, the robot's offset kept); then the map is corrected.
+        Rejected hypotheses never touch node poses.
+        """
+        if not isinstance(h, LoopHypothesis):
+            raise InputError(f"propose_loop needs a LoopHypothesis, got {type(h).__name__}")
+        n = self._n
+        if not 0 <= h.node < n:
+            raise InputError(f"LoopHypothesis.node {h.node} is not a node id of this map [0, {n})")
+        cfg = self.cfg
+        book = self._loops
+        cand = self._candidate(h)
+        t = self._t if self._t is not None else h.time
+        base, reason, outside = self._screen(h, cand)
+        book.decisions.append(base)
+        if outside and h.meta.get("search") == "global" and not h.measured and cfg.outside_min_support > 0:
+            return self._propose_outside(cand, t, reason)
+        if reason:
+            return self._reject(cand.id, reason, t)
+        if cfg.loop_accept == "robust":
+            return self._accept_robust(cand, t)
+        if cfg.loop_min_support <= 1:
+            self._accept([cand], cand, t)
+            return book.decisions[cand.id]
+        return self._verify(cand, t)
+
+    def _candidate(self, h: LoopHypothesis) -> Candidate:
+        """The candidate of hypothesis ``h`` proposed now (its decision id: the next one): the loop
+        link's transform from the current node (the measured one, or the robot's offset moved by
+        the hypothesis' offset from its node), the robot's dead-reckoned pose and path, the link's
+        information and kernel width (measured or visual)."""
+        cfg = self.cfg
+        did = len(self._loops.decisions)
+        if h.transform is not None:
+            link_tr = h.transform
+        else:
+            link_tr = self._delta if h.offset is None else _compose3(self._delta, _inv3(h.offset))
+        info = h.information or (cfg.loop_information if h.transform is not None else cfg.visual_loop_information)
+        return Candidate(did, h.node, self._cur, link_tr, _between3(self._delta, link_tr), self._odom, self._step,
+                         self._arrival if h.node == self._cur else -1, h.transform is not None, self._path,
+                         cast("tuple[float, float]", tuple(float(v) for v in info)),
+                         cfg.loop_kernel_width if h.transform is not None else cfg.visual_kernel_width)
+
+    def _screen(self, h: LoopHypothesis, cand: Candidate) -> tuple[LoopDecision, str, bool]:
+        """The first checks of :meth:`propose_loop`: (pending decision with its gate distance and
+        limit, reason to reject or "", whether the hypothesis fell outside the gate)."""
+        cfg = self.cfg
+        base = LoopDecision(cand.id, "pending", "", h, self._cur, proposed_step=self._step)
+        reason = ""
+        outside = False
+        if h.node != self._cur and h.node >= self._n - cfg.exclude_recent:
+            reason = f"node {h.node} is among the {cfg.exclude_recent} most recent nodes"
+        else:
+            dist, limit, what = self._gate(cand)
+            if dist is None:
+                reason = "no place code yet to gate the hypothesis"
+            else:
+                base = replace(base, gate_distance=dist, gate_limit=limit)
+                if not dist < limit:
+                    reason = f"{what} distance {dist:.3f} m exceeds the gate {limit:.3f} m"
+                    outside = True
+        return base, reason, outside
+
+    def _verify(self, cand: Candidate, t: float) -> LoopDecision:
+        """Check (b) of :meth:`propose_loop` for a gated candidate: cycle consistency with the
+        pending and accepted candidates of the window; accepted, rejected, or left pending."""
+        cfg, book = self.cfg, self._loops
+        did = cand.id
+        P, S = self._P, self._S
+        pend = [c for c in book.pending if c.step != cand.step]
+        acc = [c for c in book.accepted if c.step != cand.step]
+        ok_pend = [c for c, ok in zip(pend, consistent(cfg, pend, cand, P, S)) if ok]
+        ok_acc = [c for c, ok in zip(acc, consistent(cfg, acc, cand, P, S)) if ok]
+        if ok_acc or (not acc and 1 + len(ok_pend) >= cfg.loop_min_support):
+            support = tuple(c.id for c in ok_pend + ok_acc)
+            self._accept(ok_pend + [cand], cand, t, support, ok_acc)
+            return book.decisions[did]
+        if acc:
+            ids = ", ".join(str(c.id) for c in acc)
+            return self._reject(did, f"contradicts the loop closure(s) accepted within the window: {ids}", t)
+        book.pending.append(cand)
+        book.decisions[did] = replace(book.decisions[did], support=tuple(c.id for c in ok_pend))
+        self._events.append(LoopPending(did, cand.node, cand.from_node, len(ok_pend), t))
+        return book.decisions[did]
+
+    def _propose_outside(self, cand: Candidate, t: float, gate_reason: str) -> LoopDecision:
+        """A visual hypothesis from a global search (``meta['search'] == 'global'``) that names a
+        node outside the gate: after a long excursion the map's drift exceeds any gate, so the
+        gate cannot judge it. It waits, without a link, for ``outside_min_support`` − 1 others of
+        the same kind within ``outside_window_m`` of path that agree with it in space
+        (:func:`consistent`: the distance driven between two proposals equals the distance between
+        the places they name) and in sequence (the old path between the two named nodes is as long
+        as the path driven between the proposals, within ``loop_consistency_m`` + 10 %); the group
+        must then fit one SE(2) transform (:meth:`_fit_group`). A fitted group
+        becomes verified loop links at weight 1 and the whole map is solved; a lone or
+        contradicted hypothesis expires without touching the map."""
+        cfg, book = self.cfg, self._loops
+        P, S = self._P, self._S
+        self._expire_outside(t)
+        older = [c for c in book.outside if c.step != cand.step]
+        # consistent in space, and in sequence: a revisit retraces the old path, so the old path between
+        # the two named nodes is as long as the robot's path between the two proposals
+        ok = [c for c, good in zip(older, consistent(cfg, older, cand, P, S))
+              if good and abs((S[cand.node] - S[c.node]) - (cand.path - c.path))
+              < cfg.loop_consistency_m + 0.1 * abs(cand.path - c.path)]
+        group = self._fit_group(ok + [cand], []) if 1 + len(ok) >= cfg.outside_min_support else None
+        if group is None:
+            book.outside.append(cand)
+            d = replace(book.decisions[cand.id], reason=f"{gate_reason}: waits for consistent global recognitions",
+                        support=tuple(c.id for c in ok))
+            book.decisions[cand.id] = d
+            self._events.append(LoopPending(cand.id, cand.node, cand.from_node, len(ok), t))
+            return d
+        ids = {c.id for c in group}
+        for c in sorted(group, key=lambda c: c.id):
+            link = self._add_loop_link(c)
+            if link >= 0:
+                self._trust(link)
+            sup = tuple(sorted(ids - {c.id}))
+            book.decisions[c.id] = replace(book.decisions[c.id], status="accepted", link=link, support=sup,
+                                           reason="outside the gate; verified by a group of consistent global "
+                                                  "recognitions", decided_step=self._step, transform=c.link_tr)
+            self._events.append(LoopAccepted(c.id, c.node, c.from_node, link, sup, False, t))
+        book.outside = [c for c in book.outside if c.id not in ids]
+        book.accepted.extend(group)
+        book.last_verified_path = self._path
+        self._version += 1
+        self._dirty = True
+        self._events.extend(self._optimise(t))  # the links disagree with the map by far: a whole solve
+        return book.decisions[cand.id]
+
+    def _gate(self, c: Candidate) -> tuple[float | None, float, str]:
+        """(distance, limit, what) of the gate for candidate ``c``; distance None: cannot gate."""
+        cfg = self.cfg
+        drift = float(drift_path(self._path, self._S[c.node], None if c.measured else self._loops.last_verified_path))
+        limit = float(gate_limit(cfg, c.measured, drift))
+        if cfg.loop_gate == "map":
+            pred = _compose3(self.robot_map_pose(), c.M)
+            return math.hypot(pred[0] - self._P[c.node, 0], pred[1] - self._P[c.node, 1]), limit, "map"
+        code = self._robot_code()
+        if code is None or np.isnan(self._C[c.node, 0]):
+            return None, limit, "place-code"
+        pred = _compose3(code, c.M)
+        return cfg.mu_p * math.hypot(pred[0] - self._C[c.node, 0], pred[1] - self._C[c.node, 1]), limit, "place-code"
+
+    def _reject(self, did: int, reason: str, t: float) -> LoopDecision:
+        book = self._loops
+        d = replace(book.decisions[did], status="rejected", reason=reason, decided_step=self._step)
+        book.decisions[did] = d
+        self._events.append(LoopRejected(did, d.hypothesis.node, d.from_node, reason, t))
+        return d
+
+    def _fit_group(self, group: list[Candidate], anchors: list[Candidate]) -> list[Candidate] | None:
+        """The group's visual candidates with the offsets of one SE(2) fit of the robot's
+        dead-reckoned poses onto the places they name (``anchors``: accepted candidates of the
+        window that back the fit but keep their links). ``None`` when the fit does not hold:
+        a member lies more than ``loop_consistency_m`` from where the fit puts it, or the fit
+        turns the robot more than ``loop_view_rad`` away from the way a member's key frame
+        looked (recognising a view means facing roughly as it was learned)."""
+        vis = [c for c in group + anchors if not c.measured]
+        if len(vis) < 2:
+            return group
+        P, cfg = self._P, self.cfg
+        odom = np.array([c.odom for c in vis])
+        targets = np.array([place_of(c, P) for c in vis])
+        T = align_group(odom, targets, cfg.loop_fit_min_spread_m)
+        fitted = compose(T, odom)
+        if (np.max(np.hypot(*(fitted[:, :2] - targets[:, :2]).T)) > cfg.loop_consistency_m
+                or np.max(np.abs(wrap_angle(fitted[:, 2] - targets[:, 2]))) > cfg.loop_view_rad):
+            return None
+        out = []
+        for c in group:
+            if c.measured:
+                out.append(c)
+                continue
+            robot = _compose3(T, c.odom)  # where the fit puts the robot on the map at the proposal
+            out.append(c.with_offset(_between3(P[c.node], robot)))
+        return out
+
+    def _accept(self, group: list[Candidate], reloc: Candidate, t: float, support: tuple[int, ...] = (),
+                anchors: list[Candidate] | None = None) -> None:
+        book = self._loops
+        ids = {c.id for c in group}
+        group = sorted(self._fit_group(group, anchors or []) or group, key=lambda c: c.id)
+        reloc = next(c for c in group if c.id == reloc.id)
+        arrival = -1
+        for c in group:
+            link = self._add_loop_link(c)
+            if link >= 0:
+                self._trust(link)
+            if c is reloc:
+                arrival = link
+            sup = tuple(sorted((set(support) | ids) - {c.id}))
+            reason = "gate" if self.cfg.loop_min_support <= 1 else "gate and cycle consistency"
+            if link < 0:
+                reason += "; names the node it was proposed from: robot offset corrected, no link"
+            book.decisions[c.id] = replace(book.decisions[c.id], status="accepted", reason=reason, link=link,
+                                           support=sup, decided_step=self._step, transform=c.link_tr)
+            self._events.append(LoopAccepted(c.id, c.node, c.from_node, link, sup, c is reloc, t))
+            book.accepted.append(c)
+        book.pending = [c for c in book.pending if c.id not in ids]
+        book.last_verified_path = self._path
+        if self.cfg.loop_relocalise:
+            self._set_current(reloc.node, _inv3(reloc.M), t, arrival)
+        # the remaining pending hypotheses: supported by the accepted group, or contradicted by it
+        still = []
+        for c in book.pending:
+            others = [g for g in group if g.step != c.step]
+            if not others:
+                still.append(c)
+                continue
+            if np.any(consistent(self.cfg, others, c, self._P, self._S)):  # the cycle test is symmetric in the pair
+                link = self._add_loop_link(c)
+                sup = tuple(sorted(ids))
+                book.decisions[c.id] = replace(book.decisions[c.id], status="accepted",
+                                               reason="supported by an accepted loop closure", link=link,
+                                               support=sup, decided_step=self._step, transform=c.link_tr)
+                self._events.append(LoopAccepted(c.id, c.node, c.from_node, link, sup, False, t))
+                book.accepted.append(c)
+            else:
+                self._reject(c.id, "contradicted by the accepted loop closure(s) " + ", ".join(map(str, sorted(ids))),
+                             t)
+        book.pending = still
+        self._events.extend(self._optimise(t))
+
+    def _accept_robust(self, cand: Candidate, t: float) -> LoopDecision:
+        """``loop_accept = 'robust'``: a hypothesis that passed the gate becomes a loop link at
+        once, with the kernel weight of its residual (:func:`~hippomap.loop_closure.kernel_weights`), revised as the map
+        converges. Cycle consistency no longer decides whether a link exists, only whether it is
+        *verified*: a verified group has its relative pose fitted, its weights set to 1 and
+        relocalises the robot; unverified links can only pull as far as their weight lets them."""
+        cfg, book = self.cfg, self._loops
+        link = self._add_loop_link(cand)
+        P, S = self._P, self._S
+        pend = [c for c in book.pending if c.step != cand.step]
+        acc = [c for c in book.accepted if c.step != cand.step]
+        ok_pend = [c for c, ok in zip(pend, consistent(cfg, pend, cand, P, S)) if ok]
+        ok_acc = [c for c, ok in zip(acc, consistent(cfg, acc, cand, P, S)) if ok]
+        verified = bool(ok_acc) or 1 + len(ok_pend) >= cfg.loop_min_support
+        group = self._fit_group(ok_pend + [cand], ok_acc) if verified else None
+        verified = group is not None
+        support = tuple(c.id for c in ok_pend + ok_acc)
+        reason = "gate; weighted by the robust kernel" + ("; verified by cycle consistency" if verified else "")
+        book.decisions[cand.id] = replace(book.decisions[cand.id], status="accepted", reason=reason, link=link,
+                                          support=support, decided_step=self._step, transform=cand.link_tr)
+        reloc = verified and cfg.loop_relocalise
+        self._events.append(LoopAccepted(cand.id, cand.node, cand.from_node, link, support, reloc, t))
+        if not verified:
+            book.pending.append(cand)
+        else:
+            assert group is not None  # verified
+            for c in group:
+                k = book.decisions[c.id].link
+                if k >= 0 and c.node != c.from_node:
+                    self._tr[k] = c.link_tr
+                    self._trust(k)
+                    self._touched.append(k)
+                    book.decisions[c.id] = replace(book.decisions[c.id], transform=c.link_tr)
+            self._version += 1
+            self._dirty = True
+            ids = {c.id for c in group}
+            book.pending = [c for c in book.pending if c.id not in ids]
+            book.accepted.extend(group)
+            book.last_verified_path = self._path
+            if reloc:
+                c = group[-1]
+                self._set_current(c.node, _inv3(c.M), t, link)
+        self._events.extend(self._optimise(t))
+        return book.decisions[cand.id]
+
+    def _add_loop_link(self, c: Candidate) -> int:
+        """The loop link of an accepted hypothesis ``from_node → node`` with the measured transform.
+
+        A hypothesis may name the node it was proposed from: the robot had already reached that
+        node A by online pruning (or an earlier loop) through the *arrival* link prev → A. The
+        measurement then says where A is seen from prev: ``arrival ⊕ transform``. An unverified
+        prune link is overwritten by it (and becomes a loop link); otherwise a loop link
+        prev → A is added. Without an arrival link there is nothing to link (-1): the hypothesis
+        only corrects the robot's offset when it relocalises.
+        """
+        if c.node != c.from_node:
+            return self._add_link(c.from_node, c.node, c.link_tr, LOOP, 0.0, allow_duplicate=True, info=c.info,
+                                  kernel_width=c.kernel_width)
+        k = c.arrival
+        if k < 0 or k >= self._m or self._dst[k] != c.node:
+            return -1
+        tr = _compose3(self._tr[k], c.link_tr)
+        if self._kind[k] == PRUNE:
+            self._tr[k] = tr
+            self._kind[k] = LOOP
+            self._w[k] = 1.0
+            self._linfo[k] = c.info
+            self._lkw[k] = c.kernel_width
+            self._version += 1
+            self._dirty = True
+            self._touched.append(k)
+            return k
+        return self._add_link(int(self._src[k]), c.node, tr, LOOP, 0.0, allow_duplicate=True, info=c.info,
+                                  kernel_width=c.kernel_width)
+
+    def _trust(self, k: int) -> None:
+        """A verified loop link: weight 1, and (``trust_verified``) out of the kernel's reach,
+        so that a true closure is applied fully even where it strains an odometry model that
+        claims more precision than it has; only unverified links are weighted down."""
+        self._w[k] = 1.0
+        if self.cfg.trust_verified:
+            self._lkw[k] = np.inf
+
+    def _expire_outside(self, t: float) -> None:
+        w = self.cfg.outside_window_m
+        for c in self._loops.expired_outside(self._path, w):
+            self._reject(c.id, f"outside the gate, and no consistent support within {w:g} m of path", t)
+
+    def _expire(self) -> list[MapEvent]:
+        w = self.cfg.loop_support_window_m
+        t = self._t if self._t is not None else 0.0
+        for c in self._loops.expired(self._path, w):
+            if self.cfg.loop_accept == "verified":
+                self._reject(c.id, f"expired: no consistent support within {w:g} m of path", t)
+        self._expire_outside(t)
+        out, self._events = self._events, []
+        return out
+
+    def loop_rows(self) -> list[dict[str, Any]]:
+        """Every loop decision as a JSON-ready dict, with the current robust ``weight`` of its
+        link (absent without a link) and ``used``: accepted with weight >= ``USED_WEIGHT``."""
+        w = self._w[: self._m]
+        rows = []
+        for d in self._loops.decisions:
+            row = d.to_dict()
+            if 0 <= d.link < len(w):
+                row["weight"] = float(w[d.link])
+            row["used"] = d.status == "accepted" and row.get("weight", 1.0) >= USED_WEIGHT
+            rows.append(row)
+        return rows

@@ -1,0 +1,232 @@
+"""Map correction: when and how the cognitive map's node poses are solved (paper §2.4, Eq. 14).
+
+The layer of :class:`~hippomap.cognitive_map.CognitiveMap` above its graph
+(:class:`~hippomap.map_graph.MapGraph`): after any change of the graph the map is corrected with
+``MapConfig.solver`` (the algorithms are in :mod:`hippomap.relaxation`): nothing is done while the
+map agrees with itself; a local window or the whole map is solved otherwise; once converged, the
+robust weights of the loop links are revised from their residuals (iteratively reweighted
+relaxation, :func:`~hippomap.loop_closure.kernel_weights`), which starts the correction again when
+a weight changed. This layer also gives each link its information (the weighted solver's and the
+g2o export's weights) and estimates the odometry's heading bias with the whole solves.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from .loop_closure import kernel_weights
+from .map_events import MapEvent, MapRelaxed
+from .map_graph import LOOP, ODOMETRY, MapGraph
+from .relaxation import (
+    ColourGroups,
+    RelaxResult,
+    graph_cost,
+    link_residuals,
+    relax,
+    relax_jacobi,
+    rotation_first_init,
+    solve_lsq,
+)
+
+__all__ = ["MapCorrection"]
+
+
+class MapCorrection(MapGraph):
+    """The map's correction and robust reweighting, over :class:`~hippomap.map_graph.MapGraph`."""
+
+    def _optimise(self, t: float, force: bool = False, sweeps: int | None = None) -> list[MapEvent]:
+        """Correct node poses while the graph disagrees with itself (``MapConfig.solver``).
+
+        Nothing is done while the map is consistent (every link added since the last
+        correction agreed with the poses, as a new node's odometric link does): between loop
+        closures the cost per step does not grow with the map. After a closure, 'relax' runs
+        ``relax_loops`` sweeps per step until the largest shift of a sweep falls below
+        ``relax_tolerance_m``; 'lsq' and 'gtsam' solve at once. Once converged, the loop links'
+        robust weights are revised (:meth:`_reweight`); a change of weight starts it again.
+        """
+        m, n = self._m, self._n
+        if m == 0 or not (self._dirty or force):
+            return []
+        P = self._P[:n]
+        src, dst, tr = self._src[:m], self._dst[:m], self._tr[:m]
+        cfg = self.cfg
+        sweeps = cfg.relax_loops if sweeps is None else int(sweeps)
+        w = self._w[:m]
+        window = None
+        if cfg.solver == "lsq" and not force and self._local_solves < cfg.lsq_window_every:
+            window = self._local_window()
+        self._touched = []  # what is solved now; the reweighting below may add to it
+        if cfg.solver == "lsq":
+            res, converged = self._solve_lsq(window)
+        elif sweeps <= 0:
+            return []
+        elif cfg.solver == "jacobi":
+            res = relax_jacobi(P, src, dst, tr, sweeps, cfg.alpha, anchor=0)
+            converged = res.max_shift < cfg.relax_tolerance_m
+        else:
+            if self._groups_key != self._version:
+                self._groups = ColourGroups(src, dst, tr, self._col[:m], n, check=False, weights=w)
+                self._groups_key = self._version
+            res = relax(P, src, dst, tr, sweeps, cfg.alpha, anchor=0, groups=self._groups)
+            converged = res.max_shift < cfg.relax_tolerance_m
+        # robust weights are revised on a map solved whole only: a window holds the rest of the map
+        # fixed, and the strain at its edge would fade true links
+        self._dirty = not converged or (self._local_solves == 0 and self._reweight())
+        return [MapRelaxed(res.solver, res.iterations, res.max_shift, t)]
+
+    def _solve_lsq(self, window: tuple[np.ndarray, np.ndarray, np.ndarray] | None) -> tuple[RelaxResult, bool]:
+        """The 'lsq' solve of :meth:`_optimise`: the whole map (headings first when
+        ``lsq_rotation_init``; the odometry's bias estimated with the poses), or only the nodes of
+        ``window`` (:meth:`_local_window`) with the nodes just outside it fixed. Returns the
+        solver's result and whether it converged."""
+        m, n = self._m, self._n
+        P = self._P[:n]
+        src, dst, tr = self._src[:m], self._dst[:m], self._tr[:m]
+        cfg = self.cfg
+        w = self._w[:m]
+        info = (self.link_information() if cfg.lsq_weighted else np.ones((m, 3))) * w[:, None]
+        bias = self._bias_args()
+        if window is None:
+            if cfg.lsq_rotation_init:
+                self._rotation_init(P, src, dst, tr, info, bias)
+                if bias:
+                    bias["bias"] = self._bias  # the initialisation may have moved it
+            res = solve_lsq(P, src, dst, tr, iterations=cfg.lsq_iterations, anchor=0, information=info, **bias)
+            self._bias = res.bias
+            self._local_solves = 0
+        else:
+            self._local_solves += 1
+            nodes, links, fixed = window
+            local = np.full(n, -1, dtype=np.int64)
+            local[nodes] = np.arange(len(nodes))
+            Q = P[nodes].copy()
+            if bias:
+                bias = {**bias, "bias_dt": bias["bias_dt"][links], "estimate_bias": False}
+            res = solve_lsq(Q, local[src[links]], local[dst[links]], tr[links], iterations=cfg.lsq_iterations,
+                            anchor=None, information=info[links], fixed=local[fixed], **bias)
+            P[nodes] = Q
+        # a solve cut off by lsq_iterations has not converged: the weights are revised only on a
+        # converged map (IRLS), else a closure still being applied looks like an outlier and fades
+        converged = res.iterations < cfg.lsq_iterations or res.max_shift < cfg.relax_tolerance_m
+        return res, converged
+
+    def _bias_args(self) -> dict[str, Any]:
+        """Keyword arguments of :func:`solve_lsq` for the odometry's heading bias (empty when
+        ``odometry_bias_sigma`` is 0): every odometric link's heading change is taken to include
+        ``bias × its duration`` (a gyro's or wheel odometry's constant turn rate error), and the
+        whole solves estimate the bias with the poses, from a zero-mean prior of that sigma."""
+        sigma = self.cfg.odometry_bias_sigma
+        if sigma <= 0:
+            return {}
+        m = self._m
+        bdt = np.where(self._kind[:m] == ODOMETRY, self._dt[:m], 0.0)
+        return {"bias_dt": bdt, "bias": self._bias, "bias_information": 1.0 / sigma ** 2}
+
+    def _rotation_init(self, P: np.ndarray, src: np.ndarray, dst: np.ndarray, tr: np.ndarray, info: np.ndarray,
+                       bias: dict[str, Any]) -> None:
+        """Headings-first re-initialisation before a whole solve (with the bias when it is
+        estimated), kept only when it lowers the weighted cost (it cannot on a map that is
+        already at its optimum)."""
+
+        before = graph_cost(P, src, dst, tr, info, **bias)
+        Q = P.copy()
+        _, b = rotation_first_init(Q, src, dst, tr, info, anchor=0, **bias)
+        if graph_cost(Q, src, dst, tr, info, **{**bias, "bias": b}) < before:
+            P[:] = Q
+            if bias:
+                self._bias = b
+
+    def _reweight(self) -> bool:
+        """Revise the robust weights of the loop links from their residuals on the converged
+        map (iteratively reweighted relaxation): each link's residual is whitened by
+        ``loop_information`` and the kernel width, and ``loop_kernel`` turns it into a weight in
+        (0, 1]. Returns whether a weight changed by more than ``reweight_tolerance``."""
+        cfg = self.cfg
+        if cfg.loop_kernel == "none":
+            return False
+        m = self._m
+        loop = np.flatnonzero(self._kind[:m] == LOOP)
+        if not len(loop):
+            return False
+        new = kernel_weights(link_residuals(self._P[: self._n], self._src[loop], self._dst[loop], self._tr[loop]),
+                             self._linfo[loop], self._lkw[loop], cfg.loop_kernel)
+        changed = np.abs(new - self._w[loop]) > cfg.reweight_tolerance
+        if not changed.any():
+            return False
+        self._w[loop] = new
+        self._touched.extend(loop[changed].tolist())
+        self._version += 1  # rebuild the relaxation groups with the new gains
+        return True
+
+    def _local_window(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """(nodes, links, fixed) of a local solve, or None for a solve of the whole map.
+
+        When every link changed since the last solve disagrees with the map by less than
+        ``lsq_window_residual_m``, the correction is local (the robot is re-localising along a
+        mapped path, not closing a new loop): only the nodes within ``lsq_window_hops`` links of
+        their ends move, the nodes just outside hold the rest of the map in place. The cost of
+        such a step then depends on the window, not on the map (:meth:`finish` solves the
+        whole map)."""
+        cfg, n, m = self.cfg, self._n, self._m
+        touched = self._touched
+        if cfg.lsq_window_hops <= 0 or not touched or -1 in touched:
+            return None
+        k = np.unique(np.asarray(touched, dtype=np.int64))
+        k = k[k < m]
+        if not len(k):
+            return None
+        src, dst = self._src[:m], self._dst[:m]
+        r = link_residuals(self._P[:n], src[k], dst[k], self._tr[k])
+        if float(np.max(np.hypot(r[:, 0], r[:, 1]))) > cfg.lsq_window_residual_m:
+            return None
+        active = np.zeros(n, dtype=bool)
+        active[src[k]] = active[dst[k]] = True
+        for _ in range(cfg.lsq_window_hops):
+            grow = active[src] | active[dst]
+            nxt = active.copy()
+            nxt[src[grow]] = nxt[dst[grow]] = True
+            if nxt.sum() == active.sum():
+                break
+            active = nxt
+        active[0] = False  # the anchor never moves
+        links = np.flatnonzero(active[src] | active[dst])
+        if not len(links) or 2 * active.sum() > n:
+            return None  # the window is most of the map: solve it all
+        nodes = np.unique(np.concatenate([src[links], dst[links]]))
+        fixed = nodes[~active[nodes]]
+        if not len(fixed):
+            return None
+        return nodes, links, fixed
+
+    def link_information(self) -> np.ndarray:
+        """(M, 3) diagonal information of every link (x, y, θ) for the weighted solver: odometric
+        and prune links ``odometry_information_per_m / length`` (variance grows with the path;
+        lengths below 5 cm count as 5 cm), the heading's variance also ``odometry_turn_variance``
+        per radian turned; loop links ``loop_information``."""
+        m = self._m
+        cfg = self.cfg
+        length = np.maximum(np.hypot(self._tr[:m, 0], self._tr[:m, 1]), 0.05)
+        xy, th = cfg.odometry_information_per_m
+        turn = np.abs(self._tr[:m, 2])
+        info = np.column_stack([xy / length, xy / length, 1.0 / (length / th + cfg.odometry_turn_variance * turn)])
+        loop = self._kind[:m] == LOOP
+        li = self._linfo[:m][loop]
+        info[loop] = np.column_stack([li[:, 0], li[:, 0], li[:, 1]])
+        return info
+
+    def weighted_link_information(self) -> np.ndarray:
+        """(M, 3) diagonal information (x, y, θ) the map gives each link when it solves: the
+        solver's weights (:meth:`link_information`; unit information when ``lsq_weighted`` is
+        off) times each link's robust weight (a faded loop link counts for little). This is what
+        the g2o export writes on each edge."""
+        info = self.link_information() if self.cfg.lsq_weighted else np.ones((self._m, 3))
+        return info * self._w[: self._m, None]
+
+    def finish(self, iterations: int | None = None) -> list[MapEvent]:
+        """End of a run: one more correction (``iterations`` sweeps, default ``relax_loops``; an
+        exact solve for 'lsq') and the queued events. Pending hypotheses stay pending."""
+        events, self._events = self._events, []
+        events.extend(self._optimise(self._t if self._t is not None else 0.0, force=True, sweeps=iterations))
+        return events

@@ -1,0 +1,293 @@
+"""The map's graph: node and link storage, the robot's place on it, read-only views (paper §2.4; spec §4).
+
+A node ``e_i = {p_i, V_i, l_i}`` (Eq. 11) holds the place code ``p_i`` (x, y, θ) that
+created it, the id ``V_i`` of the key frame learned there (-1: none) and its pose ``l_i`` in
+the map, which relaxation (Eq. 14) moves. Links follow [ORS] ``on_create_link``: each stores
+the pose of its target in the frame of its source (``transform``; the [ORS] ``d``,
+``heading``, ``facing`` are derived from it), the time ``dt`` spent on it, and its kind
+(``odometry``, ``loop`` or ``prune``).
+
+Storage is struct-of-arrays: growable numpy arrays (capacity doubling), no Python object per
+node or link. The robot is tracked as its SE(2) pose ``Δ`` *relative to the current node*
+(in that node's frame), so nothing is lost when the current node changes.
+
+:class:`MapGraph` is the lowest layer of :class:`~hippomap.cognitive_map.CognitiveMap`: it holds
+the whole state of the map (also the loop book and the solver's bookkeeping, so that one
+constructor and one :meth:`~hippomap.cognitive_map.CognitiveMap.state_dict` see all of it); the
+layers above it add map correction (:mod:`hippomap.map_correction`), loop closing
+(:mod:`hippomap.loop_closing`) and pruning (:mod:`hippomap.pruning`), each using only the layers
+beneath it.
+"""
+
+from __future__ import annotations
+
+from typing import cast
+
+import numpy as np
+
+from .config import MapConfig
+from .errors import InputError, finite
+from .loop_closure import LoopBook, kernel_weights, node_id, se2_between, se2_compose, se2_inverse, vec3
+from .map_events import FrameAssigned, MapEvent
+from .relaxation import ColourGroups, colour_link, edge_colouring, link_residuals
+
+__all__ = ["LINK_KINDS", "ODOMETRY", "LOOP", "PRUNE", "MapGraph"]
+
+#: link kinds, stored as small integer codes
+LINK_KINDS = ("odometry", "loop", "prune")
+ODOMETRY, LOOP, PRUNE = 0, 1, 2
+
+_compose3, _inv3, _between3 = se2_compose, se2_inverse, se2_between
+_vec3, _node_id = vec3, node_id
+
+
+class MapGraph:
+    """Nodes, links and the robot's pose relative to its current node (see the module doc).
+
+    Public read-only views: :attr:`poses` (N, 3) map poses ``l``, :attr:`place_codes`
+    (N, 3) ``p`` (NaN for the first node until a place code arrives), :attr:`frames` (N,)
+    ``V`` (-1: none), :attr:`times` (N,) creation times, :attr:`links` (dict of arrays),
+    :attr:`current`, :attr:`robot_offset`, :attr:`robot_pose`.
+    """
+
+    def __init__(self, cfg: MapConfig | None = None, capacity: int = 256):
+        self.cfg = cfg if cfg is not None else MapConfig()
+        if not isinstance(self.cfg, MapConfig):
+            raise InputError(f"CognitiveMap needs a MapConfig, got {type(cfg).__name__}")
+        cap = max(int(capacity), 4)
+        self._n = 0
+        self._P = np.zeros((cap, 3))  # map poses l_i
+        self._C = np.full((cap, 3), np.nan)  # place codes p_i
+        self._F = np.full(cap, -1, dtype=np.int64)  # key frame V_i
+        self._Tn = np.zeros(cap)  # creation time
+        self._S = np.zeros(cap)  # odometric path length at creation (m)
+        self._mask = np.zeros(cap, dtype=np.int64)  # edge-colour bitmask of each node
+        self._m = 0
+        self._src = np.zeros(cap, dtype=np.int64)
+        self._dst = np.zeros(cap, dtype=np.int64)
+        self._tr = np.zeros((cap, 3))
+        self._dt = np.zeros(cap)
+        self._kind = np.zeros(cap, dtype=np.int8)
+        self._col = np.zeros(cap, dtype=np.int64)
+        self._w = np.ones(cap)  # robust weight of each link (loop links: revised, see _reweight)
+        self._linfo = np.zeros((cap, 2))  # information (x/y, heading) of loop links
+        self._lkw = np.ones(cap)  # robust kernel width of loop links (standard deviations)
+        self._pairs: set[tuple[int, int]] = set()
+        self._groups: ColourGroups | None = None
+        self._groups_key = -1
+        self._version = 0
+        self._dirty = False  # lsq: a link with a non-zero residual was added since the last solve
+        self._touched: list[int] = []  # links added or changed since the last solve; -1: the whole map
+        self._local_solves = 0  # local solves since the last solve of the whole map
+        self._bias = 0.0  # the odometry's heading bias (rad/s), estimated by the whole solves (see _bias_args)
+        # robot state
+        self._cur = 0
+        self._delta = (0.0, 0.0, 0.0)  # robot pose in the current node's frame
+        self._odom = _vec3(self.cfg.initial_pose, "initial_pose")  # dead-reckoned robot pose
+        self._path = 0.0
+        self._step = 0
+        self._t: float | None = None
+        self._t_arrive = 0.0
+        self._arrival = -1  # link by which the robot reached the current node by a merge or a loop (-1: none)
+        self._code: tuple[float, float, float] | None = None
+        self._code_odom = self._odom
+        self._anchor: tuple[float, float, float] | None = None  # place code of the current node, re-anchored
+        self._events: list[MapEvent] = []
+        self._loops = LoopBook()
+        self._add_node(self._odom, (np.nan, np.nan, np.nan), 0.0)
+
+    # ------------------------------------------------------------------ read-only views
+    @staticmethod
+    def _ro(a: np.ndarray) -> np.ndarray:
+        v = a.view()
+        v.flags.writeable = False
+        return v
+
+    @property
+    def node_count(self) -> int:
+        return self._n
+
+    @property
+    def link_count(self) -> int:
+        return self._m
+
+    @property
+    def current(self) -> int:
+        """Id of the current node (the robot's node)."""
+        return self._cur
+
+    @property
+    def robot_offset(self) -> np.ndarray:
+        """The robot's pose relative to the current node, in that node's frame (Δ)."""
+        return np.array(self._delta)
+
+    @property
+    def robot_pose(self) -> np.ndarray:
+        """The robot's pose in the map: ``l_current ⊕ Δ``."""
+        return np.array(_compose3(self._P[self._cur], self._delta))
+
+    def robot_map_pose(self) -> tuple[float, float, float]:
+        """The robot's pose on the map: the current node's pose composed with the offset."""
+        return _compose3(self._P[self._cur], self._delta)
+
+    @property
+    def poses(self) -> np.ndarray:
+        return self._ro(self._P[: self._n])
+
+    @property
+    def place_codes(self) -> np.ndarray:
+        return self._ro(self._C[: self._n])
+
+    @property
+    def frames(self) -> np.ndarray:
+        return self._ro(self._F[: self._n])
+
+    @property
+    def times(self) -> np.ndarray:
+        return self._ro(self._Tn[: self._n])
+
+    @property
+    def links(self) -> dict[str, np.ndarray]:
+        """Arrays of the links: ``source``, ``target``, ``transform`` (M, 3) = target in the source
+        frame, [ORS] ``d``, ``heading``, ``facing``, ``dt``, ``kind`` (strings), ``kind_code``."""
+        m = self._m
+        tr = self._tr[:m]
+        return {
+            "source": self._ro(self._src[:m]),
+            "target": self._ro(self._dst[:m]),
+            "transform": self._ro(tr),
+            "d": np.hypot(tr[:, 0], tr[:, 1]),
+            "heading": np.arctan2(tr[:, 1], tr[:, 0]),
+            "facing": tr[:, 2].copy(),
+            "dt": self._ro(self._dt[:m]),
+            "kind": np.asarray(LINK_KINDS)[self._kind[:m]],
+            "kind_code": self._ro(self._kind[:m]),
+        }
+
+    def link_weights(self) -> np.ndarray:
+        """(M,) robust weight of every link: 1 for odometric and prune links, the revised kernel
+        weight for loop links (0 < w ≤ 1; a false closure fades towards 0)."""
+        return self._w[: self._m].copy()
+
+    # ------------------------------------------------------------------ storage
+    def _grow_nodes(self) -> None:
+        cap = 2 * len(self._P)
+        for name in ("_P", "_C", "_F", "_Tn", "_S", "_mask"):
+            old = getattr(self, name)
+            new = np.empty((cap,) + old.shape[1:], dtype=old.dtype)
+            new[: len(old)] = old
+            new[len(old):] = np.nan if name == "_C" else (-1 if name == "_F" else 0)
+            setattr(self, name, new)
+
+    def _grow_links(self) -> None:
+        cap = 2 * len(self._src)
+        for name in ("_src", "_dst", "_tr", "_dt", "_kind", "_col", "_w", "_linfo", "_lkw"):
+            old = getattr(self, name)
+            new = np.zeros((cap,) + old.shape[1:], dtype=old.dtype)
+            new[: len(old)] = old
+            setattr(self, name, new)
+
+    def _add_node(self, pose, code, t: float) -> int:
+        if self._n == len(self._P):
+            self._grow_nodes()
+        i = self._n
+        self._P[i] = pose
+        self._C[i] = code
+        self._F[i] = -1
+        self._Tn[i] = t
+        self._S[i] = self._path
+        self._mask[i] = 0
+        self._n += 1
+        return i
+
+    def _add_link(self, a: int, b: int, tr, kind: int, dt: float, allow_duplicate: bool = False,
+                  info: tuple[float, float] | None = None, kernel_width: float | None = None) -> int:
+        """Append link a→b (ORS ``on_create_link``); -1 if the pair is already linked (either way)."""
+        key = (min(a, b), max(a, b))
+        if key in self._pairs and not allow_duplicate:
+            return -1
+        if self._m == len(self._src):
+            self._grow_links()
+        k = self._m
+        self._src[k], self._dst[k] = a, b
+        self._tr[k] = tr
+        self._dt[k] = dt
+        self._kind[k] = kind
+        self._w[k] = 1.0
+        self._linfo[k] = self.cfg.loop_information if info is None else info
+        self._lkw[k] = self.cfg.loop_kernel_width if kernel_width is None else kernel_width
+        self._col[k] = colour_link(self._mask, a, b)
+        self._pairs.add(key)
+        self._m += 1
+        self._version += 1
+        r = link_residuals(self._P[: self._n], [a], [b], np.asarray(tr, dtype=float).reshape(1, 3))
+        if np.max(np.abs(r)) > 1e-9:
+            self._dirty = True
+            self._touched.append(k)
+        if kind == LOOP and self.cfg.loop_weight_init == "kernel":
+            self._w[k] = kernel_weights(r, self._linfo[k: k + 1], self._lkw[k: k + 1], self.cfg.loop_kernel)[0]
+        return k
+
+    def _rebuild_link_index(self, colours=None) -> None:
+        m, n = self._m, self._n
+        src, dst = self._src[:m], self._dst[:m]
+        self._col[:m] = edge_colouring(src, dst, n) if colours is None else np.asarray(colours, dtype=np.int64)
+        self._mask[:] = 0
+        ok = self._col[:m] >= 0
+        bits = np.left_shift(np.int64(1), np.where(ok, self._col[:m], 0)) * ok
+        np.bitwise_or.at(self._mask, src, bits)
+        np.bitwise_or.at(self._mask, dst, bits)
+        self._pairs = set(zip(np.minimum(src, dst).tolist(), np.maximum(src, dst).tolist()))
+
+    def _set_current(self, node: int, delta, t: float, arrival: int = -1) -> None:
+        """on_set_experience: the robot is now at ``delta`` in the frame of ``node``. The
+        current node's place code is re-anchored to the robot's place code, so that Eq. 13
+        measures distance travelled from here, not odometric drift accumulated since the
+        node was created."""
+        self._cur = int(node)
+        self._delta = cast("tuple[float, float, float]", tuple(float(v) for v in delta))
+        self._t_arrive = t
+        self._arrival = int(arrival)
+        code = self._robot_code()
+        self._anchor = None if code is None else _compose3(code, _inv3(self._delta))
+
+    def _robot_code(self) -> tuple[float, float, float] | None:
+        """The robot's place code now: the last one, moved by the odometry since it arrived."""
+        if self._code is None:
+            return None
+        return _compose3(self._code, _between3(self._code_odom, self._odom))
+
+    # ------------------------------------------------------------------ queries, frames and events
+    def nodes_near(self, place_code, radius: float, exclude_recent: bool = True) -> np.ndarray:
+        """Ids of nodes whose place code is within ``radius`` (Eq. 13, μ_p‖p_i − p‖), nearest first.
+
+        ``exclude_recent`` drops the current node and the last ``N_excl`` nodes (spec §4 set C).
+        """
+        p = _vec3(place_code, "place code")
+        r = finite("radius", radius)
+        n = self._n
+        d = self.cfg.mu_p * np.hypot(self._C[:n, 0] - p[0], self._C[:n, 1] - p[1])
+        mask = d < r
+        if exclude_recent:
+            mask[max(0, n - self.cfg.exclude_recent):] = False
+            mask[self._cur] = False
+        ids = np.flatnonzero(mask)
+        return ids[np.argsort(d[ids], kind="stable")]
+
+    def set_frame(self, node: int, frame_id: int) -> None:
+        """Attach key frame ``frame_id`` (V, -1 to clear) to ``node``."""
+        node = _node_id(node, "node")
+        frame_id = _node_id(frame_id, "frame_id")
+        if not 0 <= node < self._n:
+            raise InputError(f"node {node} is not a node id of this map [0, {self._n})")
+        if frame_id < -1:
+            raise InputError(f"frame_id must be >= -1, got {frame_id}")
+        self._F[node] = frame_id
+        self._events.append(FrameAssigned(node, frame_id, self._t if self._t is not None else 0.0))
+
+    def take_events(self) -> list[MapEvent]:
+        """The events queued since the last call that returned events (by :meth:`propose_loop`,
+        :meth:`set_frame`, :meth:`prune`), emptying the queue: a caller returns them from the call
+        that caused them instead of the next :meth:`update`."""
+        events, self._events = self._events, []
+        return events
