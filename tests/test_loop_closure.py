@@ -325,6 +325,8 @@ def test_the_global_search_schedule_survives_a_snapshot():
     assert not m._global_search_due()  # the last search is 1 m back, fewer than 2
     r = Mapper.from_bytes(m.to_bytes())
     assert r.global_search_path == 29.0
-    off = Mapper.from_bytes(Mapper(HippomapConfig()).to_bytes())
+    never = HippomapConfig.with_overrides({"mapper": {"global_search_after_m": None}})
+    off = Mapper.from_bytes(Mapper(never).to_bytes())
     off.distance = off.cmap._path = 1e6
-    assert not off._global_search_due()  # None (the default): never
+    assert not off._global_search_due()  # None: never
+    assert HippomapConfig().mapper.global_search_after_m == 60.0  # the default (docs/MODEL.md item 38)
