@@ -33,11 +33,15 @@ class SpatialConfig(_Frozen):
     spacing_min_m: float = Field(0.005, gt=0, description="lambda lower bound 0.5 cm [S §3.1]")
     spacing_max_m: float = Field(0.02, gt=0, description="lambda upper bound 2 cm [S §3.1]")
     g_max: float = Field(1.0, gt=0, description="peak firing rate g_max of Eq. 6 [spec §5]")
-    window: float = Field(0.1, gt=0, description="Delta T, window-comparator width as a fraction of g_max, Eq. 9 [spec §3, T]")
+    window: float = Field(
+        0.1, gt=0, description="Delta T, window-comparator width as a fraction of g_max, Eq. 9 [spec §3, T]"
+    )
     variance_threshold_m2: float = Field(
         1e-6, gt=0, description="T_s, the single-field variance stop test: 0.01 cm^2 = 1e-6 m^2 [spec §3]"
     )
-    rate_noise: float = Field(0.0, ge=0, description="sigma_T, noise on the current discharge T (x g_max); keep window/2 >= 3 sigma [spec §3]")
+    rate_noise: float = Field(
+        0.0, ge=0, description="sigma_T, noise on the current discharge T (x g_max); keep window/2 >= 3 sigma [spec §3]"
+    )
     seed: int = Field(0, description="seed for lambda, theta, r0 of the grid cells [ours: reproducible sessions]")
     iteration_order: Literal["narrowest_first", "cyclic"] = Field(
         "narrowest_first",
@@ -66,18 +70,23 @@ class VisualConfig(_Frozen):
     vgc_offsets_per_axis: int = Field(10, ge=2, description="10 x 10 = 100 offsets per module [S], [BBc]")
     vgc_orientation: float = Field(0.0, description="psi_m, common module orientation [BBc]")
     fovea: int = Field(31, ge=5, description="fovea side 2h+1: 31 for <= 320 px frames (61 for 440 px) [BBc]")
-    working_width: int = Field(320, ge=32, description="frames are resized to this width before learning/recognition [ours: fovea scale]")
+    working_width: int = Field(
+        320, ge=32, description="frames are resized to this width before learning/recognition [ours: fovea scale]"
+    )
     sensory_sigma: float = Field(10.0, gt=0, description="sigma_SC, sensory tuning exp(-((I-v)/10)^2) [BBc]")
     sensory_cutoff: float = Field(0.01, ge=0, description="sensory sparseness cutoff [BBc]")
     blur: int = Field(3, ge=1, description="box blur of the learned image: 5 (3 for small images) [BBc]")
     n_fixations: int = Field(9, ge=3, description="N_f, fixation points learned per frame [BBc]")
-    fixation_mode: Literal["corners", "random"] = Field("corners", description="top-K Shi-Tomasi corners, or random points as in [S] [spec §6.1]")
+    fixation_mode: Literal["corners", "random"] = Field(
+        "corners", description="top-K Shi-Tomasi corners, or random points as in [S] [spec §6.1]"
+    )
     min_fixations: int = Field(3, ge=1, description="skip a frame with fewer corners [spec §2]")
     n_std: float = Field(
         3.3, ge=0,
         description="N_std, FLC pruning threshold (0.8 for 10 images, 2.8 for 99) [BBc]; at scale the survivors are "
         "capped by max_survivors instead of raising it (spec §6.4). 3.3 with the retina front end: contrast-normalised "
-        "patches are more alike than grey-level ones, so the evidence test must be stricter (eval-vpr, both sets) [ours]",
+        "patches are more alike than grey-level ones, so the evidence test must be stricter "
+        "(eval-vpr, both sets) [ours]",
     )
     max_survivors: int = Field(
         5, ge=0, description="at most this many FLCs survive the N_std pruning (the strongest); 0 = no cap "
@@ -105,13 +114,19 @@ class VisualConfig(_Frozen):
     seed: int = Field(0, description="seed for fixation order, weight jitter and random saccade/start choices [ours]")
     contrast_clip: float = Field(0.01, ge=0, lt=0.5, description="imadjust: fraction saturated in each tail [BBc]")
     retina_mode: Literal["dog", "none"] = Field(
-        "dog", description="front end of the sensory cells (hippomap.retina): 'dog' = light adaptation, centre-surround "
-        "(difference of Gaussians) and divisive contrast normalisation, so sensory cells tune to local contrast and "
-        "survive lighting change; 'none' = grey levels stretched by imadjust as in [S]/[BBc] [ours]"
+        "dog", description="front end of the sensory cells (hippomap.retina): 'dog' = light adaptation, "
+        "centre-surround (difference of Gaussians) and divisive contrast normalisation, so sensory cells tune to local "
+        "contrast and survive lighting change; 'none' = grey levels stretched by imadjust as in [S]/[BBc] [ours]"
     )
-    retina_center_sigma: float = Field(2.0, ge=0, description="ganglion receptive-field centre sigma, working px [ours]")
-    retina_surround_sigma: float = Field(6.0, gt=0, description="ganglion receptive-field surround sigma, working px [ours]")
-    retina_norm_sigma: float = Field(8.0, gt=0, description="pool of the divisive contrast normalisation, working px [ours]")
+    retina_center_sigma: float = Field(
+        2.0, ge=0, description="ganglion receptive-field centre sigma, working px [ours]"
+    )
+    retina_surround_sigma: float = Field(
+        6.0, gt=0, description="ganglion receptive-field surround sigma, working px [ours]"
+    )
+    retina_norm_sigma: float = Field(
+        8.0, gt=0, description="pool of the divisive contrast normalisation, working px [ours]"
+    )
     retina_semisaturation: float = Field(
         0.5, ge=0, description="semi-saturation constant of the normalisation as a fraction of the frame's median "
         "local contrast: keeps flat, noisy regions near zero [ours]"
@@ -119,14 +134,22 @@ class VisualConfig(_Frozen):
     retina_gain: float = Field(1.0, gt=0, description="gain of the tanh that codes the response as a grey level [ours]")
     v1_orientations: int = Field(
         0, ge=0, le=16, description="V1 complex-cell orientation channels beside the centre-surround one "
-        "(hippomap.retina; 0 = off): the sensory cells also tune to local oriented edge energy. Off by default: 4 channels cost precision on both eval-vpr sets (3 and 4 false matches over 3 seeds), 1.7-1.9x the recognition time, and map ATE on the simulated loop (0.416 -> 0.452 m, seed 1); docs/MODEL.md item 15b [ours]"
+        "(hippomap.retina; 0 = off): the sensory cells also tune to local oriented edge energy. Off by default: 4 "
+        "channels cost precision on both eval-vpr sets (3 and 4 false matches over 3 seeds), 1.7-1.9x the recognition "
+        "time, and map ATE on the simulated loop (0.416 -> 0.452 m, seed 1); docs/MODEL.md item 15b [ours]"
     )
-    v1_sigma: float = Field(1.0, ge=0, description="scale of the V1 simple cells' derivative filters, working px [ours]")
-    v1_pool_sigma: float = Field(2.0, gt=0, description="complex-cell pooling of the squared simple cells, working px [ours]")
-    v1_norm_sigma: float = Field(8.0, gt=0, description="normalisation pool of the orientation energy, working px [ours]")
+    v1_sigma: float = Field(
+        1.0, ge=0, description="scale of the V1 simple cells' derivative filters, working px [ours]"
+    )
+    v1_pool_sigma: float = Field(
+        2.0, gt=0, description="complex-cell pooling of the squared simple cells, working px [ours]"
+    )
+    v1_norm_sigma: float = Field(
+        8.0, gt=0, description="normalisation pool of the orientation energy, working px [ours]"
+    )
     v1_semisaturation: float = Field(
-        0.5, ge=0, description="semi-saturation of the orientation normalisation, fraction of the frame's median pooled "
-        "energy [ours]"
+        0.5, ge=0, description="semi-saturation of the orientation normalisation, fraction of the frame's median "
+        "pooled energy [ours]"
     )
     v1_gain: float = Field(1.0, gt=0, description="gain of the tanh coding an orientation response as a rate [ours]")
     v1_stride: int = Field(
@@ -147,10 +170,16 @@ class VisualConfig(_Frozen):
         description="'start': the grid code re-anchors on the first matched feature (BB's global remapping for "
         "shifted stimuli) and snaps to each predicted feature; 'none': absolute image coordinates [spec §2] [ours]",
     )
-    decoder: Literal["phase", "svc"] = Field("phase", description="saccade decoder: phase unwrapping (spec §1 B) or spatial view cells (C)")
-    svc_stride: int = Field(4, ge=1, description="spacing of spatial view cells in working px [spec §2: 1-2; ours 4 for memory]")
+    decoder: Literal["phase", "svc"] = Field(
+        "phase", description="saccade decoder: phase unwrapping (spec §1 B) or spatial view cells (C)"
+    )
+    svc_stride: int = Field(
+        4, ge=1, description="spacing of spatial view cells in working px [spec §2: 1-2; ours 4 for memory]"
+    )
     softmax_gain: float = Field(1.0, gt=0, description="gain of the softmax over surviving FLCs [BBc: 1]")
-    index_side: int = Field(8, ge=2, description="side of the area-averaged patch descriptor used by the FLC index [ours]")
+    index_side: int = Field(
+        8, ge=2, description="side of the area-averaged patch descriptor used by the FLC index [ours]"
+    )
     index_shortlist: int = Field(64, ge=1, description="FLCs scored exactly per fixation when the index is used [ours]")
     stats_sample: int = Field(128, ge=8, description="FLCs sampled to estimate mean/sd of the drive for N_std [ours]")
     target_candidates: int = Field(
@@ -160,14 +189,16 @@ class VisualConfig(_Frozen):
     prediction_tolerance: float = Field(
         0.9, gt=0, le=1,
         description="a prediction is confirmed when the predicted FLC's drive is >= this fraction of the best drive "
-        "(1 = it must be the winner, [BBc]); < 1 because neighbouring key frames store the same physical feature [ours]",
+        "(1 = it must be the winner, [BBc]); < 1 because neighbouring key frames store the same physical "
+        "feature [ours]",
     )
     update_on_mismatch: bool = Field(
         True, description="a fixation whose winner is not the predicted feature still updates the frames [BBc]; "
         "False: only the first fixation and confirmed predictions add evidence [ours]"
     )
     start_order: Literal["random", "strongest"] = Field(
-        "strongest", description="first fixation of each attempt: a random unused query corner [spec §6.2] or the strongest unused one [ours]"
+        "strongest", description="first fixation of each attempt: a random unused query corner [spec §6.2] or the "
+        "strongest unused one [ours]"
     )
     verify_saccades: int = Field(
         2, ge=0, description="after the threshold, the accepted frame must predict this many more features correctly "
@@ -182,7 +213,8 @@ class VisualConfig(_Frozen):
         "more; 0 = off [ours]"
     )
     out_of_view: Literal["reset", "skip"] = Field(
-        "reset", description="a saccade whose fovea leaves the frame resets the attempt [BBc] or picks another feature [ours]"
+        "reset", description="a saccade whose fovea leaves the frame resets the attempt [BBc] or picks another "
+        "feature [ours]"
     )
 
 
@@ -190,22 +222,29 @@ class MapConfig(_Frozen):
     """Cognitive map: nodes, links, loop closure, relaxation, pruning (paper §2.4; spec §4)."""
 
     mu_p: float = Field(1.0, gt=0, description="mu_p of Eq. 13, per metre [spec §5]")
-    node_spacing_m: float = Field(0.25, gt=0, description="S_th, place-code distance that creates a node (Eq. 12-13) [spec §5]")
+    node_spacing_m: float = Field(
+        0.25, gt=0, description="S_th, place-code distance that creates a node (Eq. 12-13) [spec §5]"
+    )
     loop_radius_m: float = Field(3.0, gt=0, description="S_loop, place-code radius of the visual check [spec §5]")
     loop_transform_radius_m: float = Field(
         0.3, gt=0, description="gate base for a hypothesis that carries a measured transform: it says where the node "
-        "is, so only odometric drift may separate that from the node's place code; ~2 sigma of Bicocca's loop-transform "
-        "noise, measured in docs/BENCHMARKS.md [ours]"
+        "is, so only odometric drift may separate that from the node's place code; ~2 sigma of Bicocca's "
+        "loop-transform noise, measured in docs/BENCHMARKS.md [ours]"
     )
     loop_radius_per_m: float = Field(
-        0.05, ge=0, description="gate growth per metre travelled between the two nodes: odometric drift allowance [ours]"
+        0.05, ge=0, description="gate growth per metre travelled between the two nodes: odometric drift "
+        "allowance [ours]"
     )
-    exclude_recent: int = Field(5, ge=0, description="N_excl, recent nodes excluded from loop closure and pruning [spec §5]")
+    exclude_recent: int = Field(
+        5, ge=0, description="N_excl, recent nodes excluded from loop closure and pruning [spec §5]"
+    )
     initial_pose: tuple[float, float, float] = Field((0.0, 0.0, 0.0), description="first node (0,0,0) [S §2.4]")
     alpha: float = Field(0.5, gt=0, le=1, description="relaxation correction constant alpha, Eq. 14 [S], [ORS]")
     relax_loops: int = Field(10, ge=0, description="EXP_LOOPS, relaxation sweeps per action [ORS]")
     prune_block_m: float = Field(0.5, gt=0, description="b, pruning block side, Eq. 15 [spec §4]")
-    prune_online: bool = Field(True, description="merge a new node into an older node of its block, Eq. 15 / Fig. 7 [S]")
+    prune_online: bool = Field(
+        True, description="merge a new node into an older node of its block, Eq. 15 / Fig. 7 [S]"
+    )
     prune_graph_radius_m: float | None = Field(
         3.0, gt=0,
         description="online pruning only merges into nodes within this path length of the current node along the "
@@ -245,9 +284,12 @@ class MapConfig(_Frozen):
         0.5, gt=0, description="a group of visual hypotheses whose robot positions spread over at least this fits "
         "its rotation from the positions, else from the headings (relative-pose fit, hippomap.loop_closure) [ours]")
     loop_consistency_m: float = Field(
-        0.5, gt=0, description="max translation error of a loop cycle [ours: measured on Bicocca, 1.0 let false loops in]"
+        0.5, gt=0, description="max translation error of a loop cycle [ours: measured on Bicocca, 1.0 let "
+        "false loops in]"
     )
-    loop_consistency_rad: float = Field(0.1, gt=0, description="max rotation error of a loop cycle [ours: as above, was 0.3]")
+    loop_consistency_rad: float = Field(
+        0.1, gt=0, description="max rotation error of a loop cycle [ours: as above, was 0.3]"
+    )
     loop_transform_consistency_rad: float = Field(
         0.02, gt=0, description="max rotation error of a loop cycle between two hypotheses that both carry a measured "
         "transform: such a cycle is made of two measurements and a short stretch of odometry, so it must close as "
@@ -289,7 +331,9 @@ class MapConfig(_Frozen):
         "graph, exact, the default: relaxation needs O(N^2) sweeps to spread a closure around an N-node loop "
         "(docs/MODEL.md) [ours]",
     )
-    lsq_iterations: int = Field(10, ge=1, description="max Gauss-Newton iterations per correction when solver='lsq' [ours]")
+    lsq_iterations: int = Field(
+        10, ge=1, description="max Gauss-Newton iterations per correction when solver='lsq' [ours]"
+    )
     lsq_rotation_init: bool = Field(
         True, description="before a whole-map lsq solve, re-initialise the poses headings first, then positions "
         "(two linear solves, LAGO's idea): from the odometric poses Gauss-Newton can settle with a long loop's "

@@ -43,8 +43,9 @@ from .geometry import between, compose, wrap_angle
 
 _Pose = tuple[float, float, float]  # (x, y, theta): the fixed length the type checker needs
 
-__all__ = ["USED_WEIGHT", "LoopHypothesis", "LoopDecision", "Candidate", "LoopBook", "gate_limit", "cycle_errors", "consistent",
-           "align_group", "looming_offset", "robust_weight", "kernel_weights", "se2_compose", "se2_inverse", "se2_between", "vec3", "node_id", "jsonable"]
+__all__ = ["USED_WEIGHT", "LoopHypothesis", "LoopDecision", "Candidate", "LoopBook", "gate_limit", "cycle_errors",
+           "consistent", "align_group", "looming_offset", "robust_weight", "kernel_weights", "se2_compose",
+           "se2_inverse", "se2_between", "vec3", "node_id", "jsonable"]
 
 
 #: a loop link whose robust weight is at least this counts as used (applied); below, it has faded
@@ -113,11 +114,12 @@ class LoopHypothesis:
     ``transform``: a *measured* pose of ``node`` in the frame of the CURRENT node (at the time of
     the proposal), as a data set's loop edge gives; or ``None`` for a visual recognition, which
     says "same place": then ``offset`` is the proposer's estimate of the robot's pose in the
-    node's frame (where the matched key frame was taken, moved along its view by the looming and turned by the image shift), ``None``
-    meaning "exactly on the node". ``information``: (x/y in m⁻², heading in rad⁻²) of the
-    estimate, ``None`` for the map's default of its kind (``loop_information`` for a measured
-    transform, ``visual_loop_information`` for a visual one). ``evidence``: the proposer's score. ``source``: who proposed
-    it ('dataset', 'visual', ...). ``meta``: free-form, JSON-able.
+    node's frame (where the matched key frame was taken, moved along its view by the looming and
+    turned by the image shift), ``None`` meaning "exactly on the node". ``information``: (x/y in
+    m⁻², heading in rad⁻²) of the estimate, ``None`` for the map's default of its kind
+    (``loop_information`` for a measured transform, ``visual_loop_information`` for a visual one).
+    ``evidence``: the proposer's score. ``source``: who proposed it ('dataset', 'visual', ...).
+    ``meta``: free-form, JSON-able.
     """
 
     node: int
@@ -251,9 +253,10 @@ class Candidate:
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "Candidate":
         return cls(int(d["id"]), int(d["node"]), int(d["from_node"]), cast(_Pose, tuple(map(float, d["link_tr"]))),
-                   cast(_Pose, tuple(map(float, d["M"]))), cast(_Pose, tuple(map(float, d["odom"]))), int(d["step"]), int(d.get("arrival", -1)),
-                   bool(d.get("measured", False)), float(d.get("path", 0.0)),
-                   cast("tuple[float, float]", tuple(float(v) for v in d.get("info", (100.0, 1000.0)))), float(d.get("kernel_width", 1.0)))
+                   cast(_Pose, tuple(map(float, d["M"]))), cast(_Pose, tuple(map(float, d["odom"]))), int(d["step"]),
+                   int(d.get("arrival", -1)), bool(d.get("measured", False)), float(d.get("path", 0.0)),
+                   cast("tuple[float, float]", tuple(float(v) for v in d.get("info", (100.0, 1000.0)))),
+                   float(d.get("kernel_width", 1.0)))
 
 
 # --------------------------------------------------------------------------- verification

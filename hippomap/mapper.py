@@ -7,8 +7,9 @@ key frames of the nodes the map's loop gate admits (:meth:`CognitiveMap.loop_can
 then learned into the visual memory, together with where it was taken relative to its node.
 An accepted recognition becomes a :class:`~hippomap.loop_closure.LoopHypothesis` whose offset
 is that pose, moved along the key frame's view by the image's scale change (looming) and turned
-by the image shift of the saccade correspondences when the camera's field of view is known, which the loop closing (:mod:`hippomap.loop_closure`) verifies and fits
-before the map closes the loop and relaxes.
+by the image shift of the saccade correspondences when the camera's field of view is known,
+which the loop closing (:mod:`hippomap.loop_closure`) verifies and fits before the map closes the
+loop and relaxes.
 
 Inputs must come in time order; every call returns the events it caused, typed
 (:mod:`hippomap.map_events`: the map's, raised while the call ran, and the mapper's own;
@@ -40,11 +41,11 @@ from typing import TYPE_CHECKING, Any, TypeVar, cast
 import numpy as np
 
 from .cognitive_map import CognitiveMap
-from .loop_closure import LoopBook, LoopDecision, LoopHypothesis, looming_offset, se2_between, se2_compose, se2_inverse
 from .config import HippomapConfig
 from .errors import InputError
 from .geometry import compose, wrap_angle
 from .inputs import Frame, Odometry
+from .loop_closure import LoopBook, LoopDecision, LoopHypothesis, looming_offset, se2_between, se2_compose, se2_inverse
 from .map_events import KeyframeLearned, LoopDecided, MapEvent, RecognitionMade
 from .place_cells import PlaceCode, SpatialPathway
 from .visual_memory import VisualMemory
@@ -358,7 +359,8 @@ class Mapper:
             node = int(self.cmap.current)
             self.cmap.set_frame(node, fid)
             self.frame_node[int(fid)] = node
-            self.frame_offset[int(fid)] = cast("tuple[float, float, float]", tuple(float(v) for v in self.cmap.robot_offset))
+            self.frame_offset[int(fid)] = cast("tuple[float, float, float]",
+                                               tuple(float(v) for v in self.cmap.robot_offset))
             self.frame_path[int(fid)] = float(self.distance)
             events.append(KeyframeLearned(frame.t, int(fid), node))
             events.extend(self.cmap.take_events())

@@ -669,7 +669,8 @@ def _laplacian_solve(n: int, src: np.ndarray, dst: np.ndarray, w: np.ndarray, rh
 
 
 def rotation_first_init(poses: np.ndarray, src, dst, transforms, information=None, anchor: int | None = 0,
-                        fixed=None, bias_dt=None, bias: float = 0.0, bias_information: float = 0.0) -> tuple[float, float]:
+                        fixed=None, bias_dt=None, bias: float = 0.0,
+                        bias_information: float = 0.0) -> tuple[float, float]:
     """Re-initialise the poses of a pose graph **in place**, headings first (the LAGO idea of
     Carlone et al., 2014), and return the largest position change.
 

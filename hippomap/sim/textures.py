@@ -113,7 +113,8 @@ def _draw_poster(img, rng, x0, y0, x1, y1, bg_level):
         for i in range(nx):
             for j in range(ny):
                 if (i + j) % 2 == 0 or rng.random() < 0.3:
-                    cv2.rectangle(img, (xs[i], ys[j]), (xs[i + 1] - 1, ys[j + 1] - 1), ink if (i + j) % 2 else other, -1)
+                    cv2.rectangle(img, (xs[i], ys[j]), (xs[i + 1] - 1, ys[j + 1] - 1),
+                                  ink if (i + j) % 2 else other, -1)
     elif kind == 2:  # picture: a few overlapping rectangles
         for _ in range(int(rng.integers(2, 6))):
             ax, bx = sorted(rng.integers(ix0, ix0 + w, 2))
@@ -169,7 +170,8 @@ def procedural_strip(length_m: float, params, seed: int = 0) -> np.ndarray:
     # panel seams: thin dark/bright vertical lines
     for e in edges[1:-1]:
         if e < W - 2 and rng.random() < 0.7:
-            cv2.rectangle(img, (int(e), 0), (int(e) + 1, R - 1), _contrasting(rng, levels[min(len(levels) - 1, panel[e])]), -1)
+            cv2.rectangle(img, (int(e), 0), (int(e) + 1, R - 1),
+                          _contrasting(rng, levels[min(len(levels) - 1, panel[e])]), -1)
     # skirting board and an occasional dado rail, with breaks
     skirt = row(0.10)
     sk_level = int(rng.uniform(20, 60)) if rng.random() < 0.5 else int(rng.uniform(200, 240))
@@ -179,7 +181,8 @@ def procedural_strip(length_m: float, params, seed: int = 0) -> np.ndarray:
     while x < W:
         run = int(rng.uniform(2, 8) * tpm)
         if rng.random() < 0.4:
-            cv2.rectangle(img, (x, rail), (min(W - 1, x + run), rail + max(1, int(0.03 * tpm))), _contrasting(rng, 128), -1)
+            cv2.rectangle(img, (x, rail), (min(W - 1, x + run), rail + max(1, int(0.03 * tpm))),
+                          _contrasting(rng, 128), -1)
         x += run
 
     # features: doors from the floor, posters / notices on the wall
