@@ -29,13 +29,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from hippomap.cognitive_map import CognitiveMap, LoopHypothesis  # noqa: E402
 from hippomap.config import MapConfig  # noqa: E402
 from hippomap.geometry import between, compose, integrate  # noqa: E402
+from hippomap.least_squares import solve_lsq  # noqa: E402
 from hippomap.relaxation import (  # noqa: E402
     ColourGroups,
     edge_colouring,
     relax,
     relax_jacobi,
     relax_ors_reference,
-    solve_lsq,
 )
 
 

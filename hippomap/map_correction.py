@@ -16,19 +16,11 @@ from typing import Any
 
 import numpy as np
 
+from .least_squares import graph_cost, rotation_first_init, solve_lsq
 from .loop_closure import kernel_weights
 from .map_events import MapEvent, MapRelaxed
 from .map_graph import LOOP, ODOMETRY, MapGraph
-from .relaxation import (
-    ColourGroups,
-    RelaxResult,
-    graph_cost,
-    link_residuals,
-    relax,
-    relax_jacobi,
-    rotation_first_init,
-    solve_lsq,
-)
+from .relaxation import ColourGroups, RelaxResult, link_residuals, relax, relax_jacobi
 
 __all__ = ["MapCorrection"]
 

@@ -596,7 +596,7 @@ def test_local_solves_match_the_whole_map_and_stay_bounded():
 
 
 def test_lsq_holds_fixed_nodes():
-    from hippomap.relaxation import solve_lsq
+    from hippomap.least_squares import solve_lsq
 
     P = np.array([[0.0, 0, 0], [1.2, 0.1, 0.05], [2.1, -0.2, 0.0], [3.0, 0.0, 0.0]])
     src, dst = np.array([0, 1, 2]), np.array([1, 2, 3])
