@@ -251,6 +251,9 @@ def solve_lsq(
     that are not odometry). ``bias`` is the starting value, ``bias_information`` a zero-mean
     prior on it (needed while no loop determines it); ``estimate_bias=False`` holds it fixed.
     The result's ``bias`` is the final value.
+
+    One function past 60 lines on purpose: the damped step-and-retry loop shares the iterate, its
+    cost, the damping and the factorisation; split, each step would pass all of them around.
     """
     P, src, dst, T = _as_graph(poses, src, dst, transforms, inplace=True)
     n, m = len(P), len(src)
