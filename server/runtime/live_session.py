@@ -127,7 +127,10 @@ class LiveSession:
         """Accept validated inputs; returns ``(first seq, last seq, durability future)``.
 
         ``wait_s``: how long to wait for room in the mapper queue before 429 (None: forever,
-        calling ``on_busy`` once first — the websocket's "busy" notice)."""
+        calling ``on_busy`` once first — the websocket's "busy" notice).
+
+        One function on purpose: the checks, the wait for room and the sequence numbers form a single
+        critical section under the ingest lock, read best top to bottom."""
         async with self._lock:
             if self.closed:
                 raise NotFound()
