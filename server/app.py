@@ -13,9 +13,9 @@ import json
 import logging
 import os
 import time
-from contextlib import asynccontextmanager
+from contextlib import AbstractAsyncContextManager, asynccontextmanager
 from pathlib import Path
-from typing import Any, AsyncIterator, MutableMapping, cast
+from typing import Any, AsyncIterator, Callable, MutableMapping, cast
 
 from fastapi import FastAPI, Request
 from fastapi.encoders import jsonable_encoder
@@ -202,10 +202,9 @@ def document_input_bounds(schema: dict[str, Any], settings: ServerSettings) -> N
                 bound(param.get("schema"), limits["max_abs_t"])
 
 
-def create_app(settings: ServerSettings | None = None) -> FastAPI:
-    settings = settings or ServerSettings.from_env()
-    metrics = ServiceMetrics()
-    metrics_token = _metrics_token(settings)
+def _lifespan(settings: ServerSettings,
+              metrics: ServiceMetrics) -> Callable[[FastAPI], AbstractAsyncContextManager[None]]:
+    """The app's start-up and shutdown: open the store and the admin token, start the sessions; stop them."""
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
@@ -235,16 +234,12 @@ def create_app(settings: ServerSettings | None = None) -> FastAPI:
             await asyncio.to_thread(manager.stop)
             store.close()
 
-    app = FastAPI(title="hippomap server", version=__version__, description=DESCRIPTION + wsdoc.websocket_description(),
-                  lifespan=lifespan, default_response_class=SafeJSONResponse, docs_url=None, redoc_url=None)
-    docs.mount_docs(app)  # /docs and /redoc with their assets served here (offline), not from a CDN
-    app.state.settings = settings
-    app.state.metrics = metrics
-    app.state.serving = False
-    app.state.read_limits = KeyedBuckets(settings.read_rate_per_s, settings.read_rate_burst)
-    app.add_middleware(BodySizeLimit, max_bytes=settings.max_body_bytes)
-    app.add_middleware(OriginCheck, allowed=settings.allowed_origins)
-    app.add_middleware(CloseOnRevoke)
+    return lifespan
+
+
+def _add_error_handlers(app: FastAPI) -> None:
+    """The error answers FastAPI's defaults get wrong for this service: 421 naming the replica, 405 with every
+    allowed method, 422 for a body that is not JSON, validation errors without raw bytes."""
 
     @app.exception_handler(ServedElsewhere)
     async def served_elsewhere(request: Request, exc: ServedElsewhere) -> JSONResponse:
@@ -266,6 +261,11 @@ def create_app(settings: ServerSettings | None = None) -> FastAPI:
     async def validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:
         errors = model.json_safe(jsonable_encoder(exc.errors(), custom_encoder={bytes: lambda b: f"<{len(b)} bytes>"}))
         return SafeJSONResponse({"detail": errors}, status_code=422)
+
+
+def _add_service_routes(app: FastAPI, settings: ServerSettings, metrics: ServiceMetrics,
+                        metrics_token: str | None) -> None:
+    """``/health``, ``/ready`` and ``/metrics``: the routes of the service itself, not of a session."""
 
     @app.get("/health", tags=["server"], summary="Liveness (no token needed)",
              responses={503: {"description": "the store's writer died: the process exits for a restart"}})
@@ -312,8 +312,9 @@ def create_app(settings: ServerSettings | None = None) -> FastAPI:
         body, content_type = await asyncio.to_thread(metrics.render)
         return Response(body, media_type=content_type)
 
-    for module in (sessions, reuse, ingest, stream, queries, tokens):
-        app.include_router(module.router)
+
+def _add_openapi(app: FastAPI, settings: ServerSettings) -> None:
+    """The OpenAPI document, completed once on first use with the input bounds and the websocket protocol."""
     default_openapi = app.openapi
 
     def openapi() -> dict[str, Any]:
@@ -324,6 +325,30 @@ def create_app(settings: ServerSettings | None = None) -> FastAPI:
         return app.openapi_schema
 
     app.openapi = openapi  # type: ignore[method-assign]
+
+
+def create_app(settings: ServerSettings | None = None) -> FastAPI:
+    """The service: middleware, error answers, the service routes, the API routers, the OpenAPI document and
+    the viewer, in that order (the order of the routes is the order of the docs)."""
+    settings = settings or ServerSettings.from_env()
+    metrics = ServiceMetrics()
+    metrics_token = _metrics_token(settings)
+    app = FastAPI(title="hippomap server", version=__version__, description=DESCRIPTION + wsdoc.websocket_description(),
+                  lifespan=_lifespan(settings, metrics), default_response_class=SafeJSONResponse, docs_url=None,
+                  redoc_url=None)
+    docs.mount_docs(app)  # /docs and /redoc with their assets served here (offline), not from a CDN
+    app.state.settings = settings
+    app.state.metrics = metrics
+    app.state.serving = False
+    app.state.read_limits = KeyedBuckets(settings.read_rate_per_s, settings.read_rate_burst)
+    app.add_middleware(BodySizeLimit, max_bytes=settings.max_body_bytes)
+    app.add_middleware(OriginCheck, allowed=settings.allowed_origins)
+    app.add_middleware(CloseOnRevoke)
+    _add_error_handlers(app)
+    _add_service_routes(app, settings, metrics, metrics_token)
+    for module in (sessions, reuse, ingest, stream, queries, tokens):
+        app.include_router(module.router)
+    _add_openapi(app, settings)
     from .viewer import mount_viewer  # the live 3D viewer: /viewer/ (web/routes.py); / (web/landing.py)
 
     mount_viewer(app)

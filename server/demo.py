@@ -73,13 +73,45 @@ def open_demo_session(client: Any) -> DemoSession:
     return DemoSession(sid, viewer["token"], bool(found), last_odo, last_frame)
 
 
+async def _drive(stream: Any, run: Any, skip_odo: float, skip_frame: float, speed: float,
+                 stopping: Callable[[], bool]) -> bool:
+    """Send the steps of ``run`` after ``skip_odo`` / ``skip_frame`` (what the session holds) on ``stream`` at
+    ``speed`` times real time; False if the server began shutting down (the stream stopped early)."""
+    from hippomap.client import encode_image
+    from hippomap.inputs import Odometry
+
+    frame_at = {int(k): i for i, k in enumerate(run.frame_steps)}
+    start = time.monotonic()
+    first = None
+    for k in range(len(run.times)):
+        t = float(run.times[k])
+        i = frame_at.get(k)
+        if t <= skip_odo and (i is None or t <= skip_frame):
+            continue  # the session has this step already (a restart)
+        first = t if first is None else first
+        delay = start + (t - first) / speed - time.monotonic()
+        if delay > 0:
+            await asyncio.sleep(delay)
+        if stopping():  # the server is shutting down: stop driving, a restart resumes here
+            log.info("demo robot stopped at t = %.1f s: the server is shutting down", t)
+            return False
+        if t > skip_odo:
+            _, v, omega = (float(x) for x in run.odometry[k])
+            # the true pose: drawn by the viewer, unused by the mapper
+            gt = cast(tuple[float, float, float], tuple(float(x) for x in run.groundtruth[k]))
+            await stream.send_odometry(Odometry(t, v=v, omega=omega, gt=gt))
+        if i is not None and t > skip_frame:
+            img = await asyncio.to_thread(lambda: encode_image(run.frame(i)))
+            await stream.send_frame(t, img)  # the frame of this step, at the same time
+    return True
+
+
 async def run_demo(url: str, token: str, rate_hz: float = 10.0, laps: int = 10, seed: int = 1,
                    stopping: Callable[[], bool] = lambda: False, speed: float = 1.0) -> str:
     """Stream the demo run into the demo session at ``speed`` times real time (resuming after
     what the session holds); returns the session id. ``stopping()`` tells whether the server
     is shutting down (then a closed stream is expected, not an error)."""
-    from hippomap.client import AsyncStream, Client, encode_image
-    from hippomap.inputs import Odometry
+    from hippomap.client import AsyncStream, Client
 
     if not speed > 0:
         raise ValueError(f"demo speed must be > 0, got {speed}")
@@ -100,33 +132,12 @@ async def run_demo(url: str, token: str, rate_hz: float = 10.0, laps: int = 10, 
         print(message, flush=True)
         log.info(message)
         return sid
-    frame_at = {int(k): i for i, k in enumerate(run.frame_steps)}
     skip_odo = -float("inf") if demo.last_odometry_t is None else demo.last_odometry_t
     skip_frame = -float("inf") if demo.last_frame_t is None else demo.last_frame_t
     try:
         async with AsyncStream(url, token, sid, max_in_flight=256) as stream:
-            start = time.monotonic()
-            first = None
-            for k in range(len(run.times)):
-                t = float(run.times[k])
-                i = frame_at.get(k)
-                if t <= skip_odo and (i is None or t <= skip_frame):
-                    continue  # the session has this step already (a restart)
-                first = t if first is None else first
-                delay = start + (t - first) / speed - time.monotonic()
-                if delay > 0:
-                    await asyncio.sleep(delay)
-                if stopping():  # the server is shutting down: stop driving, a restart resumes here
-                    log.info("demo robot stopped at t = %.1f s: the server is shutting down", t)
-                    return sid
-                if t > skip_odo:
-                    _, v, omega = (float(x) for x in run.odometry[k])
-                    # the true pose: drawn by the viewer, unused by the mapper
-                    gt = cast(tuple[float, float, float], tuple(float(x) for x in run.groundtruth[k]))
-                    await stream.send_odometry(Odometry(t, v=v, omega=omega, gt=gt))
-                if i is not None and t > skip_frame:
-                    img = await asyncio.to_thread(lambda: encode_image(run.frame(i)))
-                    await stream.send_frame(t, img)  # the frame of this step, at the same time
+            if not await _drive(stream, run, skip_odo, skip_frame, speed, stopping):
+                return sid
             await stream.drain()
         message = (f"demo robot finished its {_laps(laps)} ({len(run.times)} steps, last input at t = {end_t:.1f} s) "
                    f"in session {sid}; it stops here (the map stays in the session)")

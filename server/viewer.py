@@ -5,7 +5,7 @@ asks a :class:`web.routes.ViewerAccess` which sessions a browser's token may see
 only place in ``server`` that imports ``web`` (an import-linter contract in ``pyproject.toml``), so
 the dependency runs one way, from the service to the viewer.
 
-The service keeps one :class:`server.runtime.sessions.LiveSession` per session, whose worker
+The service keeps one :class:`server.runtime.live_session.LiveSession` per session, whose worker
 thread feeds a Mapper under ``worker.lock`` and answers ``worker.query(query)`` (a typed read of
 :mod:`hippomap.mapper_queries`) between inputs; every
 input it acknowledged is in its store (frames as received). This module adapts that to the

@@ -110,16 +110,8 @@ def _remember(response: Response, request: Request, token: str | None) -> None:
                             secure=request.url.scheme == "https")
 
 
-def make_router(access: ViewerAccess, hub: ViewerHub | None = None,
-                settings: ViewerSettings | None = None) -> APIRouter:
-    """The viewer's routes over ``access``; ``hub`` (created if None) owns the session viewers.
-
-    The hub is available as ``router.hub`` (e.g. to close a deleted session's viewer, or all
-    viewers at shutdown: ``router.hub.close_all()``).
-    """
-    hub = hub or ViewerHub(settings)
-    router = APIRouter(tags=["viewer"])
-    router.hub = hub  # type: ignore[attr-defined]
+def _add_landing_routes(router: APIRouter, access: ViewerAccess) -> None:
+    """``/viewer`` and ``/viewer/``: the list of the sessions the token may view (or a login form)."""
 
     @router.get(PREFIX, include_in_schema=False)
     async def landing_redirect(request: Request) -> Response:
@@ -146,6 +138,10 @@ def make_router(access: ViewerAccess, hub: ViewerHub | None = None,
         response = _page("hippomap sessions", body)
         _remember(response, request, token)
         return response
+
+
+def _add_viewer_routes(router: APIRouter, access: ViewerAccess, hub: ViewerHub) -> None:
+    """``/viewer/{id}/``: a session's viewer page, and its websocket piped to the session's viser server."""
 
     @router.get(PREFIX + "/{session_id}", include_in_schema=False)
     async def viewer_redirect(session_id: str, request: Request) -> Response:
@@ -194,6 +190,20 @@ def make_router(access: ViewerAccess, hub: ViewerHub | None = None,
         finally:
             hub.disconnected(viewer)
 
+
+def make_router(access: ViewerAccess, hub: ViewerHub | None = None,
+                settings: ViewerSettings | None = None) -> APIRouter:
+    """The viewer's routes over ``access``; ``hub`` (created if None) owns the session viewers.
+
+    The hub is available as ``router.hub`` (e.g. to close a deleted session's viewer, or all
+    viewers at shutdown: ``router.hub.close_all()``).
+    """
+    hub = hub or ViewerHub(settings)
+    router = APIRouter(tags=["viewer"])
+    router.hub = hub  # type: ignore[attr-defined]
+
+    _add_landing_routes(router, access)
+    _add_viewer_routes(router, access, hub)
     return router
 
 

@@ -138,6 +138,33 @@ class SessionViewer:
     def __init__(self, source: SessionSource, settings: ViewerSettings | None = None, start: bool = True) -> None:
         self.source = source
         self.settings = s = settings or ViewerSettings()
+        self._start_server(source)
+        self._update_lock = threading.Lock()
+        self._cursor = Cursor()
+        self._snapshot: MapSnapshot | None = None
+        self._view_extent = 0.0
+        self._build_scene(s)
+        # per browser: layer toggles, time slider, camera fitted to the map (web.panels.view)
+        self.views = ClientViews(self.server, self.layer_specs, s, self._view_state)
+        self.created = time.monotonic()
+        self.last_seen = self.created
+        self.connections = 0
+        self.updates = 0
+        self.last_update: GraphUpdate | None = None
+        self.errors = 0
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        try:
+            self.update_graph()
+        except Exception:  # a broken snapshot must not keep the page from opening; the thread retries
+            self.errors += 1
+            log.exception("viewer %s: first update failed", source.session_id)
+        if start:
+            self._thread = threading.Thread(target=self._run, name=f"viewer-{source.session_id}", daemon=True)
+            self._thread.start()
+
+    def _start_server(self, source: SessionSource) -> None:
+        """The session's loopback viser server: locked by an access key, lit and themed, its share URL refused."""
         with _quiet_viser():
             self.server = viser.ViserServer(host="127.0.0.1", port=0, label=f"hippomap · {source.title}",
                                             verbose=False)
@@ -161,10 +188,9 @@ class SessionViewer:
         # a browser may still send viser's "share URL" request, which would open a public tunnel
         # around the service's authentication: refuse it (viser looks the method up per request)
         self.server.request_share_url = lambda *args, **kwargs: None  # type: ignore[method-assign]
-        self._update_lock = threading.Lock()
-        self._cursor = Cursor()
-        self._snapshot: MapSnapshot | None = None
-        self._view_extent = 0.0
+
+    def _build_scene(self, s: ViewerSettings) -> None:
+        """The layers of the 3D scene and the GUI panels (legend, camera, evidence, session, place cells, loops)."""
         scene, gui = self.server.scene, self.server.gui
         with self.server.atomic():
             self.map = MapGraphLayer(scene, s)
@@ -189,24 +215,6 @@ class SessionViewer:
                 self.place_cells = PlaceCellsPanel(gui, self._record_place_cells)
             with gui.add_folder("Loop closures"):
                 self.loop_list = LoopsPanel(gui, self._select_loop, s.max_loops_listed, s.thumbnail_width)
-        # per browser: layer toggles, time slider, camera fitted to the map (web.panels.view)
-        self.views = ClientViews(self.server, self.layer_specs, s, self._view_state)
-        self.created = time.monotonic()
-        self.last_seen = self.created
-        self.connections = 0
-        self.updates = 0
-        self.last_update: GraphUpdate | None = None
-        self.errors = 0
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
-        try:
-            self.update_graph()
-        except Exception:  # a broken snapshot must not keep the page from opening; the thread retries
-            self.errors += 1
-            log.exception("viewer %s: first update failed", source.session_id)
-        if start:
-            self._thread = threading.Thread(target=self._run, name=f"viewer-{source.session_id}", daemon=True)
-            self._thread.start()
 
     # ------------------------------------------------------------------ properties
     @property

@@ -177,6 +177,9 @@ class CloseOnRevoke:
         self.check_every_s = float(check_every_s)
 
     async def __call__(self, scope: dict[str, Any], receive: Any, send: Any) -> None:
+        """Wrap a websocket's ``receive`` and ``send`` with the revocation check. One function on purpose: the
+        wrappers and the idle watcher share one socket's state (closed, last checked, the send lock) as
+        closures, which is what keeps that state per connection."""
         if scope["type"] != "websocket":
             await self.app(scope, receive, send)
             return
