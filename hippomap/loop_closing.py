@@ -220,8 +220,6 @@ class LoopClosing(MapCorrection):
         book.outside = [c for c in book.outside if c.id not in ids]
         book.accepted.extend(group)
         book.last_verified_path = self._path
-        self._version += 1
-        self._dirty = True
         self._events.extend(self._optimise(t))  # the links disagree with the map by far: a whole solve
         return book.decisions[cand.id]
 
