@@ -107,14 +107,20 @@ def decode_jpeg(data: bytes) -> np.ndarray:
     return img
 
 
+def follows(last_t: float | None, t: float) -> bool:
+    """The time-order rule: within each input stream (odometry, frames) timestamps strictly
+    increase; the streams may interleave. ``last_t`` is the previous input of the same stream."""
+    return last_t is None or t > last_t
+
+
 class TimeOrder:
-    """Checks that timestamps strictly increase within one input stream."""
+    """Checks that timestamps strictly increase within one input stream (:func:`follows`)."""
 
     def __init__(self, name: str, last: float | None = None) -> None:
         self.name = name
         self.last = last
 
     def check(self, t: float) -> None:
-        if self.last is not None and not t > self.last:
+        if not follows(self.last, t):
             raise InputError(f"{self.name} timestamps must increase: {t!r} follows {self.last!r}")
         self.last = t

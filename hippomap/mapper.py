@@ -43,7 +43,7 @@ import numpy as np
 from .config import HippomapConfig
 from .errors import InputError
 from .geometry import compose
-from .inputs import Frame, Odometry
+from .inputs import Frame, Odometry, follows
 from .loop_closure import LoopHypothesis, looming_offset, se2_compose
 from .map_events import KeyframeLearned, LoopDecided, MapEvent, RecognitionMade
 from .map_reuse import ReuseMap
@@ -168,7 +168,7 @@ class Mapper:
     def _check_time(self, t: float, last: float | None, what: str) -> None:
         """Each stream's timestamps strictly increase; the two streams may interleave
         freely (a frame may carry the time of an odometry reading)."""
-        if last is not None and not t > last:
+        if not follows(last, t):
             raise InputError(f"{what} timestamp {t!r} does not follow the previous {what} at {last!r}")
 
     def step(self, odometry: Odometry) -> list[MapEvent]:

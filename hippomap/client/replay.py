@@ -26,7 +26,7 @@ from typing import Any
 
 from ..cli import add_progress_argument, progress_enabled
 from ..errors import InputError
-from ..inputs import Odometry
+from ..inputs import Odometry, follows
 
 #: consecutive odometry readings sent as one message when not replaying in real time
 FAST_BATCH = 200
@@ -104,10 +104,10 @@ async def replay(dataset: Any, url: str, token: str | None, session_id: str, spe
         for item in dataset.events():
             if errors:
                 break
-            seen = last.get("odometry" if isinstance(item, Odometry) else "frame")
-            if seen is not None and item.t <= seen:
+            kind = "odometry" if isinstance(item, Odometry) else "frame"
+            seen = last.get(kind)
+            if not follows(seen, item.t):
                 if not resume:  # refused before sending: pipelined later inputs must not land after a refusal
-                    kind = "odometry" if isinstance(item, Odometry) else "frame"
                     raise InputError(f"session {session_id} already holds {kind} inputs up to t={seen!r}, and this "
                                      f"replay starts at t={item.t!r}: pass --resume to skip what is stored")
                 counts["skipped"] += 1

@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING, Any, Protocol, TypeVar
 
 import numpy as np
 
+from hippomap import inputs
 from hippomap import mapper_queries as queries
 from hippomap.config import HippomapConfig
 from hippomap.inputs import Frame, Odometry
@@ -67,11 +68,9 @@ def load_mapper(data: bytes) -> MapperPort:
     return Mapper.from_bytes(data)
 
 
-def follows(last_t: float | None, t: float) -> bool:
-    """The mapper's time rule (``Mapper._check_time``): within each stream (odometry, frames)
-    timestamps strictly increase; the streams may interleave. ``last_t`` is the previous input
-    of the same kind. Checked at ingest, so an input the mapper would refuse is never stored."""
-    return last_t is None or t > last_t
+# the mapper's time rule (hippomap.inputs.follows), checked at ingest so that an input the mapper would
+# refuse is never stored
+follows = inputs.follows
 
 
 def check_frame(config: HippomapConfig, frame: Frame) -> None:
