@@ -25,7 +25,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from hippomap.config import SpatialConfig  # noqa: E402
 from hippomap.grid_cells import GridCells  # noqa: E402
-from hippomap.place_cells import SpatialPathway, localise_literal  # noqa: E402
+from hippomap.place_cells import localise_literal  # noqa: E402
+from hippomap.spatial_pathway import SpatialPathway  # noqa: E402
 
 
 class _Literal:

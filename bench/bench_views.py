@@ -24,7 +24,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from hippomap.cognitive_map import LINK_KINDS  # noqa: E402
 from hippomap.config import SpatialConfig  # noqa: E402
-from hippomap.place_cells import SpatialPathway  # noqa: E402
+from hippomap.spatial_pathway import SpatialPathway  # noqa: E402
 from hippomap.viz.place_field_figure import place_field_figure  # noqa: E402
 from web.scene.camera_fit import fit_camera  # noqa: E402
 from web.scene.replay import replay_at  # noqa: E402

@@ -24,9 +24,10 @@ from .errors import InputError
 
 if TYPE_CHECKING:
     from .config import HippomapConfig, SpatialConfig
+    from .iteration_record import IterationRecord
     from .loop_closure import LoopDecision
     from .mapper import Mapper
-    from .place_cells import IterationRecord, PlaceCode
+    from .spatial_pathway import PlaceCode
 
 __all__ = ["Query", "Stats", "GraphArrays", "Trajectory", "LoopDecisions", "Recognitions", "RecognitionById",
            "ViewerState", "MapView", "PlaceCellIteration", "MapperConfig", "LastInputTime", "BaseSnapshot",

@@ -16,13 +16,8 @@ from hippomap.config import SpatialConfig
 from hippomap.errors import InputError
 from hippomap.geometry import between
 from hippomap.grid_cells import LEVELS, GridCells, RateTables
-from hippomap.place_cells import (
-    PlaceCells,
-    PlaceCode,
-    SpatialPathway,
-    localise_literal,
-    max_single_field_count,
-)
+from hippomap.place_cells import PlaceCells, localise_literal, max_single_field_count
+from hippomap.spatial_pathway import PlaceCode, SpatialPathway
 
 DEFAULT = SpatialConfig()
 DELTA = DEFAULT.resolution_m

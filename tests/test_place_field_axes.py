@@ -13,7 +13,7 @@ import pytest
 from matplotlib.figure import Figure
 
 from hippomap.config import SpatialConfig
-from hippomap.place_cells import SpatialPathway
+from hippomap.spatial_pathway import SpatialPathway
 from hippomap.viz.place_field_figure import place_field_figure
 
 

@@ -11,13 +11,9 @@ from hypothesis import strategies as st
 from hippomap.config import SpatialConfig
 from hippomap.errors import InputError
 from hippomap.grid_cells import GridCells
-from hippomap.place_cells import (
-    PlaceCells,
-    SpatialPathway,
-    noise_free_discharges,
-    record_iteration,
-    record_stored_field,
-)
+from hippomap.iteration_record import record_iteration, record_stored_field
+from hippomap.place_cells import PlaceCells, noise_free_discharges
+from hippomap.spatial_pathway import SpatialPathway
 from hippomap.viz.place_field_figure import place_field_figure, place_field_png
 
 # a small coding area (121 x 121) keeps the tables quick to build; the algebra is the same

@@ -16,7 +16,7 @@ from starlette.websockets import WebSocketDisconnect
 
 from hippomap import sim
 from hippomap.config import HippomapConfig
-from hippomap.place_cells import SpatialPathway
+from hippomap.spatial_pathway import SpatialPathway
 from hippomap.visual_memory import VisualMemory
 from tests.support.simfeed import sim_inputs
 from web.images import recognition_from_dict, trace_panel

@@ -24,7 +24,7 @@ from hippomap.cognitive_map import LoopDecision
 from hippomap.config import SpatialConfig
 from hippomap.grid_cells import GridCells, RateTables
 from hippomap.mapper_queries import MapView, ViewerState
-from hippomap.place_cells import PlaceCode
+from hippomap.spatial_pathway import PlaceCode
 
 from .source import SessionSource
 

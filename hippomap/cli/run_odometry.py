@@ -25,7 +25,7 @@ from ..extras import check
 from ..geometry import between, compose, integrate
 from ..io.datasets import LoopEdge, OdometryDataset, load_odometry_dataset
 from ..io.exports import export_map, write_json
-from ..place_cells import SpatialPathway
+from ..spatial_pathway import SpatialPathway
 from . import add_progress_argument, progress_enabled
 
 

@@ -3,7 +3,7 @@
 The paper (§3.1, Fig. 8) shows how a single place field forms: the grid cells' binarised matrices
 ``MB_n = 1[|G_n - T_n| <= ΔT/2]`` (Eq. 9) and the position matrix ``POS`` shrinking to one field as
 they are multiplied in (Eq. 10). :func:`place_field_figure` draws one recorded iteration
-(:func:`hippomap.place_cells.record_iteration`):
+(:func:`hippomap.iteration_record.record_iteration`):
 
 * top row: the binarised matrix ``MB_n`` of every cell applied, in order (its module's spacing λ
   and orientation θ in the title);
@@ -25,7 +25,7 @@ import numpy as np
 from ..errors import InputError
 from ..extras import requires
 from ..grid_cells import GridCells
-from ..place_cells import IterationRecord, IterationStep
+from ..iteration_record import IterationRecord, IterationStep
 
 #: colours of the binarised panels: 0 (dark) and 1 (bright), shown by each row's colour scale
 _OFF, _ON = "#141428", "#ffd23c"

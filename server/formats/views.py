@@ -76,7 +76,7 @@ def place_field_png(rec: Any, spatial: Any = None) -> bytes:
     meta, idx = model.place_field_from_blob(rec.data)
     if spatial is not None:
         from hippomap.grid_cells import GridCells
-        from hippomap.place_cells import record_stored_field
+        from hippomap.iteration_record import record_stored_field
         from hippomap.viz.place_field_figure import place_field_png as figure_png
 
         record = record_stored_field(GridCells(spatial).tables, spatial, idx)

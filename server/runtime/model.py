@@ -25,7 +25,7 @@ from hippomap.loop_closure import LoopDecision
 from hippomap.map_events import MapEvent
 
 if TYPE_CHECKING:
-    from hippomap.place_cells import PlaceCode
+    from hippomap.spatial_pathway import PlaceCode
 
 __all__ = ["MapperPort", "queries", "effective_config", "new_mapper", "load_mapper", "follows", "check_frame",
            "graph", "loop_closures", "draw_saccades", "place_field_blob", "place_field_from_blob",

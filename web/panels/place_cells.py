@@ -1,7 +1,7 @@
 """Panel: the place cells made visible — the current step's iteration drawn like the paper's Fig. 8.
 
 The spatial pathway re-runs the iteration of Eq. 9-10 at the robot's current pose with recording
-(:meth:`hippomap.place_cells.SpatialPathway.record`, a copy under the session lock, tens of
+(:meth:`hippomap.spatial_pathway.SpatialPathway.record`, a copy under the session lock, tens of
 milliseconds, no noise drawn), and :func:`hippomap.viz.place_field_figure.place_field_figure` draws
 the grid cells' binarised matrices and the position matrix shrinking to one field, with metres on
 the axes and the agreement map's colour scale. Drawing takes 1-3 s (matplotlib), so the figure is made
