@@ -118,12 +118,13 @@ ABLATION = {
 
 
 def ablation(data_dirs: list[str], seeds: int) -> int:
-    from hippomap.eval.vpr_eval import _read, _run_ours, load_vpr_dataset
+    from hippomap.eval.vpr_datasets import load_vpr_dataset, read_image
+    from hippomap.eval.vpr_eval import _run_ours
 
     sets = []
     for d in data_dirs:
         ds = load_vpr_dataset(d)
-        sets.append((ds, [_read(p) for p in ds.references], [_read(p) for p in ds.queries]))
+        sets.append((ds, [read_image(p) for p in ds.references], [read_image(p) for p in ds.queries]))
     head = "".join(f" | {ds.name[:16]:>16s} P    R    FP" for ds, _, _ in sets)
     print(f"{'variant':34s}{head}")
     for name, over in ABLATION.items():

@@ -12,7 +12,8 @@ import pytest
 
 from hippomap.errors import HippomapError, InputError
 from hippomap.eval import vpr_eval
-from hippomap.eval.vpr_eval import _pr_points, add_parser, evaluate_vpr, load_vpr_dataset
+from hippomap.eval.vpr_datasets import load_vpr_dataset
+from hippomap.eval.vpr_eval import _pr_points, add_parser, evaluate_vpr
 from tests.test_visual_memory import perturb, scene  # the same synthetic scenes
 
 

@@ -1,17 +1,8 @@
 """``hippomap eval-vpr``: visual place recognition of the recognition memory on real images.
 
-Protocol (one run scores ours and the baseline on the same queries):
-
-* **VPR-Bench layout** (``DATA_DIR/ref/*.jpg``, ``DATA_DIR/query/*.jpg``,
-  ``ground_truth_new.npy`` rows ``(query index, [matching reference indices])``, e.g.
-  ``shared/data/corridor``): every reference image is learned as a key frame, every query
-  is recognised against all of them (``candidates=None``).
-* **RTAB-Map sample layout** (``DATA_DIR/data/samples/N.jpg``, ``DATA_DIR/data/samples_GT.bmp``,
-  pixel (i, j) white when frame i+1 shows the place of frame j+1, e.g.
-  ``shared/data/rtabmap_samples``): the first pass — the frames before the first frame that
-  has a ground-truth match — is learned as the references (frames 1-40), the second pass
-  (41-84) is queried against all of them; a query's positives are its ground-truth matches
-  among the references.
+One run scores ours and the baseline on the same queries: the references are learned as key
+frames and every query is recognised against all of them (``candidates=None``); the two data set
+layouts, and how each gives references, queries and positives, are in :mod:`~hippomap.eval.vpr_datasets`.
 
 A query counts as a true positive when the accepted frame is one of its positives, a false
 positive when another frame is accepted; precision = TP / accepted (1 when nothing is
@@ -27,7 +18,7 @@ threshold after the verification saccades); its PR curve sweeps the recognition'
 ``config.seed``, ``seeds`` runs in all are summarised under ``ours_over_seeds``.
 
 Writes ``metrics.json``, ``pr_curve.png`` and ``traces/*.png`` (saccade traces on the query
-beside the accepted reference with its learned fixation points).
+beside the accepted reference with its learned fixation points; :mod:`~hippomap.eval.vpr_figures`).
 """
 
 from __future__ import annotations
@@ -35,93 +26,25 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import json
-import re
 import sys
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 
 from ..cli import add_progress_argument, progress_enabled
 from ..config import HippomapConfig, VisualConfig
 from ..errors import HippomapError, InputError
-from ..extras import check, requires
-from ..visual_memory import VisualMemory, draw_frame_features, draw_trace
+from ..extras import check
+from ..visual_memory import VisualMemory
+from .vpr_datasets import VPRDataset, load_vpr_dataset, read_image
+from .vpr_figures import plot_pr, write_examples
 
 __all__ = ["VPRDataset", "load_vpr_dataset", "evaluate_vpr", "add_parser", "load_baseline_module"]
 
 _REPO_ROOT = Path(__file__).resolve().parents[2]
 BASELINE_PATH = _REPO_ROOT / "bench" / "ratslam_baseline.py"
-
-
-@dataclass
-class VPRDataset:
-    name: str
-    references: list[Path]
-    queries: list[Path]
-    positives: list[set[int]]  # per query: matching reference indices
-    protocol: str
-
-
-def _natural_key(p: Path) -> list[Any]:
-    return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", p.name)]
-
-
-def _images(folder: Path) -> list[Path]:
-    files = [p for p in folder.iterdir() if p.suffix.lower() in (".jpg", ".jpeg", ".png", ".bmp", ".ppm", ".pgm")]
-    return sorted(files, key=_natural_key)
-
-
-def load_vpr_dataset(data_dir: str | Path) -> VPRDataset:
-    """Read one of the two supported layouts (see the module docstring)."""
-    root = Path(data_dir)
-    if not root.is_dir():
-        raise InputError(f"data directory {root} does not exist")
-    if (root / "ref").is_dir() and (root / "query").is_dir():
-        refs, queries = _images(root / "ref"), _images(root / "query")
-        gt_path = root / "ground_truth_new.npy"
-        if not gt_path.is_file():
-            raise InputError(f"{gt_path} is missing")
-        gt = np.load(gt_path, allow_pickle=True)
-        positives: list[set[int]] = [set() for _ in queries]
-        for row_no, row in enumerate(gt):
-            try:
-                q = int(row[0])
-                refs_of_q = {int(r) for r in np.atleast_1d(row[1])}
-            except (TypeError, ValueError, IndexError):
-                raise InputError(
-                    f"{gt_path}: row {row_no} is not (query index, [reference indices]): {row!r}") from None
-            if not 0 <= q < len(queries) or any(not 0 <= r < len(refs) for r in refs_of_q):
-                raise InputError(f"{gt_path}: row {row_no} names an image outside the folders: {row!r}")
-            positives[q] |= refs_of_q
-        protocol = (f"learn all {len(refs)} images of ref/ as key frames; query each of the {len(queries)} images of "
-                    "query/ against all of them; positives from ground_truth_new.npy")
-        return VPRDataset(root.name, refs, queries, positives, protocol)
-    samples = root / "data" / "samples"
-    gt_path = root / "data" / "samples_GT.bmp"
-    if samples.is_dir() and gt_path.is_file():
-        files = _images(samples)
-        gt = cv2.imread(str(gt_path), cv2.IMREAD_GRAYSCALE)
-        if gt is None or gt.shape != (len(files), len(files)):
-            raise InputError(f"{gt_path} must be a {len(files)}x{len(files)} image, "
-                             f"got {None if gt is None else gt.shape}")
-        truth = gt > 127
-        rows = np.flatnonzero(truth.any(axis=1))
-        if rows.size == 0:
-            raise InputError(f"{gt_path} has no loop closure")
-        split = int(rows[0])  # the first frame that revisits an earlier one starts the query pass
-        refs, queries = files[:split], files[split:]
-        positives = [set(int(j) for j in np.flatnonzero(truth[split + i, :split])) for i in range(len(queries))]
-        protocol = (f"learn frames 1-{split} (the first pass, before the first ground-truth loop closure) "
-                    "as key frames; "
-                    f"query frames {split + 1}-{len(files)} against all of them; positives = white pixels of "
-                    "samples_GT.bmp among the references")
-        return VPRDataset(root.name, refs, queries, positives, protocol)
-    raise InputError(f"{root}: not a known VPR layout (need ref/ + query/ + ground_truth_new.npy, "
-                     "or data/samples/ + data/samples_GT.bmp)")
 
 
 def load_baseline_module():
@@ -136,13 +59,6 @@ def load_baseline_module():
     sys.modules[spec.name] = module
     spec.loader.exec_module(module)
     return module
-
-
-def _read(path: Path) -> np.ndarray:
-    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if img is None:
-        raise InputError(f"cannot read image {path}")
-    return img
 
 
 def _pr_points(scores: np.ndarray, correct: np.ndarray, n_pos: int, higher_better: bool) -> dict[str, Any]:
@@ -198,47 +114,6 @@ def _as_visual(config: Any) -> VisualConfig:
         except Exception as exc:  # pydantic ValidationError
             raise InputError(f"bad visual config override {config!r}: {exc}") from exc
     raise InputError(f"config must be a VisualConfig, HippomapConfig or dict, got {type(config).__name__}")
-
-
-def _side_by_side(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    h = max(a.shape[0], b.shape[0])
-    def fit(x: np.ndarray) -> np.ndarray:
-        if x.shape[0] == h:
-            return x
-        return cv2.resize(x, (int(round(x.shape[1] * h / x.shape[0])), h), interpolation=cv2.INTER_LINEAR)
-    gap = np.full((h, 6, 3), 255, np.uint8)
-    return np.hstack([fit(a), gap, fit(b)])
-
-
-def _plot_pr(path: Path, name: str, ours: dict[str, Any], op: tuple[float, float], base: dict[str, Any],
-             base2: dict[str, Any] | None = None) -> None:
-    with requires("eval", "the precision-recall plot"):
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(5.5, 4.5), dpi=120)
-    if base["pr_curve"]["recall"]:
-        ax.plot([0.0] + base["pr_curve"]["recall"], [1.0] + base["pr_curve"]["precision"], "-", color="tab:gray",
-                label=f"RatSLAM column profile, baseline (R@P100 = {base['recall_at_100_precision']:.2f})")
-    if base2 is not None and base2["pr_curve"]["recall"]:
-        ax.plot([0.0] + base2["pr_curve"]["recall"], [1.0] + base2["pr_curve"]["precision"], ":", color="tab:gray",
-                label=f"RatSLAM 60x10 templates (R@P100 = {base2['recall_at_100_precision']:.2f})")
-    if ours["recall"]:
-        ax.plot([0.0] + ours["recall"], [1.0] + ours["precision"], "-", color="tab:blue",
-                label="ours, sweeping confidence")
-    ax.plot([op[1]], [op[0]], "o", color="tab:red", ms=8, label=f"ours at theta_dec (P = {op[0]:.2f}, R = {op[1]:.2f})")
-    ax.set_xlabel("recall")
-    ax.set_ylabel("precision")
-    ax.set_xlim(0, 1.02)
-    ax.set_ylim(0, 1.05)
-    ax.grid(alpha=0.3)
-    ax.set_title(f"{name}: visual place recognition")
-    ax.legend(loc="lower left", fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
 
 
 def _run_ours(cfg: VisualConfig, ds: VPRDataset, ref_images: list[np.ndarray], query_images: list[np.ndarray],
@@ -300,59 +175,132 @@ def evaluate_vpr(data_dir: str | Path, out_dir: str | Path, config: Any = None, 
     baseline_mod = load_baseline_module()
     out = Path(out_dir)
     (out / "traces").mkdir(parents=True, exist_ok=True)
-    ref_images = [_read(p) for p in ds.references]
-    query_images = [_read(p) for p in ds.queries]
-    n_pos = sum(1 for p in ds.positives if p)
-    has_pos = np.array([bool(p) for p in ds.positives])
-
-    # -- baselines ------------------------------------------------------------------------
-    base_results: dict[str, Any] = {}
-    for name, over in BASELINE_VARIANTS.items():
-        bcfg = baseline_mod.RatSLAMViewTemplateConfig(**over)
-        base = baseline_mod.RatSLAMViewTemplates(bcfg)
-        t_bl, t_bc = [], []
-        for img in ref_images:
-            t0 = time.perf_counter()
-            base.add(img)
-            t_bl.append(time.perf_counter() - t0)
-        best, errs = [], []
-        for img in query_images:
-            t0 = time.perf_counter()
-            b_id, b_err = base.compare(img)
-            t_bc.append(time.perf_counter() - t0)
-            best.append(b_id)
-            errs.append(b_err)
-        b_ok = np.array([b in ds.positives[i] for i, b in enumerate(best)])
-        pr = _pr_points(np.array(errs), b_ok, n_pos, higher_better=False)
-        base_results[name] = {
-            "name": "RatSLAM view templates (OpenRatSLAM local_view_match: SAD with shift)"
-            + (", column intensity profile" if bcfg.template_y == 1
-               else f", {bcfg.template_x}x{bcfg.template_y} template"),
-            "config": {k: getattr(bcfg, k) for k in bcfg.__dataclass_fields__},
-            "recall_at_1": float(b_ok[has_pos].mean()) if n_pos else 0.0,
-            "recall_at_100_precision": pr["recall_at_100_precision"],
-            "threshold_at_100_precision": pr["threshold_at_100_precision"],
-            "average_precision": pr["average_precision"],
-            "best_f1": pr.get("best_f1"),
-            "learn_ms": _stats_ms(t_bl),
-            "compare_ms": _stats_ms(t_bc),
-            "pr_curve": {k: pr[k] for k in ("precision", "recall", "thresholds")},
-            "_best": best, "_errors": errs, "_ok": b_ok.tolist(),
-        }
+    ref_images = [read_image(p) for p in ds.references]
+    query_images = [read_image(p) for p in ds.queries]
+    base_results = {name: _run_baseline(baseline_mod, over, ds, ref_images, query_images)
+                    for name, over in BASELINE_VARIANTS.items()}
     base_main = base_results["column"]
-
-    # -- ours -----------------------------------------------------------------------------
     main = _run_ours(cfg, ds, ref_images, query_images, progress)
-    extra = [main] + [_run_ours(cfg.model_copy(update={"seed": cfg.seed + k}), ds, ref_images, query_images, progress)
-                      for k in range(1, seeds)]
-    rows_o = main["rows"]
-    acc = np.array([r["reference"] is not None for r in rows_o])
-    ok = np.array([r["correct"] for r in rows_o])
-    conf = np.array([r["confidence"] for r in rows_o])
-    ours_pr = _pr_points(conf[acc], ok[acc], n_pos, higher_better=True)
-    fixations = np.array([r["fixations"] for r in rows_o])
-    mem = main["memory"]
+    runs = [main] + [_run_ours(cfg.model_copy(update={"seed": cfg.seed + k}), ds, ref_images, query_images, progress)
+                     for k in range(1, seeds)]
+    per_seed = [{"seed": cfg.seed + k, "precision": e["precision"], "recall": e["recall"], "true_positives": e["tp"],
+                 "false_positives": e["accepted"] - e["tp"]} for k, e in enumerate(runs)]
+    ours, ours_pr = _ours_metrics(cfg, main, _n_positives(ds))
+    metrics: dict[str, Any] = {
+        "dataset": ds.name,
+        "data_dir": str(Path(data_dir).resolve()),
+        "protocol": ds.protocol,
+        "n_references": len(ds.references),
+        "n_queries": len(ds.queries),
+        "n_queries_with_match": _n_positives(ds),
+        "config": cfg.model_dump(mode="json"),
+        "ours": ours,
+        "ours_over_seeds": _over_seeds(per_seed),
+        "baseline": {k: v for k, v in base_main.items() if not k.startswith("_")},
+        "baseline_variants": {n: {k: v for k, v in b.items() if not k.startswith("_") and k != "pr_curve"}
+                              for n, b in base_results.items()},
+        "queries": _query_rows(ds, main["rows"], base_main),
+    }
+    metrics["target"] = _targets(main, per_seed, base_main)
+    plot_pr(out / "pr_curve.png", ds.name, ours_pr, (main["precision"], main["recall"]), base_main,
+            base_results.get("grid_60x10"))
+    recs = [(qi, query_images[qi], rec) for qi, rec in enumerate(main["recs"])]
+    metrics["examples"] = write_examples(out / "traces", recs, metrics["queries"], main["memory"], main["frame_to_ref"],
+                                         ref_images, n_examples, cfg)
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=1))
+    return metrics
 
+
+def _n_positives(ds: VPRDataset) -> int:
+    """The number of queries with at least one matching reference (recall's denominator)."""
+    return sum(1 for p in ds.positives if p)
+
+
+def _timed(fn: Any, items: list[np.ndarray]) -> tuple[list[Any], list[float]]:
+    """``fn`` applied to every item in order: the results and the seconds each call took."""
+    results, seconds = [], []
+    for item in items:
+        t0 = time.perf_counter()
+        results.append(fn(item))
+        seconds.append(time.perf_counter() - t0)
+    return results, seconds
+
+
+def _run_baseline(baseline_mod: Any, over: dict[str, int], ds: VPRDataset, ref_images: list[np.ndarray],
+                  query_images: list[np.ndarray]) -> dict[str, Any]:
+    """One RatSLAM view-template variant (``over``: its config overrides): learn the references, compare every
+    query, score its best templates by sweeping the match threshold. Keys starting with ``_`` are per query."""
+    bcfg = baseline_mod.RatSLAMViewTemplateConfig(**over)
+    base = baseline_mod.RatSLAMViewTemplates(bcfg)
+    _, t_bl = _timed(base.add, ref_images)
+    compared, t_bc = _timed(base.compare, query_images)
+    best, errs = [b_id for b_id, _ in compared], [b_err for _, b_err in compared]
+    n_pos = _n_positives(ds)
+    has_pos = np.array([bool(p) for p in ds.positives])
+    b_ok = np.array([b in ds.positives[i] for i, b in enumerate(best)])
+    pr = _pr_points(np.array(errs), b_ok, n_pos, higher_better=False)
+    return {
+        "name": "RatSLAM view templates (OpenRatSLAM local_view_match: SAD with shift)"
+        + (", column intensity profile" if bcfg.template_y == 1
+           else f", {bcfg.template_x}x{bcfg.template_y} template"),
+        "config": {k: getattr(bcfg, k) for k in bcfg.__dataclass_fields__},
+        "recall_at_1": float(b_ok[has_pos].mean()) if n_pos else 0.0,
+        "recall_at_100_precision": pr["recall_at_100_precision"],
+        "threshold_at_100_precision": pr["threshold_at_100_precision"],
+        "average_precision": pr["average_precision"],
+        "best_f1": pr.get("best_f1"),
+        "learn_ms": _stats_ms(t_bl),
+        "compare_ms": _stats_ms(t_bc),
+        "pr_curve": {k: pr[k] for k in ("precision", "recall", "thresholds")},
+        "_best": best, "_errors": errs, "_ok": b_ok.tolist(),
+    }
+
+
+def _ours_metrics(cfg: VisualConfig, main: dict[str, Any], n_pos: int) -> tuple[dict[str, Any], dict[str, Any]]:
+    """The headline run's figures (``metrics["ours"]``) and its PR curve sweeping confidence over the accepted
+    queries."""
+    rows = main["rows"]
+    acc = np.array([r["reference"] is not None for r in rows])
+    ok = np.array([r["correct"] for r in rows])
+    conf = np.array([r["confidence"] for r in rows])
+    ours_pr = _pr_points(conf[acc], ok[acc], n_pos, higher_better=True)
+    fixations = np.array([r["fixations"] for r in rows])
+    mem = main["memory"]
+    ours = {
+        "seed": cfg.seed,
+        "precision": main["precision"],
+        "recall": main["recall"],
+        "accepted": main["accepted"],
+        "true_positives": main["tp"],
+        "false_positives": main["accepted"] - main["tp"],
+        "rejected": int((~acc).sum()),
+        "recall_at_100_precision_sweeping_confidence": ours_pr["recall_at_100_precision"],
+        "fixations": {"mean": float(fixations.mean()), "median": float(np.median(fixations))},
+        "fixations_accepted_median": float(np.median(fixations[acc])) if acc.any() else None,
+        "resets_mean": float(np.mean([r["resets"] for r in rows])),
+        "skipped_references": main["skipped"],
+        "learn_ms": _stats_ms(main["t_learn"]),
+        "recognise_ms": _stats_ms(main["t_rec"]),
+        "memory_bytes_per_frame": mem.memory_bytes() / max(1, mem.n_frames),
+        "pr_curve": {k: ours_pr[k] for k in ("precision", "recall", "thresholds")},
+    }
+    return ours, ours_pr
+
+
+def _over_seeds(per_seed: list[dict[str, Any]]) -> dict[str, Any]:
+    """Ours over all seeds: every run's figures, the mean and worst precision and recall, the false positives."""
+    return {
+        "runs": per_seed,
+        "precision_mean": float(np.mean([p["precision"] for p in per_seed])),
+        "precision_min": float(np.min([p["precision"] for p in per_seed])),
+        "recall_mean": float(np.mean([p["recall"] for p in per_seed])),
+        "recall_min": float(np.min([p["recall"] for p in per_seed])),
+        "false_positives_total": int(sum(p["false_positives"] for p in per_seed)),
+    }
+
+
+def _query_rows(ds: VPRDataset, rows_o: list[dict[str, Any]], base_main: dict[str, Any]) -> list[dict[str, Any]]:
+    """Per query: its positives, what ours accepted (or not) and what the baseline's best template was."""
     rows = []
     for qi, path in enumerate(ds.queries):
         r = rows_o[qi]
@@ -363,100 +311,19 @@ def evaluate_vpr(data_dir: str | Path, out_dir: str | Path, config: Any = None, 
             "baseline_reference": base_main["_best"][qi], "baseline_error": base_main["_errors"][qi],
             "baseline_correct": bool(base_main["_ok"][qi]),
         })
-    per_seed = [{"seed": cfg.seed + k, "precision": e["precision"], "recall": e["recall"], "true_positives": e["tp"],
-                 "false_positives": e["accepted"] - e["tp"]} for k, e in enumerate(extra)]
-    metrics: dict[str, Any] = {
-        "dataset": ds.name,
-        "data_dir": str(Path(data_dir).resolve()),
-        "protocol": ds.protocol,
-        "n_references": len(ds.references),
-        "n_queries": len(ds.queries),
-        "n_queries_with_match": n_pos,
-        "config": cfg.model_dump(mode="json"),
-        "ours": {
-            "seed": cfg.seed,
-            "precision": main["precision"],
-            "recall": main["recall"],
-            "accepted": main["accepted"],
-            "true_positives": main["tp"],
-            "false_positives": main["accepted"] - main["tp"],
-            "rejected": int((~acc).sum()),
-            "recall_at_100_precision_sweeping_confidence": ours_pr["recall_at_100_precision"],
-            "fixations": {"mean": float(fixations.mean()), "median": float(np.median(fixations))},
-            "fixations_accepted_median": float(np.median(fixations[acc])) if acc.any() else None,
-            "resets_mean": float(np.mean([r["resets"] for r in rows_o])),
-            "skipped_references": main["skipped"],
-            "learn_ms": _stats_ms(main["t_learn"]),
-            "recognise_ms": _stats_ms(main["t_rec"]),
-            "memory_bytes_per_frame": mem.memory_bytes() / max(1, mem.n_frames),
-            "pr_curve": {k: ours_pr[k] for k in ("precision", "recall", "thresholds")},
-        },
-        "ours_over_seeds": {
-            "runs": per_seed,
-            "precision_mean": float(np.mean([p["precision"] for p in per_seed])),
-            "precision_min": float(np.min([p["precision"] for p in per_seed])),
-            "recall_mean": float(np.mean([p["recall"] for p in per_seed])),
-            "recall_min": float(np.min([p["recall"] for p in per_seed])),
-            "false_positives_total": int(sum(p["false_positives"] for p in per_seed)),
-        },
-        "baseline": {k: v for k, v in base_main.items() if not k.startswith("_")},
-        "baseline_variants": {n: {k: v for k, v in b.items() if not k.startswith("_") and k != "pr_curve"}
-                              for n, b in base_results.items()},
-        "queries": rows,
-    }
-    metrics["target"] = {
+    return rows
+
+
+def _targets(main: dict[str, Any], per_seed: list[dict[str, Any]], base_main: dict[str, Any]) -> dict[str, bool]:
+    """The evaluation's targets: ours without a false positive, at a recall no lower than the baseline's at
+    100 % precision, for the headline seed and for every seed."""
+    r100 = base_main["recall_at_100_precision"]
+    return {
         "ours_precision_is_100": bool(main["accepted"] == main["tp"]),
-        "ours_recall_ge_baseline_recall_at_100_precision": bool(
-            main["recall"] >= base_main["recall_at_100_precision"] - 1e-12),
+        "ours_recall_ge_baseline_recall_at_100_precision": bool(main["recall"] >= r100 - 1e-12),
         "all_seeds_precision_100": bool(all(p["false_positives"] == 0 for p in per_seed)),
-        "all_seeds_recall_ge_baseline": bool(all(p["recall"] >= base_main["recall_at_100_precision"] - 1e-12
-                                                 for p in per_seed)),
+        "all_seeds_recall_ge_baseline": bool(all(p["recall"] >= r100 - 1e-12 for p in per_seed)),
     }
-    _plot_pr(out / "pr_curve.png", ds.name, ours_pr, (main["precision"], main["recall"]), base_main,
-             base_results.get("grid_60x10"))
-    recs = [(qi, query_images[qi], rec) for qi, rec in enumerate(main["recs"])]
-    metrics["examples"] = _write_examples(out / "traces", recs, rows, mem, main["frame_to_ref"], ref_images,
-                                          n_examples, cfg)
-    (out / "metrics.json").write_text(json.dumps(metrics, indent=1))
-    return metrics
-
-
-def _write_examples(folder: Path, recs: list, rows: list[dict[str, Any]], mem: VisualMemory,
-                    frame_to_ref: dict[int, int], ref_images: list[np.ndarray], n: int, cfg: VisualConfig) -> list[str]:
-    if n <= 0:
-        return []
-    tp = [i for i, r in enumerate(rows) if r["ours_correct"]]
-    fp = [i for i, r in enumerate(rows) if r["ours_reference"] is not None and not r["ours_correct"]]
-    rej = [i for i, r in enumerate(rows) if r["ours_reference"] is None]
-    picks: list[tuple[int, str]] = []
-    # n true positives spread over the sequence, then one false positive and one rejection
-    for i in np.linspace(0, len(tp) - 1, min(n, len(tp))).round().astype(int) if tp else []:
-        picks.append((tp[i], "match"))
-    if fp:
-        picks.append((fp[0], "false_match"))
-    if rej:
-        picks.append((rej[len(rej) // 2], "rejected"))
-    written = []
-    for qi, kind in picks:
-        _, img, rec = recs[qi]
-        scale = img.shape[1] / cfg.working_width
-        enlarge = max(1.0, 480.0 / img.shape[1])  # small frames (corridor: 160 px) are drawn larger
-        left = draw_trace(img, rec, fovea=int(round(cfg.fovea * scale)), scale=enlarge)
-        if rec.accepted:
-            last = rec.steps[-1].attempt
-            steps = [s for s in rec.steps if s.attempt == last]
-            # the reference's features found in the last attempt, labelled with their fixation number
-            hl = {s.found_feature: str(i) for i, s in enumerate(steps, 1)
-                  if s.found_feature is not None and s.found_frame == rec.frame_id}
-            ref_img = ref_images[frame_to_ref[rec.frame_id]]
-            right = draw_frame_features(ref_img, mem, rec.frame_id, hl, scale=max(1.0, 480.0 / ref_img.shape[1]))
-        else:
-            right = np.full_like(left, 40)
-        name = f"q{qi:03d}_{kind}.png"
-        cv2.imwrite(str(folder / name), _side_by_side(left, right))
-        (folder / f"q{qi:03d}_{kind}.json").write_text(json.dumps(rec.to_dict(), indent=1))
-        written.append(f"traces/{name}")
-    return written
 
 
 # ---------------------------------------------------------------------------------------
