@@ -13,6 +13,7 @@ vectorised gather and far walls are pre-filtered instead of aliasing.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -144,17 +145,43 @@ def procedural_strip(length_m: float, params, seed: int = 0) -> np.ndarray:
     """A seeded, non-repeating wallpaper strip ``length_m`` long.
 
     ``params`` is a :class:`~hippomap.sim.params.TextureParams`. Returns uint8
-    (rows, columns) with row 0 at the top of the wall.
+    (rows, columns) with row 0 at the top of the wall. Drawn in layers from one random stream:
+    the panels, their seams, the skirting and dado rail, the doors, cabinets and posters, and
+    the small fittings between them.
     """
     if not np.isfinite(length_m) or length_m <= 0:
         raise InputError(f"texture strip length {length_m!r} m must be finite and > 0")
     rng = np.random.default_rng(seed)
-    tpm = params.texels_per_m
-    R = params.rows
-    W = max(4, int(np.ceil(length_m * tpm)) + 2)
-    hw = params.wall_height_m
+    wall = _Wall(rows=params.rows, width=max(4, int(np.ceil(length_m * params.texels_per_m)) + 2),
+                 tpm=params.texels_per_m, height_m=params.wall_height_m)
+    img, edges, panel, levels = _panels(rng, wall, length_m)
+    _panel_seams(img, rng, wall, edges, panel, levels)
+    _skirting_and_rail(img, rng, wall)
+    _features(img, rng, wall, params.feature_spacing_m)
+    _fittings(img, rng, wall)
+    return img
 
-    # panels: piecewise-constant base level with a slow modulation along the wall
+
+@dataclass(frozen=True)
+class _Wall:
+    """The strip's size: ``rows`` texels of wall height (``height_m`` metres) by ``width`` texels of wall
+    length, ``tpm`` texels per metre."""
+
+    rows: int
+    width: int
+    tpm: float
+    height_m: float
+
+    def row(self, h_m: float) -> int:
+        """The texture row at wall height ``h_m`` metres (row 0 at the top of the wall)."""
+        return int(np.clip(round((self.height_m - h_m) * self.tpm), 0, self.rows - 1))
+
+
+def _panels(rng: np.random.Generator, wall: _Wall, length_m: float):
+    """The base layer: panels 1.2-4.5 m wide of piecewise-constant grey with a slow modulation along the wall, a
+    vertical gradient and pixel noise. Returns the image, the panel edges (texels), each column's panel and the
+    panels' grey levels."""
+    W, R, tpm = wall.width, wall.rows, wall.tpm
     gaps = rng.uniform(1.2, 4.5, size=int(length_m / 1.2) + 2) * tpm
     edges = np.concatenate([[0], np.cumsum(gaps)]).astype(np.int64)
     panel = np.searchsorted(edges, np.arange(W), side="right") - 1
@@ -162,89 +189,112 @@ def procedural_strip(length_m: float, params, seed: int = 0) -> np.ndarray:
     base = levels[panel] + 12 * _smooth_noise(rng, W, 2 * tpm)
     vert = np.linspace(-8, 8, R)[:, None] * rng.choice([-1, 1])
     img = base[None, :] + vert + rng.normal(0, 3.0, size=(R, W))
-    img = np.clip(img, 0, 255).astype(np.uint8)
+    return np.clip(img, 0, 255).astype(np.uint8), edges, panel, levels
 
-    def row(h_m):  # wall height (m) -> texture row
-        return int(np.clip(round((hw - h_m) * tpm), 0, R - 1))
 
-    # panel seams: thin dark/bright vertical lines
+def _panel_seams(img: np.ndarray, rng: np.random.Generator, wall: _Wall, edges: np.ndarray, panel: np.ndarray,
+                 levels: np.ndarray) -> None:
+    """Thin dark or bright vertical lines at most panel edges."""
     for e in edges[1:-1]:
-        if e < W - 2 and rng.random() < 0.7:
-            cv2.rectangle(img, (int(e), 0), (int(e) + 1, R - 1),
+        if e < wall.width - 2 and rng.random() < 0.7:
+            cv2.rectangle(img, (int(e), 0), (int(e) + 1, wall.rows - 1),
                           _contrasting(rng, levels[min(len(levels) - 1, panel[e])]), -1)
-    # skirting board and an occasional dado rail, with breaks
-    skirt = row(0.10)
+
+
+def _skirting_and_rail(img: np.ndarray, rng: np.random.Generator, wall: _Wall) -> None:
+    """A dark or bright skirting board along the floor and a dado rail at 1 m, with breaks."""
+    skirt = wall.row(0.10)
     sk_level = int(rng.uniform(20, 60)) if rng.random() < 0.5 else int(rng.uniform(200, 240))
     img[skirt:, :] = sk_level
-    rail = row(1.0)
+    rail = wall.row(1.0)
     x = 0
-    while x < W:
-        run = int(rng.uniform(2, 8) * tpm)
+    while x < wall.width:
+        run = int(rng.uniform(2, 8) * wall.tpm)
         if rng.random() < 0.4:
-            cv2.rectangle(img, (x, rail), (min(W - 1, x + run), rail + max(1, int(0.03 * tpm))),
+            cv2.rectangle(img, (x, rail), (min(wall.width - 1, x + run), rail + max(1, int(0.03 * wall.tpm))),
                           _contrasting(rng, 128), -1)
         x += run
 
-    # features: doors from the floor, posters / notices on the wall
+
+def _features(img: np.ndarray, rng: np.random.Generator, wall: _Wall, spacing_m: float) -> None:
+    """Doors from the floor, cabinets on it and posters or notices on the wall, about ``spacing_m`` apart."""
+    tpm = wall.tpm
     pos = 0.3 * tpm
     while True:
-        pos += rng.exponential(params.feature_spacing_m * tpm) + 0.1 * tpm
-        if pos >= W - 4:
+        pos += rng.exponential(spacing_m * tpm) + 0.1 * tpm
+        if pos >= wall.width - 4:
             break
         x0 = int(pos)
-        bg = float(img[row(1.2), x0])
-        if rng.random() < 0.15:  # door with frame and handle
-            dw = int(rng.uniform(0.8, 1.0) * tpm)
-            x1 = min(W - 2, x0 + dw)
-            top = row(rng.uniform(1.95, 2.2))
-            door = _contrasting(rng, bg)
-            cv2.rectangle(img, (x0 - 2, top - 2), (x1 + 2, R - 1), _contrasting(rng, door), -1)
-            cv2.rectangle(img, (x0, top), (x1, R - 1), door, -1)
-            if rng.random() < 0.5:  # window in the door
-                cv2.rectangle(img, (x0 + dw // 4, top + dw // 5), (x1 - dw // 4, top + dw), _contrasting(rng, door), -1)
-            hx = x1 - max(2, dw // 8) if rng.random() < 0.5 else x0 + max(2, dw // 8)
-            hy = row(1.0)
-            cv2.rectangle(img, (hx - 2, hy - 1), (hx + 2, hy + 2), _contrasting(rng, door), -1)
-            pos = x1 + 0.2 * tpm
-        elif rng.random() < 0.25:  # cabinet / radiator standing on the floor
-            w = int(rng.uniform(0.4, 1.2) * tpm)
-            x1 = min(W - 2, x0 + w)
-            top = row(rng.uniform(0.35, 1.0))
-            body = _contrasting(rng, bg)
-            line = _contrasting(rng, body)
-            cv2.rectangle(img, (x0, top), (x1, R - 1), line, -1)
-            cv2.rectangle(img, (x0 + 1, top + 1), (x1 - 1, R - 2), body, -1)
-            n = int(rng.integers(1, 5))
-            ys = np.linspace(top, R - 1, n + 1).astype(int)
-            split = rng.random() < 0.5
-            for k in range(n):
-                cv2.rectangle(img, (x0, ys[k]), (x1, ys[k] + 1), line, -1)
-                hy = (ys[k] + ys[k + 1]) // 2
-                hxs = [(x0 + x1) // 2] if not split else [(3 * x0 + x1) // 4, (x0 + 3 * x1) // 4]
-                for hx in hxs:
-                    cv2.rectangle(img, (hx - 3, hy - 1), (hx + 3, hy + 1), line, -1)
-            if split:
-                cv2.rectangle(img, ((x0 + x1) // 2, top), ((x0 + x1) // 2 + 1, R - 1), line, -1)
-            pos = x1 + 0.1 * tpm
+        bg = float(img[wall.row(1.2), x0])
+        if rng.random() < 0.15:
+            pos = _draw_door(img, rng, wall, x0, bg) + 0.2 * tpm
+        elif rng.random() < 0.25:
+            pos = _draw_cabinet(img, rng, wall, x0, bg) + 0.1 * tpm
         else:  # poster / notice / picture anywhere on the wall
             w = int(rng.uniform(0.2, 1.1) * tpm)
             h_m = rng.uniform(0.2, 0.9)
-            bottom = rng.uniform(0.15, max(0.2, hw - 0.1 - h_m))
-            x1 = min(W - 2, x0 + w)
-            y0, y1 = row(bottom + h_m), row(bottom)
+            bottom = rng.uniform(0.15, max(0.2, wall.height_m - 0.1 - h_m))
+            x1 = min(wall.width - 2, x0 + w)
+            y0, y1 = wall.row(bottom + h_m), wall.row(bottom)
             if x1 - x0 >= 4 and y1 - y0 >= 4:
                 _draw_poster(img, rng, x0, y0, x1, y1, bg)
             pos = x0 + w * rng.uniform(0.3, 1.0)
-    # small fittings (sockets, switches, signs) between the larger features
+
+
+def _draw_door(img: np.ndarray, rng: np.random.Generator, wall: _Wall, x0: int, bg: float) -> int:
+    """A door from the floor at column ``x0``, with its frame, often a window, and a handle. Returns its right
+    edge."""
+    R = wall.rows
+    dw = int(rng.uniform(0.8, 1.0) * wall.tpm)
+    x1 = min(wall.width - 2, x0 + dw)
+    top = wall.row(rng.uniform(1.95, 2.2))
+    door = _contrasting(rng, bg)
+    cv2.rectangle(img, (x0 - 2, top - 2), (x1 + 2, R - 1), _contrasting(rng, door), -1)
+    cv2.rectangle(img, (x0, top), (x1, R - 1), door, -1)
+    if rng.random() < 0.5:  # window in the door
+        cv2.rectangle(img, (x0 + dw // 4, top + dw // 5), (x1 - dw // 4, top + dw), _contrasting(rng, door), -1)
+    hx = x1 - max(2, dw // 8) if rng.random() < 0.5 else x0 + max(2, dw // 8)
+    hy = wall.row(1.0)
+    cv2.rectangle(img, (hx - 2, hy - 1), (hx + 2, hy + 2), _contrasting(rng, door), -1)
+    return x1
+
+
+def _draw_cabinet(img: np.ndarray, rng: np.random.Generator, wall: _Wall, x0: int, bg: float) -> int:
+    """A cabinet or radiator standing on the floor at column ``x0``: drawers or doors with handles. Returns its
+    right edge."""
+    R = wall.rows
+    w = int(rng.uniform(0.4, 1.2) * wall.tpm)
+    x1 = min(wall.width - 2, x0 + w)
+    top = wall.row(rng.uniform(0.35, 1.0))
+    body = _contrasting(rng, bg)
+    line = _contrasting(rng, body)
+    cv2.rectangle(img, (x0, top), (x1, R - 1), line, -1)
+    cv2.rectangle(img, (x0 + 1, top + 1), (x1 - 1, R - 2), body, -1)
+    n = int(rng.integers(1, 5))
+    ys = np.linspace(top, R - 1, n + 1).astype(int)
+    split = rng.random() < 0.5
+    for k in range(n):
+        cv2.rectangle(img, (x0, ys[k]), (x1, ys[k] + 1), line, -1)
+        hy = (ys[k] + ys[k + 1]) // 2
+        hxs = [(x0 + x1) // 2] if not split else [(3 * x0 + x1) // 4, (x0 + 3 * x1) // 4]
+        for hx in hxs:
+            cv2.rectangle(img, (hx - 3, hy - 1), (hx + 3, hy + 1), line, -1)
+    if split:
+        cv2.rectangle(img, ((x0 + x1) // 2, top), ((x0 + x1) // 2 + 1, R - 1), line, -1)
+    return x1
+
+
+def _fittings(img: np.ndarray, rng: np.random.Generator, wall: _Wall) -> None:
+    """Small fittings (sockets, switches, signs) between the larger features."""
+    tpm = wall.tpm
     pos = rng.exponential(0.8 * tpm)
-    while pos < W - 8:
+    while pos < wall.width - 8:
         x0 = int(pos)
         sz = int(rng.uniform(0.05, 0.12) * tpm) + 2
-        y1 = row(rng.choice([rng.uniform(0.2, 0.45), rng.uniform(0.9, 1.3)]))
+        y1 = wall.row(rng.choice([rng.uniform(0.2, 0.45), rng.uniform(0.9, 1.3)]))
         lv = _contrasting(rng, float(img[max(0, y1 - 1), x0]))
-        cv2.rectangle(img, (x0, y1 - sz), (min(W - 1, x0 + sz), y1), lv, -1)
+        cv2.rectangle(img, (x0, y1 - sz), (min(wall.width - 1, x0 + sz), y1), lv, -1)
         pos += rng.exponential(0.8 * tpm) + sz
-    return img
 
 
 # --------------------------------------------------------------------------- photos
