@@ -153,67 +153,88 @@ def render(
     """
     pose = _check_pose(pose)
     hits = raycast(world, pose, camera)
-    f = camera.focal_px
-    hc = camera.mount_height_m
-    hw = world.texture.wall_height_m
-    tpm = world.texture.texels_per_m
-    atlas = world.atlas
     yv = _rows(camera)[:, None]  # (H, 1) upward slope of each row
-    hit = np.isfinite(hits.depth)
-    dz = np.where(hit, hits.depth, 0.0)
+    dz = np.where(np.isfinite(hits.depth), hits.depth, 0.0)
+    img = np.empty((camera.height, camera.width), np.float32)
+    _ceiling(img, yv, world, camera, shading)
+    _floor(img, yv, pose, hits, world, camera, shading)
+    _walls(img, yv, hits, dz, world, camera, shading)
+    if rng is not None and camera.pixel_noise > 0:
+        img += rng.normal(0.0, camera.pixel_noise, img.shape).astype(np.float32)
+    return np.clip(img + 0.5, 0, 255).astype(np.uint8)
 
-    # mip level per column: texels per pixel, vertically (z / f) and along the wall
+
+def _ceiling(img: np.ndarray, yv: np.ndarray, world: World, camera: Camera, shading: Shading) -> None:
+    """The rows above the horizon: the ceiling's brightness, fogged with its distance."""
+    above = np.flatnonzero(yv[:, 0] > 0)
+    if above.size:
+        zc = (world.texture.wall_height_m - camera.mount_height_m) / yv[above]
+        img[above] = shading.ceiling_level * (shading.fog_floor + (1 - shading.fog_floor) / (1 + zc / shading.fog_m))
+
+
+def _floor(img: np.ndarray, yv: np.ndarray, pose: np.ndarray, hits: Hits, world: World, camera: Camera,
+           shading: Shading) -> None:
+    """The rows below the horizon: world-anchored floor tiles, each with a seeded shade, fading with distance."""
+    below = np.flatnonzero(yv[:, 0] <= 0)
+    if not below.size:
+        return
+    with np.errstate(divide="ignore"):
+        zf = camera.mount_height_m / -yv[below]  # (B, 1) forward depth of the floor (inf at the horizon)
+    zf = np.minimum(zf, np.float32(1e6))
+    X = np.float32(pose[0]) + zf * hits.dx.astype(np.float32)[None, :]
+    Y = np.float32(pose[1]) + zf * hits.dy.astype(np.float32)[None, :]
+    tile = np.float32(1.0 / shading.floor_tile_m)
+    val = _hash01(np.floor(X * tile).astype(np.int32), np.floor(Y * tile).astype(np.int32), world.floor_seed)
+    fog = shading.fog_floor + (1 - shading.fog_floor) / (1 + zf / shading.fog_m)
+    img[below] = shading.floor_level * fog + (shading.floor_contrast * np.exp(-zf / shading.floor_fade_m)) * val
+
+
+def _mip_levels(hits: Hits, dz: np.ndarray, world: World, camera: Camera) -> np.ndarray:
+    """The mip level of each column: from its texels per pixel, vertically (z / f) and along the wall (the
+    texture column's change between neighbours on the same wall)."""
     seg = hits.segment
-    fv = dz / f * tpm
+    fv = dz / camera.focal_px * world.texture.texels_per_m
     du = np.abs(np.gradient(hits.u)) if len(hits.u) > 1 else np.zeros(1)
     same = np.ones(len(seg), bool)
     same[1:-1] = (seg[2:] == seg[:-2]) & (seg[1:-1] >= 0)
     fu = np.where(same, du, fv)
     foot = np.maximum(fv, np.sqrt(fu * fv))
-    level = np.clip(np.floor(np.log2(np.maximum(foot, 1e-9))), 0, atlas.n_levels - 1).astype(np.int64)
+    return np.clip(np.floor(np.log2(np.maximum(foot, 1e-9))), 0, world.atlas.n_levels - 1).astype(np.int64)
 
-    # wall shading per column: light from a fixed direction on the face seen, and fog
-    nrm = world.normals[np.maximum(seg, 0)]
+
+def _wall_gain(hits: Hits, dz: np.ndarray, world: World, shading: Shading) -> np.ndarray:
+    """The shading of each column's wall: light from a fixed direction on the face seen, and depth fog."""
+    nrm = world.normals[np.maximum(hits.segment, 0)]
     facing = -np.sign(nrm[:, 0] * hits.dx + nrm[:, 1] * hits.dy)
     la = np.radians(shading.light_deg)
     lam = 0.5 + 0.5 * facing * (nrm[:, 0] * np.cos(la) + nrm[:, 1] * np.sin(la))
     fog_w = shading.fog_floor + (1 - shading.fog_floor) / (1 + dz / shading.fog_m)
-    gain = (((1 - shading.directional) + shading.directional * lam) * fog_w).astype(np.float32)
+    return (((1 - shading.directional) + shading.directional * lam) * fog_w).astype(np.float32)
 
-    # background: ceiling above the horizon, floor below
-    img = np.empty((camera.height, camera.width), np.float32)
-    above = np.flatnonzero(yv[:, 0] > 0)
-    if above.size:
-        zc = (hw - hc) / yv[above]
-        img[above] = shading.ceiling_level * (shading.fog_floor + (1 - shading.fog_floor) / (1 + zc / shading.fog_m))
-    below = np.flatnonzero(yv[:, 0] <= 0)
-    if below.size:
-        with np.errstate(divide="ignore"):
-            zf = hc / -yv[below]  # (B, 1) forward depth of the floor (inf at the horizon)
-        zf = np.minimum(zf, np.float32(1e6))
-        X = np.float32(pose[0]) + zf * hits.dx.astype(np.float32)[None, :]
-        Y = np.float32(pose[1]) + zf * hits.dy.astype(np.float32)[None, :]
-        tile = np.float32(1.0 / shading.floor_tile_m)
-        val = _hash01(np.floor(X * tile).astype(np.int32), np.floor(Y * tile).astype(np.int32), world.floor_seed)
-        fog = shading.fog_floor + (1 - shading.fog_floor) / (1 + zf / shading.fog_m)
-        img[below] = shading.floor_level * fog + (shading.floor_contrast * np.exp(-zf / shading.floor_fade_m)) * val
 
-    # walls: texture row of every pixel is affine in the row index, per column
-    if hit.any():
-        cols = np.flatnonzero(hit)
-        trow = np.float32((hw - hc) * tpm) - yv * (dz[cols] * tpm).astype(np.float32)[None, :]  # (H, C)
-        wall = (trow >= 0) & (trow <= atlas.rows[0])
-        lv = level[cols]
-        sc = atlas.scales[lv].astype(np.float32)
-        nr, nc = atlas.rows[lv].astype(np.int32), atlas.cols[lv].astype(np.int32)
-        r = (trow * sc).astype(np.int32)
-        np.minimum(r, nr - 1, out=r)
-        np.maximum(r, 0, out=r)
-        r *= nc
-        r += (atlas.offsets[lv] + np.minimum((hits.u[cols] * sc).astype(np.int64), nc - 1)).astype(np.int32)
-        tex = atlas.flat[r]
-        sub = img[:, cols]
-        img[:, cols] = np.where(wall, tex * gain[cols], sub)
-    if rng is not None and camera.pixel_noise > 0:
-        img += rng.normal(0.0, camera.pixel_noise, img.shape).astype(np.float32)
-    return np.clip(img + 0.5, 0, 255).astype(np.uint8)
+def _walls(img: np.ndarray, yv: np.ndarray, hits: Hits, dz: np.ndarray, world: World, camera: Camera,
+           shading: Shading) -> None:
+    """The walls over the background: in each column that hits one, the texture row of every pixel is affine in
+    the row index; pixels between floor and wall top take the texel (at the column's mip level) times its gain."""
+    hit = np.isfinite(hits.depth)
+    if not hit.any():
+        return
+    atlas = world.atlas
+    tpm = world.texture.texels_per_m
+    level = _mip_levels(hits, dz, world, camera)
+    gain = _wall_gain(hits, dz, world, shading)
+    cols = np.flatnonzero(hit)
+    trow = (np.float32((world.texture.wall_height_m - camera.mount_height_m) * tpm)
+            - yv * (dz[cols] * tpm).astype(np.float32)[None, :])  # (H, C)
+    wall = (trow >= 0) & (trow <= atlas.rows[0])
+    lv = level[cols]
+    sc = atlas.scales[lv].astype(np.float32)
+    nr, nc = atlas.rows[lv].astype(np.int32), atlas.cols[lv].astype(np.int32)
+    r = (trow * sc).astype(np.int32)
+    np.minimum(r, nr - 1, out=r)
+    np.maximum(r, 0, out=r)
+    r *= nc
+    r += (atlas.offsets[lv] + np.minimum((hits.u[cols] * sc).astype(np.int64), nc - 1)).astype(np.int32)
+    tex = atlas.flat[r]
+    sub = img[:, cols]
+    img[:, cols] = np.where(wall, tex * gain[cols], sub)
