@@ -71,73 +71,97 @@ async def replay(dataset: Any, url: str, token: str | None, session_id: str, spe
     (unless ``resume`` skips it)."""
     from . import AsyncStream
 
-    errors: list[BaseException] = []
-    counts = {"odometry": 0, "frames": 0, "skipped": 0, "messages": 0}
     bar = None
     if progress:
         from tqdm import tqdm
 
         bar = tqdm(total=len(dataset.odometry) + len(dataset.frames), unit="input", desc="replay")
-
-    def watch(fut: asyncio.Future, n: int) -> None:
-        def done(f: asyncio.Future) -> None:
-            exc = f.exception()
-            if exc is not None:
-                errors.append(exc)
-            elif bar is not None:
-                bar.update(n)
-        fut.add_done_callback(done)
-
     gt_at = ground_truth_at(getattr(dataset, "groundtruth", None))
     start = time.perf_counter()
     async with AsyncStream(url, token, session_id, max_in_flight=window) as stream:
+        sender = _Sender(stream, bar, batch_odometry=speed is None)
         last = {"odometry": stream.hello.get("last_odometry_t"), "frame": stream.hello.get("last_frame_t")}
         t0: float | None = None
-        batch: list[Odometry] = []
-
-        async def flush() -> None:
-            if batch:
-                watch(await stream.send_odometry(list(batch)), len(batch))
-                counts["messages"] += 1
-                batch.clear()
-
         for item in dataset.events():
-            if errors:
+            if sender.errors:
                 break
             kind = "odometry" if isinstance(item, Odometry) else "frame"
-            seen = last.get(kind)
-            if not follows(seen, item.t):
+            if not follows(last.get(kind), item.t):
                 if not resume:  # refused before sending: pipelined later inputs must not land after a refusal
-                    raise InputError(f"session {session_id} already holds {kind} inputs up to t={seen!r}, and this "
-                                     f"replay starts at t={item.t!r}: pass --resume to skip what is stored")
-                counts["skipped"] += 1
+                    raise InputError(f"session {session_id} already holds {kind} inputs up to t={last.get(kind)!r}, "
+                                     f"and this replay starts at t={item.t!r}: pass --resume to skip what is stored")
+                sender.counts["skipped"] += 1
                 continue
             if speed is not None:
                 t0 = item.t if t0 is None else t0
-                delay = start + (item.t - t0) / speed - time.perf_counter()
-                if delay > 0:
-                    await flush()
-                    await asyncio.sleep(delay)
+                await sender.wait_until(start + (item.t - t0) / speed)
             if isinstance(item, Odometry):
-                counts["odometry"] += 1
                 pose = gt_at(item.t) if gt_at is not None and item.gt is None else None
-                batch.append(item if pose is None else dataclasses.replace(item, gt=pose))
-                if speed is not None or len(batch) >= FAST_BATCH:
-                    await flush()
-                continue
-            await flush()
-            data = await asyncio.to_thread(_frame_bytes, item)
-            watch(await stream.send_frame(item.t, data), 1)
-            counts["frames"] += 1
-            counts["messages"] += 1
-        await flush()
+                await sender.odometry(item if pose is None else dataclasses.replace(item, gt=pose))
+            else:
+                await sender.frame(item)
+        await sender.flush()
         await stream.drain()
     if bar is not None:
         bar.close()
-    if errors:
-        raise errors[0]
+    if sender.errors:
+        raise sender.errors[0]
     elapsed = time.perf_counter() - start
+    counts = sender.counts
     return {**counts, "seconds": elapsed, "inputs_per_s": (counts["odometry"] + counts["frames"]) / max(elapsed, 1e-9)}
+
+
+class _Sender:
+    """What :func:`replay` sends on one stream: odometry gathered into batches (``FAST_BATCH`` readings when
+    ``batch_odometry``, else one message per reading), frames one by one; counts every input and message, and
+    collects the acknowledgements' errors (and advances the progress ``bar``) as they come back."""
+
+    def __init__(self, stream: Any, bar: Any, batch_odometry: bool):
+        self.stream = stream
+        self.bar = bar
+        self.batch_odometry = batch_odometry
+        self.errors: list[BaseException] = []
+        self.counts = {"odometry": 0, "frames": 0, "skipped": 0, "messages": 0}
+        self.batch: list[Odometry] = []
+
+    def watch(self, fut: asyncio.Future, n: int) -> None:
+        """Record the outcome of the acknowledgement ``fut`` for ``n`` inputs."""
+        def done(f: asyncio.Future) -> None:
+            exc = f.exception()
+            if exc is not None:
+                self.errors.append(exc)
+            elif self.bar is not None:
+                self.bar.update(n)
+        fut.add_done_callback(done)
+
+    async def flush(self) -> None:
+        """Send the odometry gathered so far, if any, as one message."""
+        if self.batch:
+            self.watch(await self.stream.send_odometry(list(self.batch)), len(self.batch))
+            self.counts["messages"] += 1
+            self.batch.clear()
+
+    async def wait_until(self, when: float) -> None:
+        """Real-time replay: send what is gathered, then sleep until ``when`` (``time.perf_counter`` seconds)."""
+        delay = when - time.perf_counter()
+        if delay > 0:
+            await self.flush()
+            await asyncio.sleep(delay)
+
+    async def odometry(self, item: Odometry) -> None:
+        """Gather one odometry reading; send the batch when it is full (or at once when not batching)."""
+        self.counts["odometry"] += 1
+        self.batch.append(item)
+        if not self.batch_odometry or len(self.batch) >= FAST_BATCH:
+            await self.flush()
+
+    async def frame(self, item: Any) -> None:
+        """Send the odometry gathered before the frame, then the frame's encoded bytes."""
+        await self.flush()
+        data = await asyncio.to_thread(_frame_bytes, item)
+        self.watch(await self.stream.send_frame(item.t, data), 1)
+        self.counts["frames"] += 1
+        self.counts["messages"] += 1
 
 
 def viewer_url(session: dict[str, Any], server: str) -> str:
