@@ -179,3 +179,19 @@ def test_the_function_size_check_sees_long_functions_and_reasons():
     ])
     assert long_functions(source, "m") == {"m.long": n + 1, "m.C.method": n + 3, "m.C.method.inner": n + 1,
                                            "m.unexplained": n + 5}
+
+
+def test_the_architecture_module_map_names_every_module():
+    """docs/ARCHITECTURE.md's module map has a row for every module of the packages and of tests/support, and
+    no row for a module that is gone (each ``### `folder/``` section lists that folder's modules)."""
+    text = (ROOT / "docs" / "ARCHITECTURE.md").read_text()
+    documented, folder = set(), None
+    for line in text[text.index("## Module map"):].splitlines():
+        if heading := re.match(r"### `([^`]+)/`", line):
+            folder = heading.group(1)
+        elif (row := re.match(r"\| `([^`]+\.py)` \|", line)) and folder:
+            documented.add(f"{folder}/{row.group(1)}")
+    actual = {str(p.relative_to(ROOT)) for p in _modules() + sorted((ROOT / "tests" / "support").glob("*.py"))}
+    assert len(documented) > 50
+    assert not actual - documented, f"modules missing from the module map: {sorted(actual - documented)}"
+    assert not documented - actual, f"the module map names modules that do not exist: {sorted(documented - actual)}"
