@@ -47,7 +47,7 @@ from .inputs import Frame, Odometry, follows
 from .loop_closure import LoopHypothesis, looming_offset, se2_compose
 from .map_events import KeyframeLearned, LoopDecided, MapEvent, RecognitionMade
 from .map_reuse import ReuseMap
-from .place_cells import PlaceCode, SpatialPathway
+from .spatial_pathway import PlaceCode, SpatialPathway
 from .visual_memory import VisualMemory
 
 if TYPE_CHECKING:

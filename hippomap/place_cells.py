@@ -32,17 +32,12 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from functools import lru_cache
-from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from .config import SpatialConfig
 from .errors import InputError
 from .grid_cells import LEVELS, GridCells, RateTables
-
-if TYPE_CHECKING:  # the pathway, as seen by the callers that import it from here (see __getattr__)
-    from .spatial_pathway import PlaceCode as PlaceCode
-    from .spatial_pathway import SpatialPathway as SpatialPathway
 
 _FP_SLACK = 1e-9  # levels; absorbs rounding of T * LEVELS / g_max (1.5e-14 g_max)
 
@@ -279,12 +274,3 @@ def noise_free_discharges(source: GridCells | RateTables, cfg: SpatialConfig, lo
     ix, iy = np.clip(np.rint(loc / t.resolution), 0, t.size - 1).astype(np.int64)
     return t.levels[:, iy * t.size + ix] * (cfg.g_max / LEVELS)
 
-
-def __getattr__(name: str) -> Any:
-    """``PlaceCode`` and ``SpatialPathway`` still import from here (their home is
-    :mod:`hippomap.spatial_pathway`, which imports this module, hence the lazy look-up)."""
-    if name in ("PlaceCode", "SpatialPathway"):
-        from . import spatial_pathway
-
-        return getattr(spatial_pathway, name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
