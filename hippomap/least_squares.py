@@ -11,7 +11,8 @@ relaxation's fixed point because relaxation (like [ORS]) has no heading–positi
 * :func:`rotation_first_init` — headings-first re-initialisation (LAGO) before the solve.
 * :func:`graph_cost` — the objective :func:`solve_lsq` minimises.
 * :func:`group_order`, :func:`_spd_factor`, :func:`_normal_pattern` — the sparse linear algebra:
-  one fill-reducing order per solve, symmetric-mode LU, normal equations on a fixed pattern.
+  one fill-reducing order per solve, symmetric-mode LU, normal equations on a fixed pattern; the
+  orders and patterns of the last few graph structures are remembered (the same numbers).
 """
 
 from __future__ import annotations
