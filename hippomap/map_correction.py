@@ -50,7 +50,7 @@ class MapCorrection(MapGraph):
         if cfg.solver == "lsq" and not force and self._local_solves < cfg.lsq_window_every:
             window = self._local_window()
         # a whole solve of changes that all agree with the map: no headings-first init (see _solve_lsq)
-        init = force or window is not None or not self._small_change()
+        init = cfg.solver != "lsq" or force or window is not None or not self._small_change()
         self._touched = []  # what is solved now; the reweighting below may add to it
         if cfg.solver == "lsq":
             res, converged = self._solve_lsq(window, rotation_init=init)
