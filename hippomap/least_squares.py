@@ -49,9 +49,9 @@ def _structure_key(*arrays: np.ndarray) -> tuple[bytes, ...]:
 
 def group_order(n_groups: int, a: np.ndarray, b: np.ndarray, keep: np.ndarray) -> np.ndarray:
     """Fill-reducing elimination order of the kept groups (:func:`_group_order`), remembered for
-    the last few structures: a map's whole solve orders the same node graph three times (the
-    headings-first init's two Laplacian solves and the Gauss–Newton solve), and the robust
-    reweighting solves an unchanged graph again. Same numbers as computing it (read-only array)."""
+    the last few structures: the robust reweighting and a closure applied over several steps solve
+    an unchanged graph again, and with the bias estimated the headings-first init and the
+    Gauss–Newton solve order the same graph. Same numbers as computing it (read-only array)."""
     return _group_order_memo(int(n_groups), *_structure_key(a, b, np.asarray(keep, dtype=bool)))
 
 
