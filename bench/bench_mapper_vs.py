@@ -150,8 +150,14 @@ def compare(old: dict[str, Any], new: dict[str, Any]) -> list[str]:
     _same(old["codes"], new["codes"], "place_codes", diffs)
     _same(old["recognitions"], new["recognitions"], "recognitions", diffs)
     _same(old["stats"], new["stats"], "stats", diffs)
-    if not np.array_equal(old["trajectory"], new["trajectory"]):
-        diffs.append("corrected trajectory differs")
+    a, b = old["trajectory"], new["trajectory"]
+    if a.shape != b.shape:
+        diffs.append(f"corrected trajectory: shape {a.shape} != {b.shape}")
+    elif not np.array_equal(a, b):
+        d = np.abs(a - b)
+        d[:, 2] = np.abs(np.angle(np.exp(1j * (a[:, 2] - b[:, 2]))))  # headings: the wrapped difference
+        diffs.append(f"corrected trajectory differs: largest change {float(d[:, :2].max()):.3g} m in position, "
+                     f"{float(d[:, 2].max()):.3g} rad in heading")
     return diffs
 
 

@@ -11,10 +11,13 @@ relaxation's fixed point because relaxation (like [ORS]) has no heading–positi
 * :func:`rotation_first_init` — headings-first re-initialisation (LAGO) before the solve.
 * :func:`graph_cost` — the objective :func:`solve_lsq` minimises.
 * :func:`group_order`, :func:`_spd_factor`, :func:`_normal_pattern` — the sparse linear algebra:
-  one fill-reducing order per solve, symmetric-mode LU, normal equations on a fixed pattern.
+  one fill-reducing order per solve, symmetric-mode LU, normal equations on a fixed pattern; the
+  orders and patterns of the last few graph structures are remembered (the same numbers).
 """
 
 from __future__ import annotations
+
+import functools
 
 import numpy as np
 import scipy.sparse as sp
@@ -37,7 +40,29 @@ def _sqrt_information(information, m: int) -> np.ndarray:
     return np.sqrt(w)
 
 
+def _structure_key(*arrays: np.ndarray) -> tuple[bytes, ...]:
+    """The bytes of a graph's index arrays (int64) or masks (bool): a memo key that tells two
+    structures apart exactly."""
+    return tuple(np.ascontiguousarray(x, dtype=bool if np.asarray(x).dtype == bool else np.int64).tobytes()
+                 for x in arrays)
+
+
 def group_order(n_groups: int, a: np.ndarray, b: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    """Fill-reducing elimination order of the kept groups (:func:`_group_order`), remembered for
+    the last few structures: the robust reweighting and a closure applied over several steps solve
+    an unchanged graph again, and with the bias estimated the headings-first init and the
+    Gauss–Newton solve order the same graph. Same numbers as computing it (read-only array)."""
+    return _group_order_memo(int(n_groups), *_structure_key(a, b, np.asarray(keep, dtype=bool)))
+
+
+@functools.lru_cache(maxsize=4)
+def _group_order_memo(n_groups: int, a: bytes, b: bytes, keep: bytes) -> np.ndarray:
+    out = _group_order(n_groups, np.frombuffer(a, np.int64), np.frombuffer(b, np.int64), np.frombuffer(keep, bool))
+    out.flags.writeable = False
+    return out
+
+
+def _group_order(n_groups: int, a: np.ndarray, b: np.ndarray, keep: np.ndarray) -> np.ndarray:
     """Fill-reducing elimination order of the kept groups of unknowns of a sparse symmetric system
     in which group ``a[k]`` is coupled to group ``b[k]`` (a pose graph's nodes, and its bias).
 
@@ -159,6 +184,29 @@ def graph_cost(poses, src, dst, transforms, information=None, bias_dt=None, bias
 
 def _lsq_layout(n: int, src: np.ndarray, dst: np.ndarray, anchor: int | None, fixed, bdt: np.ndarray | None,
                 bias_information: float):
+    """:func:`_lsq_layout_of`, remembered for the last two structures (the layout depends on
+    ``bdt`` only through which links carry the bias): consecutive solves of an unchanged graph
+    (the robust reweighting's, a closure being applied over several steps) reuse its order and
+    normal-equation pattern. Returns the same numbers as computing it (read-only arrays)."""
+    fx = np.zeros(0, np.int64) if fixed is None else np.asarray(fixed, dtype=np.int64).reshape(-1)
+    odo = np.zeros(0, bool) if bdt is None else np.asarray(bdt) != 0
+    return _lsq_layout_memo(int(n), *_structure_key(src, dst, fx, odo), None if anchor is None else int(anchor),
+                            fixed is None, bdt is None, float(bias_information))
+
+
+@functools.lru_cache(maxsize=2)
+def _lsq_layout_memo(n: int, src: bytes, dst: bytes, fixed: bytes, odo: bytes, anchor: int | None, no_fixed: bool,
+                     no_bias: bool, bias_information: float):
+    bdt = None if no_bias else np.frombuffer(odo, bool).astype(float)
+    fx = None if no_fixed else np.frombuffer(fixed, np.int64)
+    nv, idx, col, H_of = _lsq_layout_of(n, np.frombuffer(src, np.int64), np.frombuffer(dst, np.int64), anchor, fx,
+                                        bdt, bias_information)
+    idx.flags.writeable = col.flags.writeable = False
+    return nv, idx, col, H_of
+
+
+def _lsq_layout_of(n: int, src: np.ndarray, dst: np.ndarray, anchor: int | None, fixed, bdt: np.ndarray | None,
+                   bias_information: float):
     """The unknowns of one :func:`solve_lsq` and their normal equations' pattern, computed once per
     solve: the three pose unknowns of every node, then the bias when ``bdt`` (the links' bias
     factors, only when the bias is estimated) is given. The anchor's and ``fixed`` nodes' unknowns

@@ -49,9 +49,11 @@ class MapCorrection(MapGraph):
         window = None
         if cfg.solver == "lsq" and not force and self._local_solves < cfg.lsq_window_every:
             window = self._local_window()
+        # a whole solve of changes that all agree with the map: no headings-first init (see _solve_lsq)
+        init = cfg.solver != "lsq" or force or window is not None or not self._small_change()
         self._touched = []  # what is solved now; the reweighting below may add to it
         if cfg.solver == "lsq":
-            res, converged = self._solve_lsq(window)
+            res, converged = self._solve_lsq(window, rotation_init=init)
         elif sweeps <= 0:
             return []
         elif cfg.solver == "jacobi":
@@ -68,11 +70,17 @@ class MapCorrection(MapGraph):
         self._dirty = not converged or (self._local_solves == 0 and self._reweight())
         return [MapRelaxed(res.solver, res.iterations, res.max_shift, t)]
 
-    def _solve_lsq(self, window: tuple[np.ndarray, np.ndarray, np.ndarray] | None) -> tuple[RelaxResult, bool]:
+    def _solve_lsq(self, window: tuple[np.ndarray, np.ndarray, np.ndarray] | None,
+                   rotation_init: bool = True) -> tuple[RelaxResult, bool]:
         """The 'lsq' solve of :meth:`_optimise`: the whole map (headings first when
-        ``lsq_rotation_init``; the odometry's bias estimated with the poses), or only the nodes of
-        ``window`` (:meth:`_local_window`) with the nodes just outside it fixed. Returns the
-        solver's result and whether it converged."""
+        ``lsq_rotation_init`` and ``rotation_init``; the odometry's bias estimated with the poses), or
+        only the nodes of ``window`` (:meth:`_local_window`) with the nodes just outside it fixed.
+        Returns the solver's result and whether it converged.
+
+        ``rotation_init`` False: every changed link agrees with the map within
+        ``lsq_window_residual_m`` (:meth:`_small_change`), so no heading error is left to spread
+        and the headings-first init is skipped: its cost test almost never kept it in such solves
+        (docs/MODEL.md)."""
         m, n = self._m, self._n
         P = self._P[:n]
         src, dst, tr = self._src[:m], self._dst[:m], self._tr[:m]
@@ -81,7 +89,7 @@ class MapCorrection(MapGraph):
         info = (self.link_information() if cfg.lsq_weighted else np.ones((m, 3))) * w[:, None]
         bias = self._bias_args()
         if window is None:
-            if cfg.lsq_rotation_init:
+            if cfg.lsq_rotation_init and rotation_init:
                 self._rotation_init(P, src, dst, tr, info, bias)
                 if bias:
                     bias["bias"] = self._bias  # the initialisation may have moved it
@@ -162,17 +170,11 @@ class MapCorrection(MapGraph):
         such a step then depends on the window, not on the map (:meth:`finish` solves the
         whole map)."""
         cfg, n, m = self.cfg, self._n, self._m
-        touched = self._touched
-        if cfg.lsq_window_hops <= 0 or not touched or -1 in touched:
+        if cfg.lsq_window_hops <= 0 or not self._small_change():
             return None
-        k = np.unique(np.asarray(touched, dtype=np.int64))
+        k = np.unique(np.asarray(self._touched, dtype=np.int64))
         k = k[k < m]
-        if not len(k):
-            return None
         src, dst = self._src[:m], self._dst[:m]
-        r = link_residuals(self._P[:n], src[k], dst[k], self._tr[k])
-        if float(np.max(np.hypot(r[:, 0], r[:, 1]))) > cfg.lsq_window_residual_m:
-            return None
         active = np.zeros(n, dtype=bool)
         active[src[k]] = active[dst[k]] = True
         for _ in range(cfg.lsq_window_hops):
@@ -191,6 +193,19 @@ class MapCorrection(MapGraph):
         if not len(fixed):
             return None
         return nodes, links, fixed
+
+    def _small_change(self) -> bool:
+        """Every link added or changed since the last solve agrees with the map within
+        ``lsq_window_residual_m`` (False when there is none, or the whole map changed)."""
+        touched, m = self._touched, self._m
+        if not touched or -1 in touched:
+            return False
+        k = np.unique(np.asarray(touched, dtype=np.int64))
+        k = k[k < m]
+        if not len(k):
+            return False
+        r = link_residuals(self._P[: self._n], self._src[k], self._dst[k], self._tr[k])
+        return float(np.max(np.hypot(r[:, 0], r[:, 1]))) <= self.cfg.lsq_window_residual_m
 
     def link_information(self) -> np.ndarray:
         """(M, 3) diagonal information of every link (x, y, θ) for the weighted solver: odometric

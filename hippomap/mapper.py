@@ -34,6 +34,7 @@ second session's inputs (docs/MODEL.md).
 from __future__ import annotations
 
 import io
+import itertools
 import json
 import math
 from typing import TYPE_CHECKING, Any, TypeVar, cast
@@ -220,8 +221,8 @@ class Mapper:
                 recognised = self._recognise(gray, frame.t, candidates, events)
             if not recognised and self._global_search_due():
                 self.global_search_path = self.distance
-                gated = set(candidates)
-                others = [f for f in self._recognisable(self.cmap.frames[self.cmap.frames >= 0]) if f not in gated]
+                every = self._recognisable(self.cmap.frames[self.cmap.frames >= 0])
+                others = np.setdiff1d(np.asarray(every, np.int64), np.asarray(candidates, np.int64)).tolist()
                 if others:
                     recognised = self._recognise(gray, frame.t, others, events, search="global")
         self.distance_at_keyframe = self.distance
@@ -277,9 +278,31 @@ class Mapper:
         took a few metres back, so recognising it is not a return to a place: measured on the
         simulated worlds, such matches named frames 1.5-2.5 m back along the robot's own track
         and pulled the map short when they were verified."""
-        gap = self.config.mapper.recognition_min_path_m
+        f = np.asarray(frames, dtype=np.int64).reshape(-1)
+        paths = self._frame_path_array()
+        p = np.full(f.shape, -math.inf)
+        known = (f >= 0) & (f < len(paths))
+        p[known] = paths[f[known]]
+        return np.unique(f[self.distance - p >= self.config.mapper.recognition_min_path_m]).tolist()
+
+    def _frame_path_array(self) -> np.ndarray:
+        """``frame_path`` as an array indexed by frame id (-inf: unknown), for :meth:`_recognisable`
+        without a Python loop over the key frames (the global search passes all of them). Kept in
+        step with the dict: its newest entries (insertion order) are added when it has grown, and
+        it is rebuilt when the dict was replaced (a restored snapshot)."""
         fp = self.frame_path
-        return sorted({int(f) for f in frames if self.distance - fp.get(int(f), -math.inf) >= gap})
+        cache = self.__dict__.get("_fpath")
+        if cache is None or cache[0] is not fp or cache[2] > len(fp):
+            cache = (fp, np.zeros(0), 0)
+        _, arr, n = cache
+        if len(fp) > n:
+            new = list(itertools.islice(reversed(fp.items()), len(fp) - n))
+            keys = np.array([k for k, _ in new], dtype=np.int64)
+            if int(keys.max()) >= len(arr):
+                arr = np.concatenate([arr, np.full(max(int(keys.max()) + 1 - len(arr), len(arr)), -math.inf)])
+            arr[keys] = [v for _, v in new]
+        self._fpath = (fp, arr, len(fp))
+        return arr
 
     def _is_keyframe(self) -> bool:
         m = self.config.mapper

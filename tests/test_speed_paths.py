@@ -1,0 +1,141 @@
+"""The mapper's fast paths give the numbers of their reference paths: the remembered elimination
+orders and normal-equation layouts of :mod:`hippomap.least_squares`, the array behind
+``Mapper._recognisable``, and the whole solves that skip the headings-first init."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from hippomap import least_squares as ls
+from hippomap.cognitive_map import CognitiveMap
+from hippomap.config import MapConfig
+from hippomap.mapper import Mapper
+
+from .test_cognitive_map import drive, square_increments, true_loops
+from .test_mapper import CONFIG, feed, inputs  # noqa: F401  (module fixture)
+
+
+def _graph(draw_seed: int, n: int, extra: int):
+    rng = np.random.default_rng(draw_seed)
+    src = np.concatenate([np.arange(n - 1), rng.integers(0, n, extra)])
+    dst = np.concatenate([np.arange(1, n), rng.integers(0, n, extra)])
+    ok = src != dst
+    return src[ok], dst[ok], rng
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 10_000), n=st.integers(2, 40), extra=st.integers(0, 30))
+def test_remembered_group_order_equals_a_fresh_one(seed, n, extra):
+    src, dst, rng = _graph(seed, n, extra)
+    keep = rng.random(n) > 0.2
+    fresh = ls._group_order(n, src, dst, keep)
+    for _ in range(2):  # computed, then remembered
+        got = ls.group_order(n, src, dst, keep)
+        np.testing.assert_array_equal(got, fresh)
+        assert not got.flags.writeable  # shared between solves: nobody may change it
+    # another structure of the same size is not confused with it
+    other = keep.copy()
+    other[0] = not other[0]
+    np.testing.assert_array_equal(ls.group_order(n, src, dst, other), ls._group_order(n, src, dst, other))
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 10_000), n=st.integers(3, 30), extra=st.integers(0, 20), bias=st.booleans(),
+       anchor=st.sampled_from([None, 0]), n_fixed=st.integers(0, 2))
+def test_remembered_lsq_layout_equals_a_fresh_one(seed, n, extra, bias, anchor, n_fixed):
+    src, dst, rng = _graph(seed, n, extra)
+    fixed = rng.choice(np.arange(1, n), size=min(n_fixed, n - 1), replace=False) if n_fixed else None
+    bdt = np.where(rng.random(len(src)) > 0.3, rng.random(len(src)), 0.0) if bias else None
+    fresh = ls._lsq_layout_of(n, src, dst, anchor, fixed, bdt, 4.0)
+    got = ls._lsq_layout(n, src, dst, anchor, fixed, bdt, 4.0)
+    assert got[0] == fresh[0]
+    np.testing.assert_array_equal(got[1], fresh[1])
+    np.testing.assert_array_equal(got[2], fresh[2])
+    q = 7 if bias else 6
+    Jk, e = rng.normal(size=(len(src), 3, q)), rng.normal(size=(len(src), 3))
+    (H1, d1, g1), (H2, d2, g2) = fresh[3](Jk, e), got[3](Jk, e)
+    np.testing.assert_array_equal(H1.toarray(), H2.toarray())
+    np.testing.assert_array_equal(d1(0.5).toarray(), d2(0.5).toarray())
+    np.testing.assert_array_equal(g1, g2)
+
+
+def test_solves_give_the_same_poses_with_the_remembered_layouts():
+    """Two solves of one graph (as the robust reweighting does): the second, on remembered orders
+    and layouts, gives the poses the first gave, bit for bit."""
+    rng = np.random.default_rng(4)
+    n = 60
+    src = np.concatenate([np.arange(n - 1), [0, 10, 20]])
+    dst = np.concatenate([np.arange(1, n), [n - 1, 50, 40]])
+    tr = np.column_stack([np.full(len(src), 0.5), np.zeros(len(src)), np.full(len(src), 2 * math.pi / n)])
+    P0 = np.cumsum(rng.normal(0, 0.3, (n, 3)), axis=0)
+    ls._group_order_memo.cache_clear()
+    ls._lsq_layout_memo.cache_clear()
+    out = []
+    for _ in range(2):
+        P = P0.copy()
+        ls.rotation_first_init(P, src, dst, tr)
+        ls.solve_lsq(P, src, dst, tr)
+        out.append(P)
+    assert ls._lsq_layout_memo.cache_info().hits >= 1 and ls._group_order_memo.cache_info().hits >= 1
+    np.testing.assert_array_equal(out[0], out[1])
+
+
+def _recognisable_reference(m: Mapper, frames) -> list[int]:
+    gap = m.config.mapper.recognition_min_path_m
+    return sorted({int(f) for f in frames if m.distance - m.frame_path.get(int(f), -math.inf) >= gap})
+
+
+def test_recognisable_matches_the_dict_reading(inputs):  # noqa: F811
+    """The array behind ``_recognisable`` follows ``frame_path`` as frames are learned and after a
+    restore, and names the same frames as reading the dict frame by frame."""
+    m = Mapper(CONFIG)
+    checked = 0
+    for i in range(0, len(inputs), 40):
+        feed(m, inputs[i:i + 40])
+        frames = np.arange(-1, len(m.frame_path) + 3)  # unknown and negative ids too
+        frames = frames[frames >= 0]
+        assert m._recognisable(frames) == _recognisable_reference(m, frames)
+        checked += len(m.frame_path) > 0
+    assert checked and len(m.frame_path) > 5
+    restored = Mapper.from_bytes(m.to_bytes())
+    ids = np.array(sorted(m.frame_path))
+    assert restored._recognisable(ids) == _recognisable_reference(m, ids)
+    restored.frame_path = {}  # a replaced dict is read afresh
+    assert restored._recognisable(ids) == ids.tolist()  # unknown frames: learned "infinitely" far back
+
+
+def test_whole_solves_of_small_changes_skip_the_headings_first_init():
+    """Corrections whose changed links all agree with the map, solved whole because their window
+    held most of the map, skip the headings-first init; new loops and the final solve keep it."""
+    inc = square_increments(side=6.0, laps=3)
+    first_lap = len(inc) // 3
+    noisy = inc.copy()
+    noisy[:, 2] += 0.002 * (inc[:, 0] > 0)
+    cmap = CognitiveMap(MapConfig(prune_online=False, loop_transform_radius_m=3.0, lsq_window_hops=400))
+    calls = []
+    original_init, original_solve = cmap._rotation_init, cmap._solve_lsq
+
+    original_small = cmap._small_change
+    smalls = []
+    cmap._small_change = lambda: (smalls.append(original_small()), smalls[-1])[1]
+
+    def solve(window, rotation_init=True):
+        calls.append((window is None, rotation_init, bool(smalls) and smalls[-1]))
+        return original_solve(window, rotation_init)
+
+    cmap._solve_lsq = solve
+    inits = []
+    cmap._rotation_init = lambda *a: (inits.append(1), original_init(*a))
+    from hippomap.geometry import integrate
+
+    drive(cmap, noisy, hypotheses=true_loops(integrate(inc), first_lap))
+    cmap.finish()
+    whole = [c for c in calls if c[0]]
+    assert any(not init for _, init, _ in whole), "no whole solve of a small change"
+    assert all(init == (not small) for _, init, small in whole[:-1])
+    assert whole[-1][1]  # the final solve (finish) always re-initialises
+    assert len(inits) == sum(init for _, init, _ in whole)
