@@ -64,8 +64,14 @@ def load_baseline_module():
 def _pr_points(scores: np.ndarray, correct: np.ndarray, n_pos: int, higher_better: bool) -> dict[str, Any]:
     """Precision/recall when accepting every query whose score passes a threshold."""
     if scores.size == 0 or n_pos == 0:
-        return {"precision": [], "recall": [], "thresholds": [], "recall_at_100_precision": 0.0,
-                "threshold_at_100_precision": None, "average_precision": 0.0}
+        return {
+            "precision": [],
+            "recall": [],
+            "thresholds": [],
+            "recall_at_100_precision": 0.0,
+            "threshold_at_100_precision": None,
+            "average_precision": 0.0,
+        }
     order = np.argsort(-scores if higher_better else scores, kind="stable")
     s, c = scores[order], correct[order].astype(float)
     tp, fp = np.cumsum(c), np.cumsum(1.0 - c)
@@ -89,8 +95,12 @@ def _pr_points(scores: np.ndarray, correct: np.ndarray, n_pos: int, higher_bette
         "recall_at_100_precision": r100,
         "threshold_at_100_precision": t100,
         "average_precision": ap,
-        "best_f1": {"f1": float(f1[b]), "precision": float(precision[b]), "recall": float(recall[b]),
-                    "threshold": float(s[b])},
+        "best_f1": {
+            "f1": float(f1[b]),
+            "precision": float(precision[b]),
+            "recall": float(recall[b]),
+            "threshold": float(s[b]),
+        },
     }
 
 
@@ -116,8 +126,13 @@ def _as_visual(config: Any) -> VisualConfig:
     raise InputError(f"config must be a VisualConfig, HippomapConfig or dict, got {type(config).__name__}")
 
 
-def _run_ours(cfg: VisualConfig, ds: VPRDataset, ref_images: list[np.ndarray], query_images: list[np.ndarray],
-              progress: bool = False) -> dict[str, Any]:
+def _run_ours(
+    cfg: VisualConfig,
+    ds: VPRDataset,
+    ref_images: list[np.ndarray],
+    query_images: list[np.ndarray],
+    progress: bool = False,
+) -> dict[str, Any]:
     """Learn every reference, recognise every query (candidates = all frames)."""
     mem = VisualMemory(cfg)
     frame_to_ref: dict[int, int] = {}
@@ -138,18 +153,38 @@ def _run_ours(cfg: VisualConfig, ds: VPRDataset, ref_images: list[np.ndarray], q
         t_rec.append(time.perf_counter() - t0)
         ref = frame_to_ref.get(rec.frame_id) if rec.accepted and rec.frame_id is not None else None
         pos = ds.positives[qi]
-        rows.append({"reference": ref, "correct": bool(ref is not None and ref in pos), "confidence": rec.confidence,
-                     "fixations": rec.n_fixations, "resets": rec.n_resets})
+        rows.append(
+            {
+                "reference": ref,
+                "correct": bool(ref is not None and ref in pos),
+                "confidence": rec.confidence,
+                "fixations": rec.n_fixations,
+                "resets": rec.n_resets,
+            }
+        )
         recs.append(rec)
         if progress:
-            print(f"seed {cfg.seed} query {qi + 1}/{len(query_images)}: -> {ref} "
-                  f"({'ok' if rows[-1]['correct'] else '-'})", file=sys.stderr)
+            print(
+                f"seed {cfg.seed} query {qi + 1}/{len(query_images)}: -> {ref} "
+                f"({'ok' if rows[-1]['correct'] else '-'})",
+                file=sys.stderr,
+            )
     n_pos = sum(1 for p in ds.positives if p)
     tp = sum(r["correct"] for r in rows)
     n_acc = sum(r["reference"] is not None for r in rows)
-    return {"memory": mem, "frame_to_ref": frame_to_ref, "rows": rows, "recs": recs, "skipped": skipped,
-            "t_learn": t_learn, "t_rec": t_rec, "tp": tp, "accepted": n_acc,
-            "precision": tp / n_acc if n_acc else 1.0, "recall": tp / n_pos if n_pos else 0.0}
+    return {
+        "memory": mem,
+        "frame_to_ref": frame_to_ref,
+        "rows": rows,
+        "recs": recs,
+        "skipped": skipped,
+        "t_learn": t_learn,
+        "t_rec": t_rec,
+        "tp": tp,
+        "accepted": n_acc,
+        "precision": tp / n_acc if n_acc else 1.0,
+        "recall": tp / n_pos if n_pos else 0.0,
+    }
 
 
 #: the baseline of the issue (column intensity profile) and a 2-D OpenRatSLAM template for context
@@ -159,8 +194,14 @@ BASELINE_VARIANTS = {
 }
 
 
-def evaluate_vpr(data_dir: str | Path, out_dir: str | Path, config: Any = None, n_examples: int = 4,
-                 progress: bool = False, seeds: int = 3) -> dict[str, Any]:
+def evaluate_vpr(
+    data_dir: str | Path,
+    out_dir: str | Path,
+    config: Any = None,
+    n_examples: int = 4,
+    progress: bool = False,
+    seeds: int = 3,
+) -> dict[str, Any]:
     """Learn the references, query the queries, score ours and the RatSLAM baseline; write
     ``metrics.json``, ``pr_curve.png`` and ``traces/``. Returns the metrics dict.
 
@@ -177,14 +218,26 @@ def evaluate_vpr(data_dir: str | Path, out_dir: str | Path, config: Any = None, 
     (out / "traces").mkdir(parents=True, exist_ok=True)
     ref_images = [read_image(p) for p in ds.references]
     query_images = [read_image(p) for p in ds.queries]
-    base_results = {name: _run_baseline(baseline_mod, over, ds, ref_images, query_images)
-                    for name, over in BASELINE_VARIANTS.items()}
+    base_results = {
+        name: _run_baseline(baseline_mod, over, ds, ref_images, query_images)
+        for name, over in BASELINE_VARIANTS.items()
+    }
     base_main = base_results["column"]
     main = _run_ours(cfg, ds, ref_images, query_images, progress)
-    runs = [main] + [_run_ours(cfg.model_copy(update={"seed": cfg.seed + k}), ds, ref_images, query_images, progress)
-                     for k in range(1, seeds)]
-    per_seed = [{"seed": cfg.seed + k, "precision": e["precision"], "recall": e["recall"], "true_positives": e["tp"],
-                 "false_positives": e["accepted"] - e["tp"]} for k, e in enumerate(runs)]
+    runs = [main] + [
+        _run_ours(cfg.model_copy(update={"seed": cfg.seed + k}), ds, ref_images, query_images, progress)
+        for k in range(1, seeds)
+    ]
+    per_seed = [
+        {
+            "seed": cfg.seed + k,
+            "precision": e["precision"],
+            "recall": e["recall"],
+            "true_positives": e["tp"],
+            "false_positives": e["accepted"] - e["tp"],
+        }
+        for k, e in enumerate(runs)
+    ]
     ours, ours_pr = _ours_metrics(cfg, main, _n_positives(ds))
     metrics: dict[str, Any] = {
         "dataset": ds.name,
@@ -197,16 +250,25 @@ def evaluate_vpr(data_dir: str | Path, out_dir: str | Path, config: Any = None, 
         "ours": ours,
         "ours_over_seeds": _over_seeds(per_seed),
         "baseline": {k: v for k, v in base_main.items() if not k.startswith("_")},
-        "baseline_variants": {n: {k: v for k, v in b.items() if not k.startswith("_") and k != "pr_curve"}
-                              for n, b in base_results.items()},
+        "baseline_variants": {
+            n: {k: v for k, v in b.items() if not k.startswith("_") and k != "pr_curve"}
+            for n, b in base_results.items()
+        },
         "queries": _query_rows(ds, main["rows"], base_main),
     }
     metrics["target"] = _targets(main, per_seed, base_main)
-    plot_pr(out / "pr_curve.png", ds.name, ours_pr, (main["precision"], main["recall"]), base_main,
-            base_results.get("grid_60x10"))
+    plot_pr(
+        out / "pr_curve.png",
+        ds.name,
+        ours_pr,
+        (main["precision"], main["recall"]),
+        base_main,
+        base_results.get("grid_60x10"),
+    )
     recs = [(qi, query_images[qi], rec) for qi, rec in enumerate(main["recs"])]
-    metrics["examples"] = write_examples(out / "traces", recs, metrics["queries"], main["memory"], main["frame_to_ref"],
-                                         ref_images, n_examples, cfg)
+    metrics["examples"] = write_examples(
+        out / "traces", recs, metrics["queries"], main["memory"], main["frame_to_ref"], ref_images, n_examples, cfg
+    )
     (out / "metrics.json").write_text(json.dumps(metrics, indent=1))
     return metrics
 
@@ -226,8 +288,13 @@ def _timed(fn: Any, items: list[np.ndarray]) -> tuple[list[Any], list[float]]:
     return results, seconds
 
 
-def _run_baseline(baseline_mod: Any, over: dict[str, int], ds: VPRDataset, ref_images: list[np.ndarray],
-                  query_images: list[np.ndarray]) -> dict[str, Any]:
+def _run_baseline(
+    baseline_mod: Any,
+    over: dict[str, int],
+    ds: VPRDataset,
+    ref_images: list[np.ndarray],
+    query_images: list[np.ndarray],
+) -> dict[str, Any]:
     """One RatSLAM view-template variant (``over``: its config overrides): learn the references, compare every
     query, score its best templates by sweeping the match threshold. Keys starting with ``_`` are per query."""
     bcfg = baseline_mod.RatSLAMViewTemplateConfig(**over)
@@ -241,8 +308,7 @@ def _run_baseline(baseline_mod: Any, over: dict[str, int], ds: VPRDataset, ref_i
     pr = _pr_points(np.array(errs), b_ok, n_pos, higher_better=False)
     return {
         "name": "RatSLAM view templates (OpenRatSLAM local_view_match: SAD with shift)"
-        + (", column intensity profile" if bcfg.template_y == 1
-           else f", {bcfg.template_x}x{bcfg.template_y} template"),
+        + (", column intensity profile" if bcfg.template_y == 1 else f", {bcfg.template_x}x{bcfg.template_y} template"),
         "config": {k: getattr(bcfg, k) for k in bcfg.__dataclass_fields__},
         "recall_at_1": float(b_ok[has_pos].mean()) if n_pos else 0.0,
         "recall_at_100_precision": pr["recall_at_100_precision"],
@@ -252,7 +318,9 @@ def _run_baseline(baseline_mod: Any, over: dict[str, int], ds: VPRDataset, ref_i
         "learn_ms": _stats_ms(t_bl),
         "compare_ms": _stats_ms(t_bc),
         "pr_curve": {k: pr[k] for k in ("precision", "recall", "thresholds")},
-        "_best": best, "_errors": errs, "_ok": b_ok.tolist(),
+        "_best": best,
+        "_errors": errs,
+        "_ok": b_ok.tolist(),
     }
 
 
@@ -304,13 +372,21 @@ def _query_rows(ds: VPRDataset, rows_o: list[dict[str, Any]], base_main: dict[st
     rows = []
     for qi, path in enumerate(ds.queries):
         r = rows_o[qi]
-        rows.append({
-            "query": qi, "file": path.name, "positives": sorted(ds.positives[qi]),
-            "ours_reference": r["reference"], "ours_correct": r["correct"], "confidence": r["confidence"],
-            "fixations": r["fixations"], "resets": r["resets"],
-            "baseline_reference": base_main["_best"][qi], "baseline_error": base_main["_errors"][qi],
-            "baseline_correct": bool(base_main["_ok"][qi]),
-        })
+        rows.append(
+            {
+                "query": qi,
+                "file": path.name,
+                "positives": sorted(ds.positives[qi]),
+                "ours_reference": r["reference"],
+                "ours_correct": r["correct"],
+                "confidence": r["confidence"],
+                "fixations": r["fixations"],
+                "resets": r["resets"],
+                "baseline_reference": base_main["_best"][qi],
+                "baseline_error": base_main["_errors"][qi],
+                "baseline_correct": bool(base_main["_ok"][qi]),
+            }
+        )
     return rows
 
 
@@ -337,7 +413,7 @@ def _parse_overrides(items: list[str] | None) -> dict[str, Any]:
         key, value = item.split("=", 1)
         key = key.strip()
         if key.startswith("visual."):
-            key = key[len("visual."):]
+            key = key[len("visual.") :]
         if key not in VisualConfig.model_fields:
             known = ", ".join(sorted(VisualConfig.model_fields))
             raise InputError(f"--set {key!r}: not a VisualConfig field; known: {known}")
@@ -358,25 +434,41 @@ def _run(args: argparse.Namespace) -> int:
             raise InputError(f"cannot read config {args.config}: {exc}") from exc
         overrides.update(data.get("visual", data) if isinstance(data, dict) else {})
     overrides.update(_parse_overrides(args.set))
-    m = evaluate_vpr(args.data_dir, args.out, overrides or None, n_examples=args.examples,
-                     progress=progress_enabled(args), seeds=args.seeds)
+    m = evaluate_vpr(
+        args.data_dir,
+        args.out,
+        overrides or None,
+        n_examples=args.examples,
+        progress=progress_enabled(args),
+        seeds=args.seeds,
+    )
     o, b = m["ours"], m["baseline"]
-    print(f"{m['dataset']}: {m['n_references']} references, "
-          f"{m['n_queries']} queries ({m['n_queries_with_match']} with a match)")
-    print(f"  ours:     precision {o['precision']:.3f}  recall {o['recall']:.3f}  "
-          f"({o['true_positives']} TP, {o['false_positives']} FP, {o['rejected']} rejected; "
-          f"median {o['recognise_ms']['median']:.1f} ms/query)")
+    print(
+        f"{m['dataset']}: {m['n_references']} references, "
+        f"{m['n_queries']} queries ({m['n_queries_with_match']} with a match)"
+    )
+    print(
+        f"  ours:     precision {o['precision']:.3f}  recall {o['recall']:.3f}  "
+        f"({o['true_positives']} TP, {o['false_positives']} FP, {o['rejected']} rejected; "
+        f"median {o['recognise_ms']['median']:.1f} ms/query)"
+    )
     sd = m["ours_over_seeds"]
-    print(f"  ours over {len(sd['runs'])} seeds: "
-          f"precision mean {sd['precision_mean']:.3f} (min {sd['precision_min']:.3f}), "
-          f"recall mean {sd['recall_mean']:.3f} (min {sd['recall_min']:.3f}), "
-          f"{sd['false_positives_total']} FP in total")
-    print(f"  baseline: recall at 100% precision {b['recall_at_100_precision']:.3f}  recall@1 {b['recall_at_1']:.3f}  "
-          f"AP {b['average_precision']:.3f}")
+    print(
+        f"  ours over {len(sd['runs'])} seeds: "
+        f"precision mean {sd['precision_mean']:.3f} (min {sd['precision_min']:.3f}), "
+        f"recall mean {sd['recall_mean']:.3f} (min {sd['recall_min']:.3f}), "
+        f"{sd['false_positives_total']} FP in total"
+    )
+    print(
+        f"  baseline: recall at 100% precision {b['recall_at_100_precision']:.3f}  recall@1 {b['recall_at_1']:.3f}  "
+        f"AP {b['average_precision']:.3f}"
+    )
     b2 = m["baseline_variants"].get("grid_60x10")
     if b2:
-        print(f"  (RatSLAM 60x10 templates: recall at 100% precision {b2['recall_at_100_precision']:.3f}, "
-              f"recall@1 {b2['recall_at_1']:.3f})")
+        print(
+            f"  (RatSLAM 60x10 templates: recall at 100% precision {b2['recall_at_100_precision']:.3f}, "
+            f"recall@1 {b2['recall_at_1']:.3f})"
+        )
     print(f"  wrote {Path(args.out) / 'metrics.json'}, pr_curve.png, traces/")
     return 0
 
@@ -389,15 +481,22 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
         description="Visual place recognition on real images with ground-truth loop closures: learn the reference "
         "frames, query the others, score ours and the RatSLAM view-template baseline in one run.",
     )
-    p.add_argument("data_dir", metavar="DATA_DIR",
-                   help="dataset folder (VPR-Bench ref/query layout or RTAB-Map samples)")
-    p.add_argument("--out", required=True, metavar="OUT_DIR",
-                   help="output folder for metrics.json, pr_curve.png, traces/")
-    p.add_argument("--config", metavar="JSON",
-                   help="JSON file with VisualConfig overrides (or a full config with 'visual')")
+    p.add_argument(
+        "data_dir", metavar="DATA_DIR", help="dataset folder (VPR-Bench ref/query layout or RTAB-Map samples)"
+    )
+    p.add_argument(
+        "--out", required=True, metavar="OUT_DIR", help="output folder for metrics.json, pr_curve.png, traces/"
+    )
+    p.add_argument(
+        "--config", metavar="JSON", help="JSON file with VisualConfig overrides (or a full config with 'visual')"
+    )
     p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override one VisualConfig field, repeatable")
-    p.add_argument("--examples", type=int, default=4,
-                   help="matches drawn as saccade-trace images (default 4), plus one false match and one rejection")
+    p.add_argument(
+        "--examples",
+        type=int,
+        default=4,
+        help="matches drawn as saccade-trace images (default 4), plus one false match and one rejection",
+    )
     p.add_argument("--seeds", type=int, default=3, help="runs of ours with seeds seed, seed+1, ... (default 3)")
     add_progress_argument(p)  # one line per query on stderr
     p.set_defaults(func=_run)

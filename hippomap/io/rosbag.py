@@ -56,8 +56,13 @@ def _yaw(q) -> float:
     return float(np.arctan2(2 * (q.w * q.z + q.x * q.y), 1 - 2 * (q.y**2 + q.z**2)))
 
 
-def read_rosbag(path: str | Path, image_topic: str, odometry_topic: str, max_frames: int | None = None,
-                groundtruth_topic: str | None = None) -> SensorDataset:
+def read_rosbag(
+    path: str | Path,
+    image_topic: str,
+    odometry_topic: str,
+    max_frames: int | None = None,
+    groundtruth_topic: str | None = None,
+) -> SensorDataset:
     """Read a ROS 1 (``.bag``) or ROS 2 (folder) bag. Times are the messages' header stamps.
     ``groundtruth_topic`` (optional: ``geometry_msgs/PoseStamped`` or ``nav_msgs/Odometry``,
     e.g. what :func:`hippomap.io.session_export.write_rosbag2` writes) becomes the data set's
@@ -89,8 +94,10 @@ def read_rosbag(path: str | Path, image_topic: str, odometry_topic: str, max_fra
                     frames.append(DecodedFrame(t, _image(msg, conn.msgtype)))
             elif conn.topic == groundtruth_topic:
                 if not conn.msgtype.endswith(("PoseStamped", "Odometry")):
-                    raise InputError(f"ground-truth topic {groundtruth_topic!r} carries {conn.msgtype}, not "
-                                     "geometry_msgs/PoseStamped or nav_msgs/Odometry")
+                    raise InputError(
+                        f"ground-truth topic {groundtruth_topic!r} carries {conn.msgtype}, not "
+                        "geometry_msgs/PoseStamped or nav_msgs/Odometry"
+                    )
                 p = msg.pose if conn.msgtype.endswith("PoseStamped") else msg.pose.pose
                 gt_t.append(t)
                 gt_p.append((p.position.x, p.position.y, _yaw(p.orientation)))
@@ -107,8 +114,10 @@ def read_rosbag(path: str | Path, image_topic: str, odometry_topic: str, max_fra
     _check_increasing(np.array([f.t for f in frames]), Path(f"{path}[{image_topic}]"))
     arr = np.array(poses)
     inc = between(arr[:-1], arr[1:])
-    odometry = [Odometry(float(t), increment=cast("tuple[float, float, float]", tuple(map(float, d))))
-                for t, d in zip(stamps[1:], inc)]
+    odometry = [
+        Odometry(float(t), increment=cast("tuple[float, float, float]", tuple(map(float, d))))
+        for t, d in zip(stamps[1:], inc)
+    ]
     gt = None
     if gt_t:
         _check_increasing(np.array(gt_t), Path(f"{path}[{groundtruth_topic}]"))

@@ -86,8 +86,12 @@ async def _handle(live: LiveSession, message: MutableMapping[str, Any], out: asy
             if not isinstance(d, dict):
                 raise IngestError(422, "text message must be a JSON object with a 'type'")
             mid = d.get("id")
-            if not (mid is None or (isinstance(mid, int) and not isinstance(mid, bool))
-                    or (isinstance(mid, float) and math.isfinite(mid)) or (isinstance(mid, str) and len(mid) <= 128)):
+            if not (
+                mid is None
+                or (isinstance(mid, int) and not isinstance(mid, bool))
+                or (isinstance(mid, float) and math.isfinite(mid))
+                or (isinstance(mid, str) and len(mid) <= 128)
+            ):
                 mid = None  # echoed back only if it is a plain id
                 raise IngestError(422, "message id must be a number or a string of at most 128 characters")
             kind = d.get("type")
@@ -95,8 +99,9 @@ async def _handle(live: LiveSession, message: MutableMapping[str, Any], out: asy
                 await out.put({"type": "pong", "id": mid})
                 return
             if kind != "odometry":
-                raise IngestError(422, f"unknown message type {kind!r}: expected 'odometry' or 'ping' "
-                                       "(frames are binary messages)")
+                raise IngestError(
+                    422, f"unknown message type {kind!r}: expected 'odometry' or 'ping' (frames are binary messages)"
+                )
             items = parse_odometry_message(d, settings.max_odometry_batch, settings)
 
         async def busy() -> None:
@@ -112,8 +117,14 @@ async def _handle(live: LiveSession, message: MutableMapping[str, Any], out: asy
     except Exception as exc:  # a bug must cost this message only, never the stream or the server
         log.exception("session %s: websocket message failed", live.id, extra={"session": live.id})
         live.rejected[500] += 1
-        await out.put({"type": "error", "id": mid, "status": 500,
-                       "detail": f"internal error on this message ({type(exc).__name__}); it was not stored"})
+        await out.put(
+            {
+                "type": "error",
+                "id": mid,
+                "status": 500,
+                "detail": f"internal error on this message ({type(exc).__name__}); it was not stored",
+            }
+        )
 
 
 @router.websocket("/sessions/{session_id}/stream")
@@ -136,10 +147,19 @@ async def stream(ws: WebSocket, session_id: str) -> None:
     except ServedElsewhere as exc:
         await ws.close(CLOSE_ELSEWHERE, str(exc)[:120])
         return
-    await ws.send_text(json.dumps({"type": "hello", "session": live.id, "last_seq": live.next_seq - 1,
-                                   "last_t": live.last_t, "last_odometry_t": live.last_times.get("odometry"),
-                                   "last_frame_t": live.last_times.get("frame"),
-                                   "max_pending": live.settings.max_pending}))
+    await ws.send_text(
+        json.dumps(
+            {
+                "type": "hello",
+                "session": live.id,
+                "last_seq": live.next_seq - 1,
+                "last_t": live.last_t,
+                "last_odometry_t": live.last_times.get("odometry"),
+                "last_frame_t": live.last_times.get("frame"),
+                "max_pending": live.settings.max_pending,
+            }
+        )
+    )
     out: asyncio.Queue = asyncio.Queue()
     sender = asyncio.create_task(_sender(ws, out))
     try:
