@@ -95,6 +95,13 @@ def read_g2o(path: str | Path, chain: bool = True) -> G2OGraph:
     a cognitive map, whose node ``i + 1`` may hang off an older node after a loop): missing
     ``i -> i+1`` edges are NaN rows of ``odometry``, and a second ``i -> i+1`` edge is a loop."""
     path = Path(path)
+    vertices, odometry, loops = _parse_g2o(path, chain)
+    return _g2o_graph(path, vertices, odometry, loops, chain)
+
+
+def _parse_g2o(path: Path, chain: bool) -> tuple[dict[int, list[float]], dict[int, list[float]], list[LoopEdge]]:
+    """The lines of a g2o file: vertices by id, odometry edges ``i -> i+1`` by ``i`` (dx dy dtheta and the 6
+    information values) and the other edges as loops; each line checked on its own (:func:`read_g2o`)."""
     vertices: dict[int, list[float]] = {}
     odometry: dict[int, list[float]] = {}
     loops: list[LoopEdge] = []
@@ -138,6 +145,18 @@ def read_g2o(path: str | Path, chain: bool = True) -> G2OGraph:
                 continue  # not used by hippomap; tolerated so standard files read
             else:
                 raise InputError(f"{path}:{lineno}: unknown g2o tag {tag!r}")
+    return vertices, odometry, loops
+
+
+def _g2o_graph(
+    path: Path,
+    vertices: dict[int, list[float]],
+    odometry: dict[int, list[float]],
+    loops: list[LoopEdge],
+    chain: bool,
+) -> G2OGraph:
+    """The parsed lines as a :class:`G2OGraph`, once the whole file agrees: ids 0..N-1, (``chain``) an odometry
+    edge between every consecutive pair, loop edges between existing vertices; missing odometry is NaN."""
     n = len(vertices)
     if n == 0:
         raise InputError(f"{path}: no VERTEX_SE2 lines")
