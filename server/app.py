@@ -280,6 +280,13 @@ def _add_service_routes(
     app: FastAPI, settings: ServerSettings, metrics: ServiceMetrics, metrics_token: str | None
 ) -> None:
     """``/health``, ``/ready`` and ``/metrics``: the routes of the service itself, not of a session."""
+    _add_health(app)
+    _add_ready(app)
+    _add_metrics(app, settings, metrics, metrics_token)
+
+
+def _add_health(app: FastAPI) -> None:
+    """``/health``: liveness, 503 once the store's writer died (the process exits for a restart)."""
 
     @app.get(
         "/health",
@@ -291,16 +298,13 @@ def _add_service_routes(
         manager = getattr(app.state, "manager", None)  # answers even before the start-up finished
         if manager is not None and manager.fatal:  # the store's writer died: the process is about to exit
             # a Response passes FastAPI's response model (the annotation, which documents the 200) untouched
-            return SafeJSONResponse(
-                {
-                    "status": "failed",
-                    "version": __version__,
-                    "detail": f"storage stopped: "  # type: ignore[return-value]
-                    f"{manager.fatal}",
-                },
-                status_code=503,
-            )
+            failed = {"status": "failed", "version": __version__, "detail": f"storage stopped: {manager.fatal}"}
+            return SafeJSONResponse(failed, status_code=503)  # type: ignore[return-value]
         return {"status": "ok", "version": __version__, "sessions": 0 if manager is None else len(manager.sessions)}
+
+
+def _add_ready(app: FastAPI) -> None:
+    """``/ready``: readiness, 503 while starting, stopping, after a storage failure or while restoring sessions."""
 
     @app.get(
         "/ready",
@@ -340,6 +344,10 @@ def _add_service_routes(
         if restoring:
             return SafeJSONResponse({**body, "reason": "restoring sessions"}, status_code=503)
         return body
+
+
+def _add_metrics(app: FastAPI, settings: ServerSettings, metrics: ServiceMetrics, metrics_token: str | None) -> None:
+    """``/metrics``: the Prometheus metrics, behind the metrics token (else the admin token) unless public."""
 
     @app.get(
         "/metrics",

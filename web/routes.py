@@ -149,6 +149,13 @@ def _add_landing_routes(router: APIRouter, access: ViewerAccess) -> None:
 
 def _add_viewer_routes(router: APIRouter, access: ViewerAccess, hub: ViewerHub) -> None:
     """``/viewer/{id}/``: a session's viewer page, and its websocket piped to the session's viser server."""
+    _add_viewer_page(router, access, hub)
+    _add_viewer_socket(router, access, hub)
+
+
+def _add_viewer_page(router: APIRouter, access: ViewerAccess, hub: ViewerHub) -> None:
+    """``/viewer/{id}/`` (and its form without the slash): the page, once the token may see the session; it
+    starts the session's viser server so that the page's websocket connects at once."""
 
     @router.get(PREFIX + "/{session_id}", include_in_schema=False)
     async def viewer_redirect(session_id: str, request: Request) -> Response:
@@ -181,6 +188,11 @@ def _add_viewer_routes(router: APIRouter, access: ViewerAccess, hub: ViewerHub) 
         )
         _remember(response, request, token)
         return response
+
+
+def _add_viewer_socket(router: APIRouter, access: ViewerAccess, hub: ViewerHub) -> None:
+    """The page's websocket ``/viewer/{id}``, piped both ways to the session's viser server (closed with 1008
+    when the token may not see the session, 1011 when the viser server cannot be reached)."""
 
     @router.websocket(PREFIX + "/{session_id}")
     async def viewer_socket(websocket: WebSocket, session_id: str) -> None:

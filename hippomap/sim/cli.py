@@ -33,7 +33,17 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 
 
 def _arguments(p: argparse.ArgumentParser) -> None:
-    realistic = OdometryNoise.realistic()
+    """The options of ``hippomap simulate``, group by group in the order ``--help`` lists them."""
+    _world_arguments(p)
+    _camera_arguments(p)
+    _noise_arguments(p)
+    p.add_argument("--texture", default="procedural", help="'procedural' or a folder of photos (jpg/png)")
+    p.add_argument("--format", choices=["png", "jpg"], default="png", help="frame file format (default png)")
+    add_progress_argument(p)
+
+
+def _world_arguments(p: argparse.ArgumentParser) -> None:
+    """The world and the route: which world, where it goes, its seed, how long and how fast it is driven."""
     p.add_argument(
         "world",
         choices=["loop", "corridor", "bicocca"],
@@ -60,11 +70,21 @@ def _arguments(p: argparse.ArgumentParser) -> None:
         default=5.0,
         help="odometry rate in Hz (default 5; the bicocca world keeps the recorded times)",
     )
+
+
+def _camera_arguments(p: argparse.ArgumentParser) -> None:
+    """The camera: how often it renders, its image size, field of view and sensor noise."""
     p.add_argument("--frame-every", type=int, default=1, help="render a frame every N odometry steps (default 1)")
     p.add_argument("--width", type=int, default=320, help="frame width in pixels (default 320)")
     p.add_argument("--height", type=int, default=240, help="frame height in pixels (default 240)")
     p.add_argument("--hfov", type=float, default=60.0, help="horizontal field of view, degrees (default 60)")
     p.add_argument("--pixel-noise", type=float, default=0.0, help="sensor noise std, grey levels (default 0)")
+
+
+def _noise_arguments(p: argparse.ArgumentParser) -> None:
+    """The odometry noise (:class:`OdometryNoise`): each option defaults to the realistic noise, or none with
+    ``--no-noise`` (see :func:`odometry_noise`)."""
+    realistic = OdometryNoise.realistic()
     p.add_argument(
         "--sigma-v",
         type=float,
@@ -93,9 +113,6 @@ def _arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--no-noise", action="store_true", help="exact odometry: every noise option 0 unless given explicitly"
     )
-    p.add_argument("--texture", default="procedural", help="'procedural' or a folder of photos (jpg/png)")
-    p.add_argument("--format", choices=["png", "jpg"], default="png", help="frame file format (default png)")
-    add_progress_argument(p)
 
 
 def odometry_noise(args: argparse.Namespace) -> OdometryNoise:
