@@ -66,8 +66,9 @@ class SafeJSONResponse(JSONResponse):
     """JSON without NaN/Infinity (not JSON): such values are sent as null."""
 
     def render(self, content: Any) -> bytes:
-        return json.dumps(model.json_safe(content), ensure_ascii=False, allow_nan=False,
-                          separators=(",", ":")).encode("utf-8")
+        return json.dumps(model.json_safe(content), ensure_ascii=False, allow_nan=False, separators=(",", ":")).encode(
+            "utf-8"
+        )
 
 
 def open_store(settings: ServerSettings) -> Store:
@@ -81,15 +82,18 @@ def open_store(settings: ServerSettings) -> Store:
         try:
             from .storage.postgres import PostgresStore
         except ImportError as exc:
-            raise RuntimeError("a PostgreSQL database needs psycopg: "
-                               f"pip install 'hippomap[postgres]' ({exc})") from None
+            raise RuntimeError(
+                f"a PostgreSQL database needs psycopg: pip install 'hippomap[postgres]' ({exc})"
+            ) from None
         return PostgresStore(location, settings.durability)
     if scheme == "sqlite":
-        settings = settings.model_copy(update={"database": location[len("sqlite://"):]})
+        settings = settings.model_copy(update={"database": location[len("sqlite://") :]})
     elif scheme:
-        raise RuntimeError(f"unsupported database URL scheme {scheme + '://'!r}; accepted: a SQLite file path, "
-                           "sqlite:///path/to/file.sqlite3, or postgresql://user:password@host:port/dbname "
-                           "(postgres:// also accepted)")
+        raise RuntimeError(
+            f"unsupported database URL scheme {scheme + '://'!r}; accepted: a SQLite file path, "
+            "sqlite:///path/to/file.sqlite3, or postgresql://user:password@host:port/dbname "
+            "(postgres:// also accepted)"
+        )
     return SQLiteStore(settings.database_path, settings.durability)
 
 
@@ -131,7 +135,7 @@ def _sqlite_file(settings: ServerSettings) -> Path | None:
     location = settings.database or ""
     scheme = location.split("://", 1)[0].lower() if "://" in location else ""
     if scheme == "sqlite":
-        return Path(location[len("sqlite://"):])
+        return Path(location[len("sqlite://") :])
     return None if scheme else settings.database_path
 
 
@@ -150,8 +154,9 @@ def secure_data_files(settings: ServerSettings) -> None:
         if folder.stat().st_mode & 0o077:
             log.warning("data folder %s was open to other users: now 0700", folder)
             os.chmod(folder, 0o700)
-    files = [settings.token_file] + ([] if db is None else [db] + [db.with_name(db.name + x)
-                                                                   for x in ("-wal", "-shm", "-journal")])
+    files = [settings.token_file] + (
+        [] if db is None else [db] + [db.with_name(db.name + x) for x in ("-wal", "-shm", "-journal")]
+    )
     for f in files:
         if f.is_file() and not f.is_symlink() and f.stat().st_mode & 0o077:
             log.warning("data file %s was open to other users: now 0600", f)
@@ -179,6 +184,7 @@ def allowed_methods(app: FastAPI, scope: MutableMapping[str, Any]) -> list[str]:
 def document_input_bounds(schema: dict[str, Any], settings: ServerSettings) -> None:
     """Write this server's physical bounds on inputs (settings ``max_abs_t``, ``max_speed_mps``...)
     into its OpenAPI document as minimum/maximum, so that the document states what is accepted."""
+
     def bound(prop: dict[str, Any] | None, limit: float | None) -> None:
         if prop is None or limit is None:
             return
@@ -186,8 +192,10 @@ def document_input_bounds(schema: dict[str, Any], settings: ServerSettings) -> N
             if branch.get("type") == "number":
                 branch["minimum"], branch["maximum"] = -float(limit), float(limit)
 
-    limits = {name: getattr(settings, name, None) for name in ("max_abs_t", "max_speed_mps", "max_turn_rate_rad_s",
-                                                                 "max_increment_m", "max_increment_rad")}
+    limits = {
+        name: getattr(settings, name, None)
+        for name in ("max_abs_t", "max_speed_mps", "max_turn_rate_rad_s", "max_increment_m", "max_increment_rad")
+    }
     odo = schema.get("components", {}).get("schemas", {}).get("OdometryReading", {}).get("properties", {})
     bound(odo.get("t"), limits["max_abs_t"])
     bound(odo.get("v"), limits["max_speed_mps"])
@@ -202,8 +210,9 @@ def document_input_bounds(schema: dict[str, Any], settings: ServerSettings) -> N
                 bound(param.get("schema"), limits["max_abs_t"])
 
 
-def _lifespan(settings: ServerSettings,
-              metrics: ServiceMetrics) -> Callable[[FastAPI], AbstractAsyncContextManager[None]]:
+def _lifespan(
+    settings: ServerSettings, metrics: ServiceMetrics
+) -> Callable[[FastAPI], AbstractAsyncContextManager[None]]:
     """The app's start-up and shutdown: open the store and the admin token, start the sessions; stop them."""
 
     @asynccontextmanager
@@ -244,15 +253,19 @@ def _add_error_handlers(app: FastAPI) -> None:
     @app.exception_handler(ServedElsewhere)
     async def served_elsewhere(request: Request, exc: ServedElsewhere) -> JSONResponse:
         # 421 Misdirected Request: this replica cannot answer for the session; the one named can
-        return SafeJSONResponse({"detail": str(exc), "replica": exc.replica}, status_code=421,
-                                headers={"X-Hippomap-Replica": exc.replica})
+        return SafeJSONResponse(
+            {"detail": str(exc), "replica": exc.replica}, status_code=421, headers={"X-Hippomap-Replica": exc.replica}
+        )
 
     @app.exception_handler(StarletteHTTPException)
     async def http_error(request: Request, exc: StarletteHTTPException) -> Response:
         if exc.status_code == 405:  # Allow: every method of the path, not only the first route's (Starlette's)
             allowed = allowed_methods(app, request.scope)
-            return SafeJSONResponse({"detail": "Method Not Allowed", "allow": allowed}, status_code=405,
-                                    headers={"Allow": ", ".join(allowed)})
+            return SafeJSONResponse(
+                {"detail": "Method Not Allowed", "allow": allowed},
+                status_code=405,
+                headers={"Allow": ", ".join(allowed)},
+            )
         if exc.status_code == 400 and exc.detail == BODY_PARSE_ERROR:  # bytes that are not UTF-8 JSON at all
             return SafeJSONResponse({"detail": "the request body is not valid JSON (UTF-8)"}, status_code=422)
         return await http_exception_handler(request, exc)
@@ -263,52 +276,101 @@ def _add_error_handlers(app: FastAPI) -> None:
         return SafeJSONResponse({"detail": errors}, status_code=422)
 
 
-def _add_service_routes(app: FastAPI, settings: ServerSettings, metrics: ServiceMetrics,
-                        metrics_token: str | None) -> None:
+def _add_service_routes(
+    app: FastAPI, settings: ServerSettings, metrics: ServiceMetrics, metrics_token: str | None
+) -> None:
     """``/health``, ``/ready`` and ``/metrics``: the routes of the service itself, not of a session."""
+    _add_health(app)
+    _add_ready(app)
+    _add_metrics(app, settings, metrics, metrics_token)
 
-    @app.get("/health", tags=["server"], summary="Liveness (no token needed)",
-             responses={503: {"description": "the store's writer died: the process exits for a restart"}})
+
+def _add_health(app: FastAPI) -> None:
+    """``/health``: liveness, 503 once the store's writer died (the process exits for a restart)."""
+
+    @app.get(
+        "/health",
+        tags=["server"],
+        summary="Liveness (no token needed)",
+        responses={503: {"description": "the store's writer died: the process exits for a restart"}},
+    )
     async def health() -> dict[str, Any]:
         manager = getattr(app.state, "manager", None)  # answers even before the start-up finished
         if manager is not None and manager.fatal:  # the store's writer died: the process is about to exit
             # a Response passes FastAPI's response model (the annotation, which documents the 200) untouched
-            return SafeJSONResponse({"status": "failed", "version": __version__, "detail": f"storage stopped: "  # type: ignore[return-value]
-                                     f"{manager.fatal}"}, status_code=503)
+            failed = {"status": "failed", "version": __version__, "detail": f"storage stopped: {manager.fatal}"}
+            return SafeJSONResponse(failed, status_code=503)  # type: ignore[return-value]
         return {"status": "ok", "version": __version__, "sessions": 0 if manager is None else len(manager.sessions)}
 
-    @app.get("/ready", tags=["server"], summary="Readiness (no token needed): 503 while sessions are being restored",
-             responses={503: {"description": "not ready: starting, stopping, or sessions still being restored "
-                                             "(`restoring` lists them)"}})
+
+def _add_ready(app: FastAPI) -> None:
+    """``/ready``: readiness, 503 while starting, stopping, after a storage failure or while restoring sessions."""
+
+    @app.get(
+        "/ready",
+        tags=["server"],
+        summary="Readiness (no token needed): 503 while sessions are being restored",
+        responses={
+            503: {
+                "description": "not ready: starting, stopping, or sessions still being restored "
+                "(`restoring` lists them)"
+            }
+        },
+    )
     async def ready() -> Any:
         manager: SessionManager | None = getattr(app.state, "manager", None)
         if manager is None or not app.state.serving:
-            return SafeJSONResponse({"ready": False, "restoring": [],
-                                     "sessions": 0 if manager is None else len(manager.sessions),
-                                     "reason": "starting" if manager is None else "stopping"}, status_code=503)
+            return SafeJSONResponse(
+                {
+                    "ready": False,
+                    "restoring": [],
+                    "sessions": 0 if manager is None else len(manager.sessions),
+                    "reason": "starting" if manager is None else "stopping",
+                },
+                status_code=503,
+            )
         if manager.fatal:
-            return SafeJSONResponse({"ready": False, "restoring": [], "sessions": len(manager.sessions),
-                                     "reason": f"storage stopped: {manager.fatal}"}, status_code=503)
+            return SafeJSONResponse(
+                {
+                    "ready": False,
+                    "restoring": [],
+                    "sessions": len(manager.sessions),
+                    "reason": f"storage stopped: {manager.fatal}",
+                },
+                status_code=503,
+            )
         restoring = sorted(manager.restoring())
         body = {"ready": not restoring, "restoring": restoring, "sessions": len(manager.sessions)}
         if restoring:
             return SafeJSONResponse({**body, "reason": "restoring sessions"}, status_code=503)
         return body
 
-    @app.get("/metrics", tags=["server"], response_class=Response,
-             summary="Prometheus metrics (text format): needs the metrics token (HIPPOMAP_METRICS_TOKEN), else the "
-                     "admin token, unless HIPPOMAP_METRICS_PUBLIC is set",
-             responses={200: {"content": {"text/plain": {}}, "description": "Prometheus text exposition format"},
-                        401: {"description": "the request does not carry the metrics token (or, if none is set, the "
-                                             "admin token)"}})
+
+def _add_metrics(app: FastAPI, settings: ServerSettings, metrics: ServiceMetrics, metrics_token: str | None) -> None:
+    """``/metrics``: the Prometheus metrics, behind the metrics token (else the admin token) unless public."""
+
+    @app.get(
+        "/metrics",
+        tags=["server"],
+        response_class=Response,
+        summary="Prometheus metrics (text format): needs the metrics token (HIPPOMAP_METRICS_TOKEN), else the "
+        "admin token, unless HIPPOMAP_METRICS_PUBLIC is set",
+        responses={
+            200: {"content": {"text/plain": {}}, "description": "Prometheus text exposition format"},
+            401: {"description": "the request does not carry the metrics token (or, if none is set, the admin token)"},
+        },
+    )
     async def prometheus_metrics(request: Request) -> Response:
         if not settings.metrics_public:
             required = metrics_token or getattr(app.state, "admin_token", None)
             given = request.headers.get("authorization", "")
             if required is None or not hmac.compare_digest(given.encode(), f"Bearer {required}".encode()):
                 which = "metrics token" if metrics_token else "admin token (or set HIPPOMAP_METRICS_TOKEN)"
-                return SafeJSONResponse({"detail": f"GET /metrics needs the {which}: Authorization: Bearer ..."},
-                                        status_code=401, headers={"WWW-Authenticate": "Bearer"})
+                return SafeJSONResponse(
+                    {"detail": f"GET /metrics needs the {which}: Authorization: Bearer ..."},
+                    status_code=401,
+                    headers={"WWW-Authenticate": "Bearer"},
+                )
         body, content_type = await asyncio.to_thread(metrics.render)
         return Response(body, media_type=content_type)
 
@@ -333,9 +395,15 @@ def create_app(settings: ServerSettings | None = None) -> FastAPI:
     settings = settings or ServerSettings.from_env()
     metrics = ServiceMetrics()
     metrics_token = _metrics_token(settings)
-    app = FastAPI(title="hippomap server", version=__version__, description=DESCRIPTION + wsdoc.websocket_description(),
-                  lifespan=_lifespan(settings, metrics), default_response_class=SafeJSONResponse, docs_url=None,
-                  redoc_url=None)
+    app = FastAPI(
+        title="hippomap server",
+        version=__version__,
+        description=DESCRIPTION + wsdoc.websocket_description(),
+        lifespan=_lifespan(settings, metrics),
+        default_response_class=SafeJSONResponse,
+        docs_url=None,
+        redoc_url=None,
+    )
     docs.mount_docs(app)  # /docs and /redoc with their assets served here (offline), not from a CDN
     app.state.settings = settings
     app.state.metrics = metrics

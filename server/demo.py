@@ -51,8 +51,13 @@ def demo_run(rate_hz: float, laps: int, seed: int) -> Any:
     from hippomap import sim
 
     world = sim.loop_world(seed=seed, laps=laps, size=(8.0, 5.0), speed_mps=0.6)
-    return sim.simulate(world, rate_hz=rate_hz, frame_every=1, seed=seed,
-                        odometry_noise=sim.OdometryNoise(sigma_omega=0.02, omega_bias=0.005))
+    return sim.simulate(
+        world,
+        rate_hz=rate_hz,
+        frame_every=1,
+        seed=seed,
+        odometry_noise=sim.OdometryNoise(sigma_omega=0.02, omega_bias=0.005),
+    )
 
 
 def open_demo_session(client: Any) -> DemoSession:
@@ -73,8 +78,9 @@ def open_demo_session(client: Any) -> DemoSession:
     return DemoSession(sid, viewer["token"], bool(found), last_odo, last_frame)
 
 
-async def _drive(stream: Any, run: Any, skip_odo: float, skip_frame: float, speed: float,
-                 stopping: Callable[[], bool]) -> bool:
+async def _drive(
+    stream: Any, run: Any, skip_odo: float, skip_frame: float, speed: float, stopping: Callable[[], bool]
+) -> bool:
     """Send the steps of ``run`` after ``skip_odo`` / ``skip_frame`` (what the session holds) on ``stream`` at
     ``speed`` times real time; False if the server began shutting down (the stream stopped early)."""
     from hippomap.client import encode_image
@@ -106,8 +112,15 @@ async def _drive(stream: Any, run: Any, skip_odo: float, skip_frame: float, spee
     return True
 
 
-async def run_demo(url: str, token: str, rate_hz: float = 10.0, laps: int = 10, seed: int = 1,
-                   stopping: Callable[[], bool] = lambda: False, speed: float = 1.0) -> str:
+async def run_demo(
+    url: str,
+    token: str,
+    rate_hz: float = 10.0,
+    laps: int = 10,
+    seed: int = 1,
+    stopping: Callable[[], bool] = lambda: False,
+    speed: float = 1.0,
+) -> str:
     """Stream the demo run into the demo session at ``speed`` times real time (resuming after
     what the session holds); returns the session id. ``stopping()`` tells whether the server
     is shutting down (then a closed stream is expected, not an error)."""
@@ -127,8 +140,10 @@ async def run_demo(url: str, token: str, rate_hz: float = 10.0, laps: int = 10, 
     print(f"viewer: {url}/viewer/{sid}/?token={demo.viewer_token}", flush=True)
     end_t = float(run.times[-1])
     if demo.last_odometry_t is not None and demo.last_odometry_t >= end_t:
-        message = (f"demo robot: session {sid} already holds its whole run ({_laps(laps)}, {len(run.times)} steps); "
-                   "it is not driven again")
+        message = (
+            f"demo robot: session {sid} already holds its whole run ({_laps(laps)}, {len(run.times)} steps); "
+            "it is not driven again"
+        )
         print(message, flush=True)
         log.info(message)
         return sid
@@ -139,8 +154,10 @@ async def run_demo(url: str, token: str, rate_hz: float = 10.0, laps: int = 10, 
             if not await _drive(stream, run, skip_odo, skip_frame, speed, stopping):
                 return sid
             await stream.drain()
-        message = (f"demo robot finished its {_laps(laps)} ({len(run.times)} steps, last input at t = {end_t:.1f} s) "
-                   f"in session {sid}; it stops here (the map stays in the session)")
+        message = (
+            f"demo robot finished its {_laps(laps)} ({len(run.times)} steps, last input at t = {end_t:.1f} s) "
+            f"in session {sid}; it stops here (the map stays in the session)"
+        )
         print(message, flush=True)
         log.info(message)
     except asyncio.CancelledError:

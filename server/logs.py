@@ -39,7 +39,11 @@ ENV_FORMAT = "HIPPOMAP_LOG_FORMAT"
 
 #: attributes every LogRecord has: anything else on a record came from ``extra=``
 _STANDARD = frozenset(vars(logging.LogRecord("x", logging.INFO, "x", 0, "x", None, None))) | {
-    "message", "asctime", "color_message", "taskName"}
+    "message",
+    "asctime",
+    "color_message",
+    "taskName",
+}
 #: the loggers set to the chosen level (everything else stays at WARNING)
 OWN_LOGGERS = ("hippomap", "web")
 
@@ -49,8 +53,10 @@ OWN_LOGGERS = ("hippomap", "web")
 _SECRETS = (
     (re.compile(r"(?i)(\btoken=)[^&\s\"'#,;)]+"), r"\1[REDACTED]"),
     (re.compile(r"(?i)(\b(?:bearer|basic)\s+)[^\s\"',;)]+"), r"\1[REDACTED]"),
-    (re.compile(r"(?i)(\bauthorization[\"']?\s*[:=]\s*[\"']?)(?!bearer\b|basic\b|\[REDACTED)[^\s\"',;)]+"),
-     r"\1[REDACTED]"),
+    (
+        re.compile(r"(?i)(\bauthorization[\"']?\s*[:=]\s*[\"']?)(?!bearer\b|basic\b|\[REDACTED)[^\s\"',;)]+"),
+        r"\1[REDACTED]",
+    ),
     (re.compile(r"\bhm_[A-Za-z0-9_\-]{8,}"), "hm_[REDACTED]"),
 )
 REDACTED = "[REDACTED]"
@@ -58,8 +64,13 @@ REDACTED = "[REDACTED]"
 
 def redact(text: str) -> str:
     """``text`` with every secret it shows replaced by ``[REDACTED]`` (see :data:`_SECRETS`)."""
-    if "token" not in text.lower() and "hm_" not in text and "auth" not in text.lower() \
-            and "bearer" not in text.lower() and "basic" not in text.lower():
+    if (
+        "token" not in text.lower()
+        and "hm_" not in text
+        and "auth" not in text.lower()
+        and "bearer" not in text.lower()
+        and "basic" not in text.lower()
+    ):
         return text
     for pattern, repl in _SECRETS:
         text = pattern.sub(repl, text)
@@ -116,8 +127,12 @@ class JSONFormatter(logging.Formatter):
     """One JSON object per line; never raises on odd ``extra`` values (they are ``str()``-ed)."""
 
     def format(self, record: logging.LogRecord) -> str:
-        out: dict[str, Any] = {"time": _utc(record.created), "level": record.levelname, "logger": record.name,
-                               "message": record.getMessage()}
+        out: dict[str, Any] = {
+            "time": _utc(record.created),
+            "level": record.levelname,
+            "logger": record.name,
+            "message": record.getMessage(),
+        }
         extras = _extras(record)
         if "session" in extras:
             out["session"] = extras.pop("session")
@@ -159,8 +174,10 @@ def resolve_format(fmt: str | None = None, stream: TextIO | None = None) -> str:
     """``json`` or ``text``: the argument, else ``$HIPPOMAP_LOG_FORMAT``, else ``auto`` (text on a terminal)."""
     choice = (fmt or os.environ.get(ENV_FORMAT) or "auto").strip().lower()
     if choice not in FORMATS:
-        raise InputError(f"log format {choice!r} (from {'--log-format' if fmt else ENV_FORMAT}): "
-                         f"expected one of {', '.join(FORMATS)}")
+        raise InputError(
+            f"log format {choice!r} (from {'--log-format' if fmt else ENV_FORMAT}): "
+            f"expected one of {', '.join(FORMATS)}"
+        )
     if choice == "auto":
         stream = stream if stream is not None else sys.stderr
         isatty = getattr(stream, "isatty", None)

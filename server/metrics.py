@@ -35,14 +35,16 @@ class _LiveGauges(Collector):
 
     def collect(self) -> Iterable[GaugeMetricFamily]:
         depths = self._depths()
-        q = GaugeMetricFamily("hippomap_queue_depth", "inputs acknowledged but not yet processed by the mapper",
-                              labels=["session"])
+        q = GaugeMetricFamily(
+            "hippomap_queue_depth", "inputs acknowledged but not yet processed by the mapper", labels=["session"]
+        )
         for sid, depth in sorted(depths.items()):
             q.add_metric([sid], depth)
         yield q
         yield GaugeMetricFamily("hippomap_sessions", "live sessions", value=len(depths))
-        yield GaugeMetricFamily("hippomap_ready", "1 when every session is restored and serving",
-                                value=float(self._ready()))
+        yield GaugeMetricFamily(
+            "hippomap_ready", "1 when every session is restored and serving", value=float(self._ready())
+        )
 
 
 class ServiceMetrics:
@@ -50,14 +52,25 @@ class ServiceMetrics:
 
     def __init__(self) -> None:
         self.registry = CollectorRegistry(auto_describe=True)
-        self._inputs = Counter("hippomap_inputs", "inputs accepted (stored and acknowledged)", ["session", "kind"],
-                               registry=self.registry)
-        self._steps = Histogram("hippomap_step_seconds", "mapper time per input", ["session", "kind"],
-                                buckets=STEP_BUCKETS, registry=self.registry)
-        self._loops = Counter("hippomap_loop_closures", "loop closures accepted by the map", ["session"],
-                              registry=self.registry)
-        self._restore = Gauge("hippomap_restore_seconds", "duration of the session's last restore (snapshot + replay)",
-                              ["session"], registry=self.registry)
+        self._inputs = Counter(
+            "hippomap_inputs", "inputs accepted (stored and acknowledged)", ["session", "kind"], registry=self.registry
+        )
+        self._steps = Histogram(
+            "hippomap_step_seconds",
+            "mapper time per input",
+            ["session", "kind"],
+            buckets=STEP_BUCKETS,
+            registry=self.registry,
+        )
+        self._loops = Counter(
+            "hippomap_loop_closures", "loop closures accepted by the map", ["session"], registry=self.registry
+        )
+        self._restore = Gauge(
+            "hippomap_restore_seconds",
+            "duration of the session's last restore (snapshot + replay)",
+            ["session"],
+            registry=self.registry,
+        )
         self._live: _LiveGauges | None = None
         self._lock = threading.Lock()
         # the labelled children of the per-input metrics, looked up once per (session, kind): ``labels()``

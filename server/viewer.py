@@ -106,8 +106,9 @@ class ServiceSession:
         with self._lock:
             if int(frame_id) not in self._keyframe_t:
                 while True:
-                    evs = self.store.query_events(self.session_id, types=["keyframe_learned"],
-                                                  since_id=self._events_seen, limit=1000)
+                    evs = self.store.query_events(
+                        self.session_id, types=["keyframe_learned"], since_id=self._events_seen, limit=1000
+                    )
                     for e in evs:
                         self._keyframe_t[int(e.data["frame"])] = float(e.data["t"])  # KeyframeLearned
                     if not evs:
@@ -131,7 +132,7 @@ class ServiceSession:
                 self._gt_seq = recs[-1].seq
             if not self._gt:
                 return None
-            return np.array(self._gt[max(0, int(start)):], dtype=float).reshape(-1, 4)
+            return np.array(self._gt[max(0, int(start)) :], dtype=float).reshape(-1, 4)
 
     def lag_s(self) -> float | None:
         """Stream seconds between the newest input received and the newest the mapper processed."""

@@ -13,7 +13,8 @@ import pytest
 from hippomap.errors import HippomapError, InputError
 from hippomap.eval import vpr_eval
 from hippomap.eval.vpr_datasets import load_vpr_dataset
-from hippomap.eval.vpr_eval import _pr_points, add_parser, evaluate_vpr
+from hippomap.eval.vpr_eval import add_parser, evaluate_vpr
+from hippomap.eval.vpr_scores import pr_points
 from tests.test_visual_memory import perturb, scene  # the same synthetic scenes
 
 
@@ -105,14 +106,14 @@ def test_eval_rtabmap_layout(rtabmap_dir, tmp_path):
 def test_pr_points_by_hand():
     # errors (lower is better) with the 3rd-best match wrong: 2 of 4 positives are found
     # before the first false positive -> recall at 100 % precision = 0.5
-    pr = _pr_points(np.array([0.1, 0.2, 0.3, 0.4]), np.array([True, True, False, True]), 4, higher_better=False)
+    pr = pr_points(np.array([0.1, 0.2, 0.3, 0.4]), np.array([True, True, False, True]), 4, higher_better=False)
     assert pr["recall_at_100_precision"] == 0.5
     assert pr["threshold_at_100_precision"] == 0.2
     assert pr["precision"] == [1.0, 1.0, round(2 / 3, 4), 0.75]
     # ties are accepted together: a tie between a true and a false match gives no 100 % point
-    pr = _pr_points(np.array([0.1, 0.1]), np.array([False, True]), 2, higher_better=False)
+    pr = pr_points(np.array([0.1, 0.1]), np.array([False, True]), 2, higher_better=False)
     assert pr["recall_at_100_precision"] == 0.0
-    pr = _pr_points(np.array([0.9, 0.5]), np.array([True, True]), 3, higher_better=True)
+    pr = pr_points(np.array([0.9, 0.5]), np.array([True, True]), 3, higher_better=True)
     assert pr["recall_at_100_precision"] == pytest.approx(2 / 3)
 
 

@@ -42,24 +42,32 @@ def recognition_from_dict(d: Mapping[str, Any]) -> Recognition:
     """Rebuild a :class:`Recognition` from its ``to_dict()`` form (as the Mapper stores it)."""
     steps = []
     for s in d.get("steps", ()):
-        steps.append(SaccadeStep(
-            attempt=int(s["attempt"]),
-            fixation=tuple(s["fixation"]),
-            target=None if s.get("target") is None else tuple(s["target"]),
-            predicted_frame=s.get("predicted_frame"),
-            predicted_feature=s.get("predicted_feature"),
-            found_frame=s.get("found_frame"),
-            found_feature=s.get("found_feature"),
-            similarity=float(s.get("similarity", 0.0)),
-            outcome=str(s.get("outcome", "")),
-            evidence=[(int(f), float(a)) for f, a in s.get("evidence", ())],
-            event=s.get("event"),
-        ))
+        steps.append(
+            SaccadeStep(
+                attempt=int(s["attempt"]),
+                fixation=tuple(s["fixation"]),
+                target=None if s.get("target") is None else tuple(s["target"]),
+                predicted_frame=s.get("predicted_frame"),
+                predicted_feature=s.get("predicted_feature"),
+                found_frame=s.get("found_frame"),
+                found_feature=s.get("found_feature"),
+                similarity=float(s.get("similarity", 0.0)),
+                outcome=str(s.get("outcome", "")),
+                evidence=[(int(f), float(a)) for f, a in s.get("evidence", ())],
+                event=s.get("event"),
+            )
+        )
     size = d.get("image_size") or (0, 0)
-    return Recognition(frame_id=d.get("frame_id"), evidence=float(d.get("evidence", 0.0)), steps=steps,
-                       n_resets=int(d.get("n_resets", 0)), confidence=float(d.get("confidence", 0.0)),
-                       image_size=(int(size[0]), int(size[1])), reason=str(d.get("reason", "")),
-                       **_optional(d))
+    return Recognition(
+        frame_id=d.get("frame_id"),
+        evidence=float(d.get("evidence", 0.0)),
+        steps=steps,
+        n_resets=int(d.get("n_resets", 0)),
+        confidence=float(d.get("confidence", 0.0)),
+        image_size=(int(size[0]), int(size[1])),
+        reason=str(d.get("reason", "")),
+        **_optional(d),
+    )
 
 
 def _optional(d: Mapping[str, Any]) -> dict[str, Any]:
@@ -85,13 +93,22 @@ def placeholder(width: int, height: int, text: str) -> np.ndarray:
     """A dark RGB image with a centred message (e.g. "no recognition yet")."""
     img = np.full((height, width, 3), 40, np.uint8)
     (tw, th), _ = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, 0.5, 1)
-    cv2.putText(img, text, (max(2, (width - tw) // 2), (height + th) // 2), cv2.FONT_HERSHEY_SIMPLEX, 0.5,
-                (210, 210, 210), 1, cv2.LINE_AA)
+    cv2.putText(
+        img,
+        text,
+        (max(2, (width - tw) // 2), (height + th) // 2),
+        cv2.FONT_HERSHEY_SIMPLEX,
+        0.5,
+        (210, 210, 210),
+        1,
+        cv2.LINE_AA,
+    )
     return img
 
 
-def trace_panel(query: np.ndarray | None, recognition: Mapping[str, Any], keyframe: np.ndarray | None,
-                width: int, thumb_width: int) -> np.ndarray:
+def trace_panel(
+    query: np.ndarray | None, recognition: Mapping[str, Any], keyframe: np.ndarray | None, width: int, thumb_width: int
+) -> np.ndarray:
     """The query frame with its saccade trace, and the accepted key frame's thumbnail beside it.
 
     Fixations are numbered; colours follow :func:`hippomap.visual_memory.draw_trace` (blue start,
@@ -114,14 +131,15 @@ def trace_panel(query: np.ndarray | None, recognition: Mapping[str, Any], keyfra
         thumb = fit_width(to_rgb(keyframe), thumb_width)[:h]
         right = np.full((h, thumb_width, 3), 40, np.uint8)
         top = (h - thumb.shape[0]) // 2
-        right[top: top + thumb.shape[0]] = thumb
+        right[top : top + thumb.shape[0]] = thumb
         _label(right, f"key frame {rec.frame_id}", y=max(14, top - 4))
     gap = np.full((h, 4, 3), 255, np.uint8)
     return np.ascontiguousarray(np.hstack([left, gap, right]))
 
 
-def pair_panel(query: np.ndarray | None, recognition: Mapping[str, Any], keyframe: np.ndarray | None,
-               width: int) -> np.ndarray:
+def pair_panel(
+    query: np.ndarray | None, recognition: Mapping[str, Any], keyframe: np.ndarray | None, width: int
+) -> np.ndarray:
     """A loop closure's two frames at equal size: the query with its trace, and the key frame."""
     return trace_panel(query, recognition, keyframe, width, width)
 

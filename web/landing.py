@@ -76,8 +76,10 @@ def _number(stats: dict[str, Any] | None, *path: str) -> str:
 def session_rows(entries: list[dict[str, Any]]) -> str:
     """The table of the token's sessions: name and id, viewer link, statistics."""
     if not entries:
-        return "<p id='sessions'>No sessions yet. A robot creates one with <code>POST /sessions</code> " \
-               "(or try <code>hippomap serve --demo</code>).</p>"
+        return (
+            "<p id='sessions'>No sessions yet. A robot creates one with <code>POST /sessions</code> "
+            "(or try <code>hippomap serve --demo</code>).</p>"
+        )
     rows = []
     for e in entries:
         st = e["stats"]
@@ -91,10 +93,14 @@ def session_rows(entries: list[dict[str, Any]]) -> str:
             f"<td class='n'>{_number(st, 'mapper', 'nodes')}</td>"
             f"<td class='n'>{_number(st, 'mapper', 'loop_closures_accepted')}</td>"
             f"<td class='n'>{_number(st, 'mapper', 'loop_closures_rejected')}</td>"
-            f"<td class='n'>{_number(st, 'inputs_stored')}</td><td class='n'>{_number(st, 'pending')}</td></tr>")
-    return ("<table id='sessions'><thead><tr><th>session</th><th></th><th>nodes</th><th>loop closures</th>"
-            "<th>rejected closures</th><th>inputs</th><th>pending</th></tr></thead><tbody>" + "".join(rows)
-            + "</tbody></table>")
+            f"<td class='n'>{_number(st, 'inputs_stored')}</td><td class='n'>{_number(st, 'pending')}</td></tr>"
+        )
+    return (
+        "<table id='sessions'><thead><tr><th>session</th><th></th><th>nodes</th><th>loop closures</th>"
+        "<th>rejected closures</th><th>inputs</th><th>pending</th></tr></thead><tbody>"
+        + "".join(rows)
+        + "</tbody></table>"
+    )
 
 
 async def visible_sessions(request: Request, token: Any) -> list[dict[str, Any]]:
@@ -108,13 +114,27 @@ async def visible_sessions(request: Request, token: Any) -> list[dict[str, Any]]
     return out + [{"id": r.id, "name": r.name, "stats": None, "replica": owner} for r, owner in elsewhere]
 
 
-@router.get("/", response_class=HTMLResponse, summary="Landing page (HTML): links to the docs and the viewer; "
-            "with a token, its sessions and their statistics",
-            responses={401: {"content": {"text/html": {}}, "description": "a token was given but is not valid: "
-                             "how to get one, no sessions"}})
-async def landing(request: Request, token: Annotated[str | None, Query(
-        description="a token, for a browser (also read from Authorization: Bearer or the viewer's cookie); "
-                    "kept in the viewer's cookie for /viewer")] = None) -> Response:
+@router.get(
+    "/",
+    response_class=HTMLResponse,
+    summary="Landing page (HTML): links to the docs and the viewer; with a token, its sessions and their statistics",
+    responses={
+        401: {
+            "content": {"text/html": {}},
+            "description": "a token was given but is not valid: how to get one, no sessions",
+        }
+    },
+)
+async def landing(
+    request: Request,
+    token: Annotated[
+        str | None,
+        Query(
+            description="a token, for a browser (also read from Authorization: Bearer or the viewer's cookie); "
+            "kept in the viewer's cookie for /viewer"
+        ),
+    ] = None,
+) -> Response:
     secret = token_from(request.headers, request.query_params, request.cookies)
     if not secret:
         return _page(how_to_get_a_token("Give a token to see your sessions.", str(request.base_url)))

@@ -97,17 +97,20 @@ li{{margin:.4rem 0}} .d{{color:#777;font-size:.9em}} code{{background:#eee;paddi
 
 
 def _login_form(message: str) -> str:
-    return (f"<p>{html.escape(message)}</p><form method='get' action='{PREFIX}/'>"
-            "<label>Token <input name='token' type='password' size='50' autocomplete='off'></label> "
-            "<button>Open</button></form>")
+    return (
+        f"<p>{html.escape(message)}</p><form method='get' action='{PREFIX}/'>"
+        "<label>Token <input name='token' type='password' size='50' autocomplete='off'></label> "
+        "<button>Open</button></form>"
+    )
 
 
 def _remember(response: Response, request: Request, token: str | None) -> None:
     """Keep a token given in the query as an HttpOnly cookie for the page's websocket."""
     given = request.query_params.get("token")
     if given and given == token:
-        response.set_cookie(COOKIE, given, httponly=True, samesite="strict", path=PREFIX,
-                            secure=request.url.scheme == "https")
+        response.set_cookie(
+            COOKIE, given, httponly=True, samesite="strict", path=PREFIX, secure=request.url.scheme == "https"
+        )
 
 
 def _add_landing_routes(router: APIRouter, access: ViewerAccess) -> None:
@@ -118,9 +121,12 @@ def _add_landing_routes(router: APIRouter, access: ViewerAccess) -> None:
         q = f"?{request.url.query}" if request.url.query else ""
         return RedirectResponse(f"{PREFIX}/{q}", status_code=307)
 
-    @router.get(f"{PREFIX}/", response_class=HTMLResponse, summary="Sessions you may view",
-                responses={401: {"content": {"text/html": {}}, "description": "no token, or not a valid one: a "
-                                 "login form"}})
+    @router.get(
+        f"{PREFIX}/",
+        response_class=HTMLResponse,
+        summary="Sessions you may view",
+        responses={401: {"content": {"text/html": {}}, "description": "no token, or not a valid one: a login form"}},
+    )
     async def landing(request: Request) -> Response:
         token = token_from(request.headers, request.query_params, request.cookies)
         sessions = await run_in_threadpool(access.list_sessions, token)
@@ -131,7 +137,8 @@ def _add_landing_routes(router: APIRouter, access: ViewerAccess) -> None:
             items = "".join(
                 f"<li><a href='{PREFIX}/{quote(s.id, safe='')}/'>{html.escape(s.title or s.id)}</a>"
                 f" <span class='d'>{html.escape(s.id)}{' · ' + html.escape(s.detail) if s.detail else ''}</span></li>"
-                for s in sessions)
+                for s in sessions
+            )
             body = f"<ul id='sessions'>{items}</ul>"
         else:
             body = "<p id='sessions'>No sessions yet. Start one, e.g. <code>hippomap serve --demo</code>.</p>"
@@ -142,15 +149,30 @@ def _add_landing_routes(router: APIRouter, access: ViewerAccess) -> None:
 
 def _add_viewer_routes(router: APIRouter, access: ViewerAccess, hub: ViewerHub) -> None:
     """``/viewer/{id}/``: a session's viewer page, and its websocket piped to the session's viser server."""
+    _add_viewer_page(router, access, hub)
+    _add_viewer_socket(router, access, hub)
+
+
+def _add_viewer_page(router: APIRouter, access: ViewerAccess, hub: ViewerHub) -> None:
+    """``/viewer/{id}/`` (and its form without the slash): the page, once the token may see the session; it
+    starts the session's viser server so that the page's websocket connects at once."""
 
     @router.get(PREFIX + "/{session_id}", include_in_schema=False)
     async def viewer_redirect(session_id: str, request: Request) -> Response:
         q = f"?{request.url.query}" if request.url.query else ""
         return RedirectResponse(f"{PREFIX}/{quote(session_id, safe='')}/{q}", status_code=307)
 
-    @router.get(PREFIX + "/{session_id}/", response_class=HTMLResponse, summary="Live 3D viewer of a session",
-                responses={404: {"content": {"text/html": {}}, "description": "no such session, or one the token "
-                                 "may not see: a login form"}})
+    @router.get(
+        PREFIX + "/{session_id}/",
+        response_class=HTMLResponse,
+        summary="Live 3D viewer of a session",
+        responses={
+            404: {
+                "content": {"text/html": {}},
+                "description": "no such session, or one the token may not see: a login form",
+            }
+        },
+    )
     async def viewer_page(session_id: str, request: Request) -> Response:
         token = token_from(request.headers, request.query_params, request.cookies)
         source = await run_in_threadpool(access.open_session, token, session_id)
@@ -159,10 +181,18 @@ def _add_viewer_routes(router: APIRouter, access: ViewerAccess, hub: ViewerHub) 
         await run_in_threadpool(hub.open, source)  # starts its viser server now: the page connects at once
         plain, packed = await run_in_threadpool(_index_html)  # read + gzip once (~0.8 MB), off the loop
         use_gzip = "gzip" in request.headers.get("accept-encoding", "")
-        response = Response(packed if use_gzip else plain, media_type="text/html; charset=utf-8",
-                            headers={"Cache-Control": "no-store", **({"Content-Encoding": "gzip"} if use_gzip else {})})
+        response = Response(
+            packed if use_gzip else plain,
+            media_type="text/html; charset=utf-8",
+            headers={"Cache-Control": "no-store", **({"Content-Encoding": "gzip"} if use_gzip else {})},
+        )
         _remember(response, request, token)
         return response
+
+
+def _add_viewer_socket(router: APIRouter, access: ViewerAccess, hub: ViewerHub) -> None:
+    """The page's websocket ``/viewer/{id}``, piped both ways to the session's viser server (closed with 1008
+    when the token may not see the session, 1011 when the viser server cannot be reached)."""
 
     @router.websocket(PREFIX + "/{session_id}")
     async def viewer_socket(websocket: WebSocket, session_id: str) -> None:
@@ -176,9 +206,14 @@ def _add_viewer_routes(router: APIRouter, access: ViewerAccess, hub: ViewerHub) 
         wanted = [p for p in offered if p.startswith("viser-v")]
         try:
             upstream = await websockets.connect(
-                f"ws://127.0.0.1:{viewer.port}", subprotocols=wanted or None, max_size=None,
+                f"ws://127.0.0.1:{viewer.port}",
+                subprotocols=wanted or None,
+                max_size=None,
                 additional_headers={KEY_HEADER: viewer.access_key},
-                compression=None, open_timeout=10, ping_interval=None)
+                compression=None,
+                open_timeout=10,
+                ping_interval=None,
+            )
         except (OSError, websockets.WebSocketException, asyncio.TimeoutError) as exc:
             log.warning("viewer %s: cannot reach its viser server: %s", session_id, exc)
             await websocket.close(code=1011)
@@ -191,8 +226,9 @@ def _add_viewer_routes(router: APIRouter, access: ViewerAccess, hub: ViewerHub) 
             hub.disconnected(viewer)
 
 
-def make_router(access: ViewerAccess, hub: ViewerHub | None = None,
-                settings: ViewerSettings | None = None) -> APIRouter:
+def make_router(
+    access: ViewerAccess, hub: ViewerHub | None = None, settings: ViewerSettings | None = None
+) -> APIRouter:
     """The viewer's routes over ``access``; ``hub`` (created if None) owns the session viewers.
 
     The hub is available as ``router.hub`` (e.g. to close a deleted session's viewer, or all

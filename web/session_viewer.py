@@ -90,8 +90,13 @@ def require_key(server: viser.ViserServer, key: str) -> None:
 
     infra = server._websock_server
     loop, port = infra._background_event_loop, server.get_port()
-    found = [o for o in gc.get_objects() if type(o) is Server and o.loop is loop
-             and any(sock.getsockname()[1] == port for sock in (o.server.sockets if o.server else ()))]
+    found = [
+        o
+        for o in gc.get_objects()
+        if type(o) is Server
+        and o.loop is loop
+        and any(sock.getsockname()[1] == port for sock in (o.server.sockets if o.server else ()))
+    ]
     if len(found) != 1:
         raise RuntimeError(f"cannot secure the viewer's viser server on port {port}: found {len(found)} servers")
     ws_server = found[0]
@@ -127,8 +132,15 @@ class GraphUpdate:
 
     @property
     def items_sent(self) -> int:
-        parts = (self.map.nodes, self.map.links, self.map.loop_links, self.trajectories.odometry,
-                 self.trajectories.corrected, self.loops.accepted, self.loops.rejected)
+        parts = (
+            self.map.nodes,
+            self.map.links,
+            self.map.loop_links,
+            self.trajectories.odometry,
+            self.trajectories.corrected,
+            self.loops.accepted,
+            self.loops.rejected,
+        )
         return sum(p.items for p in parts)
 
 
@@ -166,8 +178,7 @@ class SessionViewer:
     def _start_server(self, source: SessionSource) -> None:
         """The session's loopback viser server: locked by an access key, lit and themed, its share URL refused."""
         with _quiet_viser():
-            self.server = viser.ViserServer(host="127.0.0.1", port=0, label=f"hippomap · {source.title}",
-                                            verbose=False)
+            self.server = viser.ViserServer(host="127.0.0.1", port=0, label=f"hippomap · {source.title}", verbose=False)
         #: the secret the proxy sends in KEY_HEADER: without it the loopback server answers 403
         self.access_key = secrets.token_urlsafe(32)
         try:
@@ -248,8 +259,7 @@ class SessionViewer:
             t1 = time.perf_counter()
             gt_rows = ground_truth_rows(self.source, self.ground_truth.seen)
             new_gt = gt_rows is not None and len(gt_rows) > 0
-            if (snap.same_scene_as(self._snapshot) and not self.place_field.pending(snap.place_field)
-                    and not new_gt):
+            if snap.same_scene_as(self._snapshot) and not self.place_field.pending(snap.place_field) and not new_gt:
                 with self.server.atomic():
                     self.stats.update(snap.stats, self.source.lag_s())
                 update = GraphUpdate(_NO_MAP, _NO_TRAJECTORY, _NO_LOOPS, False, t1 - t0, time.perf_counter() - t1)
@@ -453,9 +463,13 @@ class ViewerHub:
         """Close viewers idle for longer than ``idle_timeout_s``; returns their session ids."""
         now = time.monotonic() if now is None else now
         with self._lock:
-            idle = [sid for sid, v in self._viewers.items()
-                    if v.closed or v.source.closed
-                    or (v.connections == 0 and now - v.last_seen > self.settings.idle_timeout_s)]
+            idle = [
+                sid
+                for sid, v in self._viewers.items()
+                if v.closed
+                or v.source.closed
+                or (v.connections == 0 and now - v.last_seen > self.settings.idle_timeout_s)
+            ]
             victims = [self._viewers.pop(sid) for sid in idle]
         for v in victims:
             v.close()

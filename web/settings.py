@@ -66,16 +66,31 @@ class ViewerSettings:
     """The time slider's replay draws at most this many nodes (every k-th beyond it)."""
 
     def __post_init__(self) -> None:
-        for name in ("graph_hz", "camera_hz", "place_field_hz", "idle_timeout_s", "move_tolerance_m",
-                     "trajectory_spacing_m"):
+        for name in (
+            "graph_hz",
+            "camera_hz",
+            "place_field_hz",
+            "idle_timeout_s",
+            "move_tolerance_m",
+            "trajectory_spacing_m",
+        ):
             if not getattr(self, name) > 0:
                 raise ValueError(f"ViewerSettings.{name} = {getattr(self, name)!r} must be > 0")
-        for name in ("chunk_size", "tail_size", "trajectory_budget", "max_loops_listed", "camera_width",
-                     "thumbnail_width", "place_field_pixels", "replay_max_nodes"):
+        for name in (
+            "chunk_size",
+            "tail_size",
+            "trajectory_budget",
+            "max_loops_listed",
+            "camera_width",
+            "thumbnail_width",
+            "place_field_pixels",
+            "replay_max_nodes",
+        ):
             if int(getattr(self, name)) < 2:
                 raise ValueError(f"ViewerSettings.{name} = {getattr(self, name)!r} must be >= 2")
         if not self.fit_margin >= 1.0:
             raise ValueError(f"ViewerSettings.fit_margin = {self.fit_margin!r} must be >= 1")
         if self.tail_size > self.chunk_size:
-            raise ValueError(f"ViewerSettings.tail_size = {self.tail_size} must not exceed "
-                             f"chunk_size = {self.chunk_size}")
+            raise ValueError(
+                f"ViewerSettings.tail_size = {self.tail_size} must not exceed chunk_size = {self.chunk_size}"
+            )

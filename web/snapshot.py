@@ -94,11 +94,14 @@ class MapSnapshot:
             return False
         code = None if self.place_field is None else self.place_field.code
         prev_code = None if prev.place_field is None else prev.place_field.code
-        return (code is prev_code and np.array_equal(self.robot_pose, prev.robot_pose)
-                and np.array_equal(self.node_poses, prev.node_poses)
-                and np.array_equal(self.node_frames, prev.node_frames)
-                and np.array_equal(self.link_source, prev.link_source)
-                and np.array_equal(self.link_target, prev.link_target))
+        return (
+            code is prev_code
+            and np.array_equal(self.robot_pose, prev.robot_pose)
+            and np.array_equal(self.node_poses, prev.node_poses)
+            and np.array_equal(self.node_frames, prev.node_frames)
+            and np.array_equal(self.link_source, prev.link_source)
+            and np.array_equal(self.link_target, prev.link_target)
+        )
 
 
 def from_view(view: MapView) -> MapSnapshot:
@@ -107,8 +110,13 @@ def from_view(view: MapView) -> MapSnapshot:
     config, not across the query: they are the same for every step, and large."""
     place = None
     if view.place_code is not None:
-        place = PlaceFieldView(code=view.place_code, tables=GridCells(view.spatial).tables, spatial=view.spatial,
-                               odometric_pose=view.odometric_pose, map_pose=view.robot_pose)
+        place = PlaceFieldView(
+            code=view.place_code,
+            tables=GridCells(view.spatial).tables,
+            spatial=view.spatial,
+            odometric_pose=view.odometric_pose,
+            map_pose=view.robot_pose,
+        )
     return MapSnapshot(
         node_poses=view.node_poses,
         node_frames=view.node_frames,

@@ -103,7 +103,7 @@ class GrowingRows:
 
     def since(self, start: int) -> np.ndarray:
         with self._lock:
-            return self._a[max(0, int(start)): self._n].copy()
+            return self._a[max(0, int(start)) : self._n].copy()
 
     def __len__(self) -> int:
         return self._n
@@ -137,8 +137,14 @@ class LocalSession:
     at most ``image_capacity`` of the last two kinds).
     """
 
-    def __init__(self, session_id: str = "local", mapper: Mapper | None = None,
-                 config: HippomapConfig | None = None, title: str = "", image_capacity: int = 2000) -> None:
+    def __init__(
+        self,
+        session_id: str = "local",
+        mapper: Mapper | None = None,
+        config: HippomapConfig | None = None,
+        title: str = "",
+        image_capacity: int = 2000,
+    ) -> None:
         self._id = session_id
         self._title = title or session_id
         self.mapper = mapper if mapper is not None else Mapper(config)

@@ -33,8 +33,12 @@ def add_progress_argument(parser: argparse.ArgumentParser) -> None:
 
     ``--quiet`` is kept, hidden from the help, as an old spelling of ``--no-progress`` so
     that scripts written for earlier versions keep working."""
-    parser.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
-                        help="show progress on stderr (default: on when stderr is a terminal)")
+    parser.add_argument(
+        "--progress",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="show progress on stderr (default: on when stderr is a terminal)",
+    )
     parser.add_argument("--quiet", dest="progress", action="store_false", help=argparse.SUPPRESS)
 
 
@@ -92,7 +96,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="hippomap",
         description="hippomap: bio-inspired SLAM after the rat hippocampus (grid cells, place cells, "
-                    "visual recognition memory, cognitive map).")
+        "visual recognition memory, cognitive map).",
+    )
     parser.add_argument("--version", action="version", version=f"hippomap {package_version()}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for ep in sorted(entry_points(group=GROUP), key=lambda e: e.name):
@@ -110,8 +115,9 @@ def _unavailable(sub: argparse._SubParsersAction, name: str, exc: ImportError, o
     this package (``own``), the extra that installs the missing module (:func:`~hippomap.extras.extra_for`);
     for the others (``serve``, registered by the server package), the ``server`` extra."""
     extra = extra_for(exc.name) if own and exc.name else None
-    message = (f"needs a missing dependency ({exc.name or exc}); install it with: "
-               f"pip install 'hippomap[{extra or 'server'}]'")
+    message = (
+        f"needs a missing dependency ({exc.name or exc}); install it with: pip install 'hippomap[{extra or 'server'}]'"
+    )
     p = sub.add_parser(name, help=f"(unavailable: {message})")
 
     def fail(args: argparse.Namespace) -> int:

@@ -30,8 +30,12 @@ from ..mapper import Mapper
 from . import add_progress_argument, progress_enabled
 
 
-def open_dataset(path: str | Path, image_topic: str | None = None, odom_topic: str | None = None,
-                 groundtruth_topic: str | None = None) -> SensorDataset:
+def open_dataset(
+    path: str | Path,
+    image_topic: str | None = None,
+    odom_topic: str | None = None,
+    groundtruth_topic: str | None = None,
+) -> SensorDataset:
     """Pick the reader by what the path holds."""
     path = Path(path)
     if not path.exists():
@@ -49,8 +53,9 @@ def open_dataset(path: str | Path, image_topic: str | None = None, odom_topic: s
     raise InputError(f"{path}: not a hippomap data folder (frames.csv), a TUM RGB-D folder (rgb.txt) or a ROS bag")
 
 
-def run_dataset(dataset: SensorDataset, config: HippomapConfig | None = None, progress: bool = False,
-                mapper: Mapper | None = None) -> tuple[Mapper, dict[str, Any]]:
+def run_dataset(
+    dataset: SensorDataset, config: HippomapConfig | None = None, progress: bool = False, mapper: Mapper | None = None
+) -> tuple[Mapper, dict[str, Any]]:
     """Feed the data set to a mapper; returns it and timing figures."""
     m = mapper or Mapper(config)
     total = len(dataset.odometry) + len(dataset.frames)
@@ -114,8 +119,9 @@ def link_error(gt: tuple[np.ndarray, np.ndarray], t_from: float, t_to: float, tr
     return {"link_error_m": float(np.hypot(e[0], e[1])), "link_error_rad": float(abs(e[2]))}
 
 
-def write_run(m: Mapper, dataset: SensorDataset, out_dir: str | Path,
-              timing: dict[str, Any] | None = None) -> dict[str, Any]:
+def write_run(
+    m: Mapper, dataset: SensorDataset, out_dir: str | Path, timing: dict[str, Any] | None = None
+) -> dict[str, Any]:
     """Write the exports (see :func:`hippomap.io.exports.export_map`), ``groundtruth.tum`` (when
     the data set has ground truth) and metrics.json."""
     t = m.trajectory_times
@@ -125,23 +131,32 @@ def write_run(m: Mapper, dataset: SensorDataset, out_dir: str | Path,
     accepted = [r for r in loops if r["status"] == "accepted"]
     metrics: dict[str, Any] = {"data": str(dataset.source), "stats": m.stats(), "timing": timing or {}}
     used = [r for r in loops if r["used"]]
-    metrics["loop_closures"] = {"accepted": len(accepted), "used": len(used),
-                                "rejected": sum(r["status"] == "rejected" for r in loops)}
+    metrics["loop_closures"] = {
+        "accepted": len(accepted),
+        "used": len(used),
+        "rejected": sum(r["status"] == "rejected" for r in loops),
+    }
     if dataset.groundtruth is not None and len(t) > 3:
         metrics["odometry"] = trajectory_metrics(t, odo, *dataset.groundtruth)
         metrics["map"] = trajectory_metrics(t, cor, *dataset.groundtruth)
         metrics["map_ate_ratio"] = metrics["map"]["ate"]["rmse"] / max(metrics["odometry"]["ate"]["rmse"], 1e-12)
         judged = [r for r in accepted if "groundtruth_distance_m" in r]
-        metrics["loop_closures"]["accepted_false"] = sum(r["groundtruth_distance_m"] >= LOOP_TRUTH_DISTANCE_M
-                                                         for r in judged)
-        metrics["loop_closures"]["used_false"] = sum(r["groundtruth_distance_m"] >= LOOP_TRUTH_DISTANCE_M
-                                                     for r in judged if r["used"])
-        metrics["loop_closures"]["max_accepted_distance_m"] = max((r["groundtruth_distance_m"] for r in judged),
-                                                                  default=None)
+        metrics["loop_closures"]["accepted_false"] = sum(
+            r["groundtruth_distance_m"] >= LOOP_TRUTH_DISTANCE_M for r in judged
+        )
+        metrics["loop_closures"]["used_false"] = sum(
+            r["groundtruth_distance_m"] >= LOOP_TRUTH_DISTANCE_M for r in judged if r["used"]
+        )
+        metrics["loop_closures"]["max_accepted_distance_m"] = max(
+            (r["groundtruth_distance_m"] for r in judged), default=None
+        )
         errs = [r["link_error_m"] for r in used if "link_error_m" in r]
         if errs:
-            metrics["loop_closures"]["link_error_m"] = {"mean": float(np.mean(errs)), "median": float(np.median(errs)),
-                                                        "max": float(np.max(errs))}
+            metrics["loop_closures"]["link_error_m"] = {
+                "mean": float(np.mean(errs)),
+                "median": float(np.median(errs)),
+                "max": float(np.max(errs)),
+            }
     segs = []
     if len(t):
         for r in used:
@@ -188,27 +203,39 @@ def _cmd(args: argparse.Namespace) -> int:
     metrics = write_run(m, dataset, args.out, timing)
     s = metrics["stats"]
     lc = metrics["loop_closures"]
-    line = (f"{s['nodes']} nodes, {s['keyframes']} key frames, loop closures accepted {lc['accepted']} "
-            f"(used {lc['used']}) / rejected {lc['rejected']}")
+    line = (
+        f"{s['nodes']} nodes, {s['keyframes']} key frames, loop closures accepted {lc['accepted']} "
+        f"(used {lc['used']}) / rejected {lc['rejected']}"
+    )
     if "map" in metrics:
-        line += (f"; ATE rmse odometry {metrics['odometry']['ate']['rmse']:.3f} m"
-                 f" -> map {metrics['map']['ate']['rmse']:.3f} m")
+        line += (
+            f"; ATE rmse odometry {metrics['odometry']['ate']['rmse']:.3f} m"
+            f" -> map {metrics['map']['ate']['rmse']:.3f} m"
+        )
     print(line)
     return 0
 
 
 def add_parser(sub: Any) -> None:
-    p = sub.add_parser("run", help="run the whole mapper (odometry + camera) over a data set",
-                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = sub.add_parser(
+        "run",
+        help="run the whole mapper (odometry + camera) over a data set",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("data_dir", help="hippomap data folder, TUM RGB-D folder, or ROS bag")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--image-topic", help="ROS bag: image or compressed-image topic")
     p.add_argument("--odom-topic", help="ROS bag: nav_msgs/Odometry topic")
-    p.add_argument("--groundtruth-topic", help="ROS bag (optional): ground truth, geometry_msgs/PoseStamped or "
-                   "nav_msgs/Odometry")
+    p.add_argument(
+        "--groundtruth-topic", help="ROS bag (optional): ground truth, geometry_msgs/PoseStamped or nav_msgs/Odometry"
+    )
     p.add_argument("--config", help="JSON file of config overrides")
-    p.add_argument("--base-map", help="start in this saved map (a mapper snapshot, e.g. a session's /snapshot): "
-                   "the run starts from an unknown pose and is placed by recognition; --config then changes the "
-                   "saved map's config")
+    p.add_argument(
+        "--base-map",
+        help="start in this saved map (a mapper snapshot, e.g. a session's /snapshot): "
+        "the run starts from an unknown pose and is placed by recognition; --config then changes the "
+        "saved map's config",
+    )
     add_progress_argument(p)
     p.set_defaults(func=_cmd)

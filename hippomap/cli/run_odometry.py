@@ -73,8 +73,9 @@ def _loops_by_pose(dataset: OdometryDataset) -> dict[int, list[_Proposal]]:
     return out
 
 
-def run_odometry(dataset: OdometryDataset, config: HippomapConfig | None = None, progress: bool = False,
-                 checkpoints: int = 8) -> OdometryRun:
+def run_odometry(
+    dataset: OdometryDataset, config: HippomapConfig | None = None, progress: bool = False, checkpoints: int = 8
+) -> OdometryRun:
     """Run the spatial pathway + cognitive map over the whole data set; ``checkpoints``
     snapshots of the map trajectory are kept along the way (to show the online map,
     not only the final one, against odometry)."""
@@ -108,9 +109,13 @@ def run_odometry(dataset: OdometryDataset, config: HippomapConfig | None = None,
             # short odometric offsets of the robot from its node at k and at j
             rel = compose(compose(cmap.robot_offset, t_kj), between(offset_at_pose[j], np.zeros(3)))
             hyp = LoopHypothesis(
-                node=int(node_at_pose[j]), transform=cast("tuple[float, float, float]", tuple(float(v) for v in rel)),
+                node=int(node_at_pose[j]),
+                transform=cast("tuple[float, float, float]", tuple(float(v) for v in rel)),
                 evidence=1.0,
-                source="dataset", time=float(times[k]), meta={"poses": [k, j], "line": line}, information=info,
+                source="dataset",
+                time=float(times[k]),
+                meta={"poses": [k, j], "line": line},
+                information=info,
             )
             cmap.propose_loop(hyp)
         node_at_pose[k] = cmap.current
@@ -171,8 +176,9 @@ def summarise(run: OdometryRun, dataset: OdometryDataset) -> dict[str, Any]:
         rows = []
         for k, traj in run.checkpoints:
             try:
-                odo_ate = trajectory_metrics(run.times[: k + 1], run.odometry[: k + 1],
-                                             *dataset.groundtruth)["ate"]["rmse"]
+                odo_ate = trajectory_metrics(run.times[: k + 1], run.odometry[: k + 1], *dataset.groundtruth)["ate"][
+                    "rmse"
+                ]
                 map_ate = trajectory_metrics(run.times[: k + 1], traj, *dataset.groundtruth)["ate"]["rmse"]
             except InputError:  # too few ground-truth poses so far
                 continue
@@ -194,9 +200,17 @@ def write_outputs(run: OdometryRun, dataset: OdometryDataset, out_dir: str | Pat
     accepted = [d["hypothesis"]["meta"]["poses"] for d in run.decisions if d["used"]]
     segs = [[run.corrected[a, :2], run.corrected[b, :2]] for a, b in accepted]
     ate = {k: metrics.get(k, {}).get("ate", {}).get("rmse", float("nan")) for k in ("odometry", "map")}
-    out = export_map(out_dir, run.cmap, run.times, run.odometry, run.corrected, run.decisions, dataset.groundtruth,
-                     segs, title=f"{Path(dataset.loops_file).name}: ATE odometry {ate['odometry']:.2f} m, "
-                                 f"map {ate['map']:.2f} m")
+    out = export_map(
+        out_dir,
+        run.cmap,
+        run.times,
+        run.odometry,
+        run.corrected,
+        run.decisions,
+        dataset.groundtruth,
+        segs,
+        title=f"{Path(dataset.loops_file).name}: ATE odometry {ate['odometry']:.2f} m, map {ate['map']:.2f} m",
+    )
     write_json(out / "metrics.json", metrics)
     return metrics
 
@@ -207,22 +221,30 @@ def _cmd(args: argparse.Namespace) -> int:
     run = run_odometry(dataset, HippomapConfig.from_file(args.config), progress=progress_enabled(args))
     metrics = write_outputs(run, dataset, args.out)
     lc = metrics["loop_closures"]
-    line = (f"{metrics['nodes']} nodes, loop closures accepted {lc['accepted']} (used {lc['used']}, "
-            f"false used {lc.get('used_false', 'n/a')}) / rejected {lc['rejected']}")
+    line = (
+        f"{metrics['nodes']} nodes, loop closures accepted {lc['accepted']} (used {lc['used']}, "
+        f"false used {lc.get('used_false', 'n/a')}) / rejected {lc['rejected']}"
+    )
     if "map" in metrics:
-        line += (f"; ATE rmse odometry {metrics['odometry']['ate']['rmse']:.3f} m "
-                 f"-> map {metrics['map']['ate']['rmse']:.3f} m")
+        line += (
+            f"; ATE rmse odometry {metrics['odometry']['ate']['rmse']:.3f} m "
+            f"-> map {metrics['map']['ate']['rmse']:.3f} m"
+        )
     print(line)
     print(f"wrote {args.out}/metrics.json, map.tum, odometry.tum, map.g2o, map.json, map.png")
     return 0
 
 
 def add_parser(sub: Any) -> None:
-    p = sub.add_parser("run-odometry", help="run grid cells -> place cells -> cognitive map on a g2o odometry data set",
-                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = sub.add_parser(
+        "run-odometry",
+        help="run grid cells -> place cells -> cognitive map on a g2o odometry data set",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("data_dir", help="data folder, e.g. ../shared/data/bicocca25b")
     p.add_argument("--loops", required=True, help="g2o file with odometry and loop proposals (e.g. B25b_1.000.g2o)")
     p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--config", help="JSON file of config overrides, e.g. {\"map\": {\"alpha\": 0.5}}")
+    p.add_argument("--config", help='JSON file of config overrides, e.g. {"map": {"alpha": 0.5}}')
     add_progress_argument(p)
     p.set_defaults(func=_cmd)

@@ -40,6 +40,7 @@ from ..protocol import pack_frame  # the frame format the server unpacks (one de
 #: the client's public names: ``from hippomap.client import Client, Odometry`` is all a robot needs
 __all__ = ["AsyncStream", "Client", "Odometry", "ServerError", "Stream", "default_token", "encode_image"]
 
+
 class ServerError(HippomapError):
     """The server refused a request or an input: ``status`` is the HTTP status code."""
 
@@ -53,8 +54,11 @@ def odometry_reading(o: Odometry | dict[str, Any]) -> dict[str, Any]:
     """The JSON form of one odometry reading."""
     if isinstance(o, dict):
         return o
-    d: dict[str, Any] = ({"t": o.t, "increment": list(o.increment)} if o.increment is not None
-                         else {"t": o.t, "v": o.v, "omega": o.omega})
+    d: dict[str, Any] = (
+        {"t": o.t, "increment": list(o.increment)}
+        if o.increment is not None
+        else {"t": o.t, "v": o.v, "omega": o.omega}
+    )
     gt = getattr(o, "gt", None)
     if gt is not None:
         d["gt"] = list(gt)
@@ -91,9 +95,9 @@ def default_token() -> str | None:
 def _ws_url(base: str, session_id: str) -> str:
     base = base.rstrip("/")
     if base.startswith("https://"):
-        base = "wss://" + base[len("https://"):]
+        base = "wss://" + base[len("https://") :]
     elif base.startswith("http://"):
-        base = "ws://" + base[len("http://"):]
+        base = "ws://" + base[len("http://") :]
     return f"{base}/sessions/{session_id}/stream"
 
 
@@ -178,19 +182,30 @@ class Client:
         """Store one reading or a batch; returns the ack (``seq``..``last_seq``)."""
         if isinstance(readings, (Odometry, dict)):
             readings = [readings]
-        return self._json("POST", f"/sessions/{session_id}/odometry",
-                          {"readings": [odometry_reading(r) for r in readings]})
+        return self._json(
+            "POST", f"/sessions/{session_id}/odometry", {"readings": [odometry_reading(r) for r in readings]}
+        )
 
-    def send_frame(self, session_id: str, t: float, image: bytes | np.ndarray,
-                   multipart: bool = False) -> dict[str, Any]:
+    def send_frame(
+        self, session_id: str, t: float, image: bytes | np.ndarray, multipart: bool = False
+    ) -> dict[str, Any]:
         """Store one frame (JPEG/PNG bytes, or an image array encoded here)."""
         data = encode_image(image)
         if multipart:
-            return self._json("POST", f"/sessions/{session_id}/frames", data={"t": repr(float(t))},
-                              files={"image": ("frame.jpg", data, "image/jpeg")})
+            return self._json(
+                "POST",
+                f"/sessions/{session_id}/frames",
+                data={"t": repr(float(t))},
+                files={"image": ("frame.jpg", data, "image/jpeg")},
+            )
         ctype = "image/png" if data[:4] == b"\x89PNG" else "image/jpeg"
-        return self._json("POST", f"/sessions/{session_id}/frames", params={"t": repr(float(t))}, content=data,
-                          headers={"Content-Type": ctype})
+        return self._json(
+            "POST",
+            f"/sessions/{session_id}/frames",
+            params={"t": repr(float(t))},
+            content=data,
+            headers={"Content-Type": ctype},
+        )
 
     def stream(self, session_id: str, max_in_flight: int = 128) -> "Stream":
         return Stream(self.url, self.token, session_id, max_in_flight)
@@ -208,10 +223,20 @@ class Client:
     def trajectory_tum(self, session_id: str, source: str = "map") -> str:
         return self._req("GET", f"/sessions/{session_id}/trajectory.tum", params={"source": source}).text
 
-    def loop_closures(self, session_id: str, since_id: int = -1, t_min: float | None = None,
-                      t_max: float | None = None, status: str | None = None, limit: int = 1000) -> list[dict[str, Any]]:
-        return self._json("GET", f"/sessions/{session_id}/loop-closures",
-                          params=self._params(since_id=since_id, t_min=t_min, t_max=t_max, status=status, limit=limit))
+    def loop_closures(
+        self,
+        session_id: str,
+        since_id: int = -1,
+        t_min: float | None = None,
+        t_max: float | None = None,
+        status: str | None = None,
+        limit: int = 1000,
+    ) -> list[dict[str, Any]]:
+        return self._json(
+            "GET",
+            f"/sessions/{session_id}/loop-closures",
+            params=self._params(since_id=since_id, t_min=t_min, t_max=t_max, status=status, limit=limit),
+        )
 
     def recognitions(self, session_id: str, since_id: int = -1, limit: int = 1000) -> list[dict[str, Any]]:
         return self._json("GET", f"/sessions/{session_id}/recognitions", params={"since_id": since_id, "limit": limit})
@@ -220,8 +245,9 @@ class Client:
         return self._json("GET", f"/sessions/{session_id}/saccades/{recognition_id}")
 
     def saccade_image(self, session_id: str, recognition_id: int, attempt: str | int = "last") -> bytes:
-        return self._req("GET", f"/sessions/{session_id}/saccades/{recognition_id}/image",
-                         params={"attempt": str(attempt)}).content
+        return self._req(
+            "GET", f"/sessions/{session_id}/saccades/{recognition_id}/image", params={"attempt": str(attempt)}
+        ).content
 
     def place_field(self, session_id: str, step: int | None = None, fmt: str = "json") -> Any:
         """The current (``step=None``) or a past place field: ``fmt`` json -> dict, npy -> array, png -> bytes."""
@@ -236,13 +262,16 @@ class Client:
         return content
 
     def place_fields(self, session_id: str, since_step: int = -1, limit: int = 1000) -> list[dict[str, Any]]:
-        return self._json("GET", f"/sessions/{session_id}/place-fields",
-                          params={"since_step": since_step, "limit": limit})
+        return self._json(
+            "GET", f"/sessions/{session_id}/place-fields", params={"since_step": since_step, "limit": limit}
+        )
 
-    def events(self, session_id: str, since_id: int = -1, types: list[str] | None = None,
-               limit: int = 1000) -> list[dict[str, Any]]:
-        return self._json("GET", f"/sessions/{session_id}/events",
-                          params=self._params(since_id=since_id, type=types, limit=limit))
+    def events(
+        self, session_id: str, since_id: int = -1, types: list[str] | None = None, limit: int = 1000
+    ) -> list[dict[str, Any]]:
+        return self._json(
+            "GET", f"/sessions/{session_id}/events", params=self._params(since_id=since_id, type=types, limit=limit)
+        )
 
     def inputs(self, session_id: str, since_seq: int = -1, limit: int = 10_000) -> list[dict[str, Any]]:
         return self._json("GET", f"/sessions/{session_id}/inputs", params={"since_seq": since_seq, "limit": limit})
@@ -437,6 +466,7 @@ class Stream:
                 out.set_exception(f.exception())
             else:
                 out.set_result(f.result())
+
         self._loop.call_soon_threadsafe(inner.add_done_callback, done)
         return out
 

@@ -48,8 +48,11 @@ def ground_truth_at(groundtruth: Any) -> Any:
         if not gt_t[0] <= t <= gt_t[-1]:
             return None
         a = float(np.interp(t, gt_t, th))
-        return (float(np.interp(t, gt_t, gt_p[:, 0])), float(np.interp(t, gt_t, gt_p[:, 1])),
-                float((a + np.pi) % (2 * np.pi) - np.pi))
+        return (
+            float(np.interp(t, gt_t, gt_p[:, 0])),
+            float(np.interp(t, gt_t, gt_p[:, 1])),
+            float((a + np.pi) % (2 * np.pi) - np.pi),
+        )
 
     return at
 
@@ -63,8 +66,16 @@ def _frame_bytes(ref: Any) -> bytes:
     return encode_image(ref.load().image)
 
 
-async def replay(dataset: Any, url: str, token: str | None, session_id: str, speed: float | None = None,
-                 window: int = 128, resume: bool = False, progress: bool = False) -> dict[str, Any]:
+async def replay(
+    dataset: Any,
+    url: str,
+    token: str | None,
+    session_id: str,
+    speed: float | None = None,
+    window: int = 128,
+    resume: bool = False,
+    progress: bool = False,
+) -> dict[str, Any]:
     """Stream ``dataset`` into ``session_id``; returns counts and timing. Raises
     :class:`~hippomap.client.ServerError` on the first input the server rejects, and
     :class:`~hippomap.errors.InputError` before sending anything the session already holds
@@ -88,8 +99,10 @@ async def replay(dataset: Any, url: str, token: str | None, session_id: str, spe
             kind = "odometry" if isinstance(item, Odometry) else "frame"
             if not follows(last.get(kind), item.t):
                 if not resume:  # refused before sending: pipelined later inputs must not land after a refusal
-                    raise InputError(f"session {session_id} already holds {kind} inputs up to t={last.get(kind)!r}, "
-                                     f"and this replay starts at t={item.t!r}: pass --resume to skip what is stored")
+                    raise InputError(
+                        f"session {session_id} already holds {kind} inputs up to t={last.get(kind)!r}, "
+                        f"and this replay starts at t={item.t!r}: pass --resume to skip what is stored"
+                    )
                 sender.counts["skipped"] += 1
                 continue
             if speed is not None:
@@ -126,12 +139,14 @@ class _Sender:
 
     def watch(self, fut: asyncio.Future, n: int) -> None:
         """Record the outcome of the acknowledgement ``fut`` for ``n`` inputs."""
+
         def done(f: asyncio.Future) -> None:
             exc = f.exception()
             if exc is not None:
                 self.errors.append(exc)
             elif self.bar is not None:
                 self.bar.update(n)
+
         fut.add_done_callback(done)
 
     async def flush(self) -> None:
@@ -193,32 +208,56 @@ def _cmd(args: argparse.Namespace) -> int:
             info = client.create_session(name=args.name or Path(args.dataset).name, config=config)
         sid = info["id"]
         print(f"session {sid}", flush=True)
-        print(f"viewer: {viewer_url(info, args.server)}  (in a browser add ?token= with a token that may read "
-              "the session)", flush=True)
-        result = asyncio.run(replay(dataset, args.server, client.token, sid, speed=args.speed, window=args.window,
-                                    resume=args.resume, progress=progress_enabled(args)))
-        print(f"sent {result['odometry']} odometry readings and {result['frames']} frames in "
-              f"{result['seconds']:.1f} s ({result['inputs_per_s']:.0f} inputs/s), all acknowledged"
-              + (f"; skipped {result['skipped']} already stored" if result["skipped"] else ""), flush=True)
+        print(
+            f"viewer: {viewer_url(info, args.server)}  (in a browser add ?token= with a token that may read "
+            "the session)",
+            flush=True,
+        )
+        result = asyncio.run(
+            replay(
+                dataset,
+                args.server,
+                client.token,
+                sid,
+                speed=args.speed,
+                window=args.window,
+                resume=args.resume,
+                progress=progress_enabled(args),
+            )
+        )
+        print(
+            f"sent {result['odometry']} odometry readings and {result['frames']} frames in "
+            f"{result['seconds']:.1f} s ({result['inputs_per_s']:.0f} inputs/s), all acknowledged"
+            + (f"; skipped {result['skipped']} already stored" if result["skipped"] else ""),
+            flush=True,
+        )
         if not args.no_wait:
             st = client.wait_processed(sid, timeout=args.wait_timeout)
             m = st["mapper"]
-            print(f"mapper: {m.get('nodes')} nodes, {m.get('links')} links, loop closures accepted "
-                  f"{m.get('loop_closures_accepted')} / rejected {m.get('loop_closures_rejected')}", flush=True)
+            print(
+                f"mapper: {m.get('nodes')} nodes, {m.get('links')} links, loop closures accepted "
+                f"{m.get('loop_closures_accepted')} / rejected {m.get('loop_closures_rejected')}",
+                flush=True,
+            )
     return 0
 
 
 def add_parser(sub: Any) -> None:
-    p = sub.add_parser("replay", help="stream a data set into a hippomap server session",
-                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = sub.add_parser(
+        "replay",
+        help="stream a data set into a hippomap server session",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("dataset", help="hippomap data folder, TUM RGB-D folder, or ROS bag")
     p.add_argument("--server", required=True, help="server URL, e.g. http://127.0.0.1:8000")
     p.add_argument("--token", help="bearer token (default: $HIPPOMAP_TOKEN or ./hippomap-data/admin.token)")
     p.add_argument("--session", help="stream into this existing session (default: create one)")
     p.add_argument("--name", help="name of the created session (default: the data set's name)")
     p.add_argument("--config", help="JSON file of config overrides for the created session")
-    p.add_argument("--speed", type=float, default=None,
-                   help="real-time factor (1 = real time); default: as fast as acknowledged")
+    p.add_argument(
+        "--speed", type=float, default=None, help="real-time factor (1 = real time); default: as fast as acknowledged"
+    )
     p.add_argument("--window", type=int, default=128, help="messages in flight before waiting for acks")
     p.add_argument("--resume", action="store_true", help="skip inputs the session already has")
     p.add_argument("--image-topic", help="ROS bag: image topic")
@@ -227,4 +266,3 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--wait-timeout", type=float, default=3600.0, help="seconds to wait for the mapper")
     add_progress_argument(p)
     p.set_defaults(func=_cmd)
-

@@ -28,8 +28,14 @@ def _stats(metric) -> dict[str, float]:
     return {k: float(s[k]) for k in ("rmse", "mean", "median", "std", "min", "max")}
 
 
-def trajectory_metrics(est_times: Any, est_poses: Any, ref_times: Any, ref_poses: Any,
-                       max_time_diff: float = 0.1, rpe_delta_m: float = 10.0) -> dict[str, Any]:
+def trajectory_metrics(
+    est_times: Any,
+    est_poses: Any,
+    ref_times: Any,
+    ref_poses: Any,
+    max_time_diff: float = 0.1,
+    rpe_delta_m: float = 10.0,
+) -> dict[str, Any]:
     """ATE (translation, after an SE(3) Umeyama alignment without scale, evo's ``-a``)
     and RPE (translation over ``rpe_delta_m`` metres of travel) of an estimate against
     ground truth. Poses are associated by nearest timestamp within ``max_time_diff``."""
@@ -53,8 +59,9 @@ def trajectory_metrics(est_times: Any, est_poses: Any, ref_times: Any, ref_poses
     ape.process_data((ref_s, est_s))
     out: dict[str, Any] = {"matched_poses": int(ref_s.num_poses), "ate": _stats(ape)}
     try:
-        rpe = metrics.RPE(metrics.PoseRelation.translation_part, delta=rpe_delta_m, delta_unit=Unit.meters,
-                          all_pairs=False)
+        rpe = metrics.RPE(
+            metrics.PoseRelation.translation_part, delta=rpe_delta_m, delta_unit=Unit.meters, all_pairs=False
+        )
         rpe.process_data((ref_s, est_s))
         out["rpe"] = {"delta_m": rpe_delta_m, **_stats(rpe)}
     except Exception as exc:  # too short a trajectory for the delta

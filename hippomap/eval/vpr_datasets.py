@@ -65,12 +65,15 @@ def load_vpr_dataset(data_dir: str | Path) -> VPRDataset:
                 refs_of_q = {int(r) for r in np.atleast_1d(row[1])}
             except (TypeError, ValueError, IndexError):
                 raise InputError(
-                    f"{gt_path}: row {row_no} is not (query index, [reference indices]): {row!r}") from None
+                    f"{gt_path}: row {row_no} is not (query index, [reference indices]): {row!r}"
+                ) from None
             if not 0 <= q < len(queries) or any(not 0 <= r < len(refs) for r in refs_of_q):
                 raise InputError(f"{gt_path}: row {row_no} names an image outside the folders: {row!r}")
             positives[q] |= refs_of_q
-        protocol = (f"learn all {len(refs)} images of ref/ as key frames; query each of the {len(queries)} images of "
-                    "query/ against all of them; positives from ground_truth_new.npy")
+        protocol = (
+            f"learn all {len(refs)} images of ref/ as key frames; query each of the {len(queries)} images of "
+            "query/ against all of them; positives from ground_truth_new.npy"
+        )
         return VPRDataset(root.name, refs, queries, positives, protocol)
     samples = root / "data" / "samples"
     gt_path = root / "data" / "samples_GT.bmp"
@@ -78,8 +81,9 @@ def load_vpr_dataset(data_dir: str | Path) -> VPRDataset:
         files = _images(samples)
         gt = cv2.imread(str(gt_path), cv2.IMREAD_GRAYSCALE)
         if gt is None or gt.shape != (len(files), len(files)):
-            raise InputError(f"{gt_path} must be a {len(files)}x{len(files)} image, "
-                             f"got {None if gt is None else gt.shape}")
+            raise InputError(
+                f"{gt_path} must be a {len(files)}x{len(files)} image, got {None if gt is None else gt.shape}"
+            )
         truth = gt > 127
         rows = np.flatnonzero(truth.any(axis=1))
         if rows.size == 0:
@@ -87,13 +91,17 @@ def load_vpr_dataset(data_dir: str | Path) -> VPRDataset:
         split = int(rows[0])  # the first frame that revisits an earlier one starts the query pass
         refs, queries = files[:split], files[split:]
         positives = [set(int(j) for j in np.flatnonzero(truth[split + i, :split])) for i in range(len(queries))]
-        protocol = (f"learn frames 1-{split} (the first pass, before the first ground-truth loop closure) "
-                    "as key frames; "
-                    f"query frames {split + 1}-{len(files)} against all of them; positives = white pixels of "
-                    "samples_GT.bmp among the references")
+        protocol = (
+            f"learn frames 1-{split} (the first pass, before the first ground-truth loop closure) "
+            "as key frames; "
+            f"query frames {split + 1}-{len(files)} against all of them; positives = white pixels of "
+            "samples_GT.bmp among the references"
+        )
         return VPRDataset(root.name, refs, queries, positives, protocol)
-    raise InputError(f"{root}: not a known VPR layout (need ref/ + query/ + ground_truth_new.npy, "
-                     "or data/samples/ + data/samples_GT.bmp)")
+    raise InputError(
+        f"{root}: not a known VPR layout (need ref/ + query/ + ground_truth_new.npy, "
+        "or data/samples/ + data/samples_GT.bmp)"
+    )
 
 
 def read_image(path: Path) -> np.ndarray:

@@ -24,16 +24,24 @@ __all__ = ["plot_pr", "write_examples"]
 def _side_by_side(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """``a`` and ``b`` beside each other at the taller one's height, with a white gap."""
     h = max(a.shape[0], b.shape[0])
+
     def fit(x: np.ndarray) -> np.ndarray:
         if x.shape[0] == h:
             return x
         return cv2.resize(x, (int(round(x.shape[1] * h / x.shape[0])), h), interpolation=cv2.INTER_LINEAR)
+
     gap = np.full((h, 6, 3), 255, np.uint8)
     return np.hstack([fit(a), gap, fit(b)])
 
 
-def plot_pr(path: Path, name: str, ours: dict[str, Any], op: tuple[float, float], base: dict[str, Any],
-             base2: dict[str, Any] | None = None) -> None:
+def plot_pr(
+    path: Path,
+    name: str,
+    ours: dict[str, Any],
+    op: tuple[float, float],
+    base: dict[str, Any],
+    base2: dict[str, Any] | None = None,
+) -> None:
     """Write the precision-recall figure: the baselines' curves, ours sweeping confidence, ours at its operating
     point ``op`` = (precision, recall)."""
     with requires("eval", "the precision-recall plot"):
@@ -44,14 +52,25 @@ def plot_pr(path: Path, name: str, ours: dict[str, Any], op: tuple[float, float]
 
     fig, ax = plt.subplots(figsize=(5.5, 4.5), dpi=120)
     if base["pr_curve"]["recall"]:
-        ax.plot([0.0] + base["pr_curve"]["recall"], [1.0] + base["pr_curve"]["precision"], "-", color="tab:gray",
-                label=f"RatSLAM column profile, baseline (R@P100 = {base['recall_at_100_precision']:.2f})")
+        ax.plot(
+            [0.0] + base["pr_curve"]["recall"],
+            [1.0] + base["pr_curve"]["precision"],
+            "-",
+            color="tab:gray",
+            label=f"RatSLAM column profile, baseline (R@P100 = {base['recall_at_100_precision']:.2f})",
+        )
     if base2 is not None and base2["pr_curve"]["recall"]:
-        ax.plot([0.0] + base2["pr_curve"]["recall"], [1.0] + base2["pr_curve"]["precision"], ":", color="tab:gray",
-                label=f"RatSLAM 60x10 templates (R@P100 = {base2['recall_at_100_precision']:.2f})")
+        ax.plot(
+            [0.0] + base2["pr_curve"]["recall"],
+            [1.0] + base2["pr_curve"]["precision"],
+            ":",
+            color="tab:gray",
+            label=f"RatSLAM 60x10 templates (R@P100 = {base2['recall_at_100_precision']:.2f})",
+        )
     if ours["recall"]:
-        ax.plot([0.0] + ours["recall"], [1.0] + ours["precision"], "-", color="tab:blue",
-                label="ours, sweeping confidence")
+        ax.plot(
+            [0.0] + ours["recall"], [1.0] + ours["precision"], "-", color="tab:blue", label="ours, sweeping confidence"
+        )
     ax.plot([op[1]], [op[0]], "o", color="tab:red", ms=8, label=f"ours at theta_dec (P = {op[0]:.2f}, R = {op[1]:.2f})")
     ax.set_xlabel("recall")
     ax.set_ylabel("precision")
@@ -65,8 +84,16 @@ def plot_pr(path: Path, name: str, ours: dict[str, Any], op: tuple[float, float]
     plt.close(fig)
 
 
-def write_examples(folder: Path, recs: list, rows: list[dict[str, Any]], mem: VisualMemory,
-                   frame_to_ref: dict[int, int], ref_images: list[np.ndarray], n: int, cfg: VisualConfig) -> list[str]:
+def write_examples(
+    folder: Path,
+    recs: list,
+    rows: list[dict[str, Any]],
+    mem: VisualMemory,
+    frame_to_ref: dict[int, int],
+    ref_images: list[np.ndarray],
+    n: int,
+    cfg: VisualConfig,
+) -> list[str]:
     """Draw ``n`` true matches spread over the queries, one false match and one rejection (when there are any):
     the saccade trace on the query beside the accepted reference's learned fixation points, as PNG, and the
     recognition as JSON. Returns the images' paths relative to the output folder."""
@@ -93,8 +120,11 @@ def write_examples(folder: Path, recs: list, rows: list[dict[str, Any]], mem: Vi
             last = rec.steps[-1].attempt
             steps = [s for s in rec.steps if s.attempt == last]
             # the reference's features found in the last attempt, labelled with their fixation number
-            hl = {s.found_feature: str(i) for i, s in enumerate(steps, 1)
-                  if s.found_feature is not None and s.found_frame == rec.frame_id}
+            hl = {
+                s.found_feature: str(i)
+                for i, s in enumerate(steps, 1)
+                if s.found_feature is not None and s.found_frame == rec.frame_id
+            }
             ref_img = ref_images[frame_to_ref[rec.frame_id]]
             right = draw_frame_features(ref_img, mem, rec.frame_id, hl, scale=max(1.0, 480.0 / ref_img.shape[1]))
         else:

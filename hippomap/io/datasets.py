@@ -58,8 +58,11 @@ class G2OGraph:
         """Every edge as arrays ``(source, target, transform (M, 3), information (M, 6))``:
         the odometry edges present (in order of ``i``), then the loops (file order)."""
         odo = np.flatnonzero(np.isfinite(self.odometry).all(axis=1))
-        info = (self.odometry_information if self.odometry_information is not None
-                else np.tile(UNIT_INFORMATION, (len(self.odometry), 1)))
+        info = (
+            self.odometry_information
+            if self.odometry_information is not None
+            else np.tile(UNIT_INFORMATION, (len(self.odometry), 1))
+        )
         src = np.concatenate([odo, [e.i for e in self.loops]]).astype(np.int64)
         dst = np.concatenate([odo + 1, [e.j for e in self.loops]]).astype(np.int64)
         tr = np.vstack([self.odometry[odo], np.array([e.transform for e in self.loops], dtype=float).reshape(-1, 3)])
@@ -92,6 +95,13 @@ def read_g2o(path: str | Path, chain: bool = True) -> G2OGraph:
     a cognitive map, whose node ``i + 1`` may hang off an older node after a loop): missing
     ``i -> i+1`` edges are NaN rows of ``odometry``, and a second ``i -> i+1`` edge is a loop."""
     path = Path(path)
+    vertices, odometry, loops = _parse_g2o(path, chain)
+    return _g2o_graph(path, vertices, odometry, loops, chain)
+
+
+def _parse_g2o(path: Path, chain: bool) -> tuple[dict[int, list[float]], dict[int, list[float]], list[LoopEdge]]:
+    """The lines of a g2o file: vertices by id, odometry edges ``i -> i+1`` by ``i`` (dx dy dtheta and the 6
+    information values) and the other edges as loops; each line checked on its own (:func:`read_g2o`)."""
     vertices: dict[int, list[float]] = {}
     odometry: dict[int, list[float]] = {}
     loops: list[LoopEdge] = []
@@ -122,12 +132,31 @@ def read_g2o(path: str | Path, chain: bool = True) -> G2OGraph:
                         raise InputError(f"{path}:{lineno}: second odometry edge {i} -> {j}")
                     odometry[i] = values
                 else:
-                    loops.append(LoopEdge(i, j, (values[0], values[1], values[2]), lineno,
-                                          (values[3], values[4], values[5], values[6], values[7], values[8])))
+                    loops.append(
+                        LoopEdge(
+                            i,
+                            j,
+                            (values[0], values[1], values[2]),
+                            lineno,
+                            (values[3], values[4], values[5], values[6], values[7], values[8]),
+                        )
+                    )
             elif tag in ("FIX", "VERTEX_XY", "EDGE_SE2_XY"):
                 continue  # not used by hippomap; tolerated so standard files read
             else:
                 raise InputError(f"{path}:{lineno}: unknown g2o tag {tag!r}")
+    return vertices, odometry, loops
+
+
+def _g2o_graph(
+    path: Path,
+    vertices: dict[int, list[float]],
+    odometry: dict[int, list[float]],
+    loops: list[LoopEdge],
+    chain: bool,
+) -> G2OGraph:
+    """The parsed lines as a :class:`G2OGraph`, once the whole file agrees: ids 0..N-1, (``chain``) an odometry
+    edge between every consecutive pair, loop edges between existing vertices; missing odometry is NaN."""
     n = len(vertices)
     if n == 0:
         raise InputError(f"{path}: no VERTEX_SE2 lines")
@@ -364,8 +393,10 @@ def read_tum_rgbd(folder: str | Path) -> SensorDataset:
         arr = _read_tum_like(folder / "odometry.txt")
         poses = _tum_to_se2(arr)
         inc = between(poses[:-1], poses[1:])
-        odometry = [Odometry(float(t), increment=cast("tuple[float, float, float]", tuple(map(float, d))))
-                    for t, d in zip(arr[1:, 0], inc)]
+        odometry = [
+            Odometry(float(t), increment=cast("tuple[float, float, float]", tuple(map(float, d))))
+            for t, d in zip(arr[1:, 0], inc)
+        ]
     elif (folder / "odometry.csv").is_file():
         odometry = read_folder_odometry(folder / "odometry.csv")
     else:
@@ -385,13 +416,19 @@ def read_folder_odometry(path: Path) -> list:
 
     with path.open(newline="") as fh:
         first = fh.readline()
-    columns = ("t", "dx", "dy", "dtheta") if [c.strip() for c in first.split(",")] == ["t", "dx", "dy", "dtheta"] \
+    columns = (
+        ("t", "dx", "dy", "dtheta")
+        if [c.strip() for c in first.split(",")] == ["t", "dx", "dy", "dtheta"]
         else ("t", "v", "omega")
+    )
     out = []
     rows = _read_csv_rows(path, columns)
     for lineno, *cells in rows:
         values = _floats(cells, path, lineno, ",".join(cells))
-        out.append(Odometry(values[0], v=values[1], omega=values[2]) if len(values) == 3
-                   else Odometry(values[0], increment=(values[1], values[2], values[3])))
+        out.append(
+            Odometry(values[0], v=values[1], omega=values[2])
+            if len(values) == 3
+            else Odometry(values[0], increment=(values[1], values[2], values[3]))
+        )
     _check_increasing(np.array([o.t for o in out]), path, [r[0] for r in rows])
     return out

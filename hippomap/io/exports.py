@@ -78,8 +78,9 @@ def link_information(cmap: Any) -> np.ndarray:
     return np.asarray(cmap.weighted_link_information(), dtype=float)
 
 
-def write_g2o(path: str | Path, poses: Any, sources: Any, targets: Any, transforms: Any,
-              information: Any | None = None) -> Path:
+def write_g2o(
+    path: str | Path, poses: Any, sources: Any, targets: Any, transforms: Any, information: Any | None = None
+) -> Path:
     """Write nodes as VERTEX_SE2 and links as EDGE_SE2. ``information`` (M, 3) is each link's
     diagonal information (x, y, θ; e.g. :func:`link_information`), written as the upper
     triangle ``ix 0 0 iy 0 iθ`` that g2o reads; None writes unit information."""
@@ -97,8 +98,9 @@ def write_g2o(path: str | Path, poses: Any, sources: Any, targets: Any, transfor
             raise InputError(f"information must have shape ({len(src)}, 3), got {info.shape}")
         bad = np.flatnonzero(~(np.isfinite(info).all(axis=1) & (info > 0).all(axis=1)))
         if len(bad):
-            raise InputError(f"link {int(bad[0])} has information {info[bad[0]].tolist()}: every value must be "
-                             "finite and > 0")
+            raise InputError(
+                f"link {int(bad[0])} has information {info[bad[0]].tolist()}: every value must be finite and > 0"
+            )
     lines = [f"VERTEX_SE2 {i} {x:.9f} {y:.9f} {th:.9f}" for i, (x, y, th) in enumerate(p)]
     lines += [
         f"EDGE_SE2 {a} {b} {dx:.9f} {dy:.9f} {dth:.9f} {ix!r} 0 0 {iy!r} 0 {ith!r}"
@@ -109,8 +111,9 @@ def write_g2o(path: str | Path, poses: Any, sources: Any, targets: Any, transfor
     return path
 
 
-def graph_dict(poses: Any, place_codes: Any, frames: Any, times: Any, sources: Any, targets: Any,
-               transforms: Any, kinds: Any) -> dict[str, Any]:
+def graph_dict(
+    poses: Any, place_codes: Any, frames: Any, times: Any, sources: Any, targets: Any, transforms: Any, kinds: Any
+) -> dict[str, Any]:
     """The map as a JSON-ready dict: nodes {id, pose, place_code, frame, t} and links."""
     p = _as_poses(poses, "poses")
     pc = _as_poses(place_codes, "place_codes")
@@ -118,8 +121,13 @@ def graph_dict(poses: Any, place_codes: Any, frames: Any, times: Any, sources: A
     times = np.asarray(times, dtype=float).tolist()
     tr = np.asarray(transforms, dtype=float).reshape(-1, 3)
     nodes = [
-        {"id": i, "pose": p[i].tolist(), "place_code": pc[i].tolist(),
-         "frame": None if frames[i] is None or frames[i] < 0 else int(frames[i]), "t": times[i]}
+        {
+            "id": i,
+            "pose": p[i].tolist(),
+            "place_code": pc[i].tolist(),
+            "frame": None if frames[i] is None or frames[i] < 0 else int(frames[i]),
+            "t": times[i],
+        }
         for i in range(len(p))
     ]
     links = [
@@ -135,8 +143,14 @@ def write_json(path: str | Path, data: Any) -> Path:
     return path
 
 
-def plot_map(path: str | Path, odometry: Any, corrected: Any, groundtruth: Any | None = None,
-             loops: Any | None = None, title: str = "hippomap") -> Path:
+def plot_map(
+    path: str | Path,
+    odometry: Any,
+    corrected: Any,
+    groundtruth: Any | None = None,
+    loops: Any | None = None,
+    title: str = "hippomap",
+) -> Path:
     """PNG of raw odometry vs corrected map (vs ground truth when given); ``loops`` are
     (M, 2, 2) segments drawn between the two ends of each accepted loop closure."""
     with requires("viz", "the map plot"):
@@ -178,17 +192,26 @@ def align_to(ref_times: Any, ref_poses: Any, times: Any, poses: Any) -> np.ndarr
         from evo.core import sync
 
     try:
-        ref, est = sync.associate_trajectories(to_evo(ref_times, ref_poses, "ref"), to_evo(times, poses, "est"),
-                                               max_diff=0.1)
+        ref, est = sync.associate_trajectories(
+            to_evo(ref_times, ref_poses, "ref"), to_evo(times, poses, "est"), max_diff=0.1
+        )
         ref.align(est, correct_scale=False)
     except Exception:
         return None
     return from_evo(ref)[1]
 
 
-def export_map(out_dir: str | Path, cmap: Any, times: Any, odometry: Any, corrected: Any,
-               decisions: list[dict[str, Any]], groundtruth: tuple[Any, Any] | None = None,
-               loop_segments: Any | None = None, title: str = "hippomap") -> Path:
+def export_map(
+    out_dir: str | Path,
+    cmap: Any,
+    times: Any,
+    odometry: Any,
+    corrected: Any,
+    decisions: list[dict[str, Any]],
+    groundtruth: tuple[Any, Any] | None = None,
+    loop_segments: Any | None = None,
+    title: str = "hippomap",
+) -> Path:
     """Write a run's exports: ``map.tum`` (corrected trajectory), ``odometry.tum`` (raw),
     ``map.g2o``, ``map.json`` (graph), ``loop_closures.json`` and ``map.png`` (with the
     ground truth aligned onto the map when given)."""
@@ -197,10 +220,20 @@ def export_map(out_dir: str | Path, cmap: Any, times: Any, odometry: Any, correc
     links = cmap.links
     write_tum(out / "map.tum", times, corrected)
     write_tum(out / "odometry.tum", times, odometry)
-    write_g2o(out / "map.g2o", cmap.poses, links["source"], links["target"], links["transform"],
-              link_information(cmap))
-    write_json(out / "map.json", graph_dict(cmap.poses, cmap.place_codes, cmap.frames, cmap.times, links["source"],
-                                            links["target"], links["transform"], links["kind"]))
+    write_g2o(out / "map.g2o", cmap.poses, links["source"], links["target"], links["transform"], link_information(cmap))
+    write_json(
+        out / "map.json",
+        graph_dict(
+            cmap.poses,
+            cmap.place_codes,
+            cmap.frames,
+            cmap.times,
+            links["source"],
+            links["target"],
+            links["transform"],
+            links["kind"],
+        ),
+    )
     write_json(out / "loop_closures.json", decisions)
     if len(np.asarray(times)):
         gt = align_to(*groundtruth, times, corrected) if groundtruth is not None else None

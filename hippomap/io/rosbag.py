@@ -10,7 +10,7 @@ limited with ``max_frames``).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, cast
 
@@ -56,8 +56,13 @@ def _yaw(q) -> float:
     return float(np.arctan2(2 * (q.w * q.z + q.x * q.y), 1 - 2 * (q.y**2 + q.z**2)))
 
 
-def read_rosbag(path: str | Path, image_topic: str, odometry_topic: str, max_frames: int | None = None,
-                groundtruth_topic: str | None = None) -> SensorDataset:
+def read_rosbag(
+    path: str | Path,
+    image_topic: str,
+    odometry_topic: str,
+    max_frames: int | None = None,
+    groundtruth_topic: str | None = None,
+) -> SensorDataset:
     """Read a ROS 1 (``.bag``) or ROS 2 (folder) bag. Times are the messages' header stamps.
     ``groundtruth_topic`` (optional: ``geometry_msgs/PoseStamped`` or ``nav_msgs/Odometry``,
     e.g. what :func:`hippomap.io.session_export.write_rosbag2` writes) becomes the data set's
@@ -69,48 +74,74 @@ def read_rosbag(path: str | Path, image_topic: str, odometry_topic: str, max_fra
     path = Path(path)
     if not path.exists():
         raise InputError(f"bag {path} does not exist")
-    frames: list[DecodedFrame] = []
-    stamps: list[float] = []
-    poses: list[tuple[float, float, float]] = []
-    gt_t: list[float] = []
-    gt_p: list[tuple[float, float, float]] = []
     with AnyReader([path], default_typestore=get_typestore(Stores.ROS2_HUMBLE)) as reader:
-        topics = {c.topic: c for c in reader.connections}
-        wanted = (image_topic, odometry_topic) + ((groundtruth_topic,) if groundtruth_topic else ())
-        for topic in wanted:
-            if topic not in topics:
-                raise InputError(f"bag {path} has no topic {topic!r}; topics: {sorted(topics)}")
-        conns = [c for c in reader.connections if c.topic in wanted]
-        for conn, _, raw in reader.messages(connections=conns):
-            msg: Any = reader.deserialize(raw, conn.msgtype)  # a ROS message of conn.msgtype
-            t = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
-            if conn.topic == image_topic:
-                if max_frames is None or len(frames) < max_frames:
-                    frames.append(DecodedFrame(t, _image(msg, conn.msgtype)))
-            elif conn.topic == groundtruth_topic:
-                if not conn.msgtype.endswith(("PoseStamped", "Odometry")):
-                    raise InputError(f"ground-truth topic {groundtruth_topic!r} carries {conn.msgtype}, not "
-                                     "geometry_msgs/PoseStamped or nav_msgs/Odometry")
-                p = msg.pose if conn.msgtype.endswith("PoseStamped") else msg.pose.pose
-                gt_t.append(t)
-                gt_p.append((p.position.x, p.position.y, _yaw(p.orientation)))
-            else:
-                if not conn.msgtype.endswith("Odometry"):
-                    raise InputError(f"odometry topic {odometry_topic!r} carries {conn.msgtype}, not nav_msgs/Odometry")
-                p = msg.pose.pose
-                stamps.append(t)
-                poses.append((p.position.x, p.position.y, _yaw(p.orientation)))
-    if len(poses) < 2:
+        got = _read_topics(reader, path, image_topic, odometry_topic, groundtruth_topic, max_frames)
+    if len(got.poses) < 2:
         raise InputError(f"bag {path}: fewer than two odometry messages on {odometry_topic!r}")
-    frames.sort(key=lambda f: f.t)
-    _check_increasing(np.array(stamps), Path(f"{path}[{odometry_topic}]"))
+    frames = sorted(got.frames, key=lambda f: f.t)
+    _check_increasing(np.array(got.stamps), Path(f"{path}[{odometry_topic}]"))
     _check_increasing(np.array([f.t for f in frames]), Path(f"{path}[{image_topic}]"))
-    arr = np.array(poses)
+    arr = np.array(got.poses)
     inc = between(arr[:-1], arr[1:])
-    odometry = [Odometry(float(t), increment=cast("tuple[float, float, float]", tuple(map(float, d))))
-                for t, d in zip(stamps[1:], inc)]
+    odometry = [
+        Odometry(float(t), increment=cast("tuple[float, float, float]", tuple(map(float, d))))
+        for t, d in zip(got.stamps[1:], inc)
+    ]
     gt = None
-    if gt_t:
-        _check_increasing(np.array(gt_t), Path(f"{path}[{groundtruth_topic}]"))
-        gt = (np.array(gt_t), np.array(gt_p, dtype=float))
+    if got.gt_t:
+        _check_increasing(np.array(got.gt_t), Path(f"{path}[{groundtruth_topic}]"))
+        gt = (np.array(got.gt_t), np.array(got.gt_p, dtype=float))
     return SensorDataset(odometry, frames, gt, path)
+
+
+@dataclass
+class _BagMessages:
+    """What :func:`read_rosbag` takes from a bag, in the bag's order: the decoded frames, the odometry poses
+    and the ground-truth poses (x, y, yaw) with their header stamps."""
+
+    frames: list[DecodedFrame] = field(default_factory=list)
+    stamps: list[float] = field(default_factory=list)
+    poses: list[tuple[float, float, float]] = field(default_factory=list)
+    gt_t: list[float] = field(default_factory=list)
+    gt_p: list[tuple[float, float, float]] = field(default_factory=list)
+
+
+def _read_topics(
+    reader: Any,
+    path: Path,
+    image_topic: str,
+    odometry_topic: str,
+    groundtruth_topic: str | None,
+    max_frames: int | None,
+) -> _BagMessages:
+    """The messages of the wanted topics from an open ``rosbags`` reader (the first ``max_frames`` images);
+    a missing topic or a topic of the wrong message type is an :class:`InputError`."""
+    got = _BagMessages()
+    topics = {c.topic: c for c in reader.connections}
+    wanted = (image_topic, odometry_topic) + ((groundtruth_topic,) if groundtruth_topic else ())
+    for topic in wanted:
+        if topic not in topics:
+            raise InputError(f"bag {path} has no topic {topic!r}; topics: {sorted(topics)}")
+    conns = [c for c in reader.connections if c.topic in wanted]
+    for conn, _, raw in reader.messages(connections=conns):
+        msg: Any = reader.deserialize(raw, conn.msgtype)  # a ROS message of conn.msgtype
+        t = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
+        if conn.topic == image_topic:
+            if max_frames is None or len(got.frames) < max_frames:
+                got.frames.append(DecodedFrame(t, _image(msg, conn.msgtype)))
+        elif conn.topic == groundtruth_topic:
+            if not conn.msgtype.endswith(("PoseStamped", "Odometry")):
+                raise InputError(
+                    f"ground-truth topic {groundtruth_topic!r} carries {conn.msgtype}, not "
+                    "geometry_msgs/PoseStamped or nav_msgs/Odometry"
+                )
+            p = msg.pose if conn.msgtype.endswith("PoseStamped") else msg.pose.pose
+            got.gt_t.append(t)
+            got.gt_p.append((p.position.x, p.position.y, _yaw(p.orientation)))
+        else:
+            if not conn.msgtype.endswith("Odometry"):
+                raise InputError(f"odometry topic {odometry_topic!r} carries {conn.msgtype}, not nav_msgs/Odometry")
+            p = msg.pose.pose
+            got.stamps.append(t)
+            got.poses.append((p.position.x, p.position.y, _yaw(p.orientation)))
+    return got

@@ -107,8 +107,9 @@ def groundtruth_csv(readings: list[Odometry]) -> str | None:
     return "\n".join(["t,x,y,theta", *(",".join(repr(float(v)) for v in r) for r in rows)]) + "\n"
 
 
-def write_data(inputs: Iterable[Input], put: Callable[[str, bytes], None],
-               config: dict[str, Any] | None = None) -> dict[str, int]:
+def write_data(
+    inputs: Iterable[Input], put: Callable[[str, bytes], None], config: dict[str, Any] | None = None
+) -> dict[str, int]:
     """Write ``inputs`` as a data folder through ``put(relative_name, content)``: each frame as
     it comes (``frames/NNNNNN.jpg|png``, the bytes as recorded), then ``frames.csv``,
     ``odometry.csv``, ``groundtruth.csv`` (when readings carried ``gt``) and ``config.json``
@@ -132,8 +133,11 @@ def write_data(inputs: Iterable[Input], put: Callable[[str, bytes], None],
         put("groundtruth.csv", gt.encode())
     if config is not None:
         put("config.json", json.dumps(config, indent=1).encode())
-    return {"odometry": len(readings), "frames": len(frame_rows) - 1, "groundtruth": 0 if gt is None else
-            gt.count("\n") - 1}
+    return {
+        "odometry": len(readings),
+        "frames": len(frame_rows) - 1,
+        "groundtruth": 0 if gt is None else gt.count("\n") - 1,
+    }
 
 
 def write_data_dir(folder: str | Path, inputs: Iterable[Input], config: dict[str, Any] | None = None) -> Path:
@@ -159,8 +163,9 @@ def _zip_put(zf: zipfile.ZipFile, root: str) -> Callable[[str, bytes], None]:
     return put
 
 
-def write_data_zip(target: str | Path | IO[bytes], inputs: Iterable[Input], root: str = "data",
-                   config: dict[str, Any] | None = None) -> dict[str, int]:
+def write_data_zip(
+    target: str | Path | IO[bytes], inputs: Iterable[Input], root: str = "data", config: dict[str, Any] | None = None
+) -> dict[str, int]:
     """:func:`write_data` into a zip file (a path or a writable binary file), every entry under
     the folder ``root`` (so unzipping gives a folder ``hippomap run`` reads). Returns the counts."""
     _check_root(root)
@@ -202,31 +207,39 @@ class _BagMessages:
 
     def header(self, t: float, frame_id: str) -> Any:
         sec, nsec = _stamp(t)
-        return self.T["std_msgs/msg/Header"](stamp=self.T["builtin_interfaces/msg/Time"](sec=sec, nanosec=nsec),
-                                             frame_id=frame_id)
+        return self.T["std_msgs/msg/Header"](
+            stamp=self.T["builtin_interfaces/msg/Time"](sec=sec, nanosec=nsec), frame_id=frame_id
+        )
 
     def pose(self, x: float, y: float, th: float) -> Any:
         T = self.T
         return T["geometry_msgs/msg/Pose"](
             position=T["geometry_msgs/msg/Point"](x=float(x), y=float(y), z=0.0),
-            orientation=T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=math.sin(th / 2), w=math.cos(th / 2)))
+            orientation=T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=math.sin(th / 2), w=math.cos(th / 2)),
+        )
 
     def odometry(self, t: float, pose: np.ndarray, v: float = 0.0, omega: float = 0.0) -> bytes:
         T = self.T
         vec = T["geometry_msgs/msg/Vector3"]
         msg = T["nav_msgs/msg/Odometry"](
-            header=self.header(t, "odom"), child_frame_id="base_link",
+            header=self.header(t, "odom"),
+            child_frame_id="base_link",
             pose=T["geometry_msgs/msg/PoseWithCovariance"](pose=self.pose(*pose), covariance=np.zeros(36)),
             twist=T["geometry_msgs/msg/TwistWithCovariance"](
-                twist=T["geometry_msgs/msg/Twist"](linear=vec(x=float(v), y=0.0, z=0.0),
-                                                   angular=vec(x=0.0, y=0.0, z=float(omega))),
-                covariance=np.zeros(36)))
+                twist=T["geometry_msgs/msg/Twist"](
+                    linear=vec(x=float(v), y=0.0, z=0.0), angular=vec(x=0.0, y=0.0, z=float(omega))
+                ),
+                covariance=np.zeros(36),
+            ),
+        )
         return bytes(self.ts.serialize_cdr(msg, "nav_msgs/msg/Odometry"))
 
     def image(self, frame: EncodedFrame) -> bytes:
         msg = self.T["sensor_msgs/msg/CompressedImage"](
-            header=self.header(frame.t, "camera"), format="png" if frame.extension == "png" else "jpeg",
-            data=np.frombuffer(frame.data, np.uint8))
+            header=self.header(frame.t, "camera"),
+            format="png" if frame.extension == "png" else "jpeg",
+            data=np.frombuffer(frame.data, np.uint8),
+        )
         return bytes(self.ts.serialize_cdr(msg, "sensor_msgs/msg/CompressedImage"))
 
     def groundtruth(self, t: float, pose: tuple[float, float, float]) -> bytes:
@@ -234,8 +247,13 @@ class _BagMessages:
         return bytes(self.ts.serialize_cdr(msg, "geometry_msgs/msg/PoseStamped"))
 
 
-def write_rosbag2(path: str | Path, inputs: Iterable[Input], image_topic: str = IMAGE_TOPIC,
-                  odom_topic: str = ODOM_TOPIC, groundtruth_topic: str = GROUNDTRUTH_TOPIC) -> dict[str, int]:
+def write_rosbag2(
+    path: str | Path,
+    inputs: Iterable[Input],
+    image_topic: str = IMAGE_TOPIC,
+    odom_topic: str = ODOM_TOPIC,
+    groundtruth_topic: str = GROUNDTRUTH_TOPIC,
+) -> dict[str, int]:
     """Write ``inputs`` as a ROS 2 bag (a new folder ``path``, SQLite storage). The odometry
     topic carries poses: the origin :data:`ORIGIN_LEAD_S` before the first reading, then the
     readings' increments (:func:`increments`) chained, so that the bag reader's increments
@@ -287,8 +305,9 @@ def zip_folder(folder: str | Path, target: str | Path | IO[bytes], root: str) ->
             zf.write(f, f"{root}/{f.relative_to(folder).as_posix()}")
 
 
-def write_rosbag2_zip(target: str | Path | IO[bytes], inputs: Iterable[Input], root: str = "bag",
-                      **topics: str) -> dict[str, int]:
+def write_rosbag2_zip(
+    target: str | Path | IO[bytes], inputs: Iterable[Input], root: str = "bag", **topics: str
+) -> dict[str, int]:
     """:func:`write_rosbag2` into a scratch folder, zipped under the folder name ``root``."""
     _check_root(root)
     with tempfile.TemporaryDirectory(prefix="hippomap-bag-") as tmp:

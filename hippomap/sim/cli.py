@@ -21,46 +21,98 @@ from .params import Camera, OdometryNoise, SimConfig, TextureParams
 
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
-    p = subparsers.add_parser("simulate", help="render a simulated camera run into a dataset folder",
-                              description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = subparsers.add_parser(
+        "simulate",
+        help="render a simulated camera run into a dataset folder",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     _arguments(p)
     p.set_defaults(func=run_command)
     return p
 
 
 def _arguments(p: argparse.ArgumentParser) -> None:
-    realistic = OdometryNoise.realistic()
-    p.add_argument("world", choices=["loop", "corridor", "bicocca"],
-                   help="loop: a 16 m x 10 m corridor loop; corridor: a straight corridor driven out and back; "
-                        "bicocca: walls along the real Bicocca run, driven as recorded")
+    """The options of ``hippomap simulate``, group by group in the order ``--help`` lists them."""
+    _world_arguments(p)
+    _camera_arguments(p)
+    _noise_arguments(p)
+    p.add_argument("--texture", default="procedural", help="'procedural' or a folder of photos (jpg/png)")
+    p.add_argument("--format", choices=["png", "jpg"], default="png", help="frame file format (default png)")
+    add_progress_argument(p)
+
+
+def _world_arguments(p: argparse.ArgumentParser) -> None:
+    """The world and the route: which world, where it goes, its seed, how long and how fast it is driven."""
+    p.add_argument(
+        "world",
+        choices=["loop", "corridor", "bicocca"],
+        help="loop: a 16 m x 10 m corridor loop; corridor: a straight corridor driven out and back; "
+        "bicocca: walls along the real Bicocca run, driven as recorded",
+    )
     p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--data", default="../shared/data/bicocca25b",
-                   help="Bicocca data folder for the bicocca world (default ../shared/data/bicocca25b, "
-                        "relative to the current directory)")
+    p.add_argument(
+        "--data",
+        default="../shared/data/bicocca25b",
+        help="Bicocca data folder for the bicocca world (default ../shared/data/bicocca25b, "
+        "relative to the current directory)",
+    )
     p.add_argument("--seed", type=int, default=0, help="seed of the world (textures, route jitter) and of the noise")
-    p.add_argument("--laps", type=int, default=3,
-                   help="loop: laps, corridor: passes (default 3; the bicocca world drives the recorded run once)")
-    p.add_argument("--rate", type=float, default=5.0,
-                   help="odometry rate in Hz (default 5; the bicocca world keeps the recorded times)")
+    p.add_argument(
+        "--laps",
+        type=int,
+        default=3,
+        help="loop: laps, corridor: passes (default 3; the bicocca world drives the recorded run once)",
+    )
+    p.add_argument(
+        "--rate",
+        type=float,
+        default=5.0,
+        help="odometry rate in Hz (default 5; the bicocca world keeps the recorded times)",
+    )
+
+
+def _camera_arguments(p: argparse.ArgumentParser) -> None:
+    """The camera: how often it renders, its image size, field of view and sensor noise."""
     p.add_argument("--frame-every", type=int, default=1, help="render a frame every N odometry steps (default 1)")
     p.add_argument("--width", type=int, default=320, help="frame width in pixels (default 320)")
     p.add_argument("--height", type=int, default=240, help="frame height in pixels (default 240)")
     p.add_argument("--hfov", type=float, default=60.0, help="horizontal field of view, degrees (default 60)")
     p.add_argument("--pixel-noise", type=float, default=0.0, help="sensor noise std, grey levels (default 0)")
-    p.add_argument("--sigma-v", type=float, default=None,
-                   help=f"odometry speed noise std, m/s (default {realistic.sigma_v}; bicocca 0)")
-    p.add_argument("--sigma-omega", type=float, default=None,
-                   help=f"odometry turn-rate noise std, rad/s (default {realistic.sigma_omega}; bicocca 0)")
-    p.add_argument("--omega-bias", type=float, default=None,
-                   help=f"constant turn-rate bias, rad/s: the heading drifts by this much per second "
-                        f"(default {realistic.omega_bias}; bicocca 0)")
-    p.add_argument("--scale-error", type=float, default=None,
-                   help=f"odometry distance scale error, a fraction (default {realistic.scale_error})")
-    p.add_argument("--no-noise", action="store_true",
-                   help="exact odometry: every noise option 0 unless given explicitly")
-    p.add_argument("--texture", default="procedural", help="'procedural' or a folder of photos (jpg/png)")
-    p.add_argument("--format", choices=["png", "jpg"], default="png", help="frame file format (default png)")
-    add_progress_argument(p)
+
+
+def _noise_arguments(p: argparse.ArgumentParser) -> None:
+    """The odometry noise (:class:`OdometryNoise`): each option defaults to the realistic noise, or none with
+    ``--no-noise`` (see :func:`odometry_noise`)."""
+    realistic = OdometryNoise.realistic()
+    p.add_argument(
+        "--sigma-v",
+        type=float,
+        default=None,
+        help=f"odometry speed noise std, m/s (default {realistic.sigma_v}; bicocca 0)",
+    )
+    p.add_argument(
+        "--sigma-omega",
+        type=float,
+        default=None,
+        help=f"odometry turn-rate noise std, rad/s (default {realistic.sigma_omega}; bicocca 0)",
+    )
+    p.add_argument(
+        "--omega-bias",
+        type=float,
+        default=None,
+        help=f"constant turn-rate bias, rad/s: the heading drifts by this much per second "
+        f"(default {realistic.omega_bias}; bicocca 0)",
+    )
+    p.add_argument(
+        "--scale-error",
+        type=float,
+        default=None,
+        help=f"odometry distance scale error, a fraction (default {realistic.scale_error})",
+    )
+    p.add_argument(
+        "--no-noise", action="store_true", help="exact odometry: every noise option 0 unless given explicitly"
+    )
 
 
 def odometry_noise(args: argparse.Namespace) -> OdometryNoise:
@@ -85,22 +137,32 @@ def run_command(args) -> int:
     config = SimConfig(
         camera=Camera(width=args.width, height=args.height, hfov_deg=args.hfov, pixel_noise=args.pixel_noise),
         odometry_noise=odometry_noise(args),
-        rate_hz=args.rate, frame_every=args.frame_every, seed=args.seed, image_format=args.format,
+        rate_hz=args.rate,
+        frame_every=args.frame_every,
+        seed=args.seed,
+        image_format=args.format,
     )
     run = simulate(world, config=config)
     out = run.write(args.out, progress=progress_enabled(args))
     n = config.odometry_noise
-    print(f"{out}: {len(run)} odometry steps, {run.n_frames} frames ({world.name} world); odometry noise: "
-          + ("none" if n.is_zero else f"sigma_v {n.sigma_v} m/s, sigma_omega {n.sigma_omega} rad/s, "
-             f"omega_bias {n.omega_bias} rad/s, scale_error {n.scale_error}"))
+    print(
+        f"{out}: {len(run)} odometry steps, {run.n_frames} frames ({world.name} world); odometry noise: "
+        + (
+            "none"
+            if n.is_zero
+            else f"sigma_v {n.sigma_v} m/s, sigma_omega {n.sigma_omega} rad/s, "
+            f"omega_bias {n.omega_bias} rad/s, scale_error {n.scale_error}"
+        )
+    )
     return 0
 
 
 def main(argv=None) -> int:
     from ..errors import HippomapError
 
-    p = argparse.ArgumentParser(prog="python -m hippomap.sim", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        prog="python -m hippomap.sim", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     _arguments(p)
     clean_help(p)
     args = p.parse_args(argv)

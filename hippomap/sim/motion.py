@@ -85,8 +85,9 @@ class Trajectory:
             if a.shape != (len(t) - 1, cols):
                 raise InputError(f"trajectory {name} must be ({len(t) - 1}, {cols}), got {a.shape}")
             if not np.isfinite(a).all():
-                raise InputError(f"trajectory {name} row {int(np.flatnonzero(~np.isfinite(a).all(1))[0])} "
-                                 "is not finite")
+                raise InputError(
+                    f"trajectory {name} row {int(np.flatnonzero(~np.isfinite(a).all(1))[0])} is not finite"
+                )
             object.__setattr__(self, name, a)
 
     def __len__(self) -> int:
@@ -163,8 +164,9 @@ class RoutePlan:
         if not (isinstance(self.laps, int) and self.laps >= 1):
             raise InputError(f"RoutePlan.laps = {self.laps!r} must be an integer >= 1")
         if not (0 <= self.speed_jitter < 1) or not self.lateral_jitter_m >= 0:
-            raise InputError("RoutePlan jitters must be >= 0 (speed_jitter < 1), "
-                             f"got {self.lateral_jitter_m}, {self.speed_jitter}")
+            raise InputError(
+                f"RoutePlan jitters must be >= 0 (speed_jitter < 1), got {self.lateral_jitter_m}, {self.speed_jitter}"
+            )
 
     def path(self, spacing: float = 0.05) -> np.ndarray:
         """The route as driven (all laps, jitter applied), resampled every ``spacing`` m."""
@@ -226,8 +228,9 @@ class RoutePlan:
             v = min(v, remaining / dt)
             inc = arc_increments(v, w, dt)[0]
             c, s_ = np.cos(pose[2]), np.sin(pose[2])
-            pose = np.array([pose[0] + c * inc[0] - s_ * inc[1], pose[1] + s_ * inc[0] + c * inc[1],
-                             wrap_angle(pose[2] + inc[2])])
+            pose = np.array(
+                [pose[0] + c * inc[0] - s_ * inc[1], pose[1] + s_ * inc[0] + c * inc[1], wrap_angle(pose[2] + inc[2])]
+            )
             vs.append(v)
             ws.append(w)
             if remaining < 0.05:

@@ -172,8 +172,9 @@ def _ceiling(img: np.ndarray, yv: np.ndarray, world: World, camera: Camera, shad
         img[above] = shading.ceiling_level * (shading.fog_floor + (1 - shading.fog_floor) / (1 + zc / shading.fog_m))
 
 
-def _floor(img: np.ndarray, yv: np.ndarray, pose: np.ndarray, hits: Hits, world: World, camera: Camera,
-           shading: Shading) -> None:
+def _floor(
+    img: np.ndarray, yv: np.ndarray, pose: np.ndarray, hits: Hits, world: World, camera: Camera, shading: Shading
+) -> None:
     """The rows below the horizon: world-anchored floor tiles, each with a seeded shade, fading with distance."""
     below = np.flatnonzero(yv[:, 0] <= 0)
     if not below.size:
@@ -212,8 +213,9 @@ def _wall_gain(hits: Hits, dz: np.ndarray, world: World, shading: Shading) -> np
     return (((1 - shading.directional) + shading.directional * lam) * fog_w).astype(np.float32)
 
 
-def _walls(img: np.ndarray, yv: np.ndarray, hits: Hits, dz: np.ndarray, world: World, camera: Camera,
-           shading: Shading) -> None:
+def _walls(
+    img: np.ndarray, yv: np.ndarray, hits: Hits, dz: np.ndarray, world: World, camera: Camera, shading: Shading
+) -> None:
     """The walls over the background: in each column that hits one, the texture row of every pixel is affine in
     the row index; pixels between floor and wall top take the texel (at the column's mip level) times its gain."""
     hit = np.isfinite(hits.depth)
@@ -224,8 +226,10 @@ def _walls(img: np.ndarray, yv: np.ndarray, hits: Hits, dz: np.ndarray, world: W
     level = _mip_levels(hits, dz, world, camera)
     gain = _wall_gain(hits, dz, world, shading)
     cols = np.flatnonzero(hit)
-    trow = (np.float32((world.texture.wall_height_m - camera.mount_height_m) * tpm)
-            - yv * (dz[cols] * tpm).astype(np.float32)[None, :])  # (H, C)
+    trow = (
+        np.float32((world.texture.wall_height_m - camera.mount_height_m) * tpm)
+        - yv * (dz[cols] * tpm).astype(np.float32)[None, :]
+    )  # (H, C)
     wall = (trow >= 0) & (trow <= atlas.rows[0])
     lv = level[cols]
     sc = atlas.scales[lv].astype(np.float32)

@@ -108,8 +108,14 @@ class SimRun:
             "world": self.world.name,
             "world_seed": self.world.seed,
             "config": asdict(self.config),
-            "intrinsics": {"fx": cam.focal_px, "fy": cam.focal_px, "cx": cam.cx, "cy": cam.cy,
-                           "width": cam.width, "height": cam.height},
+            "intrinsics": {
+                "fx": cam.focal_px,
+                "fy": cam.focal_px,
+                "cx": cam.cx,
+                "cy": cam.cy,
+                "width": cam.width,
+                "height": cam.height,
+            },
             "odometry_convention": "row i: constant v, omega from t[i-1] to t[i]; row 0 is zero",
         }
         (folder / "sim.json").write_text(json.dumps(meta, indent=2))

@@ -114,8 +114,9 @@ def _draw_poster(img, rng, x0, y0, x1, y1, bg_level):
         for i in range(nx):
             for j in range(ny):
                 if (i + j) % 2 == 0 or rng.random() < 0.3:
-                    cv2.rectangle(img, (xs[i], ys[j]), (xs[i + 1] - 1, ys[j + 1] - 1),
-                                  ink if (i + j) % 2 else other, -1)
+                    cv2.rectangle(
+                        img, (xs[i], ys[j]), (xs[i + 1] - 1, ys[j + 1] - 1), ink if (i + j) % 2 else other, -1
+                    )
     elif kind == 2:  # picture: a few overlapping rectangles
         for _ in range(int(rng.integers(2, 6))):
             ax, bx = sorted(rng.integers(ix0, ix0 + w, 2))
@@ -152,8 +153,12 @@ def procedural_strip(length_m: float, params, seed: int = 0) -> np.ndarray:
     if not np.isfinite(length_m) or length_m <= 0:
         raise InputError(f"texture strip length {length_m!r} m must be finite and > 0")
     rng = np.random.default_rng(seed)
-    wall = _Wall(rows=params.rows, width=max(4, int(np.ceil(length_m * params.texels_per_m)) + 2),
-                 tpm=params.texels_per_m, height_m=params.wall_height_m)
+    wall = _Wall(
+        rows=params.rows,
+        width=max(4, int(np.ceil(length_m * params.texels_per_m)) + 2),
+        tpm=params.texels_per_m,
+        height_m=params.wall_height_m,
+    )
     img, edges, panel, levels = _panels(rng, wall, length_m)
     _panel_seams(img, rng, wall, edges, panel, levels)
     _skirting_and_rail(img, rng, wall)
@@ -192,13 +197,19 @@ def _panels(rng: np.random.Generator, wall: _Wall, length_m: float):
     return np.clip(img, 0, 255).astype(np.uint8), edges, panel, levels
 
 
-def _panel_seams(img: np.ndarray, rng: np.random.Generator, wall: _Wall, edges: np.ndarray, panel: np.ndarray,
-                 levels: np.ndarray) -> None:
+def _panel_seams(
+    img: np.ndarray, rng: np.random.Generator, wall: _Wall, edges: np.ndarray, panel: np.ndarray, levels: np.ndarray
+) -> None:
     """Thin dark or bright vertical lines at most panel edges."""
     for e in edges[1:-1]:
         if e < wall.width - 2 and rng.random() < 0.7:
-            cv2.rectangle(img, (int(e), 0), (int(e) + 1, wall.rows - 1),
-                          _contrasting(rng, levels[min(len(levels) - 1, panel[e])]), -1)
+            cv2.rectangle(
+                img,
+                (int(e), 0),
+                (int(e) + 1, wall.rows - 1),
+                _contrasting(rng, levels[min(len(levels) - 1, panel[e])]),
+                -1,
+            )
 
 
 def _skirting_and_rail(img: np.ndarray, rng: np.random.Generator, wall: _Wall) -> None:
@@ -211,8 +222,13 @@ def _skirting_and_rail(img: np.ndarray, rng: np.random.Generator, wall: _Wall) -
     while x < wall.width:
         run = int(rng.uniform(2, 8) * wall.tpm)
         if rng.random() < 0.4:
-            cv2.rectangle(img, (x, rail), (min(wall.width - 1, x + run), rail + max(1, int(0.03 * wall.tpm))),
-                          _contrasting(rng, 128), -1)
+            cv2.rectangle(
+                img,
+                (x, rail),
+                (min(wall.width - 1, x + run), rail + max(1, int(0.03 * wall.tpm))),
+                _contrasting(rng, 128),
+                -1,
+            )
         x += run
 
 

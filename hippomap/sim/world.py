@@ -93,8 +93,9 @@ class World:
         if seg.ndim != 2 or seg.shape[1] != 4 or len(seg) == 0:
             raise InputError(f"world segments must be (S, 4) with S >= 1, got shape {seg.shape}")
         if not np.isfinite(seg).all():
-            raise InputError(f"world segment {int(np.flatnonzero(~np.isfinite(seg).all(1))[0])} "
-                             "has a non-finite coordinate")
+            raise InputError(
+                f"world segment {int(np.flatnonzero(~np.isfinite(seg).all(1))[0])} has a non-finite coordinate"
+            )
         self.segments = seg
         self.u0 = np.asarray(self.u0, dtype=float).reshape(-1)
         if self.u0.shape != (len(seg),):

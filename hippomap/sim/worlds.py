@@ -38,8 +38,14 @@ def loop_world(
     outer = _rect(-h, -h, sx + h, sy + h)
     inner = _rect(h, h, sx - h, sy - h)
     way = [(sx / 2, 0.0), (sx, 0.0), (sx, sy), (0.0, sy), (0.0, 0.0)]
-    route = RoutePlan(tuple(way), closed=True, laps=laps, speed_mps=speed_mps,
-                      lateral_jitter_m=min(0.12, 0.1 * corridor_width), seed=seed)
+    route = RoutePlan(
+        tuple(way),
+        closed=True,
+        laps=laps,
+        speed_mps=speed_mps,
+        lateral_jitter_m=min(0.12, 0.1 * corridor_width),
+        seed=seed,
+    )
     return World.from_polylines([outer, inner], name="loop", texture=texture, seed=seed, route=route)
 
 
@@ -57,8 +63,14 @@ def corridor_world(
     if not (length > 4 and h > 0.4):
         raise InputError(f"corridor length {length} must be > 4 m and width {width} > 0.8 m")
     walls = _rect(-2.0, -h, length + 2.0, h)
-    route = RoutePlan(((0.0, 0.0), (length, 0.0)), closed=False, laps=passes, speed_mps=speed_mps,
-                      lateral_jitter_m=min(0.1, 0.1 * width), seed=seed)
+    route = RoutePlan(
+        ((0.0, 0.0), (length, 0.0)),
+        closed=False,
+        laps=passes,
+        speed_mps=speed_mps,
+        lateral_jitter_m=min(0.1, 0.1 * width),
+        seed=seed,
+    )
     return World.from_polylines([walls], name="corridor", texture=texture, seed=seed, route=route)
 
 
@@ -66,8 +78,10 @@ def interpolate_poses(t_query, t, poses) -> np.ndarray:
     """Poses (M, 3) at times ``t`` linearly interpolated at ``t_query`` (headings
     through their unwrapped values). Times outside [t0, t_end] are clamped."""
     th = np.unwrap(poses[:, 2])
-    out = np.stack([np.interp(t_query, t, poses[:, 0]), np.interp(t_query, t, poses[:, 1]),
-                    wrap_angle(np.interp(t_query, t, th))], axis=1)
+    out = np.stack(
+        [np.interp(t_query, t, poses[:, 0]), np.interp(t_query, t, poses[:, 1]), wrap_angle(np.interp(t_query, t, th))],
+        axis=1,
+    )
     return out
 
 
@@ -110,8 +124,16 @@ def bicocca_world(
     return World.from_polylines(polys, name="bicocca25b", texture=texture, seed=seed, route=traj)
 
 
-def path_world(path_xy, *, half_width_m: float = 1.2, resolution_m: float = 0.1, seed: int = 0,
-               texture: TextureParams | None = None, route=None, name: str = "path") -> World:
+def path_world(
+    path_xy,
+    *,
+    half_width_m: float = 1.2,
+    resolution_m: float = 0.1,
+    seed: int = 0,
+    texture: TextureParams | None = None,
+    route=None,
+    name: str = "path",
+) -> World:
     """Walls around any 2-D path (as for Bicocca), e.g. a synthetic one."""
     polys = walls_around_path(path_xy, half_width_m=half_width_m, resolution_m=resolution_m)
     return World.from_polylines(polys, name=name, texture=texture, seed=seed, route=route)

@@ -57,8 +57,15 @@ def _pick_steps(steps: tuple[IterationStep, ...], max_steps: int) -> list[Iterat
     return list(steps[: max_steps - 1]) + [steps[-1]]
 
 
-def place_field_figure(record: IterationRecord, *, max_steps: int = 8, view_m: float | None = 0.1,
-                       title: str | None = None, dpi: int = 90, vertical: bool = False) -> np.ndarray:
+def place_field_figure(
+    record: IterationRecord,
+    *,
+    max_steps: int = 8,
+    view_m: float | None = 0.1,
+    title: str | None = None,
+    dpi: int = 90,
+    vertical: bool = False,
+) -> np.ndarray:
     """Draw ``record`` as an RGB uint8 image (see module doc).
 
     ``view_m`` is the side of the square drawn around the field (None: the whole coding area). The
@@ -118,8 +125,9 @@ class _Panels:
     resolution: float
 
     @classmethod
-    def layout(cls, record: IterationRecord, window: tuple[int, int, int, int], cols: int, dpi: int,
-               vertical: bool) -> "_Panels":
+    def layout(
+        cls, record: IterationRecord, window: tuple[int, int, int, int], cols: int, dpi: int, vertical: bool
+    ) -> "_Panels":
         """The figure with its grid: products across (MB row over POS row), or downwards when ``vertical``."""
         from matplotlib.backends.backend_agg import FigureCanvasAgg
         from matplotlib.figure import Figure
@@ -127,12 +135,30 @@ class _Panels:
         if vertical:
             height = 2.05 * cols + 2.2
             fig = Figure(figsize=(5.4, height), dpi=dpi, facecolor="white")
-            gs = fig.add_gridspec(cols, 3, width_ratios=[1.0, 1.0, 0.07], wspace=0.5, hspace=0.55,
-                                  left=0.12, right=0.86, top=1.0 - 1.45 / height, bottom=0.85 / height)
+            gs = fig.add_gridspec(
+                cols,
+                3,
+                width_ratios=[1.0, 1.0, 0.07],
+                wspace=0.5,
+                hspace=0.55,
+                left=0.12,
+                right=0.86,
+                top=1.0 - 1.45 / height,
+                bottom=0.85 / height,
+            )
         else:
             fig = Figure(figsize=(2.35 * cols + 0.9, 5.6), dpi=dpi, facecolor="white")
-            gs = fig.add_gridspec(2, cols + 1, width_ratios=[1.0] * cols + [0.07], wspace=0.38, hspace=0.42,
-                                  left=0.045, right=0.955, top=0.84, bottom=0.15)
+            gs = fig.add_gridspec(
+                2,
+                cols + 1,
+                width_ratios=[1.0] * cols + [0.07],
+                wspace=0.38,
+                hspace=0.42,
+                left=0.045,
+                right=0.955,
+                top=0.84,
+                bottom=0.15,
+            )
         FigureCanvasAgg(fig)
         return cls(fig, gs, cols, vertical, window, record.size, record.resolution)
 
@@ -182,35 +208,53 @@ class _Panels:
         ax.set_ylabel("y (m)", fontsize=7, labelpad=1)
 
 
-def _draw_product(panels: _Panels, record: IterationRecord, grid: GridCells, j: int, s: IterationStep,
-                  k: int) -> None:
+def _draw_product(panels: _Panels, record: IterationRecord, grid: GridCells, j: int, s: IterationStep, k: int) -> None:
     """Column ``j``: the ``k``-th applied cell's MB_n (top, with its module's spacing and orientation from
     ``grid``) and POS after its product (bottom), the last ones ringed when too few to see."""
     from matplotlib.colors import ListedColormap
 
     N, res = record.size, record.resolution
     ax = panels.add(0, j)
-    ax.imshow(_pool_any(record.window_matrix(s)[panels.crop], panels.pool), origin="lower", extent=panels.extent,
-              cmap=ListedColormap([_OFF, _ON]), vmin=0, vmax=1, interpolation="nearest")
-    ax.set_title(f"MB of cell {s.cell}  (#{k})\nλ={100 * grid.spacing[s.cell]:.2f} cm, "
-                 f"θ={np.degrees(grid.orientation[s.cell]) % 360:.0f}°", fontsize=7.5)
+    ax.imshow(
+        _pool_any(record.window_matrix(s)[panels.crop], panels.pool),
+        origin="lower",
+        extent=panels.extent,
+        cmap=ListedColormap([_OFF, _ON]),
+        vmin=0,
+        vmax=1,
+        interpolation="nearest",
+    )
+    ax.set_title(
+        f"MB of cell {s.cell}  (#{k})\nλ={100 * grid.spacing[s.cell]:.2f} cm, "
+        f"θ={np.degrees(grid.orientation[s.cell]) % 360:.0f}°",
+        fontsize=7.5,
+    )
     panels.frame(ax)
     ax = panels.add(1, j)
     pos = record.position_matrix(s)
-    ax.imshow(_pool_any(pos[panels.crop], panels.pool), origin="lower", extent=panels.extent,
-              cmap=ListedColormap([_OFF, _POS_ON]), vmin=0, vmax=1, interpolation="nearest")
+    ax.imshow(
+        _pool_any(pos[panels.crop], panels.pool),
+        origin="lower",
+        extent=panels.extent,
+        cmap=ListedColormap([_OFF, _POS_ON]),
+        vmin=0,
+        vmax=1,
+        interpolation="nearest",
+    )
     n_ones = int(s.position.size)
     if n_ones <= 400:  # too few to see at this scale: ring them
         a0, b0, a1, b1 = panels.window
         iy, ix = np.divmod(s.position, N)
         inside = (ix >= a0) & (ix < a1) & (iy >= b0) & (iy < b1)
         iy, ix = iy[inside], ix[inside]
-        ax.scatter((ix + 0.5) * res, (iy + 0.5) * res, s=60, facecolors="none", edgecolors="#ff3c78",
-                   linewidths=1.0)
+        ax.scatter((ix + 0.5) * res, (iy + 0.5) * res, s=60, facecolors="none", edgecolors="#ff3c78", linewidths=1.0)
     sx, sy = s.variance
-    ax.set_title(f"POS after {k} product{'s' if k > 1 else ''}\n{n_ones} one{'s' if n_ones != 1 else ''}"
-                 + (f", S={1e4 * max(sx, sy):.3g} cm²" if n_ones <= 5000 else ""), fontsize=7.5,
-                 color="#b4005a" if s.single else "black")
+    ax.set_title(
+        f"POS after {k} product{'s' if k > 1 else ''}\n{n_ones} one{'s' if n_ones != 1 else ''}"
+        + (f", S={1e4 * max(sx, sy):.3g} cm²" if n_ones <= 5000 else ""),
+        fontsize=7.5,
+        color="#b4005a" if s.single else "black",
+    )
     panels.frame(ax)
 
 
@@ -218,8 +262,15 @@ def _draw_agreement(panels: _Panels, record: IterationRecord, n_applied: int) ->
     """Right column, top: the agreement map with its colour scale. Returns the full (N, N) map."""
     ax = panels.add(0, panels.cols - 1)
     ag = record.agreement()
-    im_ag = ax.imshow(_pool_max(ag[panels.crop], panels.pool), origin="lower", extent=panels.extent, cmap="inferno",
-                      vmin=0.0, vmax=1.0, interpolation="nearest")
+    im_ag = ax.imshow(
+        _pool_max(ag[panels.crop], panels.pool),
+        origin="lower",
+        extent=panels.extent,
+        cmap="inferno",
+        vmin=0.0,
+        vmax=1.0,
+        interpolation="nearest",
+    )
     ax.set_title(f"agreement of the {n_applied} cells\n(1 = every window passes)", fontsize=7.5)
     panels.frame(ax)
     cax = panels.add(0, panels.cols)
@@ -235,8 +286,15 @@ def _draw_field_zoom(panels: _Panels, record: IterationRecord, ag: np.ndarray) -
     ax = panels.add(1, panels.cols - 1)
     f = record.field
     if f is None:
-        ax.text(0.5, 0.5, "no single field\n(the cells ran out)", ha="center", va="center", fontsize=9,
-                transform=ax.transAxes)
+        ax.text(
+            0.5,
+            0.5,
+            "no single field\n(the cells ran out)",
+            ha="center",
+            va="center",
+            fontsize=9,
+            transform=ax.transAxes,
+        )
         ax.set_axis_off()
         return
     N, res = record.size, record.resolution
@@ -246,13 +304,21 @@ def _draw_field_zoom(panels: _Panels, record: IterationRecord, ag: np.ndarray) -
     x1 = int(np.clip(np.ceil((cx + half) / res) + 1, 1, N))
     y0 = int(np.clip(np.floor((cy - half) / res), 0, N - 1))
     y1 = int(np.clip(np.ceil((cy + half) / res) + 1, 1, N))
-    ax.imshow(ag[y0:y1, x0:x1], origin="lower", extent=(x0 * res, x1 * res, y0 * res, y1 * res), cmap="inferno",
-              vmin=0.0, vmax=1.0, interpolation="nearest")
+    ax.imshow(
+        ag[y0:y1, x0:x1],
+        origin="lower",
+        extent=(x0 * res, x1 * res, y0 * res, y1 * res),
+        cmap="inferno",
+        vmin=0.0,
+        vmax=1.0,
+        interpolation="nearest",
+    )
     iy, ix = np.divmod(f.indices, N)
     ax.scatter((ix + 0.5) * res, (iy + 0.5) * res, s=14, c=_POS_ON, marker="s", linewidths=0)
     ax.plot([cx + 0.5 * res], [cy + 0.5 * res], "+", color="#ff3c78", ms=12, mew=1.6)
-    ax.set_title(f"place field: {len(f)} point{'s' if len(f) != 1 else ''}\n"
-                 f"centre ({cx:.4f}, {cy:.4f}) m", fontsize=7.5)
+    ax.set_title(
+        f"place field: {len(f)} point{'s' if len(f) != 1 else ''}\ncentre ({cx:.4f}, {cy:.4f}) m", fontsize=7.5
+    )
     panels.frame(ax, zoom=True)
 
 
@@ -261,13 +327,20 @@ def _draw_key(panels: _Panels) -> None:
     from matplotlib.lines import Line2D
     from matplotlib.patches import Patch
 
-    panels.fig.legend(handles=[Patch(facecolor=_OFF, edgecolor="grey", label="0"),
-                               Patch(facecolor=_ON, edgecolor="grey", label="MB = 1 (inside the cell's window)"),
-                               Patch(facecolor=_POS_ON, edgecolor="grey", label="POS = 1 (inside every window so far)"),
-                               Line2D([], [], marker="o", ls="", mfc="none", mec="#ff3c78", label="last ones (ringed)"),
-                               Line2D([], [], marker="+", ls="", color="#ff3c78", label="field centroid")],
-                      loc="lower center", ncol=2 if panels.vertical else 5, fontsize=7.5, frameon=False,
-                      bbox_to_anchor=(0.5, 0.0))
+    panels.fig.legend(
+        handles=[
+            Patch(facecolor=_OFF, edgecolor="grey", label="0"),
+            Patch(facecolor=_ON, edgecolor="grey", label="MB = 1 (inside the cell's window)"),
+            Patch(facecolor=_POS_ON, edgecolor="grey", label="POS = 1 (inside every window so far)"),
+            Line2D([], [], marker="o", ls="", mfc="none", mec="#ff3c78", label="last ones (ringed)"),
+            Line2D([], [], marker="+", ls="", color="#ff3c78", label="field centroid"),
+        ],
+        loc="lower center",
+        ncol=2 if panels.vertical else 5,
+        fontsize=7.5,
+        frameon=False,
+        bbox_to_anchor=(0.5, 0.0),
+    )
 
 
 def _heading(record: IterationRecord, panels: _Panels, n_shown: int, title: str | None) -> str:
@@ -278,9 +351,11 @@ def _heading(record: IterationRecord, panels: _Panels, n_shown: int, title: str 
     res = record.resolution
     L = (record.size - 1) * res
     head = title or "Place cells: grid-cell windows multiplied until one field remains (Eq. 9-10, Fig. 8)"
-    sub = (f"{n_applied} products, {skipped} skipped · window ΔT = {record.cfg.window:g} g_max · "
-           f"T_s = {1e4 * record.cfg.variance_threshold_m2:g} cm² · coding area {L:.2f} m × {L:.2f} m, "
-           f"δ = {100 * res:g} cm")
+    sub = (
+        f"{n_applied} products, {skipped} skipped · window ΔT = {record.cfg.window:g} g_max · "
+        f"T_s = {1e4 * record.cfg.variance_threshold_m2:g} cm² · coding area {L:.2f} m × {L:.2f} m, "
+        f"δ = {100 * res:g} cm"
+    )
     if not panels.whole:
         a0, b0, a1, b1 = panels.window
         sub += f" · panels show {100 * (a1 - a0) * res:.0f} cm × {100 * (b1 - b0) * res:.0f} cm around the field"

@@ -21,8 +21,10 @@ SessionId = Annotated[str, Path(description="session id")]  # any other string i
 ERRORS: dict[int | str, dict[str, Any]] = {
     401: {"description": "missing or unknown bearer token"},
     404: {"description": "no such session, or one this token may not see"},
-    429: {"description": "rate limit exceeded (see Retry-After): the session's ingest budget, or for queries the "
-                         "token's read budget on the session"},
+    429: {
+        "description": "rate limit exceeded (see Retry-After): the session's ingest budget, or for queries the "
+        "token's read budget on the session"
+    },
 }
 WRITE_ERRORS: dict[int | str, dict[str, Any]] = {**ERRORS, 403: {"description": "read-only (viewer) token"}}
 
@@ -39,12 +41,14 @@ def settings(request: Request) -> ServerSettings:
     return request.app.state.settings
 
 
-def token(request: Request,
-          credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(bearer)] = None,
-          query_token: Annotated[str | None, Query(
-              alias="token",
-              description="token for browsers (GET only; one longer than 512 characters is unknown)")] = None,
-          ) -> TokenRecord:
+def token(
+    request: Request,
+    credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(bearer)] = None,
+    query_token: Annotated[
+        str | None,
+        Query(alias="token", description="token for browsers (GET only; one longer than 512 characters is unknown)"),
+    ] = None,
+) -> TokenRecord:
     """The caller's token, from ``Authorization: Bearer`` (or ``?token=`` on GET requests)."""
     auth: Authenticator = request.app.state.auth
     secret = credentials.credentials if credentials is not None else None
@@ -73,8 +77,9 @@ def _session(request: Request, tok: TokenRecord, session_id: str, write: bool) -
         wait, what = limits.take((live.id, tok.id)), f"read rate limit of {limits.rate:g}/s (per token)"
     if wait > 0:
         live.rejected[429] += 1
-        raise HTTPException(429, f"{what} exceeded for session {session_id}",
-                            headers={"Retry-After": str(max(1, math.ceil(wait)))})
+        raise HTTPException(
+            429, f"{what} exceeded for session {session_id}", headers={"Retry-After": str(max(1, math.ceil(wait)))}
+        )
     return live
 
 

@@ -69,11 +69,15 @@ def content_security_policy(page: str) -> str:
     (both UIs inject them), images from here or ``data:``, ReDoc's search worker from ``blob:``. The
     browser then cannot reach any other host, whatever the bundles name (ReDoc's sidebar logo is an
     image on a CDN: refused, it hides itself)."""
-    hashes = " ".join(f"'sha256-{base64.b64encode(hashlib.sha256(body.encode()).digest()).decode()}'"
-                      for body in _INLINE_SCRIPT.findall(page))
-    return ("default-src 'self'; " f"script-src 'self' {hashes}".rstrip() + "; style-src 'self' 'unsafe-inline'; "
-            "img-src 'self' data:; font-src 'self' data:; worker-src 'self' blob:; connect-src 'self'; "
-            "object-src 'none'; base-uri 'self'; form-action 'self'; frame-ancestors 'self'")
+    hashes = " ".join(
+        f"'sha256-{base64.b64encode(hashlib.sha256(body.encode()).digest()).decode()}'"
+        for body in _INLINE_SCRIPT.findall(page)
+    )
+    return (
+        f"default-src 'self'; script-src 'self' {hashes}".rstrip() + "; style-src 'self' 'unsafe-inline'; "
+        "img-src 'self' data:; font-src 'self' data:; worker-src 'self' blob:; connect-src 'self'; "
+        "object-src 'none'; base-uri 'self'; form-action 'self'; frame-ancestors 'self'"
+    )
 
 
 def _confined(response: HTMLResponse) -> HTMLResponse:
@@ -95,8 +99,10 @@ def mount_docs(app: FastAPI, assets_dir: Path = ASSETS_DIR) -> None:
         raise RuntimeError("create the app with docs_url=None and redoc_url=None: mount_docs serves both pages")
     missing = _missing_assets(assets_dir)
     if missing:
-        raise RuntimeError(f"the offline API-docs assets {missing} are missing from {assets_dir}: "
-                           "pip install 'hippomap[server]' (it installs fastapi-offline)")
+        raise RuntimeError(
+            f"the offline API-docs assets {missing} are missing from {assets_dir}: "
+            "pip install 'hippomap[server]' (it installs fastapi-offline)"
+        )
     app.mount(ASSETS_URL, StaticFiles(directory=assets_dir), name="docs-assets")
     oauth2_redirect = "/docs/oauth2-redirect"
 
@@ -106,13 +112,17 @@ def mount_docs(app: FastAPI, assets_dir: Path = ASSETS_DIR) -> None:
     @app.get("/docs", include_in_schema=False)
     async def swagger_ui(request: Request) -> HTMLResponse:
         base = root(request)
-        return _confined(get_swagger_ui_html(
-            openapi_url=f"{base}{app.openapi_url}", title=f"{app.title} - API docs",
-            oauth2_redirect_url=f"{base}{oauth2_redirect}",
-            swagger_js_url=f"{base}{ASSETS_URL}/swagger-ui-bundle.js",
-            swagger_css_url=f"{base}{ASSETS_URL}/swagger-ui.css",
-            swagger_favicon_url=f"{base}{ASSETS_URL}/favicon.png",
-            swagger_ui_parameters=SWAGGER_PARAMETERS))
+        return _confined(
+            get_swagger_ui_html(
+                openapi_url=f"{base}{app.openapi_url}",
+                title=f"{app.title} - API docs",
+                oauth2_redirect_url=f"{base}{oauth2_redirect}",
+                swagger_js_url=f"{base}{ASSETS_URL}/swagger-ui-bundle.js",
+                swagger_css_url=f"{base}{ASSETS_URL}/swagger-ui.css",
+                swagger_favicon_url=f"{base}{ASSETS_URL}/favicon.png",
+                swagger_ui_parameters=SWAGGER_PARAMETERS,
+            )
+        )
 
     @app.get(oauth2_redirect, include_in_schema=False)
     async def swagger_ui_redirect() -> HTMLResponse:
@@ -129,7 +139,12 @@ def mount_docs(app: FastAPI, assets_dir: Path = ASSETS_DIR) -> None:
     @app.get("/redoc", include_in_schema=False)
     async def redoc(request: Request) -> HTMLResponse:
         base = root(request)
-        return _confined(get_redoc_html(
-            openapi_url=f"{base}{app.openapi_url}", title=f"{app.title} - ReDoc",
-            redoc_js_url=f"{base}{ASSETS_URL}/redoc.standalone.js",
-            redoc_favicon_url=f"{base}{ASSETS_URL}/favicon.png", with_google_fonts=False))
+        return _confined(
+            get_redoc_html(
+                openapi_url=f"{base}{app.openapi_url}",
+                title=f"{app.title} - ReDoc",
+                redoc_js_url=f"{base}{ASSETS_URL}/redoc.standalone.js",
+                redoc_favicon_url=f"{base}{ASSETS_URL}/favicon.png",
+                with_google_fonts=False,
+            )
+        )

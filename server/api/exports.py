@@ -61,11 +61,13 @@ def stored_inputs(live: LiveSession, with_frames: bool = True) -> Iterator[Odome
 def groundtruth(live: LiveSession) -> tuple[np.ndarray, np.ndarray]:
     """``(times, (N, 3) poses)`` of the ground truth the session's readings carried (``gt``);
     HTTPException 404 naming the problem when none did."""
-    rows = [(o.t, *o.gt) for o in stored_inputs(live, with_frames=False)
-            if isinstance(o, Odometry) and o.gt is not None]
+    rows = [
+        (o.t, *o.gt) for o in stored_inputs(live, with_frames=False) if isinstance(o, Odometry) and o.gt is not None
+    ]
     if not rows:
-        raise HTTPException(404, f"session {live.id} has no ground truth: none of its odometry readings "
-                                 "carried 'gt' [x, y, theta]")
+        raise HTTPException(
+            404, f"session {live.id} has no ground truth: none of its odometry readings carried 'gt' [x, y, theta]"
+        )
     arr = np.array(rows, dtype=float)
     return arr[:, 0], arr[:, 1:]
 
@@ -100,26 +102,39 @@ def _chunks(fh: IO[bytes]) -> Iterator[bytes]:
 
 async def _zip_response(live: LiveSession, kind: str, filename: str) -> StreamingResponse:
     fh, size = await asyncio.to_thread(_archive, live, kind)
-    return StreamingResponse(_chunks(fh), media_type="application/zip",  # a sync iterator: read in a thread
-                             headers={"Content-Disposition": f'attachment; filename="{filename}"',
-                                      "Content-Length": str(size)})
+    return StreamingResponse(
+        _chunks(fh),
+        media_type="application/zip",  # a sync iterator: read in a thread
+        headers={"Content-Disposition": f'attachment; filename="{filename}"', "Content-Length": str(size)},
+    )
 
 
 def _zip_doc() -> dict[int | str, dict[str, Any]]:
-    return {200: {"content": {"application/zip": {}}, "description": "the zip file"},
-            409: {"description": "nothing to export (no odometry), or a time a bag cannot hold"}, **deps.ERRORS}
+    return {
+        200: {"content": {"application/zip": {}}, "description": "the zip file"},
+        409: {"description": "nothing to export (no odometry), or a time a bag cannot hold"},
+        **deps.ERRORS,
+    }
 
 
-@router.get("/export/data.zip", response_class=StreamingResponse, responses=_zip_doc(),
-            summary="The session's recorded inputs as a data folder (zip) that `hippomap run` reads: frames/, "
-                    "frames.csv, odometry.csv, groundtruth.csv when readings carried gt, config.json (overrides)")
+@router.get(
+    "/export/data.zip",
+    response_class=StreamingResponse,
+    responses=_zip_doc(),
+    summary="The session's recorded inputs as a data folder (zip) that `hippomap run` reads: frames/, "
+    "frames.csv, odometry.csv, groundtruth.csv when readings carried gt, config.json (overrides)",
+)
 async def export_data_zip(live: deps.ReadSession) -> StreamingResponse:
     return await _zip_response(live, "data", f"{live.id}-data.zip")
 
 
-@router.get("/export/rosbag2.zip", response_class=StreamingResponse, responses=_zip_doc(),
-            summary=f"The session's recorded inputs as a ROS 2 bag (zip): {IMAGE_TOPIC} "
-                    f"(sensor_msgs/CompressedImage), {ODOM_TOPIC} (nav_msgs/Odometry), {GROUNDTRUTH_TOPIC} "
-                    "(geometry_msgs/PoseStamped)")
+@router.get(
+    "/export/rosbag2.zip",
+    response_class=StreamingResponse,
+    responses=_zip_doc(),
+    summary=f"The session's recorded inputs as a ROS 2 bag (zip): {IMAGE_TOPIC} "
+    f"(sensor_msgs/CompressedImage), {ODOM_TOPIC} (nav_msgs/Odometry), {GROUNDTRUTH_TOPIC} "
+    "(geometry_msgs/PoseStamped)",
+)
 async def export_rosbag2_zip(live: deps.ReadSession) -> StreamingResponse:
     return await _zip_response(live, "rosbag2", f"{live.id}-rosbag2.zip")

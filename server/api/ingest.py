@@ -45,21 +45,36 @@ async def accept(live: LiveSession, items: list[Accepted], wait_s: float) -> dic
 
 #: request examples of POST /sessions/{id}/odometry (shown by /docs and /redoc)
 ODOMETRY_EXAMPLES: dict[str, dict[str, Any]] = {
-    "velocities": {"summary": "one reading: velocities held since the previous reading",
-                   "value": {"t": 12.5, "v": 0.4, "omega": 0.05}},
-    "increment": {"summary": "one reading: a pose increment in the previous pose's frame",
-                  "value": {"t": 12.55, "increment": [0.02, 0.0, 0.0025]}},
-    "ground truth": {"summary": "one reading with the simulator's ground-truth pose (drawn by the viewer only)",
-                     "value": {"t": 12.6, "v": 0.4, "omega": 0.0, "gt": [3.1, -0.4, 1.57]}},
-    "batch": {"summary": "a batch, acknowledged together",
-              "value": {"readings": [{"t": 12.65, "v": 0.4, "omega": 0.05}, {"t": 12.7, "v": 0.4, "omega": 0.04}]}},
+    "velocities": {
+        "summary": "one reading: velocities held since the previous reading",
+        "value": {"t": 12.5, "v": 0.4, "omega": 0.05},
+    },
+    "increment": {
+        "summary": "one reading: a pose increment in the previous pose's frame",
+        "value": {"t": 12.55, "increment": [0.02, 0.0, 0.0025]},
+    },
+    "ground truth": {
+        "summary": "one reading with the simulator's ground-truth pose (drawn by the viewer only)",
+        "value": {"t": 12.6, "v": 0.4, "omega": 0.0, "gt": [3.1, -0.4, 1.57]},
+    },
+    "batch": {
+        "summary": "a batch, acknowledged together",
+        "value": {"readings": [{"t": 12.65, "v": 0.4, "omega": 0.05}, {"t": 12.7, "v": 0.4, "omega": 0.04}]},
+    },
 }
 
 
-@router.post("/odometry", response_model=IngestAck, responses=INGEST_ERRORS,
-             summary="Odometry: one reading or a batch; acknowledged once stored")
-async def post_odometry(live: deps.WriteSession, request: Request, body: Annotated[
-        OdometryBatch | OdometryReading, Body(openapi_examples=ODOMETRY_EXAMPLES)]) -> Any:
+@router.post(
+    "/odometry",
+    response_model=IngestAck,
+    responses=INGEST_ERRORS,
+    summary="Odometry: one reading or a batch; acknowledged once stored",
+)
+async def post_odometry(
+    live: deps.WriteSession,
+    request: Request,
+    body: Annotated[OdometryBatch | OdometryReading, Body(openapi_examples=ODOMETRY_EXAMPLES)],
+) -> Any:
     readings = body.readings if isinstance(body, OdometryBatch) else [body]
     try:
         items = check_odometry(readings, live.settings.max_odometry_batch, live.settings)
@@ -73,22 +88,48 @@ _FRAME_BODY = {
     "required": True,
     "content": {
         # binary bodies: the examples are real files the service serves (an OpenAPI externalValue)
-        "image/jpeg": {"schema": {"type": "string", "format": "binary"}, "examples": {"frame": {
-            "summary": "a 320x240 camera frame, sent with ?t=12.5", "externalValue": EXAMPLE_FRAME_URLS["jpeg"]}}},
-        "image/png": {"schema": {"type": "string", "format": "binary"}, "examples": {"frame": {
-            "summary": "a 320x240 camera frame, sent with ?t=12.5", "externalValue": EXAMPLE_FRAME_URLS["png"]}}},
-        "multipart/form-data": {"schema": {
-            "type": "object", "required": ["t", "image"],
-            "properties": {"t": {"type": "number", "description": "timestamp, seconds"},
-                           "image": {"type": "string", "format": "binary", "description": "JPEG or PNG"}}}},
+        "image/jpeg": {
+            "schema": {"type": "string", "format": "binary"},
+            "examples": {
+                "frame": {
+                    "summary": "a 320x240 camera frame, sent with ?t=12.5",
+                    "externalValue": EXAMPLE_FRAME_URLS["jpeg"],
+                }
+            },
+        },
+        "image/png": {
+            "schema": {"type": "string", "format": "binary"},
+            "examples": {
+                "frame": {
+                    "summary": "a 320x240 camera frame, sent with ?t=12.5",
+                    "externalValue": EXAMPLE_FRAME_URLS["png"],
+                }
+            },
+        },
+        "multipart/form-data": {
+            "schema": {
+                "type": "object",
+                "required": ["t", "image"],
+                "properties": {
+                    "t": {"type": "number", "description": "timestamp, seconds"},
+                    "image": {"type": "string", "format": "binary", "description": "JPEG or PNG"},
+                },
+            }
+        },
     },
 }
 
 
-@router.post("/frames", response_model=IngestAck, responses=INGEST_ERRORS, openapi_extra={"requestBody": _FRAME_BODY},
-             summary="A camera frame: raw JPEG/PNG body with ?t=, or multipart (t, image)")
-async def post_frame(live: deps.WriteSession, request: Request,
-                     t: float | None = Query(None, description="timestamp (raw body uploads)")) -> Any:
+@router.post(
+    "/frames",
+    response_model=IngestAck,
+    responses=INGEST_ERRORS,
+    openapi_extra={"requestBody": _FRAME_BODY},
+    summary="A camera frame: raw JPEG/PNG body with ?t=, or multipart (t, image)",
+)
+async def post_frame(
+    live: deps.WriteSession, request: Request, t: float | None = Query(None, description="timestamp (raw body uploads)")
+) -> Any:
     ctype = request.headers.get("content-type", "").split(";")[0].strip().lower()
     t_value: str | float | None
     try:
@@ -105,8 +146,9 @@ async def post_frame(live: deps.WriteSession, request: Request,
             if t_value is None:
                 raise IngestError(422, "frame timestamp missing: pass ?t=<seconds>")
         else:
-            raise IngestError(415, f"unsupported content type {ctype!r}: "
-                                   "send image/jpeg, image/png or multipart/form-data")
+            raise IngestError(
+                415, f"unsupported content type {ctype!r}: send image/jpeg, image/png or multipart/form-data"
+            )
         item = await live.validate_frame(data, t_value)
     except IngestError as exc:
         live.rejected[exc.status] += 1

@@ -55,17 +55,25 @@ async def _arrays(live: LiveSession) -> dict[str, Any]:
     return arrays
 
 
-@router.get("/map.graphml", response_class=Response, responses=_binary("application/graphml+xml"),
-            summary="The map as GraphML")
+@router.get(
+    "/map.graphml", response_class=Response, responses=_binary("application/graphml+xml"), summary="The map as GraphML"
+)
 async def get_map_graphml(live: deps.ReadSession) -> Response:
     text = await asyncio.to_thread(views.graphml, await _arrays(live))
-    return Response(text, media_type="application/graphml+xml",
-                    headers={"Content-Disposition": f'attachment; filename="{live.id}.graphml"'})
+    return Response(
+        text,
+        media_type="application/graphml+xml",
+        headers={"Content-Disposition": f'attachment; filename="{live.id}.graphml"'},
+    )
 
 
-@router.get("/map.g2o", response_class=PlainTextResponse, responses=_binary("text/plain"),
-            summary="The map as a g2o pose graph (VERTEX_SE2 / EDGE_SE2), each edge with the information the map "
-                    "gives its link (odometric: by length; loop: its information x robust weight)")
+@router.get(
+    "/map.g2o",
+    response_class=PlainTextResponse,
+    responses=_binary("text/plain"),
+    summary="The map as a g2o pose graph (VERTEX_SE2 / EDGE_SE2), each edge with the information the map "
+    "gives its link (odometric: by length; loop: its information x robust weight)",
+)
 async def get_map_g2o(live: deps.ReadSession) -> Response:
     arrays = await _query(live, mq.GraphArrays(information=True))
     if arrays is None:
@@ -74,12 +82,17 @@ async def get_map_g2o(live: deps.ReadSession) -> Response:
     return PlainTextResponse(text, headers={"Content-Disposition": f'attachment; filename="{live.id}.g2o"'})
 
 
-@router.get("/trajectory.tum", response_class=PlainTextResponse, responses=_binary("text/plain"),
-            summary="The robot's trajectory in TUM format: on the corrected map, raw odometry, or the ground truth "
-                    "its odometry readings carried (404 when none did)")
-async def get_trajectory_tum(live: deps.ReadSession,
-                             source: Literal["map", "odometry", "groundtruth"] = Query(
-                                 "map", description="which trajectory")) -> Response:
+@router.get(
+    "/trajectory.tum",
+    response_class=PlainTextResponse,
+    responses=_binary("text/plain"),
+    summary="The robot's trajectory in TUM format: on the corrected map, raw odometry, or the ground truth "
+    "its odometry readings carried (404 when none did)",
+)
+async def get_trajectory_tum(
+    live: deps.ReadSession,
+    source: Literal["map", "odometry", "groundtruth"] = Query("map", description="which trajectory"),
+) -> Response:
     if source == "groundtruth":
         res = await asyncio.to_thread(exports.groundtruth, live)
     else:
@@ -89,11 +102,21 @@ async def get_trajectory_tum(live: deps.ReadSession,
 
 
 # ------------------------------------------------------------ loop closures
-@router.get("/loop-closures", response_model=list[LoopClosure], responses=deps.ERRORS,
-            summary="Loop-closure decisions (accepted, rejected, pending) with links to their saccade traces")
-async def get_loop_closures(live: deps.ReadSession, request: Request, since_id: SinceId = -1, t_min: TMin = None,
-                            t_max: TMax = None, limit: Limit = 1000,
-                            status: Literal["accepted", "rejected", "pending"] | None = None) -> Any:
+@router.get(
+    "/loop-closures",
+    response_model=list[LoopClosure],
+    responses=deps.ERRORS,
+    summary="Loop-closure decisions (accepted, rejected, pending) with links to their saccade traces",
+)
+async def get_loop_closures(
+    live: deps.ReadSession,
+    request: Request,
+    since_id: SinceId = -1,
+    t_min: TMin = None,
+    t_max: TMax = None,
+    limit: Limit = 1000,
+    status: Literal["accepted", "rejected", "pending"] | None = None,
+) -> Any:
     decisions = await _query(live, mq.LoopDecisions())
     rows = model.loop_closures(decisions) if decisions is not None else []
     base = str(request.base_url).rstrip("/") + f"/sessions/{live.id}/saccades/"
@@ -101,8 +124,9 @@ async def get_loop_closures(live: deps.ReadSession, request: Request, since_id: 
     for r in rows:
         if r["id"] <= since_id or (status and r["status"] != status):
             continue
-        if ((t_min is not None and (r["t"] is None or r["t"] < t_min))
-                or (t_max is not None and (r["t"] is None or r["t"] > t_max))):
+        if (t_min is not None and (r["t"] is None or r["t"] < t_min)) or (
+            t_max is not None and (r["t"] is None or r["t"] > t_max)
+        ):
             continue
         out.append({**r, "saccades": None if r["recognition"] is None else f"{base}{r['recognition']}"})
         if len(out) >= limit:
@@ -110,22 +134,41 @@ async def get_loop_closures(live: deps.ReadSession, request: Request, since_id: 
     return out
 
 
-@router.get("/recognitions", response_model=list[RecognitionInfo], responses=deps.ERRORS,
-            summary="Visual recognitions (one per checked key frame), newest last")
-async def get_recognitions(live: deps.ReadSession, request: Request, since_id: SinceId = -1,
-                           limit: Limit = 1000) -> Any:
+@router.get(
+    "/recognitions",
+    response_model=list[RecognitionInfo],
+    responses=deps.ERRORS,
+    summary="Visual recognitions (one per checked key frame), newest last",
+)
+async def get_recognitions(
+    live: deps.ReadSession, request: Request, since_id: SinceId = -1, limit: Limit = 1000
+) -> Any:
     recs = model.json_safe(await _query(live, mq.Recognitions(since_id, limit)) or [])
     base = str(request.base_url).rstrip("/") + f"/sessions/{live.id}/saccades/"
-    return [{"id": r["id"], "t": r.get("t"), "node": r.get("node"), "accepted": r.get("accepted"),
-             "frame_id": r.get("frame_id"), "evidence": r.get("evidence"), "n_fixations": r.get("n_fixations"),
-             "saccades": f"{base}{r['id']}", "image": f"{base}{r['id']}/image"} for r in recs]
+    return [
+        {
+            "id": r["id"],
+            "t": r.get("t"),
+            "node": r.get("node"),
+            "accepted": r.get("accepted"),
+            "frame_id": r.get("frame_id"),
+            "evidence": r.get("evidence"),
+            "n_fixations": r.get("n_fixations"),
+            "saccades": f"{base}{r['id']}",
+            "image": f"{base}{r['id']}/image",
+        }
+        for r in recs
+    ]
 
 
 RecId = Annotated[int, Path(ge=0, le=MAX_ID, description="recognition id")]
 
 
-@router.get("/saccades/{recognition_id}", responses=deps.ERRORS,
-            summary="A recognition's saccade trace: every fixation, prediction, outcome and the evidence after it")
+@router.get(
+    "/saccades/{recognition_id}",
+    responses=deps.ERRORS,
+    summary="A recognition's saccade trace: every fixation, prediction, outcome and the evidence after it",
+)
 async def get_saccades(live: deps.ReadSession, recognition_id: RecId) -> dict[str, Any]:
     rec = await _query(live, mq.RecognitionById(recognition_id))
     if rec is None:
@@ -133,11 +176,17 @@ async def get_saccades(live: deps.ReadSession, recognition_id: RecId) -> dict[st
     return model.json_safe(rec)
 
 
-@router.get("/saccades/{recognition_id}/image", response_class=Response, responses=_binary("image/jpeg"),
-            summary="The query frame with the saccade trace drawn, as JPEG")
-async def get_saccade_image(live: deps.ReadSession, recognition_id: RecId,
-                            attempt: str = Query("last", pattern=r"^(last|all|\d{1,4})$",
-                                                 description="'last', 'all' or an attempt number")) -> Response:
+@router.get(
+    "/saccades/{recognition_id}/image",
+    response_class=Response,
+    responses=_binary("image/jpeg"),
+    summary="The query frame with the saccade trace drawn, as JPEG",
+)
+async def get_saccade_image(
+    live: deps.ReadSession,
+    recognition_id: RecId,
+    attempt: str = Query("last", pattern=r"^(last|all|\d{1,4})$", description="'last', 'all' or an attempt number"),
+) -> Response:
     rec = await _query(live, mq.RecognitionById(recognition_id))
     if rec is None:
         raise _not_found(f"recognition {recognition_id}")
@@ -153,8 +202,11 @@ async def get_saccade_image(live: deps.ReadSession, recognition_id: RecId,
 # ------------------------------------------------------------- place fields
 def _pf_response(rec: Any, fmt: str, spatial: Any = None) -> Any:
     if fmt == "npy":
-        return Response(views.place_field_npy(rec), media_type="application/octet-stream",
-                        headers={"Content-Disposition": f'attachment; filename="place-field-{rec.step}.npy"'})
+        return Response(
+            views.place_field_npy(rec),
+            media_type="application/octet-stream",
+            headers={"Content-Disposition": f'attachment; filename="place-field-{rec.step}.npy"'},
+        )
     if fmt == "png":
         return Response(views.place_field_png(rec, spatial), media_type="image/png")
     return views.place_field_json(rec)
@@ -172,27 +224,43 @@ async def _current_field(live: LiveSession) -> Any:
     return rec
 
 
-@router.get("/place-field", response_model=PlaceField, responses=deps.ERRORS,
-            summary="The current place field (sparse position matrix) with its place code")
+@router.get(
+    "/place-field",
+    response_model=PlaceField,
+    responses=deps.ERRORS,
+    summary="The current place field (sparse position matrix) with its place code",
+)
 async def get_place_field(live: deps.ReadSession) -> Any:
     return await asyncio.to_thread(_pf_response, await _current_field(live), "json")
 
 
-@router.get("/place-field/npy", response_class=Response, responses=_binary("application/octet-stream"),
-            summary="The current position matrix POS as .npy (uint8 0/1, rows = y)")
+@router.get(
+    "/place-field/npy",
+    response_class=Response,
+    responses=_binary("application/octet-stream"),
+    summary="The current position matrix POS as .npy (uint8 0/1, rows = y)",
+)
 async def get_place_field_npy(live: deps.ReadSession) -> Response:
     return await asyncio.to_thread(_pf_response, await _current_field(live), "npy")
 
 
-@router.get("/place-field/png", response_class=Response, responses=_binary("image/png"),
-            summary="The current place field's iteration as PNG: the grid cells' binarised matrices and the "
-                    "position matrix shrinking to one field (the paper's Fig. 8), axes in metres")
+@router.get(
+    "/place-field/png",
+    response_class=Response,
+    responses=_binary("image/png"),
+    summary="The current place field's iteration as PNG: the grid cells' binarised matrices and the "
+    "position matrix shrinking to one field (the paper's Fig. 8), axes in metres",
+)
 async def get_place_field_png(live: deps.ReadSession) -> Response:
     return await asyncio.to_thread(_pf_response, await _current_field(live), "png", live.config.spatial)
 
 
-@router.get("/place-fields", response_model=list[PlaceFieldInfo], responses=deps.ERRORS,
-            summary="Past place fields: one per odometry step that produced a field")
+@router.get(
+    "/place-fields",
+    response_model=list[PlaceFieldInfo],
+    responses=deps.ERRORS,
+    summary="Past place fields: one per odometry step that produced a field",
+)
 async def list_place_fields(live: deps.ReadSession, since_step: SinceId = -1, limit: Limit = 1000) -> Any:
     rows = await asyncio.to_thread(live.store.place_fields, live.id, since_step, limit, False)
     return [{"step": r.step, "seq": r.seq, "t": r.t} for r in rows]
@@ -213,30 +281,50 @@ async def get_past_field(live: deps.ReadSession, step: Step) -> Any:
     return await asyncio.to_thread(_pf_response, await _field(live, step), "json")
 
 
-@router.get("/place-fields/{step}/npy", response_class=Response, responses=_binary("application/octet-stream"),
-            summary="A past position matrix as .npy")
+@router.get(
+    "/place-fields/{step}/npy",
+    response_class=Response,
+    responses=_binary("application/octet-stream"),
+    summary="A past position matrix as .npy",
+)
 async def get_past_field_npy(live: deps.ReadSession, step: Step) -> Response:
     return await asyncio.to_thread(_pf_response, await _field(live, step), "npy")
 
 
-@router.get("/place-fields/{step}/png", response_class=Response, responses=_binary("image/png"),
-            summary="A past place field's iteration as PNG (as /place-field/png)")
+@router.get(
+    "/place-fields/{step}/png",
+    response_class=Response,
+    responses=_binary("image/png"),
+    summary="A past place field's iteration as PNG (as /place-field/png)",
+)
 async def get_past_field_png(live: deps.ReadSession, step: Step) -> Response:
     return await asyncio.to_thread(_pf_response, await _field(live, step), "png", live.config.spatial)
 
 
 # ------------------------------------------------------------ events, inputs
-@router.get("/events", response_model=list[Event], responses=deps.ERRORS,
-            summary="Everything the mapper reported (nodes, links, recognitions, loop decisions...), in order")
-async def get_events(live: deps.ReadSession, since_id: SinceId = -1, t_min: TMin = None, t_max: TMax = None,
-                     limit: Limit = 1000,
-                     type: Annotated[list[str] | None, Query(description="only these event types")] = None) -> Any:
+@router.get(
+    "/events",
+    response_model=list[Event],
+    responses=deps.ERRORS,
+    summary="Everything the mapper reported (nodes, links, recognitions, loop decisions...), in order",
+)
+async def get_events(
+    live: deps.ReadSession,
+    since_id: SinceId = -1,
+    t_min: TMin = None,
+    t_max: TMax = None,
+    limit: Limit = 1000,
+    type: Annotated[list[str] | None, Query(description="only these event types")] = None,
+) -> Any:
     rows = await asyncio.to_thread(live.store.query_events, live.id, type, since_id, t_min, t_max, limit)
     return [{"id": e.id, "seq": e.seq, "type": e.type, "t": e.t, "data": e.data} for e in rows]
 
 
-@router.get("/inputs", responses=deps.ERRORS,
-            summary="Stored inputs in order: seq, kind, t (and the odometry values); frames via /frames/{seq}")
+@router.get(
+    "/inputs",
+    responses=deps.ERRORS,
+    summary="Stored inputs in order: seq, kind, t (and the odometry values); frames via /frames/{seq}",
+)
 async def get_inputs(live: deps.ReadSession, since_seq: SinceId = -1, limit: Limit = 1000) -> list[dict[str, Any]]:
     rows = await asyncio.to_thread(live.store.read_inputs, live.id, since_seq, limit, False)
     out = []
@@ -248,10 +336,15 @@ async def get_inputs(live: deps.ReadSession, since_seq: SinceId = -1, limit: Lim
     return out
 
 
-@router.get("/frames/{seq}", response_class=Response, responses=_binary("image/jpeg"),
-            summary="A stored frame, exactly as it was received")
-async def get_frame(live: deps.ReadSession,
-                    seq: Annotated[int, Path(ge=0, le=MAX_ID, description="sequence number of the input")]) -> Response:
+@router.get(
+    "/frames/{seq}",
+    response_class=Response,
+    responses=_binary("image/jpeg"),
+    summary="A stored frame, exactly as it was received",
+)
+async def get_frame(
+    live: deps.ReadSession, seq: Annotated[int, Path(ge=0, le=MAX_ID, description="sequence number of the input")]
+) -> Response:
     rec = await asyncio.to_thread(live.store.input_by_seq, live.id, seq)
     if rec is None or rec.kind != "frame":
         raise _not_found(f"frame {seq}")

@@ -17,8 +17,14 @@ router = APIRouter(prefix="/sessions", tags=["sessions"])
 
 
 def _record_info(r: SessionRecord, stats: dict[str, Any] | None, replica: str) -> dict[str, Any]:
-    return {"id": r.id, "name": r.name, "created": r.created, "config_overrides": r.config, "stats": stats,
-            "replica": replica}
+    return {
+        "id": r.id,
+        "name": r.name,
+        "created": r.created,
+        "config_overrides": r.config,
+        "stats": stats,
+        "replica": replica,
+    }
 
 
 def _info(live: LiveSession, stats: dict[str, Any]) -> dict[str, Any]:
@@ -28,20 +34,32 @@ def _info(live: LiveSession, stats: dict[str, Any]) -> dict[str, Any]:
 def _links(request: Request, sid: str) -> dict[str, str]:
     base = str(request.base_url).rstrip("/") + f"/sessions/{sid}"
     return {
-        "self": base, "stats": f"{base}/stats", "odometry": f"{base}/odometry", "frames": f"{base}/frames",
-        "stream": base.replace("http", "ws", 1) + "/stream", "map": f"{base}/map",
+        "self": base,
+        "stats": f"{base}/stats",
+        "odometry": f"{base}/odometry",
+        "frames": f"{base}/frames",
+        "stream": base.replace("http", "ws", 1) + "/stream",
+        "map": f"{base}/map",
         "loop_closures": f"{base}/loop-closures",
-        "place_field": f"{base}/place-field", "events": f"{base}/events",
+        "place_field": f"{base}/place-field",
+        "events": f"{base}/events",
         "viewer": str(request.base_url).rstrip("/") + f"/viewer/{sid}/",
     }
 
 
-@router.post("", status_code=201, response_model=SessionDetail, responses={**deps.ERRORS, 404: {"description":
-             "no such base_session, or one this token may not see"}, 403: {"description":
-             "read-only token, or the token's grid-cell memory quota is used up"}, 422: {"description":
-             "invalid config overrides, or outside the server's safe ranges"},
-             429: {"description": "the token owns max_sessions_per_token sessions already"}},
-             summary="Create a session (its own mapper, configured by overrides)")
+@router.post(
+    "",
+    status_code=201,
+    response_model=SessionDetail,
+    responses={
+        **deps.ERRORS,
+        404: {"description": "no such base_session, or one this token may not see"},
+        403: {"description": "read-only token, or the token's grid-cell memory quota is used up"},
+        422: {"description": "invalid config overrides, or outside the server's safe ranges"},
+        429: {"description": "the token owns max_sessions_per_token sessions already"},
+    },
+    summary="Create a session (its own mapper, configured by overrides)",
+)
 async def create_session(body: SessionCreate, request: Request, tok: deps.Token) -> Any:
     try:
         live = await deps.manager(request).create(tok, body.name, body.config, body.base_session)
@@ -69,8 +87,12 @@ async def get_session(live: deps.ReadSession, request: Request) -> Any:
     return {**_info(live, stats), "config": live.config.model_dump(mode="json"), "links": _links(request, live.id)}
 
 
-@router.delete("/{session_id}", status_code=204, responses=deps.WRITE_ERRORS,
-               summary="Delete a session and everything stored for it")
+@router.delete(
+    "/{session_id}",
+    status_code=204,
+    responses=deps.WRITE_ERRORS,
+    summary="Delete a session and everything stored for it",
+)
 async def delete_session(live: deps.WriteSession, request: Request, tok: deps.Token) -> Response:
     try:
         await deps.manager(request).delete(tok, live.id)
@@ -79,7 +101,11 @@ async def delete_session(live: deps.WriteSession, request: Request, tok: deps.To
     return Response(status_code=204)
 
 
-@router.get("/{session_id}/stats", response_model=Stats, responses=deps.ERRORS,
-            summary="Progress (stored / processed / pending inputs, snapshot) and the mapper's statistics")
+@router.get(
+    "/{session_id}/stats",
+    response_model=Stats,
+    responses=deps.ERRORS,
+    summary="Progress (stored / processed / pending inputs, snapshot) and the mapper's statistics",
+)
 async def session_stats(live: deps.ReadSession) -> Any:
     return await asyncio.to_thread(live.stats)

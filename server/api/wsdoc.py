@@ -74,9 +74,11 @@ def websocket_description() -> str:
     client = "\n".join(f"| text | `{_name(m)}` | {_what(m)} |" for m in CLIENT_MESSAGES)
     server = "\n".join(f"| `{_type(m)}` | `{_name(m)}` | {_what(m)} |" for m in SERVER_MESSAGES)
     closes = "\n".join(f"| {code} | {why} |" for code, why in CLOSE_CODES.items())
-    binary = (f"| binary | — | a camera frame: the {FRAME_HEADER.size}-byte header `{FRAME_HEADER.format}` "
-              f"(magic `{FRAME_MAGIC.decode()}`, uint32 message id, float64 timestamp; little-endian) "
-              "followed by the JPEG or PNG bytes |")
+    binary = (
+        f"| binary | — | a camera frame: the {FRAME_HEADER.size}-byte header `{FRAME_HEADER.format}` "
+        f"(magic `{FRAME_MAGIC.decode()}`, uint32 message id, float64 timestamp; little-endian) "
+        "followed by the JPEG or PNG bytes |"
+    )
     return f"""
 ## Websockets
 
@@ -122,35 +124,15 @@ def add_websocket_docs(document: dict[str, Any], settings: ServerSettings) -> No
     components = document.setdefault("components", {}).setdefault("schemas", {})
     for name, schema in top.get("$defs", {}).items():
         components.setdefault(name, schema)  # OdometryReading is there already, with this server's bounds
-
-    def one_of(models: tuple[type, ...]) -> dict[str, Any]:
-        return {"oneOf": [{"$ref": REF.format(model=_name(m))} for m in models]}
-
-    session_id = {"name": "session_id", "in": "path", "required": True, "schema": {"type": "string"},
-                  "description": "session id"}
+    session_id = {
+        "name": "session_id",
+        "in": "path",
+        "required": True,
+        "schema": {"type": "string"},
+        "description": "session id",
+    }
     document["x-websockets"] = {
-        STREAM_PATH: {
-            "summary": "Ingest stream: odometry (JSON text) and camera frames (binary) in, acks out",
-            "tags": ["ingest"],
-            "parameters": [session_id, {"name": "token", "in": "query", "required": False,
-                                        "schema": {"type": "string"}, "description": "the token, where the client "
-                                        "cannot set Authorization: Bearer"}],
-            "security": [{"HTTPBearer": []}],
-            "client_messages": {
-                "text": one_of(CLIENT_MESSAGES),
-                "binary": {"description": "a camera frame: header then JPEG or PNG bytes",
-                           "header_struct": FRAME_HEADER.format, "header_bytes": FRAME_HEADER.size,
-                           "header": FRAME_FIELDS, "max_bytes": settings.max_body_bytes},
-            },
-            "server_messages": {**one_of(SERVER_MESSAGES),
-                                "discriminator": {"propertyName": "type", "mapping": {
-                                    _type(m): REF.format(model=_name(m))
-                                    for m in SERVER_MESSAGES}}},
-            "limits": {"max_text_message_chars": settings.max_text_message_bytes,
-                       "max_json_depth": settings.max_json_depth, "max_odometry_batch": settings.max_odometry_batch,
-                       "max_pending": settings.max_pending},
-            "close_codes": {str(code): why for code, why in CLOSE_CODES.items()},
-        },
+        STREAM_PATH: _stream_doc(settings, session_id),
         VIEWER_PATH: {
             "summary": "The live viewer's websocket (viser protocol, proxied); opened by /viewer/{session_id}/",
             "tags": ["viewer"],
@@ -158,4 +140,52 @@ def add_websocket_docs(document: dict[str, Any], settings: ServerSettings) -> No
             "subprotocol": "viser-v<version>",
             "close_codes": {"1008": "no token, or one that may not see the session"},
         },
+    }
+
+
+def _one_of(models: tuple[type, ...]) -> dict[str, Any]:
+    """A schema that is one of ``models`` (references to their schemas in ``components/schemas``)."""
+    return {"oneOf": [{"$ref": REF.format(model=_name(m))} for m in models]}
+
+
+def _stream_doc(settings: ServerSettings, session_id: dict[str, Any]) -> dict[str, Any]:
+    """The ingest stream's entry: its parameters, the messages each way, this server's limits, the close codes."""
+    return {
+        "summary": "Ingest stream: odometry (JSON text) and camera frames (binary) in, acks out",
+        "tags": ["ingest"],
+        "parameters": [
+            session_id,
+            {
+                "name": "token",
+                "in": "query",
+                "required": False,
+                "schema": {"type": "string"},
+                "description": "the token, where the client cannot set Authorization: Bearer",
+            },
+        ],
+        "security": [{"HTTPBearer": []}],
+        "client_messages": {
+            "text": _one_of(CLIENT_MESSAGES),
+            "binary": {
+                "description": "a camera frame: header then JPEG or PNG bytes",
+                "header_struct": FRAME_HEADER.format,
+                "header_bytes": FRAME_HEADER.size,
+                "header": FRAME_FIELDS,
+                "max_bytes": settings.max_body_bytes,
+            },
+        },
+        "server_messages": {
+            **_one_of(SERVER_MESSAGES),
+            "discriminator": {
+                "propertyName": "type",
+                "mapping": {_type(m): REF.format(model=_name(m)) for m in SERVER_MESSAGES},
+            },
+        },
+        "limits": {
+            "max_text_message_chars": settings.max_text_message_bytes,
+            "max_json_depth": settings.max_json_depth,
+            "max_odometry_batch": settings.max_odometry_batch,
+            "max_pending": settings.max_pending,
+        },
+        "close_codes": {str(code): why for code, why in CLOSE_CODES.items()},
     }

@@ -48,13 +48,13 @@ def image_dimensions(data: bytes) -> tuple[int, int]:
         if marker in _STANDALONE:
             i += 2
             continue
-        (length,) = struct.unpack(">H", data[i + 2:i + 4])
+        (length,) = struct.unpack(">H", data[i + 2 : i + 4])
         if length < 2:
             raise InputError(f"corrupt JPEG: segment length {length} at byte {i}")
         if marker in _SOF:
             if i + 9 > n:
                 break
-            h, w = struct.unpack(">HH", data[i + 5:i + 9])
+            h, w = struct.unpack(">HH", data[i + 5 : i + 9])
             return int(w), int(h)
         if marker == 0xDA:  # start of scan before any frame header
             break

@@ -63,8 +63,11 @@ def pydantic_message(exc: ValidationError) -> str:
 # ------------------------------------------------------------------ odometry
 def odometry_bytes(o: Odometry) -> bytes:
     """The stored form of a reading (compact JSON; floats round-trip exactly)."""
-    d: dict[str, Any] = ({"t": o.t, "increment": list(o.increment)} if o.increment is not None
-                         else {"t": o.t, "v": o.v, "omega": o.omega})
+    d: dict[str, Any] = (
+        {"t": o.t, "increment": list(o.increment)}
+        if o.increment is not None
+        else {"t": o.t, "v": o.v, "omega": o.omega}
+    )
     if o.gt is not None:
         d["gt"] = list(o.gt)
     return json.dumps(d, separators=(",", ":")).encode()
@@ -74,8 +77,13 @@ def odometry_from_bytes(data: bytes) -> Odometry:
     d = json.loads(data)
     inc = d.get("increment")
     gt = d.get("gt")
-    return Odometry(d["t"], v=d.get("v"), omega=d.get("omega"), increment=None if inc is None else tuple(inc),
-                    gt=None if gt is None else tuple(gt))
+    return Odometry(
+        d["t"],
+        v=d.get("v"),
+        omega=d.get("omega"),
+        increment=None if inc is None else tuple(inc),
+        gt=None if gt is None else tuple(gt),
+    )
 
 
 def check_bounds(o: Odometry, limits: ServerSettings) -> None:
@@ -86,29 +94,42 @@ def check_bounds(o: Odometry, limits: ServerSettings) -> None:
         dx, dy, dth = o.increment
         for name, x in (("dx", dx), ("dy", dy)):
             if not abs(x) <= limits.max_increment_m:
-                raise IngestError(422, f"odometry increment {name}={x!r} exceeds the limit of "
-                                       f"{limits.max_increment_m:g} m (max_increment_m)")
+                raise IngestError(
+                    422,
+                    f"odometry increment {name}={x!r} exceeds the limit of "
+                    f"{limits.max_increment_m:g} m (max_increment_m)",
+                )
         if not abs(dth) <= limits.max_increment_rad:
-            raise IngestError(422, f"odometry increment dtheta={dth!r} exceeds the limit of "
-                                   f"{limits.max_increment_rad:g} rad (max_increment_rad)")
+            raise IngestError(
+                422,
+                f"odometry increment dtheta={dth!r} exceeds the limit of "
+                f"{limits.max_increment_rad:g} rad (max_increment_rad)",
+            )
         return
     assert o.v is not None and o.omega is not None
     if not abs(o.v) <= limits.max_speed_mps:
         raise IngestError(422, f"odometry v={o.v!r} exceeds the limit of {limits.max_speed_mps:g} m/s (max_speed_mps)")
     if not abs(o.omega) <= limits.max_turn_rate_rad_s:
-        raise IngestError(422, f"odometry omega={o.omega!r} exceeds the limit of {limits.max_turn_rate_rad_s:g} "
-                               "rad/s (max_turn_rate_rad_s)")
+        raise IngestError(
+            422,
+            f"odometry omega={o.omega!r} exceeds the limit of {limits.max_turn_rate_rad_s:g} "
+            "rad/s (max_turn_rate_rad_s)",
+        )
 
 
 def check_time_jump(kind: str, t: float, previous: float | None, limits: ServerSettings, where: str = "") -> None:
     """``t`` may lie at most ``max_time_jump_s`` after ``previous`` (the session's clock): 422 otherwise."""
     if previous is not None and t - previous > limits.max_time_jump_s:
-        raise IngestError(422, f"{where}{kind} t={t!r} jumps {t - previous:g} s ahead of {previous!r}, more than "
-                               f"the limit of {limits.max_time_jump_s:g} s (max_time_jump_s)")
+        raise IngestError(
+            422,
+            f"{where}{kind} t={t!r} jumps {t - previous:g} s ahead of {previous!r}, more than "
+            f"the limit of {limits.max_time_jump_s:g} s (max_time_jump_s)",
+        )
 
 
-def check_odometry(readings: list[OdometryReading], max_batch: int,
-                   limits: ServerSettings | None = None) -> list[Accepted]:
+def check_odometry(
+    readings: list[OdometryReading], max_batch: int, limits: ServerSettings | None = None
+) -> list[Accepted]:
     """Validate a batch: each reading finite and well-formed (and within ``limits``' physical
     bounds if given), timestamps increasing within it."""
     if len(readings) > max_batch:
@@ -128,8 +149,9 @@ def check_odometry(readings: list[OdometryReading], max_batch: int,
             except IngestError as exc:
                 raise IngestError(exc.status, f"{prefix(i)}{exc.detail}") from None
         if out and not o.t > out[-1].t:
-            raise IngestError(409, f"{prefix(i)}odometry timestamp {o.t!r} does not follow the previous reading "
-                                   f"at {out[-1].t!r}")
+            raise IngestError(
+                409, f"{prefix(i)}odometry timestamp {o.t!r} does not follow the previous reading at {out[-1].t!r}"
+            )
         if out and limits is not None:
             check_time_jump("odometry", o.t, out[-1].t, limits, prefix(i))
         out.append(Accepted("odometry", o.t, odometry_bytes(o), o))
@@ -147,7 +169,8 @@ def parse_odometry_message(msg: dict[str, Any], max_batch: int, limits: ServerSe
                 raise IngestError(422, "readings must be a list")
             if len(body["readings"]) > max_batch:
                 raise IngestError(
-                    413, f"odometry batch of {len(body['readings'])} readings exceeds the limit of {max_batch}")
+                    413, f"odometry batch of {len(body['readings'])} readings exceeds the limit of {max_batch}"
+                )
             readings = [OdometryReading.model_validate(r) for r in body["readings"]]
         else:
             readings = [OdometryReading.model_validate(body)]
@@ -182,8 +205,11 @@ def check_frame(data: bytes, t: Any, settings: ServerSettings) -> Accepted:
     if is_truncated(data):
         raise IngestError(422, "corrupt image: truncated (no end-of-image marker)")
     if max(w, h) > settings.max_image_side or w * h > settings.max_image_pixels:
-        raise IngestError(413, f"image of {w}x{h} px exceeds the limit ({settings.max_image_side} px a side, "
-                               f"{settings.max_image_pixels} px in all)")
+        raise IngestError(
+            413,
+            f"image of {w}x{h} px exceeds the limit ({settings.max_image_side} px a side, "
+            f"{settings.max_image_pixels} px in all)",
+        )
     try:
         gray = check_jpeg_strict(data)  # decoded once: the strict check's image is the frame
         if gray is None:

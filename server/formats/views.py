@@ -26,8 +26,16 @@ def graphml(arrays: dict[str, np.ndarray]) -> str:
 
     g = nx.MultiDiGraph()
     for i, (p, c, f, t) in enumerate(zip(arrays["poses"], arrays["place_codes"], arrays["frames"], arrays["times"])):
-        attrs = {"x": float(p[0]), "y": float(p[1]), "theta": float(p[2]), "place_x": float(c[0]),
-                 "place_y": float(c[1]), "place_theta": float(c[2]), "frame": int(f), "t": float(t)}
+        attrs = {
+            "x": float(p[0]),
+            "y": float(p[1]),
+            "theta": float(p[2]),
+            "place_x": float(c[0]),
+            "place_y": float(c[1]),
+            "place_theta": float(c[2]),
+            "frame": int(f),
+            "t": float(t),
+        }
         g.add_node(i, **{k: v for k, v in attrs.items() if not isinstance(v, float) or math.isfinite(v)})
     for a, b, tr, kind in zip(arrays["source"], arrays["target"], arrays["transform"], arrays["kind"]):
         g.add_edge(int(a), int(b), dx=float(tr[0]), dy=float(tr[1]), dtheta=float(tr[2]), kind=str(kind))
@@ -41,8 +49,14 @@ def g2o(arrays: dict[str, np.ndarray]) -> str:
 
     info = arrays.get("information")
     with tempfile.TemporaryDirectory() as tmp:
-        path = write_g2o(Path(tmp) / "map.g2o", arrays["poses"].reshape(-1, 3), arrays["source"], arrays["target"],
-                         arrays["transform"].reshape(-1, 3), None if info is None else np.asarray(info).reshape(-1, 3))
+        path = write_g2o(
+            Path(tmp) / "map.g2o",
+            arrays["poses"].reshape(-1, 3),
+            arrays["source"],
+            arrays["target"],
+            arrays["transform"].reshape(-1, 3),
+            None if info is None else np.asarray(info).reshape(-1, 3),
+        )
         return path.read_text()
 
 
@@ -81,8 +95,10 @@ def place_field_png(rec: Any, spatial: Any = None) -> bytes:
 
         record = record_stored_field(GridCells(spatial).tables, spatial, idx)
         x, y, _ = meta.get("place_code", (0.0, 0.0, 0.0))
-        title = (f"Place field of odometry step {rec.step} (t = {rec.t:.2f} s): place code ({x:.3f}, {y:.3f}) m"
-                 " — grid-cell windows multiplied until one field remains (Eq. 9-10, Fig. 8)")
+        title = (
+            f"Place field of odometry step {rec.step} (t = {rec.t:.2f} s): place code ({x:.3f}, {y:.3f}) m"
+            " — grid-cell windows multiplied until one field remains (Eq. 9-10, Fig. 8)"
+        )
         return figure_png(record, title=title)
     return encode_png(np.flipud(model.place_field_dense(meta, idx)) * np.uint8(255))
 

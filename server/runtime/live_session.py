@@ -55,9 +55,17 @@ class LiveSession:
 
     replica: str = ""  #: the replica (server) running it: SessionManager.replica
 
-    def __init__(self, record: SessionRecord, config: HippomapConfig, store: Store, settings: ServerSettings,
-                 loop: asyncio.AbstractEventLoop, host_factory: HostFactory | None = None,
-                 metrics: ServiceMetrics | None = None, calls: LoopCalls | None = None) -> None:
+    def __init__(
+        self,
+        record: SessionRecord,
+        config: HippomapConfig,
+        store: Store,
+        settings: ServerSettings,
+        loop: asyncio.AbstractEventLoop,
+        host_factory: HostFactory | None = None,
+        metrics: ServiceMetrics | None = None,
+        calls: LoopCalls | None = None,
+    ) -> None:
         self.record = record
         self.config = config
         self.store = store
@@ -81,9 +89,16 @@ class LiveSession:
         self.bucket = TokenBucket(settings.rate_per_s, settings.rate_burst)
         self._lock = asyncio.Lock()
         self._room = asyncio.Event()
-        self.worker = SessionWorker(record.id, config, store, settings, replay_until=self.next_seq - 1,
-                                    on_processed=self._processed_threadsafe, host_factory=host_factory,
-                                    metrics=metrics)
+        self.worker = SessionWorker(
+            record.id,
+            config,
+            store,
+            settings,
+            replay_until=self.next_seq - 1,
+            on_processed=self._processed_threadsafe,
+            host_factory=host_factory,
+            metrics=metrics,
+        )
 
     @property
     def id(self) -> str:
@@ -119,11 +134,14 @@ class LiveSession:
         takes one message, however large (it was validated against the frame limits)."""
         if self.pending == 0:
             return True
-        return (self.pending + n <= self.settings.max_pending
-                and self.pending_bytes + nbytes <= self.settings.max_pending_bytes)
+        return (
+            self.pending + n <= self.settings.max_pending
+            and self.pending_bytes + nbytes <= self.settings.max_pending_bytes
+        )
 
-    async def submit(self, items: list[Accepted], wait_s: float | None,
-                     on_busy: Callable[[], Awaitable[None]] | None = None) -> tuple[int, int, asyncio.Future]:
+    async def submit(
+        self, items: list[Accepted], wait_s: float | None, on_busy: Callable[[], Awaitable[None]] | None = None
+    ) -> tuple[int, int, asyncio.Future]:
         """Accept validated inputs; returns ``(first seq, last seq, durability future)``.
 
         ``wait_s``: how long to wait for room in the mapper queue before 429 (None: forever,
@@ -139,8 +157,11 @@ class LiveSession:
             first = items[0]
             last_t = self.last_times.get(first.kind)
             if not model.follows(last_t, first.t):
-                raise IngestError(409, f"{first.kind} timestamp {first.t!r} does not follow the session's previous "
-                                       f"{first.kind} at {last_t!r}")
+                raise IngestError(
+                    409,
+                    f"{first.kind} timestamp {first.t!r} does not follow the session's previous "
+                    f"{first.kind} at {last_t!r}",
+                )
             check_time_jump(first.kind, first.t, self.last_t, self.settings)
             sizes = [input_bytes(a) for a in items]
             nbytes = sum(sizes)
@@ -154,11 +175,14 @@ class LiveSession:
                     self._room.clear()
                     remaining = None if deadline is None else deadline - self.loop.time()
                     if remaining is not None and remaining <= 0:
-                        raise IngestError(429, f"session {self.id} is busy: {self.pending} inputs "
-                                               f"({self.pending_bytes / 1e6:.1f} MB of images) wait for the mapper "
-                                               f"(limits {self.settings.max_pending} inputs, "
-                                               f"{self.settings.max_pending_bytes / 1e6:.0f} MB); retry later",
-                                          retry_after=1)
+                        raise IngestError(
+                            429,
+                            f"session {self.id} is busy: {self.pending} inputs "
+                            f"({self.pending_bytes / 1e6:.1f} MB of images) wait for the mapper "
+                            f"(limits {self.settings.max_pending} inputs, "
+                            f"{self.settings.max_pending_bytes / 1e6:.0f} MB); retry later",
+                            retry_after=1,
+                        )
                     try:
                         await asyncio.wait_for(self._room.wait(), remaining)
                     except asyncio.TimeoutError:
@@ -188,8 +212,9 @@ class LiveSession:
         cfut.add_done_callback(lambda f: self.calls.call(self._stored, f, last, kinds, done))
         return seq0, last, done
 
-    def _stored(self, fut: Any, last: int, kinds: Counter[str] | None = None,
-                done: asyncio.Future | None = None) -> None:
+    def _stored(
+        self, fut: Any, last: int, kinds: Counter[str] | None = None, done: asyncio.Future | None = None
+    ) -> None:
         """On the loop, once the store has settled a write (``fut``, a concurrent future): record it and
         settle ``done``, the future the caller awaits, with the same outcome."""
         error = RuntimeError("the write was cancelled") if fut.cancelled() else fut.exception()

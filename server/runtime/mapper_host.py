@@ -182,8 +182,9 @@ class InProcessHost(MapperHost):
                 events = [InputRejected(value.t, seq, str(exc))]
             except Exception as exc:  # noqa: BLE001 - an input the model cannot take must not stop the session
                 # (deterministic: a replay of the same inputs fails, and is skipped, the same way)
-                log.exception("input seq %d (t=%r) failed in the mapper (skipped): %s: %s", seq, value.t,
-                              type(exc).__name__, exc)
+                log.exception(
+                    "input seq %d (t=%r) failed in the mapper (skipped): %s: %s", seq, value.t, type(exc).__name__, exc
+                )
                 events = [InputFailed(value.t, seq, f"{type(exc).__name__}: {exc}")]
             seconds = time.perf_counter() - t0
             field = self.mapper.place_field if odometry else None
@@ -192,8 +193,14 @@ class InProcessHost(MapperHost):
             if field is not None and field is not self._last_field and getattr(field, "field", None) is not None:
                 blob = model.place_field_blob(field)
             self._last_field = field
-        return StepResult(seq, "odometry" if odometry else "frame", float(value.t),
-                          [model.event_dict(ev) for ev in events], blob, seconds)
+        return StepResult(
+            seq,
+            "odometry" if odometry else "frame",
+            float(value.t),
+            [model.event_dict(ev) for ev in events],
+            blob,
+            seconds,
+        )
 
     def snapshot(self) -> bytes:
         with self.lock:

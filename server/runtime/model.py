@@ -27,9 +27,23 @@ from hippomap.map_events import MapEvent
 if TYPE_CHECKING:
     from hippomap.spatial_pathway import PlaceCode
 
-__all__ = ["MapperPort", "queries", "effective_config", "new_mapper", "load_mapper", "follows", "check_frame",
-           "graph", "loop_closures", "draw_saccades", "place_field_blob", "place_field_from_blob",
-           "place_field_dense", "json_safe", "event_dict"]
+__all__ = [
+    "MapperPort",
+    "queries",
+    "effective_config",
+    "new_mapper",
+    "load_mapper",
+    "follows",
+    "check_frame",
+    "graph",
+    "loop_closures",
+    "draw_saccades",
+    "place_field_blob",
+    "place_field_from_blob",
+    "place_field_dense",
+    "json_safe",
+    "event_dict",
+]
 
 T = TypeVar("T")
 
@@ -87,8 +101,16 @@ def graph(arrays: dict[str, np.ndarray]) -> dict[str, Any]:
 
     codes = np.asarray(arrays["place_codes"], dtype=float).reshape(-1, 3)
     known = np.isfinite(codes).all(axis=1)  # a node made before the first odometry step has no place code yet
-    g = graph_dict(arrays["poses"], np.where(known[:, None], codes, 0.0), arrays["frames"], arrays["times"],
-                   arrays["source"], arrays["target"], arrays["transform"], arrays["kind"])
+    g = graph_dict(
+        arrays["poses"],
+        np.where(known[:, None], codes, 0.0),
+        arrays["frames"],
+        arrays["times"],
+        arrays["source"],
+        arrays["target"],
+        arrays["transform"],
+        arrays["kind"],
+    )
     for i in np.flatnonzero(~known):
         g["nodes"][i]["place_code"] = None
     return g
@@ -101,9 +123,18 @@ def loop_closures(decisions: tuple[LoopDecision, ...]) -> list[dict[str, Any]]:
         row = _finite(d.to_dict())
         h = row["hypothesis"]
         meta = h.get("meta") or {}
-        out.append({"id": row["id"], "t": h.get("time"), "status": row["status"],
-                    "nodes": [row.get("from_node"), h.get("node")], "evidence": h.get("evidence"),
-                    "source": h.get("source"), "recognition": meta.get("recognition"), "decision": row})
+        out.append(
+            {
+                "id": row["id"],
+                "t": h.get("time"),
+                "status": row["status"],
+                "nodes": [row.get("from_node"), h.get("node")],
+                "evidence": h.get("evidence"),
+                "source": h.get("source"),
+                "recognition": meta.get("recognition"),
+                "decision": row,
+            }
+        )
     return out
 
 
@@ -119,9 +150,15 @@ def draw_saccades(image: np.ndarray, rec: dict[str, Any], attempt: Any = "last")
         kw["target"] = tuple(kw["target"]) if kw.get("target") is not None else None
         kw["evidence"] = [tuple(e) for e in kw.get("evidence", [])]
         steps.append(SaccadeStep(**kw))
-    r = Recognition(frame_id=rec.get("frame_id"), evidence=float(rec.get("evidence") or 0.0), steps=steps,
-                    n_resets=int(rec.get("n_resets", 0)), confidence=float(rec.get("confidence") or 0.0),
-                    image_size=tuple(rec.get("image_size", (0, 0))), reason=rec.get("reason", ""))
+    r = Recognition(
+        frame_id=rec.get("frame_id"),
+        evidence=float(rec.get("evidence") or 0.0),
+        steps=steps,
+        n_resets=int(rec.get("n_resets", 0)),
+        confidence=float(rec.get("confidence") or 0.0),
+        image_size=tuple(rec.get("image_size", (0, 0))),
+        reason=rec.get("reason", ""),
+    )
     return draw_trace(image, r, attempt=attempt)
 
 
@@ -132,17 +169,22 @@ _PF_HEADER = struct.Struct("<I")
 def place_field_blob(code: Any) -> bytes:
     """A PlaceCode's field as bytes: JSON metadata + the sparse field's flat indices (int32)."""
     f = code.field
-    meta = {"size": int(f.size), "resolution": float(f.resolution), "origin": [float(v) for v in code.origin],
-            "centroid": [float(v) for v in f.centroid], "place_code": [float(code.x), float(code.y), float(code.theta)],
-            "iterations": int(f.iterations)}
+    meta = {
+        "size": int(f.size),
+        "resolution": float(f.resolution),
+        "origin": [float(v) for v in code.origin],
+        "centroid": [float(v) for v in f.centroid],
+        "place_code": [float(code.x), float(code.y), float(code.theta)],
+        "iterations": int(f.iterations),
+    }
     js = json.dumps(meta).encode()
     return _PF_HEADER.pack(len(js)) + js + np.asarray(f.indices, dtype=np.int32).tobytes()
 
 
 def place_field_from_blob(data: bytes) -> tuple[dict[str, Any], np.ndarray]:
     (n,) = _PF_HEADER.unpack_from(data)
-    meta = json.loads(data[_PF_HEADER.size:_PF_HEADER.size + n])
-    idx = np.frombuffer(data[_PF_HEADER.size + n:], dtype=np.int32).astype(np.int64)
+    meta = json.loads(data[_PF_HEADER.size : _PF_HEADER.size + n])
+    idx = np.frombuffer(data[_PF_HEADER.size + n :], dtype=np.int32).astype(np.int64)
     return meta, idx
 
 

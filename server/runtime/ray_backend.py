@@ -53,8 +53,10 @@ def _ray_env() -> None:
     """Environment Ray reads when it is first imported: no usage statistics; token authentication
     when a token is at hand (Ray does so by itself only for a Ray it starts, not for one it joins)."""
     os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
-    if "RAY_AUTH_MODE" not in os.environ and (os.environ.get("RAY_AUTH_TOKEN") or Path(
-            os.environ.get("RAY_AUTH_TOKEN_PATH") or "~/.ray/auth_token").expanduser().is_file()):
+    if "RAY_AUTH_MODE" not in os.environ and (
+        os.environ.get("RAY_AUTH_TOKEN")
+        or Path(os.environ.get("RAY_AUTH_TOKEN_PATH") or "~/.ray/auth_token").expanduser().is_file()
+    ):
         os.environ["RAY_AUTH_MODE"] = "token"
 
 
@@ -103,8 +105,8 @@ class RayHost(RemoteHost):
         self.session_id = session_id
         self.max_batch = backend.settings.ray_max_batch
         self.actor = backend.actor_class.options(
-            num_cpus=backend.settings.ray_actor_cpus, max_concurrency=ACTOR_CONCURRENCY,
-            scheduling_strategy="SPREAD").remote()
+            num_cpus=backend.settings.ray_actor_cpus, max_concurrency=ACTOR_CONCURRENCY, scheduling_strategy="SPREAD"
+        ).remote()
         self._info: dict[str, Any] = {"kind": "ray"}
         self._closed = False
 
@@ -114,8 +116,7 @@ class RayHost(RemoteHost):
             raise HostDied(f"the actor of session {self.session_id} was closed")
         try:
             return ray.get(getattr(self.actor, method).remote(*args))
-        except (ray.exceptions.RayActorError, ray.exceptions.WorkerCrashedError,
-                ray.exceptions.ObjectLostError) as exc:
+        except (ray.exceptions.RayActorError, ray.exceptions.WorkerCrashedError, ray.exceptions.ObjectLostError) as exc:
             raise HostDied(f"Ray actor of session {self.session_id} died: {type(exc).__name__}") from exc
 
     def restore(self, snapshot: bytes | None, config: HippomapConfig) -> dict[str, Any]:
@@ -133,8 +134,12 @@ class RayHost(RemoteHost):
         try:
             self._ray.kill(self.actor, no_restart=True)
         except Exception:  # noqa: BLE001 - already gone, or Ray is shutting down
-            log.debug("killing the actor of session %s failed", self.session_id, exc_info=True,
-                      extra={"session": self.session_id})
+            log.debug(
+                "killing the actor of session %s failed",
+                self.session_id,
+                exc_info=True,
+                extra={"session": self.session_id},
+            )
 
 
 @contextlib.contextmanager
@@ -168,8 +173,7 @@ class RayBackend:
 
     def start(self) -> None:
         ray = self.ray
-        common = dict(include_dashboard=False, log_to_driver=False, logging_level=logging.WARNING,
-                      namespace="hippomap")
+        common = dict(include_dashboard=False, log_to_driver=False, logging_level=logging.WARNING, namespace="hippomap")
         if not ray.is_initialized():
             with _keep_signal_handlers():
                 if self.settings.ray_address:

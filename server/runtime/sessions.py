@@ -46,8 +46,16 @@ from .mapper_host import HostFactory, MapperGate, gated_factory
 log = logging.getLogger("hippomap.server")
 
 # LiveSession, NotFound and release_memory live in .live_session; their callers import them from here
-__all__ = ["EXIT_STORE_DEAD", "Forbidden", "LiveSession", "NotFound", "ServedElsewhere", "SessionManager",
-           "exit_process", "release_memory"]
+__all__ = [
+    "EXIT_STORE_DEAD",
+    "Forbidden",
+    "LiveSession",
+    "NotFound",
+    "ServedElsewhere",
+    "SessionManager",
+    "exit_process",
+    "release_memory",
+]
 
 
 #: exit status of a server whose store's writer died (EX_SOFTWARE)
@@ -81,6 +89,7 @@ def _effective_config(overrides: dict[str, Any]) -> Any:
         raise IngestError(422, f"invalid config: {pydantic_message(exc)}") from None
     except (ValueError, TypeError) as exc:
         raise IngestError(422, f"invalid config: {exc}") from None
+
 
 class SessionManager:
     """All live sessions of the server.
@@ -122,8 +131,11 @@ class SessionManager:
     def _on_store_fatal(self, reason: str) -> None:
         """The store's writer died (called from its thread): exit after ``fatal_exit_s`` so a
         supervisor restarts the server; every acknowledged input is durable, nothing is lost."""
-        log.critical("the store's writer died (%s): exiting in %.1f s so a supervisor restarts the server",
-                     reason, self.settings.fatal_exit_s)
+        log.critical(
+            "the store's writer died (%s): exiting in %.1f s so a supervisor restarts the server",
+            reason,
+            self.settings.fatal_exit_s,
+        )
         timer = threading.Timer(self.settings.fatal_exit_s, exit_process, args=(EXIT_STORE_DEAD,))
         timer.daemon = True
         timer.start()
@@ -177,19 +189,27 @@ class SessionManager:
                 continue
             owner = self.store.claim_session(sid, self.replica, ttl)
             if owner != self.replica:
-                log.warning("session %s: lease lost to replica %s; stopping it here", sid, owner,
-                            extra={"session": sid})
+                log.warning(
+                    "session %s: lease lost to replica %s; stopping it here", sid, owner, extra={"session": sid}
+                )
                 self._drop(live)
         now = time.time()
         for rec in self.store.list_sessions():
             # sessions younger than a TTL may still be being opened by the replica that created them
-            if (self._stopping.is_set() or rec.id in self.sessions or rec.id in self._deleting
-                    or now - rec.created < ttl):
+            if (
+                self._stopping.is_set()
+                or rec.id in self.sessions
+                or rec.id in self._deleting
+                or now - rec.created < ttl
+            ):
                 continue
-            if (self.store.session_owner(rec.id) is None
-                    and self.store.claim_session(rec.id, self.replica, ttl) == self.replica):
-                log.warning("session %s: its replica stopped renewing; taking it over", rec.id,
-                            extra={"session": rec.id})
+            if (
+                self.store.session_owner(rec.id) is None
+                and self.store.claim_session(rec.id, self.replica, ttl) == self.replica
+            ):
+                log.warning(
+                    "session %s: its replica stopped renewing; taking it over", rec.id, extra={"session": rec.id}
+                )
                 self._adopt(rec)
 
     def _adopt(self, rec: SessionRecord) -> LiveSession:
@@ -226,8 +246,9 @@ class SessionManager:
         assert self.loop is not None
         if self.calls is None or self.calls.loop is not self.loop:
             self.calls = LoopCalls(self.loop)
-        live = LiveSession(rec, config, self.store, self.settings, self.loop, self.host_factory, self.metrics,
-                           self.calls)
+        live = LiveSession(
+            rec, config, self.store, self.settings, self.loop, self.host_factory, self.metrics, self.calls
+        )
         live.replica = self.replica
         self.sessions[rec.id] = live
         live.worker.start()
@@ -251,8 +272,9 @@ class SessionManager:
             self.backend = None
 
     # ------------------------------------------------------------ commands
-    async def create(self, token: TokenRecord, name: str, overrides: dict[str, Any],
-                     base_session: str | None = None) -> LiveSession:
+    async def create(
+        self, token: TokenRecord, name: str, overrides: dict[str, Any], base_session: str | None = None
+    ) -> LiveSession:
         """A new session: a fresh mapper of ``overrides``, or (``base_session``) a new run in a copy of
         that session's map, its config the base's changed by ``overrides`` (see :meth:`_based`)."""
         if token.role == "viewer":
@@ -296,8 +318,11 @@ class SessionManager:
             merged.setdefault(section, {}).update(values)
         config = _effective_config(merged)
         if config.visual != base.config.visual:
-            raise IngestError(422, "a session started from a base map must keep the base's visual config "
-                                   "(its key frames were learned with it)")
+            raise IngestError(
+                422,
+                "a session started from a base map must keep the base's visual config "
+                "(its key frames were learned with it)",
+            )
         if base.error:
             raise IngestError(409, f"base session {base.id} has failed: {base.error}")
         try:
@@ -308,22 +333,33 @@ class SessionManager:
             raise IngestError(503, f"base session {base.id} is being restored; retry shortly", retry_after=1)
         return merged, data
 
-    async def _create(self, token: TokenRecord, name: str, overrides: dict[str, Any], snapshot: bytes | None = None,
-                      inputs_of: LiveSession | None = None, wait_ready: bool = True) -> LiveSession:
+    async def _create(
+        self,
+        token: TokenRecord,
+        name: str,
+        overrides: dict[str, Any],
+        snapshot: bytes | None = None,
+        inputs_of: LiveSession | None = None,
+        wait_ready: bool = True,
+    ) -> LiveSession:
         config = _effective_config(overrides)
         if len(json.dumps(overrides)) > MAX_OVERRIDES_CHARS:
             raise IngestError(422, f"config overrides longer than {MAX_OVERRIDES_CHARS} characters")
         owned = [s for s in self.sessions.values() if s.record.owner == token.id and not s.closed]
         if len(owned) >= self.settings.max_sessions_per_token:
-            raise IngestError(429, f"token {token.id} already owns {len(owned)} sessions "
-                                   f"(limit {self.settings.max_sessions_per_token}); delete one first")
+            raise IngestError(
+                429,
+                f"token {token.id} already owns {len(owned)} sessions "
+                f"(limit {self.settings.max_sessions_per_token}); delete one first",
+            )
         try:
             check_config(config, self.settings)
             check_token_quota(config, [s.config for s in owned], self.settings)
         except ConfigRejected as exc:
             raise IngestError(exc.status, exc.detail) from None
-        rec = SessionRecord(id="s_" + secrets.token_hex(8), owner=token.id, name=name, config=overrides,
-                            created=time.time())
+        rec = SessionRecord(
+            id="s_" + secrets.token_hex(8), owner=token.id, name=name, config=overrides, created=time.time()
+        )
         await asyncio.to_thread(self.store.claim_session, rec.id, self.replica, self.settings.lease_ttl_s)
         await asyncio.wrap_future(self.store.create_session(rec))
         if snapshot is not None:  # the new run in the base's map: the state its worker restores (before seq 0)
@@ -346,8 +382,9 @@ class SessionManager:
             chunk = self.store.read_inputs(source, after, min(256, until - after))
             if not chunk:
                 break
-            self.store.append_inputs(target, [InputRecord(seq=r.seq, kind=r.kind, t=r.t, data=r.data) for r in chunk]
-                                     ).result()
+            self.store.append_inputs(
+                target, [InputRecord(seq=r.seq, kind=r.kind, t=r.t, data=r.data) for r in chunk]
+            ).result()
             after = chunk[-1].seq
 
     def visible(self, token: TokenRecord) -> list[LiveSession]:

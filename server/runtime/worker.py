@@ -81,9 +81,17 @@ def _nbytes(value: Odometry | Frame) -> int:
 class SessionWorker:
     """Runs one session's mapper (through its host) from its own thread."""
 
-    def __init__(self, session_id: str, config: HippomapConfig, store: Store, settings: ServerSettings,
-                 replay_until: int, on_processed: Callable[[int], None] | None = None,
-                 host_factory: HostFactory | None = None, metrics: Any = None) -> None:
+    def __init__(
+        self,
+        session_id: str,
+        config: HippomapConfig,
+        store: Store,
+        settings: ServerSettings,
+        replay_until: int,
+        on_processed: Callable[[int], None] | None = None,
+        host_factory: HostFactory | None = None,
+        metrics: Any = None,
+    ) -> None:
         self.session_id = session_id
         self.config = config
         self.store = store
@@ -216,8 +224,9 @@ class SessionWorker:
             try:
                 host.close()
             except Exception:  # noqa: BLE001 - closing a dead host
-                log.debug("closing the host of session %s failed", self.session_id, exc_info=True,
-                          extra=self._log_extra)
+                log.debug(
+                    "closing the host of session %s failed", self.session_id, exc_info=True, extra=self._log_extra
+                )
 
     def _feed(self, batch: list[WorkItem]) -> None:
         """Hand ``batch`` to the host and take its results; replace the host if it died."""
@@ -244,11 +253,18 @@ class SessionWorker:
                     self.restarts += 1
                     self._failures += 1
                     if self._failures > self.settings.backend_max_restarts:
-                        raise RuntimeError(f"the session's mapper died {self._failures} times in a row "
-                                           f"(last: {cause}); giving up")
-                    log.warning("session %s: mapper host died (%s); restoring a new one from the last snapshot "
-                                "and replaying up to seq %d (restart %d)", self.session_id, cause, until,
-                                self.restarts, extra=self._log_extra)
+                        raise RuntimeError(
+                            f"the session's mapper died {self._failures} times in a row (last: {cause}); giving up"
+                        )
+                    log.warning(
+                        "session %s: mapper host died (%s); restoring a new one from the last snapshot "
+                        "and replaying up to seq %d (restart %d)",
+                        self.session_id,
+                        cause,
+                        until,
+                        self.restarts,
+                        extra=self._log_extra,
+                    )
                     old, self._host = self._host, None
                     if old is not None:
                         try:
@@ -261,8 +277,13 @@ class SessionWorker:
                     seconds = time.monotonic() - t0
                     if self.metrics is not None:
                         self.metrics.restore_observed(self.session_id, seconds)
-                    log.info("session %s restored up to seq %d in %.2f s", self.session_id, self._host_seq, seconds,
-                             extra=self._log_extra)
+                    log.info(
+                        "session %s restored up to seq %d in %.2f s",
+                        self.session_id,
+                        self._host_seq,
+                        seconds,
+                        extra=self._log_extra,
+                    )
                     return
                 except HostDied as exc:
                     cause, recovering = str(exc), True
@@ -300,8 +321,13 @@ class SessionWorker:
             chunk = self.store.read_inputs(self.session_id, after, min(REPLAY_CHUNK, until - after))
             if not chunk:
                 break
-            items = [WorkItem(rec.seq, odometry_from_bytes(rec.data) if rec.kind == "odometry"
-                              else frame_from_bytes(rec.t, rec.data)) for rec in chunk]
+            items = [
+                WorkItem(
+                    rec.seq,
+                    odometry_from_bytes(rec.data) if rec.kind == "odometry" else frame_from_bytes(rec.t, rec.data),
+                )
+                for rec in chunk
+            ]
             k = 0
             while k < len(items):
                 batch, size = [items[k]], _nbytes(items[k].value)
@@ -330,8 +356,9 @@ class SessionWorker:
                     self.input_errors += 1
                     self.last_input_error = f"seq {r.seq}: {ev['detail']}"
                 ref = ev.get("id") if isinstance(ev.get("id"), int) else None  # recognition, loop decision
-                self._events.append(EventRecord(id=self._next_event, seq=r.seq, type=etype, t=ev["t"], data=ev,
-                                                ref=ref))
+                self._events.append(
+                    EventRecord(id=self._next_event, seq=r.seq, type=etype, t=ev["t"], data=ev, ref=ref)
+                )
                 self._next_event += 1
             self._host_seq = r.seq
             self.processed_seq = max(self.processed_seq, r.seq)
@@ -356,8 +383,10 @@ class SessionWorker:
         s = self.settings
         if self._host_seq <= self.snapshot_seq:
             return
-        if (self._host_seq - self.snapshot_seq >= s.snapshot_every_inputs
-                or time.monotonic() - self._snapshot_t >= s.snapshot_every_s):
+        if (
+            self._host_seq - self.snapshot_seq >= s.snapshot_every_inputs
+            or time.monotonic() - self._snapshot_t >= s.snapshot_every_s
+        ):
             self._snapshot()
 
     def _snapshot(self) -> None:

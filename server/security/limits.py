@@ -135,8 +135,11 @@ class OriginCheck:
             headers = {k.decode("latin-1").lower(): v.decode("latin-1") for k, v in scope.get("headers", [])}
             origin = headers.get("origin")
             if not self.allows(origin, headers.get("host")):
-                log.warning("websocket %s refused: Origin %r is not allowed (allowed_origins)",
-                            scope.get("path", ""), origin[:200] if origin else origin)
+                log.warning(
+                    "websocket %s refused: Origin %r is not allowed (allowed_origins)",
+                    scope.get("path", ""),
+                    origin[:200] if origin else origin,
+                )
                 await receive()  # websocket.connect
                 await send({"type": "websocket.close", "code": 1008, "reason": "origin not allowed"})
                 return

@@ -85,8 +85,15 @@ class ConfigRejected(ValueError):
 
 def grid_table_key(spatial: SpatialConfig) -> tuple:
     """What makes two sessions' grid-cell tables the same array (``GridCells.tables``' cache key)."""
-    return (spatial.area_size_m, spatial.resolution_m, spatial.n_modules, spatial.cells_per_module,
-            spatial.spacing_min_m, spatial.spacing_max_m, spatial.seed)
+    return (
+        spatial.area_size_m,
+        spatial.resolution_m,
+        spatial.n_modules,
+        spatial.cells_per_module,
+        spatial.spacing_min_m,
+        spatial.spacing_max_m,
+        spatial.seed,
+    )
 
 
 def grid_table_bytes(spatial: SpatialConfig) -> int:
@@ -133,17 +140,22 @@ def check_config(config: HippomapConfig, settings: ServerSettings) -> None:
     for (section, field), (lo, hi) in SAFE_RANGES.items():
         value = dumped.get(section, {}).get(field)  # (a field the model no longer has: nothing to bound)
         if value is not None and not lo <= value <= hi:
-            raise ConfigRejected(422, f"config {section}.{field}={value} is outside the server's safe range "
-                                      f"[{lo:g}, {hi:g}]")
+            raise ConfigRejected(
+                422, f"config {section}.{field}={value} is outside the server's safe range [{lo:g}, {hi:g}]"
+            )
     n_freq = len(config.visual.vgc_frequencies)
     if not 1 <= n_freq <= MAX_VGC_FREQUENCIES:
-        raise ConfigRejected(422, f"config visual.vgc_frequencies has {n_freq} entries; the server allows 1 to "
-                                  f"{MAX_VGC_FREQUENCIES}")
+        raise ConfigRejected(
+            422, f"config visual.vgc_frequencies has {n_freq} entries; the server allows 1 to {MAX_VGC_FREQUENCIES}"
+        )
     need = grid_table_bytes(config.spatial)
     if need > settings.max_session_grid_bytes:
-        raise ConfigRejected(422, f"config needs {need / 1e6:.0f} MB of grid-cell tables (spatial.n_modules x "
-                                  f"cells_per_module x (area_size_m / resolution_m)^2); the server allows "
-                                  f"{settings.max_session_grid_bytes / 1e6:.0f} MB per session")
+        raise ConfigRejected(
+            422,
+            f"config needs {need / 1e6:.0f} MB of grid-cell tables (spatial.n_modules x "
+            f"cells_per_module x (area_size_m / resolution_m)^2); the server allows "
+            f"{settings.max_session_grid_bytes / 1e6:.0f} MB per session",
+        )
 
 
 def check_token_quota(config: HippomapConfig, owned: list[HippomapConfig], settings: ServerSettings) -> None:
@@ -154,7 +166,10 @@ def check_token_quota(config: HippomapConfig, owned: list[HippomapConfig], setti
     tables.setdefault(grid_table_key(config.spatial), grid_table_bytes(config.spatial))
     after = sum(tables.values())
     if after > settings.max_token_grid_bytes:
-        raise ConfigRejected(403, f"this token's sessions would need {after / 1e6:.0f} MB of grid-cell tables "
-                                  f"(now {before / 1e6:.0f} MB, limit {settings.max_token_grid_bytes / 1e6:.0f} "
-                                  "MB): reuse a spatial config (geometry and seed) of a session it has, or delete "
-                                  "one first")
+        raise ConfigRejected(
+            403,
+            f"this token's sessions would need {after / 1e6:.0f} MB of grid-cell tables "
+            f"(now {before / 1e6:.0f} MB, limit {settings.max_token_grid_bytes / 1e6:.0f} "
+            "MB): reuse a spatial config (geometry and seed) of a session it has, or delete "
+            "one first",
+        )

@@ -81,7 +81,10 @@ _CONNECT_OPTIONS: dict[str, Any] = {  # defaults; a URL's own ?connect_timeout=.
     "connect_timeout": 10,
     "application_name": "hippomap",
     # a database host that vanishes (no RST) is noticed in ~25 s instead of hanging on TCP
-    "keepalives": 1, "keepalives_idle": 10, "keepalives_interval": 5, "keepalives_count": 3,
+    "keepalives": 1,
+    "keepalives_idle": 10,
+    "keepalives_interval": 5,
+    "keepalives_count": 3,
 }
 
 
@@ -91,9 +94,12 @@ def _insert_inputs(conn: psycopg.Connection, rows: list[tuple]) -> None:
     if not rows:
         return
     cols = list(zip(*rows))
-    conn.execute("INSERT INTO inputs (session, seq, kind, t, data) SELECT * FROM "
-                 "unnest(%b::text[], %b::int8[], %b::int2[], %b::float8[], %b::bytea[])",
-                 [list(c) for c in cols], prepare=True)
+    conn.execute(
+        "INSERT INTO inputs (session, seq, kind, t, data) SELECT * FROM "
+        "unnest(%b::text[], %b::int8[], %b::int2[], %b::float8[], %b::bytea[])",
+        [list(c) for c in cols],
+        prepare=True,
+    )
 
 
 def _stale(conn: psycopg.Connection) -> bool:
@@ -203,8 +209,7 @@ class PostgresStore(SQLStore):
                     conn.execute("ALTER TABLE inputs ALTER COLUMN data SET STORAGE EXTERNAL")
                     conn.execute("INSERT INTO meta VALUES ('schema', %s)", (str(SCHEMA_VERSION),))
                 elif int(row[0]) != SCHEMA_VERSION:
-                    raise RuntimeError(f"{self.location}: database schema {row[0]}, "
-                                       f"this server needs {SCHEMA_VERSION}")
+                    raise RuntimeError(f"{self.location}: database schema {row[0]}, this server needs {SCHEMA_VERSION}")
         except BaseException:
             conn.close()
             raise
@@ -242,8 +247,9 @@ class PostgresStore(SQLStore):
                 except psycopg.OperationalError as exc:
                     if attempt == 0 and conn.broken:
                         continue
-                    raise StoreConnectionError(f"PostgreSQL database {self.location}: "
-                                               f"{_scrub(str(exc).strip(), self._url)}") from None
+                    raise StoreConnectionError(
+                        f"PostgreSQL database {self.location}: {_scrub(str(exc).strip(), self._url)}"
+                    ) from None
         raise AssertionError("unreachable")  # pragma: no cover
 
     def _execute(self, conn: psycopg.Connection, sql: str, args: Sequence[Any] = ()) -> psycopg.Cursor:
@@ -345,8 +351,9 @@ class PostgresStore(SQLStore):
                 self._rollback(self._writer_conn)
             err: BaseException = exc
             if isinstance(exc, psycopg.OperationalError):
-                err = StoreConnectionError(f"PostgreSQL database {self.location}: "
-                                           f"{_scrub(str(exc).strip(), self._url)}")
+                err = StoreConnectionError(
+                    f"PostgreSQL database {self.location}: {_scrub(str(exc).strip(), self._url)}"
+                )
             fail_batch(batch, err)
             return
         settle_batch(batch, outcomes)
@@ -365,20 +372,24 @@ class PostgresStore(SQLStore):
             conn.close()
 
     # -------------------------------------------------------------- inputs
-    def append_inputs(self, session_id: str, inputs: list[InputRecord],
-                      on_durable: Callable[[], None] | None = None) -> Future:
+    def append_inputs(
+        self, session_id: str, inputs: list[InputRecord], on_durable: Callable[[], None] | None = None
+    ) -> Future:
         rows = [(session_id, r.seq, KINDS.index(r.kind), float(r.t), r.data) for r in inputs]
 
         def op(c: psycopg.Connection) -> None:
             _insert_inputs(c, rows)
+
         op.input_rows = rows  # type: ignore[attr-defined]  # lets a batch merge consecutive appends
         return self._submit(op, on_durable)
 
     def last_times(self, session_id: str) -> dict[str, float]:
         # the newest inputs hold both kinds in practice; one index scan per kind finds each
-        rows = self._fetch("SELECT k.kind, (SELECT t FROM inputs WHERE session=%s AND kind=k.kind "
-                           "ORDER BY seq DESC LIMIT 1) FROM (VALUES (0::smallint), (1::smallint)) AS k(kind)",
-                           (session_id,))
+        rows = self._fetch(
+            "SELECT k.kind, (SELECT t FROM inputs WHERE session=%s AND kind=k.kind "
+            "ORDER BY seq DESC LIMIT 1) FROM (VALUES (0::smallint), (1::smallint)) AS k(kind)",
+            (session_id,),
+        )
         return {KINDS[kind]: float(t) for kind, t in rows if t is not None}
 
     # -------------------------------------------------------------- leases
@@ -394,7 +405,9 @@ class PostgresStore(SQLStore):
                 "INSERT INTO leases AS l VALUES (%s, %s, now() + make_interval(secs => %s)) "
                 "ON CONFLICT (session) DO UPDATE SET owner=EXCLUDED.owner, expires=EXCLUDED.expires "
                 "WHERE l.owner IS NULL OR l.owner=EXCLUDED.owner OR l.expires < now() RETURNING owner",
-                (session_id, replica, float(ttl_s)), one=True)
+                (session_id, replica, float(ttl_s)),
+                one=True,
+            )
             if row is not None:
                 return str(row[0])
             holder = self.session_owner(session_id)
@@ -405,12 +418,18 @@ class PostgresStore(SQLStore):
 
     def release_session(self, session_id: str, replica: str) -> bool:
         """Give up ``replica``'s lease on ``session_id``; False if it did not hold it."""
-        row = self._fetch("UPDATE leases SET owner=NULL WHERE session=%s AND owner=%s RETURNING session",
-                          (session_id, replica), one=True)
+        row = self._fetch(
+            "UPDATE leases SET owner=NULL WHERE session=%s AND owner=%s RETURNING session",
+            (session_id, replica),
+            one=True,
+        )
         return row is not None
 
     def session_owner(self, session_id: str) -> str | None:
         """The replica holding an unexpired lease on ``session_id``, or None."""
-        row = self._fetch("SELECT owner FROM leases WHERE session=%s AND owner IS NOT NULL AND expires >= now()",
-                          (session_id,), one=True)
+        row = self._fetch(
+            "SELECT owner FROM leases WHERE session=%s AND owner IS NOT NULL AND expires >= now()",
+            (session_id,),
+            one=True,
+        )
         return None if row is None else str(row[0])

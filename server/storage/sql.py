@@ -115,24 +115,26 @@ class SQLStore(Store):
 
     # ---------------------------------------------------------------- tokens
     def add_token(self, secret_hash: str, token: TokenRecord) -> Future:
-        row = (secret_hash, token.id, token.role, token.owner, token.session, self._text_in(token.label),
-               token.created)
+        row = (secret_hash, token.id, token.role, token.owner, token.session, self._text_in(token.label), token.created)
 
         def op(c: Any) -> None:
             self._execute(c, "INSERT INTO tokens VALUES (%s,%s,%s,%s,%s,%s,%s)", row)
+
         return self._submit(op)
 
     def _token(self, row: Sequence[Any]) -> TokenRecord:
-        return TokenRecord(id=row[0], role=row[1], owner=row[2], session=row[3], label=self._text_out(row[4]),
-                           created=row[5])
+        return TokenRecord(
+            id=row[0], role=row[1], owner=row[2], session=row[3], label=self._text_out(row[4]), created=row[5]
+        )
 
     def token_by_hash(self, secret_hash: str) -> TokenRecord | None:
         row = self._fetch(f"SELECT {_TOKEN_COLUMNS} FROM tokens WHERE hash=%s", (secret_hash,), one=True)
         return None if row is None else self._token(row)
 
     def list_tokens(self, owner: str) -> list[TokenRecord]:
-        rows = self._fetch(f"SELECT {_TOKEN_COLUMNS} FROM tokens WHERE owner=%s OR id=%s ORDER BY created",
-                           (owner, owner))
+        rows = self._fetch(
+            f"SELECT {_TOKEN_COLUMNS} FROM tokens WHERE owner=%s OR id=%s ORDER BY created", (owner, owner)
+        )
         return [self._token(r) for r in rows]
 
     def delete_token(self, token_id: str) -> Future:
@@ -140,11 +142,13 @@ class SQLStore(Store):
 
     def revoke_token(self, token_id: str, heir: str) -> Future:
         def op(c: Any) -> list[str]:
-            sessions = [r[0] for r in self._execute(c, "SELECT id FROM sessions WHERE owner=%s",
-                                                    (token_id,)).fetchall()]
+            sessions = [
+                r[0] for r in self._execute(c, "SELECT id FROM sessions WHERE owner=%s", (token_id,)).fetchall()
+            ]
             self._execute(c, "UPDATE sessions SET owner=%s WHERE owner=%s", (heir, token_id))
             self._execute(c, "DELETE FROM tokens WHERE id=%s OR owner=%s", (token_id, token_id))
             return sessions
+
         return self._submit(op)
 
     # -------------------------------------------------------------- sessions
@@ -153,12 +157,15 @@ class SQLStore(Store):
 
         def op(c: Any) -> None:
             self._execute(c, "INSERT INTO sessions VALUES (%s,%s,%s,%s,%s)", row)
+
         return self._submit(op)
 
     def list_sessions(self) -> list[SessionRecord]:
         rows = self._fetch("SELECT id, owner, name, config, created FROM sessions ORDER BY created")
-        return [SessionRecord(id=r[0], owner=r[1], name=self._text_out(r[2]), config=json.loads(r[3]),
-                              created=r[4]) for r in rows]
+        return [
+            SessionRecord(id=r[0], owner=r[1], name=self._text_out(r[2]), config=json.loads(r[3]), created=r[4])
+            for r in rows
+        ]
 
     def delete_session(self, session_id: str) -> Future:
         def op(c: Any) -> None:
@@ -166,43 +173,60 @@ class SQLStore(Store):
                 self._execute(c, f"DELETE FROM {table} WHERE session=%s", (session_id,))
             self._execute(c, "DELETE FROM sessions WHERE id=%s", (session_id,))
             self._execute(c, "DELETE FROM tokens WHERE session=%s", (session_id,))
+
         return self._submit(op)
 
     # ---------------------------------------------------------------- inputs
     def last_input(self, session_id: str) -> tuple[int, float] | None:
-        row = self._fetch("SELECT seq, t FROM inputs WHERE session=%s ORDER BY seq DESC LIMIT 1", (session_id,),
-                          one=True)
+        row = self._fetch(
+            "SELECT seq, t FROM inputs WHERE session=%s ORDER BY seq DESC LIMIT 1", (session_id,), one=True
+        )
         return None if row is None else (int(row[0]), float(row[1]))
 
     def read_inputs(self, session_id: str, after_seq: int, limit: int, with_data: bool = True) -> list[InputRecord]:
         data = "data" if with_data else f"CASE kind WHEN 0 THEN data ELSE {self.EMPTY_BLOB} END"
-        rows = self._fetch(f"SELECT seq, kind, t, {data} FROM inputs WHERE session=%s AND seq>%s "
-                           "ORDER BY seq LIMIT %s", (session_id, after_seq, limit))
+        rows = self._fetch(
+            f"SELECT seq, kind, t, {data} FROM inputs WHERE session=%s AND seq>%s ORDER BY seq LIMIT %s",
+            (session_id, after_seq, limit),
+        )
         return [_input(r) for r in rows]
 
     def input_by_seq(self, session_id: str, seq: int) -> InputRecord | None:
-        r = self._fetch("SELECT seq, kind, t, data FROM inputs WHERE session=%s AND seq=%s", (session_id, seq),
-                        one=True)
+        r = self._fetch(
+            "SELECT seq, kind, t, data FROM inputs WHERE session=%s AND seq=%s", (session_id, seq), one=True
+        )
         return None if r is None else _input(r)
 
     def frame_at(self, session_id: str, t: float) -> InputRecord | None:
-        r = self._fetch("SELECT seq, kind, t, data FROM inputs WHERE session=%s AND kind=1 AND t=%s "
-                        "ORDER BY seq LIMIT 1", (session_id, float(t)), one=True)
+        r = self._fetch(
+            "SELECT seq, kind, t, data FROM inputs WHERE session=%s AND kind=1 AND t=%s ORDER BY seq LIMIT 1",
+            (session_id, float(t)),
+            one=True,
+        )
         return None if r is None else _input(r)
 
     # ------------------------------------------------------------- snapshots
     def put_snapshot(self, session_id: str, seq: int, data: bytes, keep: int) -> Future:
         def op(c: Any) -> None:
-            self._execute(c, "INSERT INTO snapshots VALUES (%s,%s,%s,%b) ON CONFLICT (session, seq) DO UPDATE "
-                             "SET created=EXCLUDED.created, data=EXCLUDED.data", (session_id, seq, time.time(), data))
-            self._execute(c, "DELETE FROM snapshots WHERE session=%s AND seq NOT IN "
-                             "(SELECT seq FROM snapshots WHERE session=%s ORDER BY seq DESC LIMIT %s)",
-                          (session_id, session_id, keep))
+            self._execute(
+                c,
+                "INSERT INTO snapshots VALUES (%s,%s,%s,%b) ON CONFLICT (session, seq) DO UPDATE "
+                "SET created=EXCLUDED.created, data=EXCLUDED.data",
+                (session_id, seq, time.time(), data),
+            )
+            self._execute(
+                c,
+                "DELETE FROM snapshots WHERE session=%s AND seq NOT IN "
+                "(SELECT seq FROM snapshots WHERE session=%s ORDER BY seq DESC LIMIT %s)",
+                (session_id, session_id, keep),
+            )
+
         return self._submit(op)
 
     def latest_snapshot(self, session_id: str) -> tuple[int, bytes] | None:
-        r = self._fetch("SELECT seq, data FROM snapshots WHERE session=%s ORDER BY seq DESC LIMIT 1", (session_id,),
-                        one=True)
+        r = self._fetch(
+            "SELECT seq, data FROM snapshots WHERE session=%s ORDER BY seq DESC LIMIT 1", (session_id,), one=True
+        )
         return None if r is None else (int(r[0]), bytes(r[1]))
 
     # ------------------------------------------------------- derived records
@@ -212,28 +236,48 @@ class SQLStore(Store):
 
         def op(c: Any) -> None:
             if ev:  # a replay regenerates records already stored: the new ones replace them
-                self._executemany(c, "INSERT INTO events VALUES (%s,%s,%s,%s,%s,%s,%s) ON CONFLICT (session, id) "
-                                     "DO UPDATE SET seq=EXCLUDED.seq, type=EXCLUDED.type, t=EXCLUDED.t, "
-                                     "ref=EXCLUDED.ref, data=EXCLUDED.data", ev)
+                self._executemany(
+                    c,
+                    "INSERT INTO events VALUES (%s,%s,%s,%s,%s,%s,%s) ON CONFLICT (session, id) "
+                    "DO UPDATE SET seq=EXCLUDED.seq, type=EXCLUDED.type, t=EXCLUDED.t, "
+                    "ref=EXCLUDED.ref, data=EXCLUDED.data",
+                    ev,
+                )
             if pf:
-                self._executemany(c, "INSERT INTO place_fields VALUES (%s,%s,%s,%s,%b) ON CONFLICT (session, step) "
-                                     "DO UPDATE SET seq=EXCLUDED.seq, t=EXCLUDED.t, data=EXCLUDED.data", pf)
+                self._executemany(
+                    c,
+                    "INSERT INTO place_fields VALUES (%s,%s,%s,%s,%b) ON CONFLICT (session, step) "
+                    "DO UPDATE SET seq=EXCLUDED.seq, t=EXCLUDED.t, data=EXCLUDED.data",
+                    pf,
+                )
+
         return self._submit(op)
 
     def truncate_derived(self, session_id: str, after_seq: int) -> Future:
         def op(c: Any) -> None:
             self._execute(c, "DELETE FROM events WHERE session=%s AND seq>%s", (session_id, after_seq))
             self._execute(c, "DELETE FROM place_fields WHERE session=%s AND seq>%s", (session_id, after_seq))
+
         return self._submit(op)
 
     def derived_counts(self, session_id: str) -> tuple[int, int]:
-        r = self._fetch("SELECT (SELECT COALESCE(MAX(id) + 1, 0) FROM events WHERE session=%s), "
-                        "(SELECT COALESCE(MAX(step) + 1, 0) FROM place_fields WHERE session=%s)",
-                        (session_id, session_id), one=True)
+        r = self._fetch(
+            "SELECT (SELECT COALESCE(MAX(id) + 1, 0) FROM events WHERE session=%s), "
+            "(SELECT COALESCE(MAX(step) + 1, 0) FROM place_fields WHERE session=%s)",
+            (session_id, session_id),
+            one=True,
+        )
         return int(r[0]), int(r[1])
 
-    def query_events(self, session_id: str, types: list[str] | None = None, since_id: int = -1,
-                     t_min: float | None = None, t_max: float | None = None, limit: int = 1000) -> list[EventRecord]:
+    def query_events(
+        self,
+        session_id: str,
+        types: list[str] | None = None,
+        since_id: int = -1,
+        t_min: float | None = None,
+        t_max: float | None = None,
+        limit: int = 1000,
+    ) -> list[EventRecord]:
         sql = f"SELECT {_EVENT_COLUMNS} FROM events WHERE session=%s AND id>%s"
         args: list[Any] = [session_id, since_id]
         if types:
@@ -250,18 +294,25 @@ class SQLStore(Store):
         return [_event(r) for r in self._fetch(sql, args)]
 
     def event_by_ref(self, session_id: str, type: str, ref: int) -> EventRecord | None:
-        r = self._fetch(f"SELECT {_EVENT_COLUMNS} FROM events WHERE session=%s AND type=%s AND ref=%s "
-                        "ORDER BY id LIMIT 1", (session_id, type, ref), one=True)
+        r = self._fetch(
+            f"SELECT {_EVENT_COLUMNS} FROM events WHERE session=%s AND type=%s AND ref=%s ORDER BY id LIMIT 1",
+            (session_id, type, ref),
+            one=True,
+        )
         return None if r is None else _event(r)
 
-    def place_fields(self, session_id: str, since_step: int = -1, limit: int = 1000,
-                     with_data: bool = False) -> list[PlaceFieldRecord]:
+    def place_fields(
+        self, session_id: str, since_step: int = -1, limit: int = 1000, with_data: bool = False
+    ) -> list[PlaceFieldRecord]:
         col = "data" if with_data else self.EMPTY_BLOB
-        rows = self._fetch(f"SELECT step, seq, t, {col} FROM place_fields WHERE session=%s AND step>%s "
-                           "ORDER BY step LIMIT %s", (session_id, since_step, limit))
+        rows = self._fetch(
+            f"SELECT step, seq, t, {col} FROM place_fields WHERE session=%s AND step>%s ORDER BY step LIMIT %s",
+            (session_id, since_step, limit),
+        )
         return [_place_field(r) for r in rows]
 
     def place_field(self, session_id: str, step: int) -> PlaceFieldRecord | None:
-        r = self._fetch("SELECT step, seq, t, data FROM place_fields WHERE session=%s AND step=%s",
-                        (session_id, step), one=True)
+        r = self._fetch(
+            "SELECT step, seq, t, data FROM place_fields WHERE session=%s AND step=%s", (session_id, step), one=True
+        )
         return None if r is None else _place_field(r)

@@ -205,20 +205,23 @@ class SQLiteStore(SQLStore):
         self._writer_conn.close()
 
     # -------------------------------------------------------------- inputs
-    def append_inputs(self, session_id: str, inputs: list[InputRecord],
-                      on_durable: Callable[[], None] | None = None) -> Future:
+    def append_inputs(
+        self, session_id: str, inputs: list[InputRecord], on_durable: Callable[[], None] | None = None
+    ) -> Future:
         rows = [(session_id, r.seq, KINDS.index(r.kind), r.t, r.data) for r in inputs]
 
         def op(c: sqlite3.Connection) -> None:
             c.executemany("INSERT INTO inputs VALUES (?,?,?,?,?)", rows)
+
         return self._submit(op, on_durable)
 
     def last_times(self, session_id: str) -> dict[str, float]:
         conn = self._read()
         out: dict[str, float] = {}
         # the newest inputs hold both kinds in practice; look there first, then fall back to a scan
-        for kind, t in conn.execute("SELECT kind, t FROM inputs WHERE session=? ORDER BY seq DESC LIMIT 1000",
-                                    (session_id,)):
+        for kind, t in conn.execute(
+            "SELECT kind, t FROM inputs WHERE session=? ORDER BY seq DESC LIMIT 1000", (session_id,)
+        ):
             out.setdefault(KINDS[kind], float(t))
             if len(out) == len(KINDS):
                 return out
@@ -242,15 +245,29 @@ class SQLiteStore(SQLStore):
                 c.execute("INSERT OR REPLACE INTO leases VALUES (?,?,?)", (session_id, replica, now + ttl_s))
                 return replica
             return str(row[0])
+
         return self._submit(op).result()
 
     def release_session(self, session_id: str, replica: str) -> bool:
         """Give up ``replica``'s lease on ``session_id``; False if it did not hold it."""
-        return bool(self._submit(lambda c: c.execute("UPDATE leases SET owner=NULL WHERE session=? AND owner=?",
-                                                     (session_id, replica)).rowcount).result())
+        return bool(
+            self._submit(
+                lambda c: (
+                    c.execute(
+                        "UPDATE leases SET owner=NULL WHERE session=? AND owner=?", (session_id, replica)
+                    ).rowcount
+                )
+            ).result()
+        )
 
     def session_owner(self, session_id: str) -> str | None:
         """The replica holding an unexpired lease on ``session_id``, or None."""
-        row = self._read().execute("SELECT owner FROM leases WHERE session=? AND owner IS NOT NULL AND expires>=?",
-                                   (session_id, time.time())).fetchone()
+        row = (
+            self._read()
+            .execute(
+                "SELECT owner FROM leases WHERE session=? AND owner IS NOT NULL AND expires>=?",
+                (session_id, time.time()),
+            )
+            .fetchone()
+        )
         return None if row is None else str(row[0])

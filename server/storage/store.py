@@ -142,8 +142,9 @@ class Store(abc.ABC):
 
     # ---------------------------------------------------------------- inputs
     @abc.abstractmethod
-    def append_inputs(self, session_id: str, inputs: list[InputRecord],
-                      on_durable: Callable[[], None] | None = None) -> Future:
+    def append_inputs(
+        self, session_id: str, inputs: list[InputRecord], on_durable: Callable[[], None] | None = None
+    ) -> Future:
         """Store inputs (consecutive ``seq``). ``on_durable`` runs, in submission order, right
         after the commit and before the future completes."""
 
@@ -176,8 +177,7 @@ class Store(abc.ABC):
 
     # ------------------------------------------------------- derived records
     @abc.abstractmethod
-    def append_derived(self, session_id: str, events: list[EventRecord],
-                       fields: list[PlaceFieldRecord]) -> Future: ...
+    def append_derived(self, session_id: str, events: list[EventRecord], fields: list[PlaceFieldRecord]) -> Future: ...
 
     @abc.abstractmethod
     def truncate_derived(self, session_id: str, after_seq: int) -> Future:
@@ -188,17 +188,24 @@ class Store(abc.ABC):
         """``(number of events, number of place fields)`` stored for the session."""
 
     @abc.abstractmethod
-    def query_events(self, session_id: str, types: list[str] | None = None, since_id: int = -1,
-                     t_min: float | None = None, t_max: float | None = None,
-                     limit: int = 1000) -> list[EventRecord]: ...
+    def query_events(
+        self,
+        session_id: str,
+        types: list[str] | None = None,
+        since_id: int = -1,
+        t_min: float | None = None,
+        t_max: float | None = None,
+        limit: int = 1000,
+    ) -> list[EventRecord]: ...
 
     @abc.abstractmethod
     def event_by_ref(self, session_id: str, type: str, ref: int) -> EventRecord | None:
         """The event of ``type`` whose ``ref`` is ``ref`` (e.g. recognition number ``ref``)."""
 
     @abc.abstractmethod
-    def place_fields(self, session_id: str, since_step: int = -1, limit: int = 1000,
-                     with_data: bool = False) -> list[PlaceFieldRecord]: ...
+    def place_fields(
+        self, session_id: str, since_step: int = -1, limit: int = 1000, with_data: bool = False
+    ) -> list[PlaceFieldRecord]: ...
 
     @abc.abstractmethod
     def place_field(self, session_id: str, step: int) -> PlaceFieldRecord | None: ...
@@ -258,8 +265,9 @@ def fail_batch(batch: list[tuple[Any, Future, Callable[[], None] | None]], error
         _complete(fut, error=error)
 
 
-def settle_batch(batch: list[tuple[Any, Future, Callable[[], None] | None]],
-                 outcomes: list[tuple[Any, BaseException | None]]) -> None:
+def settle_batch(
+    batch: list[tuple[Any, Future, Callable[[], None] | None]], outcomes: list[tuple[Any, BaseException | None]]
+) -> None:
     """Complete the futures of a committed group-commit ``batch`` (``(op, future, on_durable)``
     triples) in submission order: each with its operation's ``(result, error)``; a successful
     operation's ``on_durable`` runs first (shared by the store backends). A future a waiter

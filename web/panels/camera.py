@@ -23,11 +23,18 @@ class CameraPanel:
     def __init__(self, gui: Any, settings: ViewerSettings) -> None:
         self.settings = settings
         w = settings.camera_width
-        self.live = gui.add_image(placeholder(w, w * 3 // 4, "no frame yet"), label="camera", format="jpeg",
-                                  jpeg_quality=settings.jpeg_quality)
-        self.trace = gui.add_image(placeholder(w + 4 + settings.thumbnail_width, w * 3 // 4, "no recognition yet"),
-                                   label="last recognition: saccades | accepted key frame", format="jpeg",
-                                   jpeg_quality=settings.jpeg_quality)
+        self.live = gui.add_image(
+            placeholder(w, w * 3 // 4, "no frame yet"),
+            label="camera",
+            format="jpeg",
+            jpeg_quality=settings.jpeg_quality,
+        )
+        self.trace = gui.add_image(
+            placeholder(w + 4 + settings.thumbnail_width, w * 3 // 4, "no recognition yet"),
+            label="last recognition: saccades | accepted key frame",
+            format="jpeg",
+            jpeg_quality=settings.jpeg_quality,
+        )
         self._live_t: float | None = None
         self._rec_id: Any = None
         self.trace_shown = False
@@ -40,8 +47,9 @@ class CameraPanel:
         self.live.image = fit_width(to_rgb(frame.image), self.settings.camera_width)
         return True
 
-    def update_recognition(self, recognition: Mapping[str, Any] | None, query: np.ndarray | None,
-                           keyframe: np.ndarray | None) -> bool:
+    def update_recognition(
+        self, recognition: Mapping[str, Any] | None, query: np.ndarray | None, keyframe: np.ndarray | None
+    ) -> bool:
         """Show the trace of ``recognition`` if it is new; returns whether an image was sent."""
         if recognition is None or recognition.get("id") == self._rec_id:
             return False

@@ -57,10 +57,13 @@ class EvidencePanel:
         series += [{"label": f"hypothesis {i + 1}", "stroke": _COLORS[i], "width": 2} for i in range(N_CURVES)]
         series += [{"label": "θ_dec", "stroke": "#868e96", "width": 1, "dash": [4, 4]}]
         self.caption = gui.add_markdown("No recognition yet.")
-        self.plot = gui.add_uplot(self._data(np.array([1.0, 2.0]), np.zeros((N_CURVES, 2))), tuple(series),
-                                  aspect=1.6,
-                                  scales={"x": {"time": False}, "y": {"auto": False, "range": [0.0, 1.05]}},
-                                  axes=({"label": "fixation"}, {"label": "frame activity a"}))
+        self.plot = gui.add_uplot(
+            self._data(np.array([1.0, 2.0]), np.zeros((N_CURVES, 2))),
+            tuple(series),
+            aspect=1.6,
+            scales={"x": {"time": False}, "y": {"auto": False, "range": [0.0, 1.05]}},
+            axes=({"label": "fixation"}, {"label": "frame activity a"}),
+        )
         self._rec_id: Any = None
         self.frames: list[int] = []
 

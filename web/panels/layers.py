@@ -56,11 +56,15 @@ def _swatch(color: RGB | None, shape: str) -> str:
         return '<span style="display:inline-block;width:22px"></span>'
     c = f"rgb({color[0]},{color[1]},{color[2]})"
     if shape == "dot":
-        return (f'<span style="display:inline-block;width:22px;text-align:center"><span style="display:inline-block;'
-                f'width:9px;height:9px;border-radius:50%;background:{c};vertical-align:middle"></span></span>')
+        return (
+            f'<span style="display:inline-block;width:22px;text-align:center"><span style="display:inline-block;'
+            f'width:9px;height:9px;border-radius:50%;background:{c};vertical-align:middle"></span></span>'
+        )
     width = 3 if shape == "bar" else 2
-    return (f'<span style="display:inline-block;width:22px;height:0;border-top:{width}px solid {c};'
-            f'vertical-align:middle"></span>')
+    return (
+        f'<span style="display:inline-block;width:22px;height:0;border-top:{width}px solid {c};'
+        f'vertical-align:middle"></span>'
+    )
 
 
 def legend_html(specs: list[LayerSpec], ground_truth: bool, visible: dict[str, bool] | None = None) -> str:
@@ -74,15 +78,23 @@ def legend_html(specs: list[LayerSpec], ground_truth: bool, visible: dict[str, b
             continue
         hidden = visible is not None and not visible.get(sp.key, sp.visible)
         style = "opacity:0.4;text-decoration:line-through" if hidden else ""
-        rows.append(f'<div style="white-space:nowrap;{style}" data-layer="{sp.key}">{_swatch(sp.color, sp.shape)}'
-                    f" {sp.label}</div>")
+        rows.append(
+            f'<div style="white-space:nowrap;{style}" data-layer="{sp.key}">{_swatch(sp.color, sp.shape)}'
+            f" {sp.label}</div>"
+        )
     grad = ", ".join(_INFERNO)
-    scale = ('<div style="margin-top:4px">place field: share of grid cells whose window the place passes'
-             f'<div style="height:8px;margin:2px 0 0 0;background:linear-gradient(to right, {grad})"></div>'
-             '<div style="display:flex;justify-content:space-between;font-size:10px"><span>0</span>'
-             '<span>0.5</span><span>1 (the field, white)</span></div></div>')
-    return ('<div style="font:12px/1.45 sans-serif;padding:2px 4px" class="hippomap-legend">'
-            + "".join(rows) + scale + "</div>")
+    scale = (
+        '<div style="margin-top:4px">place field: share of grid cells whose window the place passes'
+        f'<div style="height:8px;margin:2px 0 0 0;background:linear-gradient(to right, {grad})"></div>'
+        '<div style="display:flex;justify-content:space-between;font-size:10px"><span>0</span>'
+        "<span>0.5</span><span>1 (the field, white)</span></div></div>"
+    )
+    return (
+        '<div style="font:12px/1.45 sans-serif;padding:2px 4px" class="hippomap-legend">'
+        + "".join(rows)
+        + scale
+        + "</div>"
+    )
 
 
 class ClientLayers:

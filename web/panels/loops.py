@@ -27,9 +27,11 @@ def loop_label(d: LoopDecision) -> str:
 
 def loop_details(d: LoopDecision) -> str:
     meta = d.hypothesis.meta
-    rows = [f"**loop {d.id}: {d.status}** — {d.reason or '…'}",
-            f"node {d.from_node} (then current) → node {d.hypothesis.node} (recognised)",
-            f"evidence {d.hypothesis.evidence:.2f}, source {d.hypothesis.source}"]
+    rows = [
+        f"**loop {d.id}: {d.status}** — {d.reason or '…'}",
+        f"node {d.from_node} (then current) → node {d.hypothesis.node} (recognised)",
+        f"evidence {d.hypothesis.evidence:.2f}, source {d.hypothesis.source}",
+    ]
     if "frame" in meta:
         rows.append(f"key frame {meta['frame']}, recognition {meta.get('recognition')}")
     if not np.isnan(d.gate_distance):
@@ -44,8 +46,11 @@ class LoopsPanel:
         self.max_listed = max_listed
         self.dropdown = gui.add_dropdown("loop closure", (NONE,), initial_value=NONE)
         self.details = gui.add_markdown("No loop closure chosen.")
-        self.image = gui.add_image(placeholder(2 * width + 4, width * 3 // 4, "choose a loop closure"),
-                                   label="query frame + trace | recognised key frame", format="jpeg")
+        self.image = gui.add_image(
+            placeholder(2 * width + 4, width * 3 // 4, "choose a loop closure"),
+            label="query frame + trace | recognised key frame",
+            format="jpeg",
+        )
         self._labels: dict[str, int] = {}
         self._options: tuple[str, ...] = (NONE,)
         self._on_select = on_select

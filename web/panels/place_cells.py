@@ -56,8 +56,10 @@ class PlaceCellsPanel:
             with self._lock:
                 self.image.image = np.ascontiguousarray(img)
                 f = rec.field
-                self.caption.content = (f"{len(rec.applied)} products; the field: {len(f)} point(s) at "
-                                        f"({f.centroid[0]:.4f}, {f.centroid[1]:.4f}) m in the coding area")
+                self.caption.content = (
+                    f"{len(rec.applied)} products; the field: {len(f)} point(s) at "
+                    f"({f.centroid[0]:.4f}, {f.centroid[1]:.4f}) m in the coding area"
+                )
                 self.drawn += 1
             return True
         except Exception:

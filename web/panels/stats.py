@@ -38,8 +38,10 @@ def stats_markdown(stats: Mapping[str, Any], fps: float, odometry_hz: float, lag
     rows = [
         ("nodes", stats.get("nodes", 0)),
         ("links", stats.get("links", 0)),
-        ("loop closures", f"{stats.get('loop_closures_accepted', 0)} accepted / "
-                          f"{stats.get('loop_closures_rejected', 0)} rejected"),
+        (
+            "loop closures",
+            f"{stats.get('loop_closures_accepted', 0)} accepted / {stats.get('loop_closures_rejected', 0)} rejected",
+        ),
         ("key frames", stats.get("keyframes", 0)),
         ("recognitions", stats.get("recognitions", 0)),
         ("frames", f"{stats.get('frames', 0)} ({fps:.1f} /s)"),

@@ -34,9 +34,14 @@ LEGEND_PX = 270.0
 class ClientView:
     """One browser's view controls (see module doc)."""
 
-    def __init__(self, client: Any, specs: list[LayerSpec], settings: ViewerSettings,
-                 state: Callable[[], tuple[Any, np.ndarray, np.ndarray | None]],
-                 on_layers: Callable[["ClientView"], None] | None = None) -> None:
+    def __init__(
+        self,
+        client: Any,
+        specs: list[LayerSpec],
+        settings: ViewerSettings,
+        state: Callable[[], tuple[Any, np.ndarray, np.ndarray | None]],
+        on_layers: Callable[["ClientView"], None] | None = None,
+    ) -> None:
         self.client, self.settings, self._state = client, settings, state
         self._lock = threading.RLock()
         self._fitted_extent = 0.0
@@ -45,8 +50,14 @@ class ClientView:
         self.replay = ReplayLayer(client.scene, settings)
         gui = client.gui
         with gui.add_folder("View (this browser)", order=-100.0):
-            self.slider = gui.add_slider("map at (% of run)", min=0, max=100, step=1, initial_value=100,
-                                         hint="Drag back to replay how the map grew; 100 = live")
+            self.slider = gui.add_slider(
+                "map at (% of run)",
+                min=0,
+                max=100,
+                step=1,
+                initial_value=100,
+                hint="Drag back to replay how the map grew; 100 = live",
+            )
             self.replay_text = gui.add_markdown("live map")
             self.follow = gui.add_checkbox("keep the map in view", initial_value=True)
             self.fit_button = gui.add_button("fit view to the map")
@@ -84,8 +95,9 @@ class ClientView:
             covered_left = min(0.3, LEGEND_PX / width) if width > 2 * (PANEL_PX + LEGEND_PX) else 0.0
             fov = float(cam.fov) if 0 < float(cam.fov) < math.pi else math.radians(75.0)
             pts = snap.node_poses[:, :2] if gt is None else np.vstack([snap.node_poses[:, :2], gt[:, 1:3]])
-            pos, look = fit_camera(lo, hi, fov, aspect, self.settings.fit_margin, covered,
-                                   covered_left=covered_left, points=pts)
+            pos, look = fit_camera(
+                lo, hi, fov, aspect, self.settings.fit_margin, covered, covered_left=covered_left, points=pts
+            )
             with self.client.atomic():
                 cam.up_direction = (0.0, 0.0, 1.0)
                 # viser moves look_at along with the position: set the position first, then look_at
@@ -133,8 +145,9 @@ class ClientView:
             with self.client.atomic():
                 self.layers.set_replaying(True)
                 self.replay.draw(frame, self.layers.visible)
-            self.replay_text.content = (f"replay: t = {t - t0:.1f} s of {t1 - t0:.1f} s, "
-                                        f"{frame.n_nodes} of {len(snap.node_poses)} nodes")
+            self.replay_text.content = (
+                f"replay: t = {t - t0:.1f} s of {t1 - t0:.1f} s, {frame.n_nodes} of {len(snap.node_poses)} nodes"
+            )
 
     def _layers_changed(self) -> None:
         if self.replaying:
@@ -146,9 +159,14 @@ class ClientView:
 class ClientViews:
     """The :class:`ClientView` of every connected browser of one viewer."""
 
-    def __init__(self, server: Any, specs: list[LayerSpec], settings: ViewerSettings,
-                 state: Callable[[], tuple[Any, np.ndarray, np.ndarray | None]],
-                 on_layers: Callable[[ClientView], None] | None = None) -> None:
+    def __init__(
+        self,
+        server: Any,
+        specs: list[LayerSpec],
+        settings: ViewerSettings,
+        state: Callable[[], tuple[Any, np.ndarray, np.ndarray | None]],
+        on_layers: Callable[[ClientView], None] | None = None,
+    ) -> None:
         self.specs, self.settings, self._state, self._on_layers = specs, settings, state, on_layers
         self.views: dict[int, ClientView] = {}
         self._lock = threading.Lock()

@@ -44,9 +44,17 @@ def project(points: np.ndarray, position: np.ndarray, look_at: np.ndarray, fov: 
     return np.column_stack([(d @ r) / (zc * t * aspect), (d @ u) / (zc * t)])
 
 
-def fit_camera(lo: np.ndarray, hi: np.ndarray, fov: float, aspect: float, margin: float = 1.15,
-               covered: float = 0.0, tilt: float = math.radians(12.0),
-               covered_left: float = 0.0, points: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def fit_camera(
+    lo: np.ndarray,
+    hi: np.ndarray,
+    fov: float,
+    aspect: float,
+    margin: float = 1.15,
+    covered: float = 0.0,
+    tilt: float = math.radians(12.0),
+    covered_left: float = 0.0,
+    points: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
     """Camera ``(position, look_at)`` that shows the box ``lo``-``hi`` (see module doc).
 
     ``fov`` is the vertical field of view (radians), ``aspect`` width / height. The tilt makes the
@@ -55,19 +63,8 @@ def fit_camera(lo: np.ndarray, hi: np.ndarray, fov: float, aspect: float, margin
     ((N, >=2) floor points inside the box, e.g. the nodes), those are fitted instead of the box's
     corners (a round map then fills the view rather than its bounding box); at most 4096 are used."""
     lo, hi = np.asarray(lo, float)[:2], np.asarray(hi, float)[:2]
-    if (not (0 < fov < math.pi) or not aspect > 0 or not (0 <= covered) or not (0 <= covered_left)
-            or covered + covered_left >= 0.9 or margin < 1.0 or not np.all(hi >= lo)):
-        raise ValueError(f"bad camera parameters fov={fov}, aspect={aspect}, covered={covered}, "
-                         f"covered_left={covered_left}, margin={margin}, box={lo}-{hi}")
-    centre = 0.5 * (lo + hi)
-    half = 0.5 * np.maximum(hi - lo, 1e-6) * margin
-    corners = np.array([[centre[0] + sx * half[0], centre[1] + sy * half[1], 0.0]
-                        for sx in (-1, 1) for sy in (-1, 1)])
-    if points is not None and len(points):
-        pts = np.asarray(points, float)[:, :2]
-        pts = pts[np.all(np.isfinite(pts), axis=1)][:: max(1, -(-len(pts) // 4096))]
-        if len(pts):
-            corners = np.column_stack([centre + (pts - centre) * margin, np.zeros(len(pts))])
+    _check_parameters(fov, aspect, covered, covered_left, margin, lo, hi)
+    centre, half, corners = _fit_targets(lo, hi, margin, points)
     t = math.tan(fov / 2)
     x_lo, x_hi = -1.0 + 2.0 * covered_left, 1.0 - 2.0 * covered
     view = np.array([0.0, -math.sin(tilt), math.cos(tilt)])
@@ -84,7 +81,47 @@ def fit_camera(lo: np.ndarray, hi: np.ndarray, fov: float, aspect: float, margin
         if abs(need - 1.0) < 1e-6 and abs(cu - 0.5 * (x_lo + x_hi)) < 1e-6 and abs(cv) < 1e-6:
             break
     uv = project(corners, look + dist * view, look, fov, aspect)
-    over = max(uv[:, 0].max() / x_hi if x_hi > 0 else 1.0, uv[:, 0].min() / x_lo if x_lo < 0 else 1.0,
-               np.abs(uv[:, 1]).max(), 1.0)
+    over = max(
+        uv[:, 0].max() / x_hi if x_hi > 0 else 1.0,
+        uv[:, 0].min() / x_lo if x_lo < 0 else 1.0,
+        np.abs(uv[:, 1]).max(),
+        1.0,
+    )
     dist *= over  # never cut the box off, even if the refinement stopped short
     return look + dist * view, look
+
+
+def _check_parameters(
+    fov: float, aspect: float, covered: float, covered_left: float, margin: float, lo: np.ndarray, hi: np.ndarray
+) -> None:
+    """:func:`fit_camera`'s parameters in range (a :class:`ValueError` naming them all otherwise): a field of view
+    in (0, pi), a positive aspect, at most 90 % of the width covered, a margin of at least 1, ``lo <= hi``."""
+    if (
+        not (0 < fov < math.pi)
+        or not aspect > 0
+        or not (0 <= covered)
+        or not (0 <= covered_left)
+        or covered + covered_left >= 0.9
+        or margin < 1.0
+        or not np.all(hi >= lo)
+    ):
+        raise ValueError(
+            f"bad camera parameters fov={fov}, aspect={aspect}, covered={covered}, "
+            f"covered_left={covered_left}, margin={margin}, box={lo}-{hi}"
+        )
+
+
+def _fit_targets(
+    lo: np.ndarray, hi: np.ndarray, margin: float, points: np.ndarray | None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The box's centre and half size (with the margin), and the floor points to fit into the view: the box's
+    corners, or the finite ``points`` (at most 4096 of them) spread by the margin about the centre."""
+    centre = 0.5 * (lo + hi)
+    half = 0.5 * np.maximum(hi - lo, 1e-6) * margin
+    corners = np.array([[centre[0] + sx * half[0], centre[1] + sy * half[1], 0.0] for sx in (-1, 1) for sy in (-1, 1)])
+    if points is not None and len(points):
+        pts = np.asarray(points, float)[:, :2]
+        pts = pts[np.all(np.isfinite(pts), axis=1)][:: max(1, -(-len(pts) // 4096))]
+        if len(pts):
+            corners = np.column_stack([centre + (pts - centre) * margin, np.zeros(len(pts))])
+    return centre, half, corners

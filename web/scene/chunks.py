@@ -142,8 +142,16 @@ class _ChunkedLayer:
 class ChunkedPoints(_ChunkedLayer):
     """A growing point set (e.g. the map's nodes) as point-cloud chunks under ``name``."""
 
-    def __init__(self, scene: Any, name: str, chunk_size: int, tolerance: float, point_size: float,
-                 point_shape: str = "circle", tail_size: int | None = None) -> None:
+    def __init__(
+        self,
+        scene: Any,
+        name: str,
+        chunk_size: int,
+        tolerance: float,
+        point_size: float,
+        point_shape: str = "circle",
+        tail_size: int | None = None,
+    ) -> None:
         super().__init__(scene, name, ChunkTracker(chunk_size, tolerance, 3, tail_size))
         self.point_size, self.point_shape = point_size, point_shape
 
@@ -152,9 +160,18 @@ class ChunkedPoints(_ChunkedLayer):
         pts = np.asarray(points, np.float32).reshape(-1, 3)
         cols = np.asarray(colors, np.uint8).reshape(-1, 3)
         plan = self.tracker.plan(pts, cols)
-        return self._apply(plan, lambda name, a, b: self.scene.add_point_cloud(
-            name, pts[a:b], np.ascontiguousarray(cols[a:b]), point_size=self.point_size,
-            point_shape=self.point_shape, precision="float32", point_shading="flat"))
+        return self._apply(
+            plan,
+            lambda name, a, b: self.scene.add_point_cloud(
+                name,
+                pts[a:b],
+                np.ascontiguousarray(cols[a:b]),
+                point_size=self.point_size,
+                point_shape=self.point_shape,
+                precision="float32",
+                point_shading="flat",
+            ),
+        )
 
 
 class ChunkedSegments(_ChunkedLayer):
@@ -167,9 +184,18 @@ class ChunkedSegments(_ChunkedLayer):
     out (loop closures).
     """
 
-    def __init__(self, scene: Any, name: str, chunk_size: int, tolerance: float, thickness: float,
-                 visible: bool = True, style: str = "fat", color: tuple[int, int, int] = (128, 128, 128),
-                 tail_size: int | None = None) -> None:
+    def __init__(
+        self,
+        scene: Any,
+        name: str,
+        chunk_size: int,
+        tolerance: float,
+        thickness: float,
+        visible: bool = True,
+        style: str = "fat",
+        color: tuple[int, int, int] = (128, 128, 128),
+        tail_size: int | None = None,
+    ) -> None:
         if style not in ("fat", "thin"):
             raise ValueError(f"style = {style!r} must be 'fat' or 'thin'")
         super().__init__(scene, name, ChunkTracker(chunk_size, tolerance, 6, tail_size), visible)
@@ -191,11 +217,20 @@ class ChunkedSegments(_ChunkedLayer):
                 i = np.arange(b - a, dtype=np.uint32)
                 faces = np.column_stack([2 * i, 2 * i + 1, 2 * i + 1])
                 return self.scene.add_mesh_simple(
-                    name, np.ascontiguousarray(seg[a:b].reshape(-1, 3)), faces, color=self.color, wireframe=True,
-                    cast_shadow=False, receive_shadow=False)
+                    name,
+                    np.ascontiguousarray(seg[a:b].reshape(-1, 3)),
+                    faces,
+                    color=self.color,
+                    wireframe=True,
+                    cast_shadow=False,
+                    receive_shadow=False,
+                )
             c = cols[a:b]
             return self.scene.add_line_segments(
-                name, seg[a:b].reshape(-1, 2, 3), np.ascontiguousarray(np.repeat(c[:, None, :], 2, axis=1)),
-                thickness=self.thickness)
+                name,
+                seg[a:b].reshape(-1, 2, 3),
+                np.ascontiguousarray(np.repeat(c[:, None, :], 2, axis=1)),
+                thickness=self.thickness,
+            )
 
         return self._apply(plan, add)

@@ -52,9 +52,16 @@ class GroundTruthLayer:
         s = settings
         self.settings = s
         self.sampler = TrajectorySampler(s.trajectory_spacing_m, s.trajectory_budget)
-        self.segments = ChunkedSegments(scene, "/ground_truth", s.chunk_size, s.move_tolerance_m,
-                                        s.trajectory_thickness_m, style="thin", color=s.color_ground_truth,
-                                        tail_size=s.tail_size)
+        self.segments = ChunkedSegments(
+            scene,
+            "/ground_truth",
+            s.chunk_size,
+            s.move_tolerance_m,
+            s.trajectory_thickness_m,
+            style="thin",
+            color=s.color_ground_truth,
+            tail_size=s.tail_size,
+        )
         self.alignment: np.ndarray | None = None
         self._pending = np.empty((0, 4))
         self._seen = 0

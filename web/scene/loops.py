@@ -27,15 +27,21 @@ from .placement import decided_while_lost
 LOOP_Z = 0.08
 
 
-def loop_segments(decisions: tuple[LoopDecision, ...] | list[LoopDecision], poses: np.ndarray,
-                  status: str, skip_lost: bool = False) -> np.ndarray:
+def loop_segments(
+    decisions: tuple[LoopDecision, ...] | list[LoopDecision], poses: np.ndarray, status: str, skip_lost: bool = False
+) -> np.ndarray:
     """(K, 2, 3) segments of the decisions with ``status``, in decision order; ``skip_lost`` leaves
     out the accepted ones made while the robot had no pose on the map (a localising run in a saved
     map: their ``from_node`` is not a node the robot was near, see :mod:`web.scene.placement`)."""
     n = len(poses)
-    pairs = np.array([(d.from_node, d.hypothesis.node) for d in decisions
-                      if d.status == status and not (skip_lost and decided_while_lost(d))],
-                     dtype=np.int64).reshape(-1, 2)
+    pairs = np.array(
+        [
+            (d.from_node, d.hypothesis.node)
+            for d in decisions
+            if d.status == status and not (skip_lost and decided_while_lost(d))
+        ],
+        dtype=np.int64,
+    ).reshape(-1, 2)
     pairs = pairs[(pairs >= 0).all(axis=1) & (pairs < n).all(axis=1)]
     seg = np.empty((len(pairs), 2, 3), np.float32)
     seg[:, :, :2] = poses[pairs][:, :, :2]
@@ -56,16 +62,31 @@ class LoopLayer:
     def __init__(self, scene: Any, settings: ViewerSettings) -> None:
         s = settings
         self.scene, self.settings = scene, s
-        self.accepted = ChunkedSegments(scene, "/loops/accepted", s.chunk_size, s.move_tolerance_m,
-                                        s.loop_thickness_m, style="thin", color=s.color_loop_accepted,
-                                        tail_size=s.tail_size)
+        self.accepted = ChunkedSegments(
+            scene,
+            "/loops/accepted",
+            s.chunk_size,
+            s.move_tolerance_m,
+            s.loop_thickness_m,
+            style="thin",
+            color=s.color_loop_accepted,
+            tail_size=s.tail_size,
+        )
         # a closed loop pulls its two nodes together, so its segment is short: mark its ends too,
         # with dots smaller than a node (the node stays visible around its loop mark)
-        self.accepted_ends = ChunkedPoints(scene, "/loops/accepted/ends", s.chunk_size, s.move_tolerance_m,
-                                           0.6 * s.node_size_m, tail_size=s.tail_size)
-        self.rejected = ChunkedSegments(scene, "/loops/rejected", s.chunk_size, s.move_tolerance_m,
-                                        s.loop_thickness_m, style="thin", color=s.color_loop_rejected,
-                                        tail_size=s.tail_size)
+        self.accepted_ends = ChunkedPoints(
+            scene, "/loops/accepted/ends", s.chunk_size, s.move_tolerance_m, 0.6 * s.node_size_m, tail_size=s.tail_size
+        )
+        self.rejected = ChunkedSegments(
+            scene,
+            "/loops/rejected",
+            s.chunk_size,
+            s.move_tolerance_m,
+            s.loop_thickness_m,
+            style="thin",
+            color=s.color_loop_rejected,
+            tail_size=s.tail_size,
+        )
         self._selected: list[Any] = []
         self._selected_key: tuple | None = None
 
@@ -101,12 +122,17 @@ class LoopLayer:
         color = s.color_loop_accepted if decision.status == "accepted" else s.color_loop_rejected
         seg = np.array([[[a[0], a[1], LOOP_Z + 0.02], [b[0], b[1], LOOP_Z + 0.02]]], np.float32)
         self._selected = [
-            self.scene.add_line_segments("/loops/selected/segment", seg, np.array(color, np.uint8),
-                                         thickness=3 * s.loop_thickness_m),
-            self.scene.add_label("/loops/selected/now", f"loop {decision.id}: node {decision.from_node}",
-                                 position=(float(a[0]), float(a[1]), 0.3)),
-            self.scene.add_label("/loops/selected/then", f"node {decision.hypothesis.node}",
-                                 position=(float(b[0]), float(b[1]), 0.3)),
+            self.scene.add_line_segments(
+                "/loops/selected/segment", seg, np.array(color, np.uint8), thickness=3 * s.loop_thickness_m
+            ),
+            self.scene.add_label(
+                "/loops/selected/now",
+                f"loop {decision.id}: node {decision.from_node}",
+                position=(float(a[0]), float(a[1]), 0.3),
+            ),
+            self.scene.add_label(
+                "/loops/selected/then", f"node {decision.hypothesis.node}", position=(float(b[0]), float(b[1]), 0.3)
+            ),
         ]
 
     def set_visible(self, accepted: bool | None = None, rejected: bool | None = None) -> None:

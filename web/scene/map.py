@@ -46,19 +46,38 @@ class MapGraphLayer:
     def __init__(self, scene: Any, settings: ViewerSettings) -> None:
         s = settings
         self.settings = s
-        self.nodes = ChunkedPoints(scene, "/map/nodes", s.chunk_size, s.move_tolerance_m, s.node_size_m,
-                                   tail_size=s.tail_size)
-        self.links = ChunkedSegments(scene, "/map/links", s.chunk_size, s.move_tolerance_m, s.link_thickness_m,
-                                     style="thin", color=s.color_link, tail_size=s.tail_size)
-        self.loop_links = ChunkedSegments(scene, "/map/loop_links", s.chunk_size, s.move_tolerance_m,
-                                          s.link_thickness_m, style="thin", color=s.color_loop_link,
-                                          tail_size=s.tail_size)
+        self.nodes = ChunkedPoints(
+            scene, "/map/nodes", s.chunk_size, s.move_tolerance_m, s.node_size_m, tail_size=s.tail_size
+        )
+        self.links = ChunkedSegments(
+            scene,
+            "/map/links",
+            s.chunk_size,
+            s.move_tolerance_m,
+            s.link_thickness_m,
+            style="thin",
+            color=s.color_link,
+            tail_size=s.tail_size,
+        )
+        self.loop_links = ChunkedSegments(
+            scene,
+            "/map/loop_links",
+            s.chunk_size,
+            s.move_tolerance_m,
+            s.link_thickness_m,
+            style="thin",
+            color=s.color_loop_link,
+            tail_size=s.tail_size,
+        )
 
     def update(self, snap: MapSnapshot) -> MapUpdate:
         s = self.settings
         pts = node_points(snap.node_poses)
-        colors = np.where((snap.node_frames >= 0)[:, None], np.array(s.color_keyframe_node, np.uint8),
-                          np.array(s.color_node, np.uint8)).astype(np.uint8)
+        colors = np.where(
+            (snap.node_frames >= 0)[:, None],
+            np.array(s.color_keyframe_node, np.uint8),
+            np.array(s.color_node, np.uint8),
+        ).astype(np.uint8)
         nodes = self.nodes.update(pts, colors)
         n = len(pts)
         if n:

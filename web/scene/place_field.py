@@ -112,9 +112,17 @@ class PlaceFieldLayer:
         # the heatmap's rows already follow +y of the coding area
         rgba = heatmap_rgba(hm.values, hm.mask)
         self.handle = self.scene.add_image(
-            "/place_field", rgba, render_width=hm.side_m, render_height=hm.side_m, format="png",
-            position=(float(hm.centre[0]), float(hm.centre[1]), FIELD_Z), wxyz=yaw_wxyz(float(hm.centre[2])),
-            cast_shadow=False, receive_shadow=False, visible=self._visible)
+            "/place_field",
+            rgba,
+            render_width=hm.side_m,
+            render_height=hm.side_m,
+            format="png",
+            position=(float(hm.centre[0]), float(hm.centre[1]), FIELD_Z),
+            wxyz=yaw_wxyz(float(hm.centre[2])),
+            cast_shadow=False,
+            receive_shadow=False,
+            visible=self._visible,
+        )
         return True
 
     def pending(self, view: PlaceFieldView | None) -> bool:

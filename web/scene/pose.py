@@ -31,8 +31,14 @@ class RobotMarker:
 
     def __init__(self, scene: Any, settings: ViewerSettings) -> None:
         self.frame = scene.add_frame("/robot", axes_length=0.3, axes_radius=0.015, position=(0.0, 0.0, POSE_Z))
-        self.camera = scene.add_camera_frustum("/robot/camera", fov=math.radians(60.0), aspect=4 / 3, scale=0.25,
-                                               color=settings.color_robot, wxyz=_CAMERA_WXYZ)
+        self.camera = scene.add_camera_frustum(
+            "/robot/camera",
+            fov=math.radians(60.0),
+            aspect=4 / 3,
+            scale=0.25,
+            color=settings.color_robot,
+            wxyz=_CAMERA_WXYZ,
+        )
         self._last: np.ndarray | None = None
 
     def update(self, pose: np.ndarray) -> bool:

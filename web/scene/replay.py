@@ -58,8 +58,9 @@ def time_span(samples: np.ndarray) -> tuple[float, float] | None:
     return float(samples[0, 0]), float(samples[-1, 0])
 
 
-def replay_at(snap: MapSnapshot, samples: np.ndarray, gt_samples: np.ndarray | None, t: float,
-              max_nodes: int = 100000) -> ReplayFrame:
+def replay_at(
+    snap: MapSnapshot, samples: np.ndarray, gt_samples: np.ndarray | None, t: float, max_nodes: int = 100000
+) -> ReplayFrame:
     """The map cut back to time ``t`` (see module doc). ``samples`` are the sampled trajectory rows
     (t, raw x y theta, node, offset x y theta); ``gt_samples`` the ground truth in the map frame.
     The run's placement is the one ``snap``'s stats and decisions give (:func:`web.scene.placement.placement`)."""
@@ -78,8 +79,11 @@ def replay_at(snap: MapSnapshot, samples: np.ndarray, gt_samples: np.ndarray | N
     keyframe = snap.node_frames[idx] >= 0
     pts = node_points(snap.node_poses[:k], NODE_Z)
     inside = (snap.link_source < k) & (snap.link_target < k) & (snap.link_source >= 0) & (snap.link_target >= 0)
-    seg = np.stack([pts[snap.link_source[inside]], pts[snap.link_target[inside]]], axis=1) if k else \
-        np.empty((0, 2, 3), np.float32)
+    seg = (
+        np.stack([pts[snap.link_source[inside]], pts[snap.link_target[inside]]], axis=1)
+        if k
+        else np.empty((0, 2, 3), np.float32)
+    )
     seg[:, :, 2] = LINK_Z
     loop = snap.link_kind[inside] == LOOP
     made = [d for d in snap.decisions if float(d.hypothesis.time) <= t]
@@ -93,9 +97,21 @@ def replay_at(snap: MapSnapshot, samples: np.ndarray, gt_samples: np.ndarray | N
         ground_truth = polyline_segments(g[:, 1:3], GROUND_TRUTH_Z)
     else:
         ground_truth = np.empty((0, 2, 3), np.float32)
-    return ReplayFrame(t=float(t), t_start=t0, t_end=t1, n_nodes=k, nodes=nodes, keyframe=keyframe, links=seg[~loop],
-                       loop_links=seg[loop], accepted=acc, corrected=corrected, odometry=odometry,
-                       ground_truth=ground_truth, robot=robot)
+    return ReplayFrame(
+        t=float(t),
+        t_start=t0,
+        t_end=t1,
+        n_nodes=k,
+        nodes=nodes,
+        keyframe=keyframe,
+        links=seg[~loop],
+        loop_links=seg[loop],
+        accepted=acc,
+        corrected=corrected,
+        odometry=odometry,
+        ground_truth=ground_truth,
+        robot=robot,
+    )
 
 
 class ReplayLayer:
@@ -121,8 +137,17 @@ class ReplayLayer:
         flat = np.ascontiguousarray(np.asarray(seg, np.float32).reshape(-1, 3))
         i = np.arange(len(seg), dtype=np.uint32)
         faces = np.column_stack([2 * i, 2 * i + 1, 2 * i + 1])
-        self._handles.append(self.scene.add_mesh_simple(name, flat, faces, color=tuple(int(c) for c in color),
-                                                        wireframe=True, cast_shadow=False, receive_shadow=False))
+        self._handles.append(
+            self.scene.add_mesh_simple(
+                name,
+                flat,
+                faces,
+                color=tuple(int(c) for c in color),
+                wireframe=True,
+                cast_shadow=False,
+                receive_shadow=False,
+            )
+        )
 
     def draw(self, frame: ReplayFrame, shown: dict[str, bool]) -> None:
         """Replace the replay by ``frame``, drawing the layers ``shown`` maps to True."""
@@ -132,11 +157,20 @@ class ReplayLayer:
         if self._root is None:
             self._root = self.scene.add_frame("/replay", show_axes=False)
         if on("nodes") and len(frame.nodes):
-            colors = np.where(frame.keyframe[:, None], np.array(s.color_keyframe_node, np.uint8),
-                              np.array(s.color_node, np.uint8))
-            self._handles.append(self.scene.add_point_cloud(
-                "/replay/nodes", frame.nodes, np.ascontiguousarray(colors.astype(np.uint8)), point_size=s.node_size_m,
-                point_shape="circle", precision="float32", point_shading="flat"))
+            colors = np.where(
+                frame.keyframe[:, None], np.array(s.color_keyframe_node, np.uint8), np.array(s.color_node, np.uint8)
+            )
+            self._handles.append(
+                self.scene.add_point_cloud(
+                    "/replay/nodes",
+                    frame.nodes,
+                    np.ascontiguousarray(colors.astype(np.uint8)),
+                    point_size=s.node_size_m,
+                    point_shape="circle",
+                    precision="float32",
+                    point_shading="flat",
+                )
+            )
         if on("links"):
             self._lines("/replay/links", frame.links, s.color_link)
             self._lines("/replay/loop_links", frame.loop_links, s.color_loop_link)
@@ -150,9 +184,17 @@ class ReplayLayer:
             self._lines("/replay/ground_truth", frame.ground_truth, s.color_ground_truth)
         if on("robot") and frame.robot is not None:
             r = frame.robot
-            self._handles.append(self.scene.add_point_cloud(
-                "/replay/robot", np.array([[r[0], r[1], 0.1]], np.float32), np.array([s.color_robot], np.uint8),
-                point_size=1.5 * s.node_size_m, point_shape="circle", precision="float32", point_shading="flat"))
+            self._handles.append(
+                self.scene.add_point_cloud(
+                    "/replay/robot",
+                    np.array([[r[0], r[1], 0.1]], np.float32),
+                    np.array([s.color_robot], np.uint8),
+                    point_size=1.5 * s.node_size_m,
+                    point_shape="circle",
+                    precision="float32",
+                    point_shading="flat",
+                )
+            )
         for h in old:  # after the new nodes are queued: replaced names are not removed twice
             if h.name not in {x.name for x in self._handles}:
                 h.remove()

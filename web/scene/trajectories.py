@@ -56,7 +56,7 @@ class TrajectorySampler:
         """Consume rows ``start : start + len(rows)`` of the trajectory (restart if ``start`` is 0 again)."""
         if start < self._seen:
             if start != 0:
-                rows = rows[self._seen - start:]
+                rows = rows[self._seen - start :]
                 start = self._seen
             else:
                 self._reset()
@@ -86,8 +86,8 @@ class TrajectorySampler:
             grown, gcum = np.empty((cap, 8)), np.empty(cap)
             grown[: self._n], gcum[: self._n] = self.rows[: self._n], self._cums[: self._n]
             self.rows, self._cums = grown, gcum
-        self.rows[self._n: self._n + len(rows)] = rows
-        self._cums[self._n: self._n + len(rows)] = cums
+        self.rows[self._n : self._n + len(rows)] = rows
+        self._cums[self._n : self._n + len(rows)] = cums
         self._n += len(rows)
 
     def _thin(self) -> None:
@@ -127,12 +127,26 @@ class TrajectoryLayer:
         s = settings
         self.settings = s
         self.sampler = TrajectorySampler(s.trajectory_spacing_m, s.trajectory_budget)
-        self.odometry = ChunkedSegments(scene, "/trajectories/odometry", s.chunk_size, s.move_tolerance_m,
-                                        s.trajectory_thickness_m, style="thin", color=s.color_odometry,
-                                        tail_size=s.tail_size)
-        self.corrected = ChunkedSegments(scene, "/trajectories/map", s.chunk_size, s.move_tolerance_m,
-                                         s.trajectory_thickness_m, style="thin", color=s.color_corrected,
-                                         tail_size=s.tail_size)
+        self.odometry = ChunkedSegments(
+            scene,
+            "/trajectories/odometry",
+            s.chunk_size,
+            s.move_tolerance_m,
+            s.trajectory_thickness_m,
+            style="thin",
+            color=s.color_odometry,
+            tail_size=s.tail_size,
+        )
+        self.corrected = ChunkedSegments(
+            scene,
+            "/trajectories/map",
+            s.chunk_size,
+            s.move_tolerance_m,
+            s.trajectory_thickness_m,
+            style="thin",
+            color=s.color_corrected,
+            tail_size=s.tail_size,
+        )
 
     def update(self, snap: MapSnapshot, placed: Placement | None = None) -> TrajectoryUpdate:
         """Push the new rows of ``snap``, drawn as :func:`web.scene.placement.drawn_trajectories` says for
