@@ -237,10 +237,13 @@ class VisualMemory(FeatureStore):
         best = int(surv[int(np.argmax(vals))])
         return _Sense(True, winner, umax, surv, wts, best, upred)
 
-    def _microsaccade(self, img: np.ndarray, target: np.ndarray, flc: int) -> np.ndarray | None:
+    def _microsaccade(self, img: np.ndarray, target: np.ndarray, flc: int, amplitude: float = 0.0) -> np.ndarray | None:
         """Snap the landing point to the best match of the predicted feature within ``tolerance_px``
-        (the [BBc] microsaccade); ``None`` if the fovea cannot be placed inside the image."""
-        h, r = self.h, self.config.tolerance_px
+        plus ``microsaccade_gain`` x the saccade's ``amplitude`` (the [BBc] microsaccade; the search
+        widens with the amplitude as saccadic endpoint scatter does); ``None`` if the fovea cannot be
+        placed inside the image."""
+        h = self.h
+        r = self.config.tolerance_px + int(round(self.config.microsaccade_gain * amplitude))
         img = _channel0(img)  # the microsaccade matches the ganglion fovea
         H, W = img.shape
         lo_x, hi_x = h, W - h - 1
@@ -252,8 +255,20 @@ class VisualMemory(FeatureStore):
             return None
         if r == 0:
             return np.array([x0, y0])
-        region = img[y0 - h : y1 + h + 1, x0 - h : x1 + h + 1]
         tmpl = self._patch[flc, : self.P0].reshape(self.config.fovea, self.config.fovea)
+        if r > self.config.tolerance_px and min(x1 - x0, y1 - y0) > 4:
+            # a wide search runs coarse to fine: on the half-resolution fovea first (a quarter of the
+            # pixels per match and a quarter of the positions), then +-2 px around it at full resolution
+            region = img[y0 - h : y1 + h + 1, x0 - h : x1 + h + 1]
+            half = (region.shape[1] // 2, region.shape[0] // 2)
+            th = (tmpl.shape[1] // 2, tmpl.shape[0] // 2)
+            res = cv2.matchTemplate(cv2.resize(region, half, interpolation=cv2.INTER_AREA),
+                                    cv2.resize(tmpl, th, interpolation=cv2.INTER_AREA), cv2.TM_SQDIFF)
+            _, _, loc, _ = cv2.minMaxLoc(res)
+            cx, cy = x0 + 2 * loc[0], y0 + 2 * loc[1]
+            x0, x1 = max(x0, cx - 2), min(x1, cx + 2)
+            y0, y1 = max(y0, cy - 2), min(y1, cy + 2)
+        region = img[y0 - h : y1 + h + 1, x0 - h : x1 + h + 1]
         res = cv2.matchTemplate(region, tmpl, cv2.TM_SQDIFF)
         _, _, loc, _ = cv2.minMaxLoc(res)
         return np.array([x0 + loc[0], y0 + loc[1]])
@@ -481,7 +496,7 @@ class VisualMemory(FeatureStore):
             if abs(int(d[0])) <= tol and abs(int(d[1])) <= tol:
                 continue  # [BBc]: choose again while the vector is within tolerance
             tgt = e + d
-            land = self._microsaccade(img, tgt, k)
+            land = self._microsaccade(img, tgt, k, float(np.hypot(d[0], d[1])))
             if land is None:
                 if cfg.out_of_view == "skip":
                     continue  # the predicted feature lies outside this view: look at another one

@@ -455,3 +455,54 @@ def test_orientation_channels_still_reject_unlearned_views_and_roundtrip(v1_memo
     assert twin.recognise(q).to_dict() == v1_memory.recognise(q).to_dict()
     with pytest.raises(InputError, match="patches have shape"):
         VisualMemory.from_state(VisualConfig(), v1_memory.state_dict())
+
+
+# -- amplitude-scaled microsaccades (docs/MODEL.md item 15c) ------------------------------
+def _zoom(img: np.ndarray, z: float) -> np.ndarray:
+    """The view from a step forward: the frame magnified ``z`` times about its centre."""
+    h, w = img.shape[:2]
+    return cv2.warpAffine(img, cv2.getRotationMatrix2D((w / 2, h / 2), 0, z), (w, h), borderMode=cv2.BORDER_REFLECT)
+
+
+def test_microsaccade_search_widens_with_the_saccade_amplitude():
+    """A predicted feature 14 px from the saccade's target is out of reach of the fixed 8-px
+    microsaccade; with the radius grown by 0.1 x a 100-px amplitude the fovea lands on it."""
+    img = scene(3)
+    landed = {}
+    for gain in (0.0, 0.1):
+        mem = VisualMemory(VisualConfig(microsaccade_gain=gain))
+        fid = mem.learn(img)
+        work, _, _ = mem._views(img)
+        feats = mem.frame_features(fid)
+        # a feature far enough from the border for a 14-px miss and the widened search
+        k = next(int(f) for f, (x, y) in zip(feats["features"], feats["points"])
+                 if 50 <= x <= work.shape[1] - 50 and 50 <= y <= work.shape[0] - 50)
+        true = mem._pos[k].astype(np.int64)
+        landed[gain] = mem._microsaccade(work, true + np.array([14, -3]), k, amplitude=100.0)
+        if gain == 0.0:  # the fixed radius cannot reach: it stops >= 6 px short in x
+            assert abs(int(landed[gain][0] - true[0])) >= 6
+        else:  # coarse to fine finds the feature to the pixel
+            assert np.abs(landed[gain] - true).max() <= 1
+    # a short saccade keeps the strict radius: at amplitude 0 the gain changes nothing
+    mems = [VisualMemory(VisualConfig(microsaccade_gain=g)) for g in (0.0, 0.1)]
+    for m in mems:
+        m.learn(img)
+    work, _, _ = mems[0]._views(img)
+    tgt = mems[0]._pos[k].astype(np.int64) + np.array([14, -3])
+    assert np.array_equal(mems[0]._microsaccade(work, tgt, k), mems[1]._microsaccade(work, tgt, k, amplitude=0.0))
+
+
+def test_zoomed_view_is_recognised_with_amplitude_scaled_microsaccades():
+    """A step towards the scene magnifies it 1.2 x: every vector between learned features grows by
+    20 %, so long saccades miss their feature by more than the fixed radius. The amplitude-scaled
+    search recognises more of the magnified frames, with no wrong frame accepted."""
+    scenes = [scene(100 + s) for s in range(10)]
+    ok = {}
+    for gain in (0.0, 0.2):
+        mem = VisualMemory(VisualConfig(microsaccade_gain=gain))
+        ids = [mem.learn(s) for s in scenes]
+        recs = [mem.recognise(_zoom(s, 1.2)) for s in scenes]
+        assert not any(r.accepted and r.frame_id != fid for r, fid in zip(recs, ids))
+        ok[gain] = sum(r.frame_id == fid for r, fid in zip(recs, ids))
+    assert ok[0.2] >= 9
+    assert ok[0.2] >= ok[0.0] + 2
