@@ -182,7 +182,8 @@ def _demo_sessions(srv) -> list[dict]:
 
 
 def test_serve_demo_reuses_its_session_across_restarts_and_says_when_it_finished(tmp_path):
-    """One lap at 4x then 20x real time (11 s + 2 s of driving): a restart mid-run resumes the
+    """One lap at 1x then 20x real time (a 44 s lap, stopped after 40 inputs, then 2 s of driving; at
+    1x a loaded machine cannot finish the lap before the first server stops): a restart mid-run resumes the
     same session where it stopped, the robot says when its lap is done, and a restart after
     that leaves the finished session alone instead of adding another demo session."""
     from hippomap.client import Client, ServerError
@@ -192,7 +193,7 @@ def test_serve_demo_reuses_its_session_across_restarts_and_says_when_it_finished
     data = tmp_path / "data"
     run = demo_run(10.0, 1, 1)
     n_inputs = len(run.times) + run.n_frames
-    with LiveServer(data, args=["--demo", "--demo-laps", "1", "--demo-speed", "4"]) as srv:
+    with LiveServer(data, args=["--demo", "--demo-laps", "1", "--demo-speed", "1"]) as srv:
         sid = _wait_for(srv, r"demo robot streaming into session (s_\w+)").group(1)
         with srv.client() as c:
             while c.stats(sid)["inputs_stored"] < 40:
