@@ -139,8 +139,14 @@ def simulate(world: str, seed: int, size: tuple[int, int], texture: str, shared:
     if r.returncode != 0:
         raise RuntimeError(f"hippomap simulate failed: {' '.join(args)}\n{r.stderr[-2000:]}")
     (tmp / "done").write_text(json.dumps(args))
-    shutil.rmtree(folder, ignore_errors=True)
-    tmp.rename(folder)
+    try:
+        tmp.rename(folder)
+    except OSError:  # the folder exists: another run finished the same render first and may be reading it
+        if (folder / "done").is_file():
+            shutil.rmtree(tmp, ignore_errors=True)  # keep theirs, identical by construction
+        else:  # a render left unfinished by a run that was stopped
+            shutil.rmtree(folder, ignore_errors=True)
+            tmp.rename(folder)
     return folder, time.perf_counter() - t0
 
 
