@@ -85,6 +85,8 @@ class CognitiveMap(Pruning):
         t = finite("time t", t)
         if self._t is not None and t < self._t:
             raise InputError(f"time t={t} is before the previous update's time {self._t}")
+        if self._t is None:  # a run's first step: its first node's time starts here, not at t = 0
+            self._t_arrive = t
         self._t = t
         self._delta = _compose3(self._delta, inc)
         self._odom = _compose3(self._odom, inc)
