@@ -135,7 +135,8 @@ class MapCorrection(MapGraph):
         """Keyword arguments of :func:`solve_lsq` for the odometry's heading bias (empty when
         ``odometry_bias_sigma`` is 0): every odometric link's heading change is taken to include
         ``bias × its duration`` (a gyro's or wheel odometry's constant turn rate error), and the
-        whole solves estimate the bias with the poses, from a zero-mean prior of that sigma."""
+        whole solves estimate the bias with the poses, from a zero-mean prior of that sigma, and
+        keep it only when it is significant (:meth:`_whole_solve`)."""
         sigma = self.cfg.odometry_bias_sigma
         if sigma <= 0:
             return {}
