@@ -85,6 +85,8 @@ class CognitiveMap(Pruning):
         t = finite("time t", t)
         if self._t is not None and t < self._t:
             raise InputError(f"time t={t} is before the previous update's time {self._t}")
+        if self._t is None:  # a run's first step: its first node's time starts here, not at t = 0
+            self._t_arrive = t
         self._t = t
         self._delta = _compose3(self._delta, inc)
         self._odom = _compose3(self._odom, inc)
@@ -110,8 +112,12 @@ class CognitiveMap(Pruning):
     def _create_or_merge(self, code, t: float) -> MapEvent:
         cfg = self.cfg
         cur = self._cur
-        q = _compose3(self._P[cur], self._delta)  # where the new node would be
         dt = t - self._t_arrive
+        # where the new node would be: with the odometry's estimated heading bias (0 unless the whole
+        # solves found one) taken off, so that the map grown between closures does not carry the raw
+        # drift a later closure would have to undo (beyond π, its heading residual would wrap)
+        q = _compose3(self._P[cur], self._delta)
+        q = (q[0], q[1], q[2] - self._bias * dt)
         if cfg.prune_online and self._n > 1:
             a = self._merge_target(q)
             if a is not None:

@@ -364,10 +364,16 @@ class MapConfig(_Frozen):
         "length d gets this / d (variance grows with the path). Default: the B25b g2o files' 4000 / 40000 per 0.0905 m "
         "step [ours, from the data]")
     odometry_bias_sigma: float = Field(
-        0.0, ge=0, le=1, description="lsq: estimate a constant heading bias of the odometry (rad/s: a gyro's drift, "
+        0.02, ge=0, le=1, description="lsq: estimate a constant heading bias of the odometry (rad/s: a gyro's drift, "
         "a wheel-radius mismatch while driving) with the poses in every whole solve, with a zero-mean prior of this "
-        "standard deviation; each odometric link's heading change is corrected by bias x its duration. 0 = no bias "
-        "(odometry calibration as in Kuemmerle et al. 2011) [ours, docs/MODEL.md]")
+        "standard deviation (about an uncalibrated MEMS gyro's turn-on bias); each odometric link's heading change "
+        "is corrected by bias x its duration, and only a significant estimate is kept "
+        "(odometry_bias_significance). 0 = no bias (odometry calibration as in Kuemmerle et al. 2011) "
+        "[ours, docs/MODEL.md]")
+    odometry_bias_significance: float = Field(
+        3.0, ge=0, description="with odometry_bias_sigma > 0: a whole solve keeps its bias estimate only when "
+        "|bias| exceeds this many of its posterior standard deviations (Wald test); otherwise the map is solved "
+        "without a bias, as with the option off. 0 = always keep it [ours, docs/MODEL.md]")
     odometry_turn_variance: float = Field(
         0.0, ge=0, description="heading variance (rad^2) an odometric link gains per radian it turns, on top of its "
         "length's: a gyro or wheel-odometry heading error grows with the turning too, so that a corner is not "

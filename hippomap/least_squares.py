@@ -10,6 +10,7 @@ relaxation's fixed point because relaxation (like [ORS]) has no heading–positi
   the odometry's heading bias estimated with the poses.
 * :func:`rotation_first_init` — headings-first re-initialisation (LAGO) before the solve.
 * :func:`graph_cost` — the objective :func:`solve_lsq` minimises.
+* :func:`bias_sigma` — the estimated heading bias's posterior standard deviation.
 * :func:`group_order`, :func:`_spd_factor`, :func:`_normal_pattern` — the sparse linear algebra:
   one fill-reducing order per solve, symmetric-mode LU, normal equations on a fixed pattern; the
   orders and patterns of the last few graph structures are remembered (the same numbers).
@@ -370,6 +371,37 @@ def solve_lsq(
         if converged:
             break
     return RelaxResult("lsq", done, shift, b)
+
+
+def bias_sigma(poses, src, dst, transforms, bias_dt, bias: float = 0.0, bias_information: float = 0.0,
+               information=None, anchor: int | None = 0) -> float:
+    """Posterior standard deviation of the odometry's heading bias of :func:`solve_lsq` at ``poses``
+    (rad/s when ``bias_dt`` holds durations): ``sqrt([H⁻¹]_bb)`` of the weighted Gauss–Newton
+    normal matrix ``H = JᵀJ`` (with the bias's prior) linearised there, i.e. the bias's marginal
+    uncertainty once every pose is solved with it. It says how well the graph's loops observe the
+    bias: the map applies an estimated bias only when it stands out of this noise (Wald test,
+    :meth:`~hippomap.map_correction.MapCorrection._solve_lsq`). ``inf`` when no odometric link
+    carries a duration (nothing observes it)."""
+    P, src, dst, T = _as_graph(poses, src, dst, transforms)
+    n, m = len(P), len(src)
+    bdt = np.asarray(bias_dt, dtype=float)
+    if bdt.shape != (m,) or not np.all(np.isfinite(bdt)):
+        raise InputError(f"bias_dt must be {m} finite values, one per link, got shape {bdt.shape}")
+    if m == 0 or not np.any(bdt != 0):
+        return float("inf")
+    sw = _sqrt_information(information, m)
+    T = T.copy()
+    T[:, 2] -= bias * bdt
+    _, idx, col, H_of = _lsq_layout(n, src, dst, anchor, None, bdt, bias_information)
+    e, c, s, dx, dy = _lsq_errors(P, src, dst, T, sw)
+    H = H_of(_lsq_jacobian(c, s, dx, dy, sw, bdt), e)[0]
+    unit = np.zeros(len(idx))
+    unit[col[3 * n]] = 1.0
+    try:
+        var = float(_spd_factor(H).solve(unit)[col[3 * n]])
+    except RuntimeError:  # singular: some unknown is not determined by the graph
+        return float("inf")
+    return float(np.sqrt(var)) if var > 0 and np.isfinite(var) else float("inf")
 
 
 def _laplacian_solve(n: int, src: np.ndarray, dst: np.ndarray, w: np.ndarray, rhs_links: np.ndarray,

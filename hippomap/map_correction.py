@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from .least_squares import graph_cost, rotation_first_init, solve_lsq
+from .least_squares import bias_sigma, graph_cost, rotation_first_init, solve_lsq
 from .loop_closure import kernel_weights
 from .map_events import MapEvent, MapRelaxed
 from .map_graph import LOOP, ODOMETRY, MapGraph
@@ -27,6 +27,8 @@ __all__ = ["MapCorrection"]
 
 class MapCorrection(MapGraph):
     """The map's correction and robust reweighting, over :class:`~hippomap.map_graph.MapGraph`."""
+
+    _bias_sigma: float = float("inf")  # the last whole solve's posterior sigma of the bias (rad/s)
 
     def _optimise(self, t: float, force: bool = False, sweeps: int | None = None) -> list[MapEvent]:
         """Correct node poses while the graph disagrees with itself (``MapConfig.solver``).
@@ -89,12 +91,7 @@ class MapCorrection(MapGraph):
         info = (self.link_information() if cfg.lsq_weighted else np.ones((m, 3))) * w[:, None]
         bias = self._bias_args()
         if window is None:
-            if cfg.lsq_rotation_init and rotation_init:
-                self._rotation_init(P, src, dst, tr, info, bias)
-                if bias:
-                    bias["bias"] = self._bias  # the initialisation may have moved it
-            res = solve_lsq(P, src, dst, tr, iterations=cfg.lsq_iterations, anchor=0, information=info, **bias)
-            self._bias = res.bias
+            res = self._whole_solve(P, src, dst, tr, info, bias, rotation_init=cfg.lsq_rotation_init and rotation_init)
             self._local_solves = 0
         else:
             self._local_solves += 1
@@ -112,11 +109,42 @@ class MapCorrection(MapGraph):
         converged = res.iterations < cfg.lsq_iterations or res.max_shift < cfg.relax_tolerance_m
         return res, converged
 
+    def _whole_solve(self, P: np.ndarray, src: np.ndarray, dst: np.ndarray, tr: np.ndarray, info: np.ndarray,
+                     bias: dict[str, Any], rotation_init: bool) -> RelaxResult:
+        """A whole-map 'lsq' solve of ``P`` in place (headings first when ``rotation_init``).
+
+        With the bias estimated (``bias`` not empty), the poses and the bias are solved together on
+        a copy, and the result is kept only when the bias is significant: ``|b| >
+        odometry_bias_significance × σ_b``, σ_b its posterior standard deviation at the solution
+        (:func:`~hippomap.least_squares.bias_sigma`, a Wald test). Otherwise the bias is taken as 0
+        and the map is solved without it, exactly as with the option off: a bias that the loops
+        cannot tell from the odometry's own noise is not applied, so that loop links' errors
+        cannot pose as one."""
+        cfg = self.cfg
+        if bias:
+            Q = P.copy()
+            b = self._rotation_init(Q, src, dst, tr, info, bias) if rotation_init else self._bias
+            res = solve_lsq(Q, src, dst, tr, iterations=cfg.lsq_iterations, anchor=0, information=info,
+                            **{**bias, "bias": b})
+            k = cfg.odometry_bias_significance
+            sigma = bias_sigma(Q, src, dst, tr, bias["bias_dt"], res.bias, bias["bias_information"], info) \
+                if k > 0 else 0.0
+            self._bias_sigma = sigma
+            if abs(res.bias) > k * sigma:
+                P[:] = Q
+                self._bias = res.bias
+                return res
+            self._bias = 0.0
+        if rotation_init:
+            self._rotation_init(P, src, dst, tr, info, {})
+        return solve_lsq(P, src, dst, tr, iterations=cfg.lsq_iterations, anchor=0, information=info)
+
     def _bias_args(self) -> dict[str, Any]:
         """Keyword arguments of :func:`solve_lsq` for the odometry's heading bias (empty when
         ``odometry_bias_sigma`` is 0): every odometric link's heading change is taken to include
         ``bias × its duration`` (a gyro's or wheel odometry's constant turn rate error), and the
-        whole solves estimate the bias with the poses, from a zero-mean prior of that sigma."""
+        whole solves estimate the bias with the poses, from a zero-mean prior of that sigma, and
+        keep it only when it is significant (:meth:`_whole_solve`)."""
         sigma = self.cfg.odometry_bias_sigma
         if sigma <= 0:
             return {}
@@ -125,18 +153,18 @@ class MapCorrection(MapGraph):
         return {"bias_dt": bdt, "bias": self._bias, "bias_information": 1.0 / sigma ** 2}
 
     def _rotation_init(self, P: np.ndarray, src: np.ndarray, dst: np.ndarray, tr: np.ndarray, info: np.ndarray,
-                       bias: dict[str, Any]) -> None:
+                       bias: dict[str, Any]) -> float:
         """Headings-first re-initialisation before a whole solve (with the bias when it is
         estimated), kept only when it lowers the weighted cost (it cannot on a map that is
-        already at its optimum)."""
-
+        already at its optimum). Returns the bias to start the solve from."""
+        b0 = float(bias.get("bias", 0.0))
         before = graph_cost(P, src, dst, tr, info, **bias)
         Q = P.copy()
         _, b = rotation_first_init(Q, src, dst, tr, info, anchor=0, **bias)
         if graph_cost(Q, src, dst, tr, info, **{**bias, "bias": b}) < before:
             P[:] = Q
-            if bias:
-                self._bias = b
+            return b
+        return b0
 
     def _reweight(self) -> bool:
         """Revise the robust weights of the loop links from their residuals on the converged

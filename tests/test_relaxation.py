@@ -393,6 +393,57 @@ def test_a_strong_bias_prior_holds_the_bias_at_zero():
     assert abs(res.bias) < 1e-6
 
 
+def _dense_bias_sigma(P, src, dst, T, dt, bias, prior, info, h=1e-6):
+    """[(JᵀJ + prior)⁻¹]_bb by a finite-difference Jacobian of the weighted link errors (node 0 held)."""
+    from hippomap.least_squares import _lsq_errors
+
+    sw = np.sqrt(info)
+
+    def errors(x):
+        Q = P.copy()
+        Q[1:] = x[:-1].reshape(-1, 3)
+        Tb = T.copy()
+        Tb[:, 2] -= x[-1] * dt
+        return _lsq_errors(Q, src, dst, Tb, sw)[0].ravel()
+
+    x0 = np.append(P[1:].ravel(), bias)
+    e0 = errors(x0)
+    J = np.empty((len(e0), len(x0)))
+    for i in range(len(x0)):
+        x = x0.copy()
+        x[i] += h
+        J[:, i] = (errors(x) - e0) / h
+    H = J.T @ J
+    H[-1, -1] += prior
+    return float(np.sqrt(np.linalg.inv(H)[-1, -1]))
+
+
+@pytest.mark.parametrize("closed", [False, True])
+def test_bias_sigma_is_the_marginal_uncertainty_of_the_bias(closed):
+    """Without a loop nothing but the prior observes the bias: its posterior sigma is the prior's.
+    Closed by one link, the loop observes it: the sigma equals the dense inverse of the normal
+    matrix and is far below the prior; it does not depend on the poses' gauge."""
+    from hippomap.least_squares import bias_sigma
+
+    gt, odo, src, dst, T, dt, info = _gyro_bias_loop(0.002)
+    if not closed:
+        src, dst, T, dt, info = src[:-1], dst[:-1], T[:-1], dt[:-1], info[:-1]
+    P = odo.copy()
+    solve_lsq(P, src, dst, T, iterations=50, information=info, bias_dt=dt, bias_information=1.0 / 0.02 ** 2)
+    sigma = bias_sigma(P, src, dst, T, dt, 0.002, 1.0 / 0.02 ** 2, information=info)
+    if not closed:
+        assert sigma == pytest.approx(0.02, rel=1e-6)
+        return
+    assert sigma < 0.02 / 10
+    assert sigma == pytest.approx(_dense_bias_sigma(P, src, dst, T, dt, 0.002, 1.0 / 0.02 ** 2, info), rel=1e-3)
+    moved = compose(np.tile([3.0, -2.0, 1.0], (len(P), 1)), P)  # the same map, rigidly moved
+    prior = 1.0 / 0.02 ** 2
+    assert bias_sigma(moved, src, dst, T, dt, 0.002, prior, information=info) == pytest.approx(sigma, rel=1e-6)
+    assert bias_sigma(P, src, dst, T, np.zeros(len(src)), information=info) == float("inf")  # nothing to observe
+    with pytest.raises(InputError, match="bias_dt"):
+        bias_sigma(P, src, dst, T, dt[:-1], information=info)
+
+
 def test_bad_bias_arguments_raise_input_error():
     gt, odo, src, dst, T, dt, info = _gyro_bias_loop(0.0)
     with pytest.raises(InputError, match="bias_dt"):
