@@ -362,6 +362,20 @@ def test_online_pruning_bounds_the_map_on_revisits():
     assert np.all(np.isfinite(pruned.poses))
 
 
+def test_default_map_keeps_its_nodes_on_revisits():
+    """``prune_online`` None (the default) does not merge in the map itself (camera runs): a
+    revisit lays its own nodes, each step keeps its odometric offset from a node of its own pass,
+    and nothing is linked by a prune link; ``True`` merges the same run."""
+    inc = back_and_forth()
+    default = CognitiveMap(MapConfig(initial_pose=(0.0, 0.25, 0.0)))
+    _, _, events = drive(default, inc)
+    pruned = CognitiveMap(MapConfig(prune_online=True, initial_pose=(0.0, 0.25, 0.0)))
+    drive(pruned, inc)
+    assert not [e for e in events if isinstance(e, NodeMerged)]
+    assert "prune" not in set(default.links["kind"])
+    assert default.node_count > 3 * 5.0 / 0.25 > pruned.node_count
+
+
 def test_graph_gated_pruning_avoids_merging_across_a_drifted_loop():
     """Literal online pruning merges the drifted end of lap 1 into the wrong start nodes (an
     unverified loop closure); gated by graph distance it waits for the verified one instead."""
