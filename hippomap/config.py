@@ -248,7 +248,7 @@ class MapConfig(_Frozen):
         "keep their own nodes tied to the old ones by loop links: a merge copies the map's relative pose of the two "
         "nodes into a link as stiff as odometry and fixes the robot's offset from the old node, and in camera runs "
         "(visual links 0.2 m off) that cost 30-40 % of the map ATE, while on Bicocca's measured closures merging "
-        "gained 1-2 % [ours, docs/MODEL.md item 39]"
+        "gained 0.6-2.5 % [ours, docs/MODEL.md item 39]"
     )
     prune_graph_radius_m: float | None = Field(
         3.0, gt=0,
@@ -373,6 +373,12 @@ class MapConfig(_Frozen):
     visual_loop_information: tuple[_Positive, _Positive] = Field(
         (100.0, 1000.0), description="information of a visual loop link (x/y, heading), as for a measured one: "
         "softer visual links left loops partly open on the simulated worlds (docs/MODEL.md) [ours]")
+    visual_lateral_information: float | None = Field(
+        10.0, gt=0, description="information (m^-2) of a visual loop link beside the robot's heading (y in the "
+        "link's source frame), apart from visual_loop_information's x/y along it: a recognition places the robot at "
+        "the matched key frame, moved along its view by looming, but cannot see how far beside it the robot stands, "
+        "so odometry decides there; None = as x/y. 10 chosen among 3 / 10 / 30 / None on the simulated tuning runs "
+        "[ours, docs/MODEL.md item 40]")
     loop_information: tuple[_Positive, _Positive] = Field(
         (100.0, 1000.0), description="information of a loop link (x/y, heading): the middle of the B25b g2o loop "
         "edges' 60-380 / 600-3800 [ours, from the data]")
