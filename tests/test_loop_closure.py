@@ -376,3 +376,18 @@ def test_loose_lateral_information_lets_odometry_place_a_visual_link_beside_the_
     assert np.all(infos[None][:, 0] == infos[None][:, 1])
     assert np.all(infos[1.0][:, 1] == 1.0) and np.array_equal(infos[1.0][:, [0, 2]], infos[None][:, [0, 2]])
     assert errors[1.0] < 0.7 * errors[None], errors  # measured 0.10 vs 0.19 m
+
+
+def test_a_state_with_pair_loop_information_loads_as_isotropic():
+    """Snapshots written before loop links had (x, y, heading) stored (x/y, heading) pairs."""
+    inc = square_increments()
+    gt = integrate(inc)
+    cmap = CognitiveMap(MapConfig(prune_online=False))
+    drive(cmap, inc, hypotheses=true_loops(gt, len(inc) // 2))
+    state = cmap.state_dict()
+    loop = cmap.links["kind"] == "loop"
+    assert loop.any()
+    state["links"]["information"] = state["links"]["information"][:, [0, 2]]
+    old = CognitiveMap.from_state(cmap.cfg, state)
+    info = old.link_information()[loop]
+    assert np.array_equal(info, cmap.link_information()[loop]) and np.all(info[:, 0] == info[:, 1])
