@@ -177,8 +177,9 @@ class CognitiveMap(Pruning):
             cmap._kind[:m] = np.asarray(links["kind"], dtype=np.int8)
             cmap._w[:m] = np.asarray(links.get("weight", np.ones(m)), dtype=float)
             li = links.get("information")
-            cmap._linfo[:m] = (np.tile(cfg.loop_information, (m, 1)) if li is None
-                               else np.asarray(li, dtype=float).reshape(m, 2))
+            li = np.tile(cfg.loop_information, (m, 1)) if li is None else np.asarray(li, dtype=float)
+            li = li.reshape(m, 2 if li.size == 2 * m else 3)  # (x/y, heading) in states before (x, y, heading)
+            cmap._linfo[:m] = li if li.shape[1] == 3 else li[:, [0, 0, 1]]
             cmap._lkw[:m] = np.asarray(links.get("kernel_width", np.full(m, cfg.loop_kernel_width)), dtype=float)
             if n == 0 or not np.all(np.isfinite(cmap._P[:n])):
                 raise InputError("cognitive-map state: node poses missing or not finite")

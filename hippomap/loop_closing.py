@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import replace
-from typing import Any, cast
+from typing import Any
 
 import numpy as np
 
@@ -30,6 +30,7 @@ from .loop_closure import (
     consistent,
     drift_path,
     gate_limit,
+    link_info3,
     place_of,
     se2_between,
     se2_compose,
@@ -131,10 +132,17 @@ class LoopClosing(MapCorrection):
             link_tr = h.transform
         else:
             link_tr = self._delta if h.offset is None else _compose3(self._delta, _inv3(h.offset))
-        info = h.information or (cfg.loop_information if h.transform is not None else cfg.visual_loop_information)
+        if h.information:
+            info: tuple[float, ...] = h.information
+        elif h.transform is not None:
+            info = cfg.loop_information
+        elif cfg.visual_lateral_information is None:
+            info = cfg.visual_loop_information
+        else:  # a visual link is looser beside the robot's heading, which recognition cannot see
+            info = (cfg.visual_loop_information[0], cfg.visual_lateral_information, cfg.visual_loop_information[1])
         return Candidate(did, h.node, self._cur, link_tr, _between3(self._delta, link_tr), self._odom, self._step,
                          self._arrival if h.node == self._cur else -1, h.transform is not None, self._path,
-                         cast("tuple[float, float]", tuple(float(v) for v in info)),
+                         tuple(float(v) for v in info),
                          cfg.loop_kernel_width if h.transform is not None else cfg.visual_kernel_width)
 
     def _screen(self, h: LoopHypothesis, cand: Candidate) -> tuple[LoopDecision, str, bool]:
@@ -383,7 +391,7 @@ class LoopClosing(MapCorrection):
             self._tr[k] = tr
             self._kind[k] = LOOP
             self._w[k] = 1.0
-            self._linfo[k] = c.info
+            self._linfo[k] = link_info3(c.info)
             self._lkw[k] = c.kernel_width
             self._version += 1
             self._dirty = True

@@ -44,8 +44,8 @@ from .geometry import between, compose, wrap_angle
 _Pose = tuple[float, float, float]  # (x, y, theta): the fixed length the type checker needs
 
 __all__ = ["USED_WEIGHT", "LoopHypothesis", "LoopDecision", "Candidate", "LoopBook", "gate_limit", "cycle_errors",
-           "consistent", "align_group", "looming_offset", "robust_weight", "kernel_weights", "se2_compose",
-           "se2_inverse", "se2_between", "vec3", "node_id", "jsonable"]
+           "consistent", "align_group", "looming_offset", "robust_weight", "kernel_weights", "link_info3",
+           "se2_compose", "se2_inverse", "se2_between", "vec3", "node_id", "jsonable"]
 
 
 #: a loop link whose robust weight is at least this counts as used (applied); below, it has faded
@@ -231,7 +231,7 @@ class Candidate:
     arrival: int = -1  # when node == from_node: the link by which the robot had reached it
     measured: bool = False  # the hypothesis carried a measured transform
     path: float = 0.0  # path travelled by the robot at proposal (m)
-    info: tuple[float, float] = (100.0, 1000.0)  # information of the link (x/y, heading)
+    info: tuple[float, ...] = (100.0, 1000.0)  # information of the link (x/y, heading) or (x, y, heading)
     kernel_width: float = 1.0  # robust kernel width of the link, in its standard deviations
 
     @property
@@ -255,7 +255,7 @@ class Candidate:
         return cls(int(d["id"]), int(d["node"]), int(d["from_node"]), cast(_Pose, tuple(map(float, d["link_tr"]))),
                    cast(_Pose, tuple(map(float, d["M"]))), cast(_Pose, tuple(map(float, d["odom"]))), int(d["step"]),
                    int(d.get("arrival", -1)), bool(d.get("measured", False)), float(d.get("path", 0.0)),
-                   cast("tuple[float, float]", tuple(float(v) for v in d.get("info", (100.0, 1000.0)))),
+                   tuple(float(v) for v in d.get("info", (100.0, 1000.0))),
                    float(d.get("kernel_width", 1.0)))
 
 
@@ -407,11 +407,23 @@ def robust_weight(whitened_sq, kernel: str = "cauchy"):
     raise InputError(f"unknown robust kernel {kernel!r}")
 
 
+def link_info3(info: Any) -> tuple[float, float, float]:
+    """A loop link's diagonal information as (x, y, heading) in its source node's frame: a pair
+    (x/y, heading) is isotropic in position; a triple gives x (along the robot's heading at the
+    source node) and y (beside it) apart."""
+    v = tuple(float(x) for x in info)
+    if len(v) == 2:
+        return (v[0], v[0], v[1])
+    if len(v) != 3:
+        raise InputError(f"loop-link information must be (x/y, heading) or (x, y, heading), got {len(v)} values")
+    return cast("tuple[float, float, float]", v)
+
+
 def kernel_weights(e: np.ndarray, info: np.ndarray, width: np.ndarray, kernel: str = "cauchy") -> np.ndarray:
-    """Kernel weights of loop links with residuals ``e`` (K, 3), information ``info`` (K, 2)
-    and kernel widths ``width`` (K,): whitened by both (isotropic in x/y, so the residual's
-    frame does not matter), floored so that no link is divided away entirely."""
-    chi2 = ((e[:, 0] ** 2 + e[:, 1] ** 2) * info[:, 0] + e[:, 2] ** 2 * info[:, 1]) / width ** 2
+    """Kernel weights of loop links with residuals ``e`` (K, 3) in their source frames,
+    information ``info`` (K, 3: x, y, heading) and kernel widths ``width`` (K,): whitened by
+    both, floored so that no link is divided away entirely."""
+    chi2 = (e[:, 0] ** 2 * info[:, 0] + e[:, 1] ** 2 * info[:, 1] + e[:, 2] ** 2 * info[:, 2]) / width ** 2
     return np.maximum(robust_weight(chi2, kernel), 1e-4)
 
 

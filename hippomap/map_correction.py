@@ -239,7 +239,8 @@ class MapCorrection(MapGraph):
         """(M, 3) diagonal information of every link (x, y, θ) for the weighted solver: odometric
         and prune links ``odometry_information_per_m / length`` (variance grows with the path;
         lengths below 5 cm count as 5 cm), the heading's variance also ``odometry_turn_variance``
-        per radian turned; loop links ``loop_information``."""
+        per radian turned; loop links their own (``loop_information``, ``visual_loop_information`` with
+        ``visual_lateral_information``)."""
         m = self._m
         cfg = self.cfg
         length = np.maximum(np.hypot(self._tr[:m, 0], self._tr[:m, 1]), 0.05)
@@ -247,8 +248,7 @@ class MapCorrection(MapGraph):
         turn = np.abs(self._tr[:m, 2])
         info = np.column_stack([xy / length, xy / length, 1.0 / (length / th + cfg.odometry_turn_variance * turn)])
         loop = self._kind[:m] == LOOP
-        li = self._linfo[:m][loop]
-        info[loop] = np.column_stack([li[:, 0], li[:, 0], li[:, 1]])
+        info[loop] = self._linfo[:m][loop]
         return info
 
     def weighted_link_information(self) -> np.ndarray:

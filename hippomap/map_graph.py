@@ -27,7 +27,7 @@ import numpy as np
 
 from .config import MapConfig
 from .errors import InputError, finite
-from .loop_closure import LoopBook, kernel_weights, node_id, se2_between, se2_compose, se2_inverse, vec3
+from .loop_closure import LoopBook, kernel_weights, link_info3, node_id, se2_between, se2_compose, se2_inverse, vec3
 from .map_events import FrameAssigned, MapEvent
 from .relaxation import ColourGroups, colour_link, edge_colouring, link_residuals
 
@@ -70,7 +70,7 @@ class MapGraph:
         self._kind = np.zeros(cap, dtype=np.int8)
         self._col = np.zeros(cap, dtype=np.int64)
         self._w = np.ones(cap)  # robust weight of each link (loop links: revised, see _reweight)
-        self._linfo = np.zeros((cap, 2))  # information (x/y, heading) of loop links
+        self._linfo = np.zeros((cap, 3))  # information (x, y, heading; source frame) of loop links
         self._lkw = np.ones(cap)  # robust kernel width of loop links (standard deviations)
         self._pairs: set[tuple[int, int]] = set()
         self._groups: ColourGroups | None = None
@@ -201,7 +201,7 @@ class MapGraph:
         return i
 
     def _add_link(self, a: int, b: int, tr, kind: int, dt: float, allow_duplicate: bool = False,
-                  info: tuple[float, float] | None = None, kernel_width: float | None = None) -> int:
+                  info: tuple[float, ...] | None = None, kernel_width: float | None = None) -> int:
         """Append link a→b (ORS ``on_create_link``); -1 if the pair is already linked (either way)."""
         key = (min(a, b), max(a, b))
         if key in self._pairs and not allow_duplicate:
@@ -214,7 +214,7 @@ class MapGraph:
         self._dt[k] = dt
         self._kind[k] = kind
         self._w[k] = 1.0
-        self._linfo[k] = self.cfg.loop_information if info is None else info
+        self._linfo[k] = link_info3(self.cfg.loop_information if info is None else info)
         self._lkw[k] = self.cfg.loop_kernel_width if kernel_width is None else kernel_width
         self._col[k] = colour_link(self._mask, a, b)
         self._pairs.add(key)

@@ -362,6 +362,20 @@ def test_online_pruning_bounds_the_map_on_revisits():
     assert np.all(np.isfinite(pruned.poses))
 
 
+def test_default_map_keeps_its_nodes_on_revisits():
+    """``prune_online`` None (the default) does not merge in the map itself (camera runs): a
+    revisit lays its own nodes, each step keeps its odometric offset from a node of its own pass,
+    and nothing is linked by a prune link; ``True`` merges the same run."""
+    inc = back_and_forth()
+    default = CognitiveMap(MapConfig(initial_pose=(0.0, 0.25, 0.0)))
+    _, _, events = drive(default, inc)
+    pruned = CognitiveMap(MapConfig(prune_online=True, initial_pose=(0.0, 0.25, 0.0)))
+    drive(pruned, inc)
+    assert not [e for e in events if isinstance(e, NodeMerged)]
+    assert "prune" not in set(default.links["kind"])
+    assert default.node_count > 3 * 5.0 / 0.25 > pruned.node_count
+
+
 def test_graph_gated_pruning_avoids_merging_across_a_drifted_loop():
     """Literal online pruning merges the drifted end of lap 1 into the wrong start nodes (an
     unverified loop closure); gated by graph distance it waits for the verified one instead."""
@@ -372,8 +386,8 @@ def test_graph_gated_pruning_avoids_merging_across_a_drifted_loop():
     first_lap = len(inc) // 2
     errors, nodes = {}, {}
     common = dict(VERIFIED, solver="lsq", loop_transform_radius_m=3.0, loop_min_support=2, loop_relocalise=True)
-    for name, over in {"none": dict(prune_online=False), "literal": dict(prune_graph_radius_m=None),
-                       "gated": dict(prune_graph_radius_m=3.0)}.items():
+    for name, over in {"none": dict(prune_online=False), "literal": dict(prune_online=True, prune_graph_radius_m=None),
+                       "gated": dict(prune_online=True, prune_graph_radius_m=3.0)}.items():
         cmap = CognitiveMap(MapConfig(**common, **over))
         node_at, off, _ = drive(cmap, noisy, hypotheses=true_loops(gt, first_lap))
         errors[name] = rms_xy(corrected(cmap, node_at, off), gt)
@@ -387,7 +401,7 @@ def test_hypothesis_on_a_node_reached_by_pruning_replaces_the_prune_link():
     """The robot came back and online pruning put it on old node A through an unverified prune
     link; a loop hypothesis naming A (the current node) turns that link into a measured one."""
     cmap = CognitiveMap(MapConfig(loop_min_support=1, initial_pose=(0.0, 0.25, 0.0), exclude_recent=3,
-                                  loop_relocalise=True))
+                                  loop_relocalise=True, prune_online=True))
     out_and_back = np.array([(0.05, 0.0, 0.0)] * 60 + [(0.0, 0.0, math.pi / 10)] * 10 + [(0.05, 0.0, 0.0)] * 30)
     _, _, events = drive(cmap, out_and_back)
     assert isinstance([e for e in events if e.type in ("node_created", "node_merged")][-1], NodeMerged)

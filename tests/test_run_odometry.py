@@ -15,6 +15,7 @@ import pytest
 
 from hippomap.cli import main
 from hippomap.cli.run_odometry import run_odometry
+from hippomap.config import HippomapConfig
 from hippomap.geometry import between, integrate
 from hippomap.io.datasets import load_odometry_dataset
 from hippomap.io.exports import read_tum
@@ -85,6 +86,18 @@ def test_map_beats_odometry_and_rejects_false_loops(dataset_dir):
     err_odo = np.linalg.norm(run.odometry[:, :2] - gt[:, :2], axis=1).mean()
     err_map = np.linalg.norm(run.corrected[:, :2] - gt[:, :2], axis=1).mean()
     assert err_map < 0.5 * err_odo, (err_map, err_odo)
+
+
+def test_measured_loop_proposals_prune_online_unless_configured(dataset_dir):
+    """``map.prune_online`` None (the default) means on for measured loop proposals: the second
+    lap merges into the first lap's nodes; an explicit False keeps every node."""
+    folder, _ = dataset_dir
+    ds = load_odometry_dataset(folder, "synthetic.g2o")
+    default = run_odometry(ds)
+    grown = run_odometry(ds, HippomapConfig.with_overrides({"map": {"prune_online": False}}))
+    assert "prune" in set(default.cmap.links["kind"])
+    assert "prune" not in set(grown.cmap.links["kind"])
+    assert default.cmap.node_count < grown.cmap.node_count
 
 
 def test_cli_writes_exports(dataset_dir, tmp_path, capsys):

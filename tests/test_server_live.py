@@ -76,11 +76,11 @@ def test_concurrent_sessions_stream_and_match_the_offline_mapper(server, client)
 
 LOOPY = synthetic_inputs(n_odometry=400, frame_every=2, speed=0.6)  # closes loops: accepted and rejected
 # the paper's rules (place-code gate with a tight radius, every key frame learned, the recent track
-# recognised) reject some hypotheses, so both statuses are there to query
+# recognised, online merging) reject some hypotheses, so both statuses are there to query
 # relocalising onto the matched nodes, the circling robot also proposes closures that the gate rejects
 LOOPY_CONFIG = {"mapper": {**CONFIG["mapper"], "recognition_min_path_m": 0.0, "learn_recognised": True},
                 "map": {"loop_gate": "place_code", "loop_radius_m": 0.3, "loop_radius_per_m": 0.0,
-                        "loop_relocalise": True}}
+                        "loop_relocalise": True, "prune_online": True}}
 
 
 def test_queries_serve_the_session_state(server, client):

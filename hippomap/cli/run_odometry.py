@@ -84,7 +84,9 @@ def run_odometry(
     times = dataset.times
     n = len(times)
     pathway = SpatialPathway(cfg.spatial)
-    cmap = CognitiveMap(cfg.map)
+    # measured loop proposals: online pruning on unless the config says otherwise (MapConfig.prune_online)
+    map_cfg = cfg.map if cfg.map.prune_online is not None else cfg.map.model_copy(update={"prune_online": True})
+    cmap = CognitiveMap(map_cfg)
     loops = _loops_by_pose(dataset)
     node_at_pose = np.empty(n, dtype=np.int64)
     offset_at_pose = np.empty((n, 3))
