@@ -46,8 +46,9 @@ from tests.support.ray_head import LocalRayHead  # noqa: E402
 from tests.support.synthetic import view  # noqa: E402
 
 
-def make_inputs(frames: int, odo_per_frame: int, rate_hz: float = 20.0, speed: float = 0.5,
-                radius: float = 1.0) -> list[tuple]:
+def make_inputs(
+    frames: int, odo_per_frame: int, rate_hz: float = 20.0, speed: float = 0.5, radius: float = 1.0
+) -> list[tuple]:
     """``("odometry", Odometry)`` / ``("frame", t, jpeg)`` items: 640x480 frames of a robot circling."""
     import cv2
 
@@ -74,8 +75,7 @@ async def _stream(url: str, token: str, sid: str, items: list[tuple]) -> None:
         await asyncio.gather(*futs)
 
 
-def run_level(backend: str, n: int, items: list[tuple], head: LocalRayHead | None,
-              config: dict | None = None) -> dict:
+def run_level(backend: str, n: int, items: list[tuple], head: LocalRayHead | None, config: dict | None = None) -> dict:
     env = {"HIPPOMAP_RATE_PER_S": "100000", "HIPPOMAP_RATE_BURST": "100000"}
     args = ["--backend", backend]
     if backend == "ray":
@@ -99,8 +99,15 @@ def run_level(backend: str, n: int, items: list[tuple], head: LocalRayHead | Non
             n_frames = sum(1 for it in items if it[0] == "frame")
             assert all(s["processed_seq"] == len(items) - 1 for s in stats)
             loops = sum(s["mapper"]["loop_closures_accepted"] for s in stats)
-            return {"backend": backend, "sessions": n, "frames": n * n_frames, "elapsed_s": elapsed,
-                    "acked_s": t_acked, "fps": n * n_frames / elapsed, "loops": loops}
+            return {
+                "backend": backend,
+                "sessions": n,
+                "frames": n * n_frames,
+                "elapsed_s": elapsed,
+                "acked_s": t_acked,
+                "fps": n * n_frames / elapsed,
+                "loops": loops,
+            }
         finally:
             srv.stop()
 
@@ -110,17 +117,24 @@ def main() -> None:
     ap.add_argument("--sessions", type=int, nargs="+", default=[1, 2, 4, 8])
     ap.add_argument("--frames", type=int, default=400, help="camera frames per session")
     ap.add_argument("--odometry-per-frame", type=int, default=2)
-    ap.add_argument("--keyframe-interval", type=int, default=None,
-                    help="session config mapper.keyframe_interval (default: the model's default, 100); 3 makes "
-                         "every third frame a key frame: recognition + learning, loops closed (a mapping-heavy load)")
+    ap.add_argument(
+        "--keyframe-interval",
+        type=int,
+        default=None,
+        help="session config mapper.keyframe_interval (default: the model's default, 100); 3 makes "
+        "every third frame a key frame: recognition + learning, loops closed (a mapping-heavy load)",
+    )
     ap.add_argument("--backends", nargs="+", default=["inprocess", "ray"], choices=["inprocess", "ray"])
     args = ap.parse_args()
     cores = os.cpu_count() or 1
     items = make_inputs(args.frames, args.odometry_per_frame)
     config = {} if args.keyframe_interval is None else {"mapper": {"keyframe_interval": args.keyframe_interval}}
     jpeg = np.mean([len(it[2]) for it in items if it[0] == "frame"])
-    print(f"machine: {cores} cores; per session: {args.frames} frames 640x480 (mean JPEG {jpeg / 1e3:.0f} kB) "
-          f"+ {args.odometry_per_frame} odometry readings each; session config {config or 'default'}", flush=True)
+    print(
+        f"machine: {cores} cores; per session: {args.frames} frames 640x480 (mean JPEG {jpeg / 1e3:.0f} kB) "
+        f"+ {args.odometry_per_frame} odometry readings each; session config {config or 'default'}",
+        flush=True,
+    )
     head = None
     if "ray" in args.backends:
         t = time.perf_counter()
@@ -135,8 +149,11 @@ def main() -> None:
             for backend in args.backends:
                 r = run_level(backend, n, items, head, config)
                 rows.append(r)
-                print(f"  {backend:9s} sessions={n}: {r['fps']:7.1f} frames/s  ({r['frames']} frames in "
-                      f"{r['elapsed_s']:.1f} s; all acked after {r['acked_s']:.1f} s; loops {r['loops']})", flush=True)
+                print(
+                    f"  {backend:9s} sessions={n}: {r['fps']:7.1f} frames/s  ({r['frames']} frames in "
+                    f"{r['elapsed_s']:.1f} s; all acked after {r['acked_s']:.1f} s; loops {r['loops']})",
+                    flush=True,
+                )
     finally:
         if head is not None:
             head.stop()

@@ -66,13 +66,20 @@ def main() -> None:
         data = _camera_jpeg(w, h)
         ref = _per_call(lambda: cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE), args.repeat)
         full = _per_call(lambda: check_frame(data, 1.0, settings), args.repeat)
-        print(f"  {w}x{h} ({len(data) / 1e3:.0f} kB): {full:.2f} ms vs {ref:.2f} ms  (x{full / ref:.2f}, "
-              f"+{full - ref:.2f} ms per frame)")
+        print(
+            f"  {w}x{h} ({len(data) / 1e3:.0f} kB): {full:.2f} ms vs {ref:.2f} ms  (x{full / ref:.2f}, "
+            f"+{full - ref:.2f} ms per frame)"
+        )
 
     print("websocket text: parse_text_message (length + depth scan + json.loads) vs json.loads alone")
     one = json.dumps({"type": "odometry", "id": 7, "t": 1234.5, "v": 0.2, "omega": -0.01})
-    batch = json.dumps({"type": "odometry", "id": 8, "readings": [
-        {"t": 1000.0 + 0.02 * i, "v": 0.2, "omega": 0.01} for i in range(1000)]})
+    batch = json.dumps(
+        {
+            "type": "odometry",
+            "id": 8,
+            "readings": [{"t": 1000.0 + 0.02 * i, "v": 0.2, "omega": 0.01} for i in range(1000)],
+        }
+    )
     limit, depth = settings.max_text_message_bytes, settings.max_json_depth
     for name, text in (("one reading", one), ("1,000 readings", batch)):
         ref = _per_call(lambda: json.loads(text), args.repeat)
@@ -103,8 +110,10 @@ def main() -> None:
     del frames
     release_memory()
     after = _rss_mb()
-    print(f"  RSS {before:.0f} MB -> {held:.0f} MB with the queue -> {after:.0f} MB after "
-          f"({(held - after) / max(held - before, 1e-9):.0%} of the growth returned)")
+    print(
+        f"  RSS {before:.0f} MB -> {held:.0f} MB with the queue -> {after:.0f} MB after "
+        f"({(held - after) / max(held - before, 1e-9):.0%} of the growth returned)"
+    )
 
 
 if __name__ == "__main__":

@@ -51,12 +51,15 @@ P99_LIMIT_S = 0.100
 def jpeg_pool(n: int = 40, quality: int = 90) -> list[bytes]:
     import cv2
 
-    return [cv2.imencode(".jpg", view(2 * np.pi * k / n, seed=11), [cv2.IMWRITE_JPEG_QUALITY, quality])[1].tobytes()
-            for k in range(n)]
+    return [
+        cv2.imencode(".jpg", view(2 * np.pi * k / n, seed=11), [cv2.IMWRITE_JPEG_QUALITY, quality])[1].tobytes()
+        for k in range(n)
+    ]
 
 
-async def robot(url: str, token: str, sid: str, duration: float, frames: list[bytes], lat: list[float],
-                start: float) -> dict:
+async def robot(
+    url: str, token: str, sid: str, duration: float, frames: list[bytes], lat: list[float], start: float
+) -> dict:
     """Stream in real time for ``duration`` s; returns counts."""
     sent = acked = failed = 0
     v, omega = 0.4, 0.2
@@ -121,10 +124,18 @@ def run_level(srv: LiveServer, n: int, duration: float, frames: list[bytes]) -> 
         for sid in sids:
             c.delete_session(sid)
     a = np.array(lat) * 1e3 if lat else np.array([np.inf])
-    return {"n": n, "sent": sent, "acked": acked, "stored": stored, "p50": float(np.percentile(a, 50)),
-            "p95": float(np.percentile(a, 95)), "p99": float(np.percentile(a, 99)), "max": float(a.max()),
-            "drain_s": drain_s,
-            "ok": bool(acked == sent == stored and np.percentile(a, 99) <= P99_LIMIT_S * 1e3)}
+    return {
+        "n": n,
+        "sent": sent,
+        "acked": acked,
+        "stored": stored,
+        "p50": float(np.percentile(a, 50)),
+        "p95": float(np.percentile(a, 95)),
+        "p99": float(np.percentile(a, 99)),
+        "max": float(a.max()),
+        "drain_s": drain_s,
+        "ok": bool(acked == sent == stored and np.percentile(a, 99) <= P99_LIMIT_S * 1e3),
+    }
 
 
 def throughput(srv: LiveServer, n_frames: int, frames: list[bytes]) -> dict:
@@ -150,44 +161,71 @@ def throughput(srv: LiveServer, n_frames: int, frames: list[bytes]) -> dict:
         st = c.wait_processed(sid, timeout=600)
         processed = time.perf_counter() - start
         assert st["inputs_stored"] == 6 * n_frames, st
-    return {"frames": n_frames, "ack_fps": n_frames / elapsed, "mapper_fps": n_frames / processed,
-            "p50_ms": float(np.median(lat) * 1e3), "p99_ms": float(np.percentile(lat, 99) * 1e3)}
+    return {
+        "frames": n_frames,
+        "ack_fps": n_frames / elapsed,
+        "mapper_fps": n_frames / processed,
+        "p50_ms": float(np.median(lat) * 1e3),
+        "p99_ms": float(np.percentile(lat, 99) * 1e3),
+    }
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--duration", type=float, default=8.0, help="seconds each level streams")
-    ap.add_argument("--config", help="JSON session config overrides, e.g. '{\"mapper\": {\"keyframe_interval\": 100}}'")
+    ap.add_argument("--config", help='JSON session config overrides, e.g. \'{"mapper": {"keyframe_interval": 100}}\'')
     ap.add_argument("--max-sessions", type=int, default=64)
     ap.add_argument("--throughput-frames", type=int, default=600, help="frames of the full-speed run (0: skip it)")
     ap.add_argument("--durability", choices=["full", "normal"], default="full")
-    ap.add_argument("--backend", choices=["inprocess", "process"], default=None,
-                    help="session backend of the server (default: the server's default)")
-    ap.add_argument("--retries", type=int, default=1,
-                    help="a failing level is run again this many times (the machine may be shared)")
+    ap.add_argument(
+        "--backend",
+        choices=["inprocess", "process"],
+        default=None,
+        help="session backend of the server (default: the server's default)",
+    )
+    ap.add_argument(
+        "--retries",
+        type=int,
+        default=1,
+        help="a failing level is run again this many times (the machine may be shared)",
+    )
     args = ap.parse_args()
     global SESSION_CONFIG
     SESSION_CONFIG = None if args.config is None else json.loads(args.config)
     frames = jpeg_pool()
-    print(f"frames: 320x240 JPEG, mean {np.mean([len(f) for f in frames]) / 1e3:.1f} kB; robot = {ODO_HZ} odometry "
-          f"msg/s + {FRAME_HZ} frames/s over one websocket; {os.cpu_count()} CPUs shared by client and server; "
-          f"SQLite synchronous={args.durability.upper()}; backend {args.backend or 'default'}; "
-          f"load average {os.getloadavg()[0]:.2f}", flush=True)
-    env = {"HIPPOMAP_RATE_PER_S": "100000", "HIPPOMAP_RATE_BURST": "100000", "HIPPOMAP_DURABILITY": args.durability,
-           "HIPPOMAP_MAX_SESSIONS_PER_TOKEN": "1000"}
+    print(
+        f"frames: 320x240 JPEG, mean {np.mean([len(f) for f in frames]) / 1e3:.1f} kB; robot = {ODO_HZ} odometry "
+        f"msg/s + {FRAME_HZ} frames/s over one websocket; {os.cpu_count()} CPUs shared by client and server; "
+        f"SQLite synchronous={args.durability.upper()}; backend {args.backend or 'default'}; "
+        f"load average {os.getloadavg()[0]:.2f}",
+        flush=True,
+    )
+    env = {
+        "HIPPOMAP_RATE_PER_S": "100000",
+        "HIPPOMAP_RATE_BURST": "100000",
+        "HIPPOMAP_DURABILITY": args.durability,
+        "HIPPOMAP_MAX_SESSIONS_PER_TOKEN": "1000",
+    }
     server_args = [] if args.backend is None else ["--backend", args.backend]
     with tempfile.TemporaryDirectory() as tmp, LiveServer(Path(tmp) / "data", env=env, args=server_args) as srv:
-        print(f"\n{'N':>4} {'msgs':>7} {'acked':>7} {'stored':>7} {'p50 ms':>8} {'p95 ms':>8} {'p99 ms':>8} "
-              f"{'max ms':>8} {'drain s':>8}  held", flush=True)
+        print(
+            f"\n{'N':>4} {'msgs':>7} {'acked':>7} {'stored':>7} {'p50 ms':>8} {'p95 ms':>8} {'p99 ms':>8} "
+            f"{'max ms':>8} {'drain s':>8}  held",
+            flush=True,
+        )
 
         run_level(srv, 1, 2.0, frames)  # warm-up (first connections, caches), not reported
 
         def level(n: int) -> dict:
             for attempt in range(1 + args.retries):
                 r = run_level(srv, n, args.duration, frames)
-                print(f"{r['n']:>4} {r['sent']:>7} {r['acked']:>7} {r['stored']:>7} {r['p50']:>8.1f} {r['p95']:>8.1f} "
-                      f"{r['p99']:>8.1f} {r['max']:>8.1f} {r['drain_s']:>8.1f}  {'yes' if r['ok'] else 'NO'}"
-                      + (" (retry)" if attempt else "") + f"  [load {os.getloadavg()[0]:.2f}]", flush=True)
+                print(
+                    f"{r['n']:>4} {r['sent']:>7} {r['acked']:>7} {r['stored']:>7} {r['p50']:>8.1f} {r['p95']:>8.1f} "
+                    f"{r['p99']:>8.1f} {r['max']:>8.1f} {r['drain_s']:>8.1f}  {'yes' if r['ok'] else 'NO'}"
+                    + (" (retry)" if attempt else "")
+                    + f"  [load {os.getloadavg()[0]:.2f}]",
+                    flush=True,
+                )
                 if r["ok"]:
                     break
             return r
@@ -205,16 +243,21 @@ def main() -> int:
                 best = mid
             else:
                 fail = mid
-        print(f"\nlargest N held (p99 ack latency <= {P99_LIMIT_S * 1e3:.0f} ms, nothing lost): {best}"
-              + ("" if fail is not None else f" (the search stopped at --max-sessions {args.max_sessions})"),
-              flush=True)
+        print(
+            f"\nlargest N held (p99 ack latency <= {P99_LIMIT_S * 1e3:.0f} ms, nothing lost): {best}"
+            + ("" if fail is not None else f" (the search stopped at --max-sessions {args.max_sessions})"),
+            flush=True,
+        )
         if args.throughput_frames <= 0:
             return 0  # the throughput part is skipped
         tp = throughput(srv, args.throughput_frames, frames)
-        print(f"one session at full speed ({tp['frames']} frames + 5 odometry readings each, window 128): "
-              f"{tp['ack_fps']:.0f} frames/s acknowledged (stored), "
-              f"{tp['mapper_fps']:.0f} frames/s through the mapper; "
-              f"ack latency p50 {tp['p50_ms']:.1f} ms, p99 {tp['p99_ms']:.1f} ms", flush=True)
+        print(
+            f"one session at full speed ({tp['frames']} frames + 5 odometry readings each, window 128): "
+            f"{tp['ack_fps']:.0f} frames/s acknowledged (stored), "
+            f"{tp['mapper_fps']:.0f} frames/s through the mapper; "
+            f"ack latency p50 {tp['p50_ms']:.1f} ms, p99 {tp['p99_ms']:.1f} ms",
+            flush=True,
+        )
     return 0
 
 

@@ -39,9 +39,14 @@ def main() -> None:
     args = ap.parse_args()
 
     world = sim.loop_world(seed=args.seed, laps=args.laps)
-    run = sim.simulate(world, None, rate_hz=5.0, seed=args.seed,
-                       camera=sim.Camera(width=args.width, height=args.height),
-                       odometry_noise=sim.OdometryNoise(sigma_v=0.02, sigma_omega=0.01, omega_bias=0.01))
+    run = sim.simulate(
+        world,
+        None,
+        rate_hz=5.0,
+        seed=args.seed,
+        camera=sim.Camera(width=args.width, height=args.height),
+        odometry_noise=sim.OdometryNoise(sigma_v=0.02, sigma_omega=0.01, omega_bias=0.01),
+    )
     jpegs = [cv2.imencode(".jpg", run.frame(i), [cv2.IMWRITE_JPEG_QUALITY, 90])[1].tobytes() for i in range(len(run))]
     cfg = HippomapConfig.with_overrides({"mapper": {"keyframe_interval": args.keyframe_interval}})
     t0 = time.perf_counter()
@@ -61,18 +66,24 @@ def main() -> None:
         frame_ms.append((t2 - t1) * 1e3)
     d, f = np.array(decode_ms), np.array(frame_ms)
     s = m.stats()
-    print(f"{len(run)} frames at {args.width}x{args.height}, key frame every {args.keyframe_interval}: "
-          f"{s['keyframes']} key frames, {s['nodes']} nodes, {s['recognitions']} recognitions")
+    print(
+        f"{len(run)} frames at {args.width}x{args.height}, key frame every {args.keyframe_interval}: "
+        f"{s['keyframes']} key frames, {s['nodes']} nodes, {s['recognitions']} recognitions"
+    )
     print(f"set-up (Mapper + shared grid-cell tables, once): {setup_s:.2f} s")
-    print(f"mapper per frame (odometry step + observe): mean {f.mean():.3f} ms, p95 {np.percentile(f, 95):.3f} ms, "
-          f"max {f.max():.1f} ms")
+    print(
+        f"mapper per frame (odometry step + observe): mean {f.mean():.3f} ms, p95 {np.percentile(f, 95):.3f} ms, "
+        f"max {f.max():.1f} ms"
+    )
     print(f"JPEG decode per frame (excluded above):     mean {d.mean():.3f} ms, p95 {np.percentile(d, 95):.3f} ms")
     t = m.trajectory_times
     gt = (run.times, run.groundtruth)
     odo = trajectory_metrics(t, m.odometry_trajectory(), *gt)["ate"]["rmse"]
     cor = trajectory_metrics(t, m.corrected_trajectory(), *gt)["ate"]["rmse"]
-    print(f"ATE rmse: odometry {odo:.3f} m, map {cor:.3f} m (ratio {cor / odo:.2f}); loop closures accepted "
-          f"{s['loop_closures_accepted']}, rejected {s['loop_closures_rejected']}")
+    print(
+        f"ATE rmse: odometry {odo:.3f} m, map {cor:.3f} m (ratio {cor / odo:.2f}); loop closures accepted "
+        f"{s['loop_closures_accepted']}, rejected {s['loop_closures_rejected']}"
+    )
 
 
 if __name__ == "__main__":

@@ -48,10 +48,10 @@ import hippomap.mapper  # noqa: E402
 
 def load_revision(rev: str) -> ModuleType:
     """Import the ``hippomap`` package as it is at git revision ``rev`` under a private name."""
-    sha = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", rev], check=True, capture_output=True,
-                         text=True).stdout.strip()
-    blob = subprocess.run(["git", "-C", str(ROOT), "archive", sha, "hippomap"], check=True,
-                          capture_output=True).stdout
+    sha = subprocess.run(
+        ["git", "-C", str(ROOT), "rev-parse", "--short", rev], check=True, capture_output=True, text=True
+    ).stdout.strip()
+    blob = subprocess.run(["git", "-C", str(ROOT), "archive", sha, "hippomap"], check=True, capture_output=True).stdout
     tmp = Path(tempfile.mkdtemp(prefix="hippomap-rev-"))
     with tarfile.open(fileobj=io.BytesIO(blob)) as tar:
         tar.extractall(tmp, filter="data")
@@ -69,8 +69,17 @@ def code_record(c: Any) -> tuple:
     if c is None:
         return (None,)
     f = c.field
-    return (c.x, c.y, c.theta, tuple(c.local), tuple(c.origin), c.iterations, c.reset,
-            None if f is None else f.indices.tobytes(), None if f is None else tuple(f.cells))
+    return (
+        c.x,
+        c.y,
+        c.theta,
+        tuple(c.local),
+        tuple(c.origin),
+        c.iterations,
+        c.reset,
+        None if f is None else f.indices.tobytes(),
+        None if f is None else tuple(f.cells),
+    )
 
 
 def run_once(pkg: ModuleType, events: list[tuple[str, float, Any]]) -> dict[str, Any]:
@@ -116,9 +125,16 @@ def run_once(pkg: ModuleType, events: list[tuple[str, float, Any]]) -> dict[str,
             obs_ms.append((time.process_time() - t0) * 1e3)
             step_ms.append(pending)
             pending = 0.0
-    return {"codes": codes, "recognitions": m.recognitions, "trajectory": m.corrected_trajectory(),
-            "stats": m.stats(), "step_ms": np.array(step_ms), "obs_ms": np.array(obs_ms),
-            "rec_ms": np.array(rec_ms), "spatial_ms": np.array(spatial_ms)}
+    return {
+        "codes": codes,
+        "recognitions": m.recognitions,
+        "trajectory": m.corrected_trajectory(),
+        "stats": m.stats(),
+        "step_ms": np.array(step_ms),
+        "obs_ms": np.array(obs_ms),
+        "rec_ms": np.array(rec_ms),
+        "spatial_ms": np.array(spatial_ms),
+    }
 
 
 def _same(a: Any, b: Any, path: str, diffs: list[str]) -> None:
@@ -156,8 +172,10 @@ def compare(old: dict[str, Any], new: dict[str, Any]) -> list[str]:
     elif not np.array_equal(a, b):
         d = np.abs(a - b)
         d[:, 2] = np.abs(np.angle(np.exp(1j * (a[:, 2] - b[:, 2]))))  # headings: the wrapped difference
-        diffs.append(f"corrected trajectory differs: largest change {float(d[:, :2].max()):.3g} m in position, "
-                     f"{float(d[:, 2].max()):.3g} rad in heading")
+        diffs.append(
+            f"corrected trajectory differs: largest change {float(d[:, :2].max()):.3g} m in position, "
+            f"{float(d[:, 2].max()):.3g} rad in heading"
+        )
     return diffs
 
 
@@ -165,10 +183,17 @@ def figures(r: dict[str, Any]) -> dict[str, float]:
     per = r["step_ms"] + r["obs_ms"]
     n3 = len(per) // 3
     rec = r["rec_ms"] if r["rec_ms"].size else np.zeros(1)
-    return {"frame": per.mean(), "step": r["step_ms"].mean(), "observe": r["obs_ms"].mean(),
-            "spatial": r["spatial_ms"].mean(), "rec_p50": float(np.median(rec)),
-            "rec_p95": float(np.percentile(rec, 95)), "rec_mean": rec.mean(),
-            "first3": per[:n3].mean(), "last3": per[-n3:].mean()}
+    return {
+        "frame": per.mean(),
+        "step": r["step_ms"].mean(),
+        "observe": r["obs_ms"].mean(),
+        "spatial": r["spatial_ms"].mean(),
+        "rec_p50": float(np.median(rec)),
+        "rec_p95": float(np.percentile(rec, 95)),
+        "rec_mean": rec.mean(),
+        "first3": per[:n3].mean(),
+        "last3": per[-n3:].mean(),
+    }
 
 
 def main() -> int:
@@ -202,12 +227,21 @@ def main() -> int:
         for n in runs["new"]:
             diffs += compare(o, n)
     s = runs["new"][0]["stats"]
-    print(f"{s['keyframes']} key frames, {len(runs['new'][0]['recognitions'])} recognitions, "
-          f"{s['loop_closures_accepted']} loop closures accepted, {len(runs['new'][0]['codes'])} place codes")
-    rows = [("mapper per frame (step + observe), mean", "frame"), ("  odometry step, mean", "step"),
-            ("    of which spatial pathway, mean per step", "spatial"), ("  frame observe, mean", "observe"),
-            ("recognition mean", "rec_mean"), ("recognition p50", "rec_p50"), ("recognition p95", "rec_p95"),
-            ("first third, mean per frame", "first3"), ("last third, mean per frame", "last3")]
+    print(
+        f"{s['keyframes']} key frames, {len(runs['new'][0]['recognitions'])} recognitions, "
+        f"{s['loop_closures_accepted']} loop closures accepted, {len(runs['new'][0]['codes'])} place codes"
+    )
+    rows = [
+        ("mapper per frame (step + observe), mean", "frame"),
+        ("  odometry step, mean", "step"),
+        ("    of which spatial pathway, mean per step", "spatial"),
+        ("  frame observe, mean", "observe"),
+        ("recognition mean", "rec_mean"),
+        ("recognition p50", "rec_p50"),
+        ("recognition p95", "rec_p95"),
+        ("first third, mean per frame", "first3"),
+        ("last third, mean per frame", "last3"),
+    ]
     fo = [figures(r) for r in runs["old"]]
     fn = [figures(r) for r in runs["new"]]
     print(f"{'ms':46s} {'old':>8s} {'new':>8s} {'new/old':>8s}   (best of {args.repeats} runs each)")

@@ -87,6 +87,7 @@ BICOCCA_FILES = ["B25b_0.000.g2o", "B25b_0.500.g2o", "B25b_1.000.g2o"]
 # simulated runs (cached)
 # --------------------------------------------------------------------------------------
 
+
 def texture_folder(name: str, shared: Path) -> str:
     if name == "procedural":
         return "procedural"
@@ -114,14 +115,30 @@ def sim_source_hash() -> str:
     return h.hexdigest()[:10]
 
 
-def simulate(world: str, seed: int, size: tuple[int, int], texture: str, shared: Path, laps: int | None,
-             cache: Path) -> tuple[Path, float | None]:
+def simulate(
+    world: str, seed: int, size: tuple[int, int], texture: str, shared: Path, laps: int | None, cache: Path
+) -> tuple[Path, float | None]:
     """The rendered folder for these arguments (rendered now unless cached); returns it and
     the rendering time (None when cached)."""
     tex = texture_folder(texture, shared)
-    args = ["simulate", world, "--seed", str(seed), "--width", str(size[0]), "--height", str(size[1]),
-            "--omega-bias", str(NOISE["omega_bias"]), "--sigma-omega", str(NOISE["sigma_omega"]),
-            "--sigma-v", str(NOISE["sigma_v"]), "--texture", tex]
+    args = [
+        "simulate",
+        world,
+        "--seed",
+        str(seed),
+        "--width",
+        str(size[0]),
+        "--height",
+        str(size[1]),
+        "--omega-bias",
+        str(NOISE["omega_bias"]),
+        "--sigma-omega",
+        str(NOISE["sigma_omega"]),
+        "--sigma-v",
+        str(NOISE["sigma_v"]),
+        "--texture",
+        tex,
+    ]
     if world == "bicocca":
         args += ["--data", str(shared / "data" / "bicocca25b")]
     if laps is not None:
@@ -134,8 +151,9 @@ def simulate(world: str, seed: int, size: tuple[int, int], texture: str, shared:
     tmp = folder.with_name(folder.name + f".tmp{os.getpid()}")
     shutil.rmtree(tmp, ignore_errors=True)
     t0 = time.perf_counter()
-    r = subprocess.run([sys.executable, "-m", "hippomap", *args, "--out", str(tmp)], capture_output=True, text=True,
-                       cwd=REPO)
+    r = subprocess.run(
+        [sys.executable, "-m", "hippomap", *args, "--out", str(tmp)], capture_output=True, text=True, cwd=REPO
+    )
     if r.returncode != 0:
         raise RuntimeError(f"hippomap simulate failed: {' '.join(args)}\n{r.stderr[-2000:]}")
     (tmp / "done").write_text(json.dumps(args))
@@ -153,6 +171,7 @@ def simulate(world: str, seed: int, size: tuple[int, int], texture: str, shared:
 # --------------------------------------------------------------------------------------
 # hippomap on a rendered run
 # --------------------------------------------------------------------------------------
+
 
 class TimedMapper(Mapper):
     """A Mapper that records, per camera frame, the time of its ``observe`` plus the
@@ -183,9 +202,13 @@ class TimedMapper(Mapper):
 
 def thirds(ms: np.ndarray) -> dict[str, float]:
     a = len(ms) // 3
-    return {"mean": float(ms.mean()), "median": float(np.median(ms)), "p95": float(np.percentile(ms, 95)),
-            "first_third": float(ms[:a].mean()) if a else float("nan"),
-            "last_third": float(ms[-a:].mean()) if a else float("nan")}
+    return {
+        "mean": float(ms.mean()),
+        "median": float(np.median(ms)),
+        "p95": float(np.percentile(ms, 95)),
+        "first_third": float(ms[:a].mean()) if a else float("nan"),
+        "last_third": float(ms[-a:].mean()) if a else float("nan"),
+    }
 
 
 def link_errors(map_json: Path, gt: tuple[np.ndarray, np.ndarray]) -> dict[str, Any]:
@@ -210,10 +233,13 @@ def link_errors(map_json: Path, gt: tuple[np.ndarray, np.ndarray]) -> dict[str, 
             errs.append(float(np.hypot(*(tr[:2] - rel[:2]))))
             herrs.append(abs(float(wrap_angle(tr[2] - rel[2]))))
         e = np.array(errs)
-        out[kind] = {"n": len(errs), "mean_m": float(e.mean()) if len(e) else None,
-                     "median_m": float(np.median(e)) if len(e) else None,
-                     "max_m": float(e.max()) if len(e) else None,
-                     "mean_heading_deg": float(np.degrees(np.mean(herrs))) if herrs else None}
+        out[kind] = {
+            "n": len(errs),
+            "mean_m": float(e.mean()) if len(e) else None,
+            "median_m": float(np.median(e)) if len(e) else None,
+            "max_m": float(e.max()) if len(e) else None,
+            "mean_heading_deg": float(np.degrees(np.mean(herrs))) if herrs else None,
+        }
     return out
 
 
@@ -244,9 +270,12 @@ def run_hippomap(data: Path, config_file: str | None, out_dir: Path) -> dict[str
     ms = np.array(m.frame_seconds) * 1e3
     s = metrics.get("stats", {})
     return {
-        "ate": metrics["map"]["ate"]["rmse"], "rpe": metrics["map"]["rpe"].get("rmse"),
-        "odometry_ate": metrics["odometry"]["ate"]["rmse"], "odometry_rpe": metrics["odometry"]["rpe"].get("rmse"),
-        "closures_accepted": len(accepted), "closures_rejected": sum(d.get("status") == "rejected" for d in decisions),
+        "ate": metrics["map"]["ate"]["rmse"],
+        "rpe": metrics["map"]["rpe"].get("rmse"),
+        "odometry_ate": metrics["odometry"]["ate"]["rmse"],
+        "odometry_rpe": metrics["odometry"]["rpe"].get("rmse"),
+        "closures_accepted": len(accepted),
+        "closures_rejected": sum(d.get("status") == "rejected" for d in decisions),
         "closures_false": sum(d["groundtruth_distance_m"] > TRUE_M for d in judged),
         # "used": accepted and still weighted >= hippomap's USED_WEIGHT by the robust back-end
         # (decisions without the field: every accepted one is used)
@@ -256,11 +285,16 @@ def run_hippomap(data: Path, config_file: str | None, out_dir: Path) -> dict[str
         "max_accepted_distance_m": max((d["groundtruth_distance_m"] for d in judged), default=None),
         # error of each accepted loop link against ground truth, as hippomap reports it per
         # decision (link at acceptance); "links" re-measures the final map's links the same way
-        "loop_link_error_m": _summary([d["link_error_m"] for d in accepted
-                                       if "link_error_m" in d and d.get("used", True)]),
+        "loop_link_error_m": _summary(
+            [d["link_error_m"] for d in accepted if "link_error_m" in d and d.get("used", True)]
+        ),
         "links": link_errors(out_dir / "map.json", dataset.groundtruth),
-        "core_ms": thirds(ms), "core_cpu_ms": thirds(np.array(m.frame_cpu_seconds) * 1e3), "frames": len(ms),
-        "keyframes": s.get("keyframes"), "nodes": s.get("nodes"), "recognitions": s.get("recognitions"),
+        "core_ms": thirds(ms),
+        "core_cpu_ms": thirds(np.array(m.frame_cpu_seconds) * 1e3),
+        "frames": len(ms),
+        "keyframes": s.get("keyframes"),
+        "nodes": s.get("nodes"),
+        "recognitions": s.get("recognitions"),
         "wall_s": wall,
     }
 
@@ -268,6 +302,7 @@ def run_hippomap(data: Path, config_file: str | None, out_dir: Path) -> dict[str
 # --------------------------------------------------------------------------------------
 # OpenRatSLAM on a rendered run
 # --------------------------------------------------------------------------------------
+
 
 def score_ors(res: peers.ORSResult, gt: tuple[np.ndarray, np.ndarray]) -> dict[str, Any]:
     tm = trajectory_metrics(res.times, res.poses, *gt)
@@ -279,14 +314,24 @@ def score_ors(res: peers.ORSResult, gt: tuple[np.ndarray, np.ndarray]) -> dict[s
             continue
         judged += 1
         false += float(np.linalg.norm(a[:2] - b[:2])) > TRUE_M
-    return {"threshold": res.threshold, "ate": tm["ate"]["rmse"], "rpe": tm["rpe"].get("rmse"),
-            "closures_accepted": len(res.links), "closures_false": false, "closures_unjudged": len(res.links) - judged,
-            "core_ms": res.core_ms, "templates": res.templates, "experiences": res.experiences, "wall_s": res.wall_s,
-            "link_check": res.link_check}
+    return {
+        "threshold": res.threshold,
+        "ate": tm["ate"]["rmse"],
+        "rpe": tm["rpe"].get("rmse"),
+        "closures_accepted": len(res.links),
+        "closures_false": false,
+        "closures_unjudged": len(res.links) - judged,
+        "core_ms": res.core_ms,
+        "templates": res.templates,
+        "experiences": res.experiences,
+        "wall_s": res.wall_s,
+        "link_check": res.link_check,
+    }
 
 
-def run_ors_sweep(exe: Path, peer_dir: Path, data: Path, size: tuple[int, int], thresholds: list[float],
-                  work: Path, gt) -> dict[str, Any]:
+def run_ors_sweep(
+    exe: Path, peer_dir: Path, data: Path, size: tuple[int, int], thresholds: list[float], work: Path, gt
+) -> dict[str, Any]:
     stock = score_ors(peers.run_ors(exe, peer_dir, data, *size, None, work), gt)
     sweep = [score_ors(peers.run_ors(exe, peer_dir, data, *size, th, work), gt) for th in thresholds]
     best = min([stock, *sweep], key=lambda r: r["ate"])
@@ -297,13 +342,19 @@ def run_ors_sweep(exe: Path, peer_dir: Path, data: Path, size: tuple[int, int], 
 # one simulated case = render + hippomap + OpenRatSLAM
 # --------------------------------------------------------------------------------------
 
+
 def sim_case(case: dict[str, Any]) -> dict[str, Any]:
     shared, cache = Path(case["shared"]), Path(case["cache"])
     size = tuple(case["size"])
-    row: dict[str, Any] = {"kind": "sim", "world": case["world"], "seed": case["seed"],
-                           "size": f"{size[0]}x{size[1]}", "texture": case["texture"],
-                           "hippomap_source": hippomap_source_hash(),
-                           "started": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+    row: dict[str, Any] = {
+        "kind": "sim",
+        "world": case["world"],
+        "seed": case["seed"],
+        "size": f"{size[0]}x{size[1]}",
+        "texture": case["texture"],
+        "hippomap_source": hippomap_source_hash(),
+        "started": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+    }
     t0 = time.perf_counter()
     try:
         data, render_s = simulate(case["world"], case["seed"], size, case["texture"], shared, case["laps"], cache)
@@ -313,8 +364,9 @@ def sim_case(case: dict[str, Any]) -> dict[str, Any]:
             row["hippomap"] = run_hippomap(data, case["config"], work / "hippomap")
             if case["ors_exe"]:
                 gt = open_dataset(data).groundtruth
-                row["ors"] = run_ors_sweep(Path(case["ors_exe"]), Path(case["peer_dir"]), data, size,
-                                           case["thresholds"], work, gt)
+                row["ors"] = run_ors_sweep(
+                    Path(case["ors_exe"]), Path(case["peer_dir"]), data, size, case["thresholds"], work, gt
+                )
         finally:
             if not case["keep"]:
                 peers.remove_tree(work)
@@ -337,6 +389,7 @@ def sim_case(case: dict[str, Any]) -> dict[str, Any]:
 # Bicocca proposal files: GTSAM kernels vs hippomap run-odometry
 # --------------------------------------------------------------------------------------
 
+
 def closure_truth(dataset, pairs: list[tuple[int, int]]) -> list[float | None]:
     gt = dataset.groundtruth
     out = []
@@ -348,13 +401,19 @@ def closure_truth(dataset, pairs: list[tuple[int, int]]) -> list[float | None]:
 
 def count_closures(dist: list[float | None], used: list[bool]) -> dict[str, int]:
     u = [d for d, ok in zip(dist, used) if ok]
-    return {"proposed": len(dist), "accepted": len(u), "false_2m": sum(d is not None and d > TRUE_M for d in u),
-            "false_5m": sum(d is not None and d > FAR_M for d in u), "unjudged": sum(d is None for d in u),
-            "true_rejected": sum(d is not None and d <= TRUE_M and not ok for d, ok in zip(dist, used))}
+    return {
+        "proposed": len(dist),
+        "accepted": len(u),
+        "false_2m": sum(d is not None and d > TRUE_M for d in u),
+        "false_5m": sum(d is not None and d > FAR_M for d in u),
+        "unjudged": sum(d is None for d in u),
+        "true_rejected": sum(d is not None and d <= TRUE_M and not ok for d, ok in zip(dist, used)),
+    }
 
 
-def online_reference(case: dict[str, Any], g2o_file: Path, dataset: Any,
-                     online: list[dict[str, Any]]) -> list[dict[str, Any]]:
+def online_reference(
+    case: dict[str, Any], g2o_file: Path, dataset: Any, online: list[dict[str, Any]]
+) -> list[dict[str, Any]]:
     """hippomap's online checkpoints (its map as it stood at pose k vs raw odometry up to k), each
     beside GTSAM's batch solution of the same prefix (poses <= k, the proposals made by then) with
     every kernel: what the reference back-end makes of the same evidence at the same moment."""
@@ -368,8 +427,9 @@ def online_reference(case: dict[str, Any], g2o_file: Path, dataset: Any,
                     res = peers.run_gtsam(g2o_file, kernel, upto=k)
                 except ImportError:
                     break
-                row[f"gtsam-{kernel}"] = trajectory_metrics(dataset.times[: k + 1], res.poses,
-                                                            *dataset.groundtruth)["ate"]["rmse"]
+                row[f"gtsam-{kernel}"] = trajectory_metrics(dataset.times[: k + 1], res.poses, *dataset.groundtruth)[
+                    "ate"
+                ]["rmse"]
         rows.append(row)
     return rows
 
@@ -397,15 +457,33 @@ def bicocca_case(case: dict[str, Any]) -> list[dict[str, Any]]:
                 break
             tm = trajectory_metrics(dataset.times, r.poses, *gt)
             dist = closure_truth(dataset, [(lp["i"], lp["j"]) for lp in r.loops])
-            rows.append({**base, "method": f"gtsam-{kernel}", "ate": tm["ate"]["rmse"], "rpe": tm["rpe"].get("rmse"),
-                         "closures": count_closures(dist, [lp["used"] for lp in r.loops]),
-                         "closures_alt": count_closures(dist, [lp["weight_half"] for lp in r.loops]),
-                         "alt_rule": "weight >= 0.5",
-                         "iterations": r.iterations, "seconds": r.seconds})
+            rows.append(
+                {
+                    **base,
+                    "method": f"gtsam-{kernel}",
+                    "ate": tm["ate"]["rmse"],
+                    "rpe": tm["rpe"].get("rmse"),
+                    "closures": count_closures(dist, [lp["used"] for lp in r.loops]),
+                    "closures_alt": count_closures(dist, [lp["weight_half"] for lp in r.loops]),
+                    "alt_rule": "weight >= 0.5",
+                    "iterations": r.iterations,
+                    "seconds": r.seconds,
+                }
+            )
     work = peers.make_workdir(Path(case["cache"]) / "work", "bicocca")
     try:
-        cmd = [sys.executable, "-m", "hippomap", "run-odometry", str(data), "--loops", fname, "--out", str(work),
-               "--no-progress"]
+        cmd = [
+            sys.executable,
+            "-m",
+            "hippomap",
+            "run-odometry",
+            str(data),
+            "--loops",
+            fname,
+            "--out",
+            str(work),
+            "--no-progress",
+        ]
         if case["config"]:
             cmd += ["--config", case["config"]]
         t0 = time.perf_counter()
@@ -424,12 +502,21 @@ def bicocca_case(case: dict[str, Any]) -> list[dict[str, Any]]:
                 accepted.append(d.get("status") == "accepted")
                 used.append(accepted[-1] and bool(d.get("used", True)))
         dist = closure_truth(dataset, pairs)
-        rows.append({**base, "method": "hippomap", "ate": metrics["map"]["ate"]["rmse"],
-                     "rpe": metrics["map"]["rpe"].get("rmse"), "closures": count_closures(dist, used),
-                     "closures_alt": count_closures(dist, accepted), "alt_rule": "accepted",
-                     "map_never_worse_than_odometry": metrics.get("map_never_worse_than_odometry"),
-                     "online": online_reference(case, data / fname, dataset, metrics.get("online", [])),
-                     "seconds": secs, "run_seconds": metrics.get("run_seconds")})
+        rows.append(
+            {
+                **base,
+                "method": "hippomap",
+                "ate": metrics["map"]["ate"]["rmse"],
+                "rpe": metrics["map"]["rpe"].get("rmse"),
+                "closures": count_closures(dist, used),
+                "closures_alt": count_closures(dist, accepted),
+                "alt_rule": "accepted",
+                "map_never_worse_than_odometry": metrics.get("map_never_worse_than_odometry"),
+                "online": online_reference(case, data / fname, dataset, metrics.get("online", [])),
+                "seconds": secs,
+                "run_seconds": metrics.get("run_seconds"),
+            }
+        )
     finally:
         peers.remove_tree(work)
     return rows
@@ -439,6 +526,7 @@ def bicocca_case(case: dict[str, Any]) -> list[dict[str, Any]]:
 # report
 # --------------------------------------------------------------------------------------
 
+
 def f2(x: Any, nd: int = 2) -> str:
     if x is None or (isinstance(x, float) and not math.isfinite(x)):
         return "n/a"
@@ -446,27 +534,43 @@ def f2(x: Any, nd: int = 2) -> str:
 
 
 def sim_table(rows: list[dict[str, Any]]) -> list[str]:
-    out = ["| world | seed | size | texture | odometry ATE | hippomap ATE / RPE | ORS stock ATE (vt) | "
-           "ORS best ATE (vt) | ATE ratio hm/ORS best | hm closures acc/used/false used | ORS best links/false | "
-           "hm loop-link err m | hm ms mean (1st/last third) | ORS best ms (1st/last third) | ms ratio |",
-           "|---|---:|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    out = [
+        "| world | seed | size | texture | odometry ATE | hippomap ATE / RPE | ORS stock ATE (vt) | "
+        "ORS best ATE (vt) | ATE ratio hm/ORS best | hm closures acc/used/false used | ORS best links/false | "
+        "hm loop-link err m | hm ms mean (1st/last third) | ORS best ms (1st/last third) | ms ratio |",
+        "|---|---:|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+    ]
     for r in rows:
         if "error" in r and "hippomap" not in r:
-            out.append(f"| {r['world']} | {r['seed']} | {r['size']} | {r['texture']} | error: {r['error'][:80]} "
-                       + "| " * 10 + "|")
+            out.append(
+                f"| {r['world']} | {r['seed']} | {r['size']} | {r['texture']} | error: {r['error'][:80]} "
+                + "| " * 10
+                + "|"
+            )
             continue
         hm, ors = r["hippomap"], r.get("ors")
         c = hm["core_ms"]
-        cells = [r["world"], str(r["seed"]), r["size"], r["texture"], f2(hm["odometry_ate"]),
-                 f"{f2(hm['ate'])} / {f2(hm['rpe'])}"]
+        cells = [
+            r["world"],
+            str(r["seed"]),
+            r["size"],
+            r["texture"],
+            f2(hm["odometry_ate"]),
+            f"{f2(hm['ate'])} / {f2(hm['rpe'])}",
+        ]
         if ors:
             s, b = ors["stock"], ors["best"]
-            cells += [f"{f2(s['ate'])} ({s['threshold']:g})", f"{f2(b['ate'])} ({b['threshold']:g})",
-                      f2(r["ate_ratio_vs_best"])]
+            cells += [
+                f"{f2(s['ate'])} ({s['threshold']:g})",
+                f"{f2(b['ate'])} ({b['threshold']:g})",
+                f2(r["ate_ratio_vs_best"]),
+            ]
         else:
             cells += ["n/a", "n/a", "n/a"]
-        cells.append(f"{hm['closures_accepted']} / {hm.get('closures_used', hm['closures_accepted'])} / "
-                     f"{hm.get('closures_used_false', hm['closures_false'])}")
+        cells.append(
+            f"{hm['closures_accepted']} / {hm.get('closures_used', hm['closures_accepted'])} / "
+            f"{hm.get('closures_used_false', hm['closures_false'])}"
+        )
         cells.append(f"{b['closures_accepted']} / {b['closures_false']}" if ors else "n/a")
         le = hm.get("loop_link_error_m", {})
         cells.append(f2(le.get("mean")) if le.get("n") else f2(hm["links"]["loop"]["mean_m"]))
@@ -495,25 +599,41 @@ def sim_summary(rows: list[dict[str, Any]]) -> list[str]:
     groups: dict[tuple[str, str, str], list[dict[str, Any]]] = {}
     for r in ok:
         groups.setdefault((r["world"], r["size"], r["texture"]), []).append(r)
-    out = ["| world | size | texture | seeds | odometry ATE | hippomap ATE | ORS stock ATE | ORS best ATE | "
-           "worst ATE ratio hm/ORS best | hm closures used (false) | ORS best links (false) | hm ms | hm CPU ms | "
-           "ORS best ms |",
-           "|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    out = [
+        "| world | size | texture | seeds | odometry ATE | hippomap ATE | ORS stock ATE | ORS best ATE | "
+        "worst ATE ratio hm/ORS best | hm closures used (false) | ORS best links (false) | hm ms | hm CPU ms | "
+        "ORS best ms |",
+        "|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+    ]
     for (w, size, tex), rs in groups.items():
+
         def mean(f) -> float:
             return float(np.mean([f(r) for r in rs]))
 
         has_ors = all("ors" in r for r in rs)
-        cells = [w, size, tex, ",".join(str(r["seed"]) for r in rs), f2(mean(lambda r: r["hippomap"]["odometry_ate"])),
-                 f2(mean(lambda r: r["hippomap"]["ate"]))]
+        cells = [
+            w,
+            size,
+            tex,
+            ",".join(str(r["seed"]) for r in rs),
+            f2(mean(lambda r: r["hippomap"]["odometry_ate"])),
+            f2(mean(lambda r: r["hippomap"]["ate"])),
+        ]
         if has_ors:
-            cells += [f2(mean(lambda r: r["ors"]["stock"]["ate"])), f2(mean(lambda r: r["ors"]["best"]["ate"])),
-                      f2(max(r["ate_ratio_vs_best"] for r in rs))]
+            cells += [
+                f2(mean(lambda r: r["ors"]["stock"]["ate"])),
+                f2(mean(lambda r: r["ors"]["best"]["ate"])),
+                f2(max(r["ate_ratio_vs_best"] for r in rs)),
+            ]
         else:
             cells += ["n/a"] * 3
         cells.append(f"{sum(_used(r['hippomap']) for r in rs)} ({sum(_used_false(r['hippomap']) for r in rs)})")
-        cells.append(f"{sum(r['ors']['best']['closures_accepted'] for r in rs)} "
-                     f"({sum(r['ors']['best']['closures_false'] for r in rs)})" if has_ors else "n/a")
+        cells.append(
+            f"{sum(r['ors']['best']['closures_accepted'] for r in rs)} "
+            f"({sum(r['ors']['best']['closures_false'] for r in rs)})"
+            if has_ors
+            else "n/a"
+        )
         cells.append(f2(mean(lambda r: r["hippomap"]["core_ms"]["mean"])))
         cells.append(f2(mean(lambda r: r["hippomap"].get("core_cpu_ms", {}).get("mean", float("nan")))))
         cells.append(f2(mean(lambda r: r["ors"]["best"]["core_ms"]["mean"])) if has_ors else "n/a")
@@ -532,41 +652,68 @@ def sim_targets(rows: list[dict[str, Any]]) -> list[str]:
         for w in worlds:
             rs = [r for r in with_ors if r["world"] == w]
             ratios = np.array([r["ate_ratio_vs_best"] for r in rs])
-            lines.append(f"- {w}: ATE ratio hippomap / ORS best over {len(rs)} runs: median {np.median(ratios):.2f}, "
-                         f"max {ratios.max():.2f}; runs meeting <= 0.8: {int((ratios <= 0.8).sum())}/{len(rs)}")
+            lines.append(
+                f"- {w}: ATE ratio hippomap / ORS best over {len(rs)} runs: median {np.median(ratios):.2f}, "
+                f"max {ratios.max():.2f}; runs meeting <= 0.8: {int((ratios <= 0.8).sum())}/{len(rs)}"
+            )
         ms = np.array([r["ms_ratio_vs_best"] for r in with_ors])
-        lines.append(f"- core ms ratio hippomap / ORS best: median {np.median(ms):.2f}, max {ms.max():.2f}; "
-                     f"runs meeting <= 1: {int((ms <= 1).sum())}/{len(ms)}")
+        lines.append(
+            f"- core ms ratio hippomap / ORS best: median {np.median(ms):.2f}, max {ms.max():.2f}; "
+            f"runs meeting <= 1: {int((ms <= 1).sum())}/{len(ms)}"
+        )
     growth = np.array([r["hippomap"]["core_ms"]["last_third"] / r["hippomap"]["core_ms"]["first_third"] for r in ok])
-    lines.append(f"- hippomap last third / first third cost: median {np.median(growth):.2f}, max {growth.max():.2f}; "
-                 f"runs meeting <= 1.2: {int((growth <= 1.2).sum())}/{len(growth)}")
+    lines.append(
+        f"- hippomap last third / first third cost: median {np.median(growth):.2f}, max {growth.max():.2f}; "
+        f"runs meeting <= 1.2: {int((growth <= 1.2).sum())}/{len(growth)}"
+    )
     cpu = [r["hippomap"]["core_cpu_ms"] for r in ok if "core_cpu_ms" in r["hippomap"]]
     if cpu:
         g = np.array([c["last_third"] / c["first_third"] for c in cpu])
-        lines.append(f"- the same on CPU time (less load-dependent): median {np.median(g):.2f}, max {g.max():.2f}; "
-                     f"runs meeting <= 1.2: {int((g <= 1.2).sum())}/{len(g)}")
+        lines.append(
+            f"- the same on CPU time (less load-dependent): median {np.median(g):.2f}, max {g.max():.2f}; "
+            f"runs meeting <= 1.2: {int((g <= 1.2).sum())}/{len(g)}"
+        )
     false = sum(r["hippomap"]["closures_false"] for r in ok)
-    lines.append(f"- hippomap closures with ground-truth separation > {TRUE_M:g} m: used "
-                 f"{sum(_used_false(r['hippomap']) for r in ok)} (of {sum(_used(r['hippomap']) for r in ok)} used); "
-                 f"accepted {false} (of {sum(r['hippomap']['closures_accepted'] for r in ok)} accepted)")
+    lines.append(
+        f"- hippomap closures with ground-truth separation > {TRUE_M:g} m: used "
+        f"{sum(_used_false(r['hippomap']) for r in ok)} (of {sum(_used(r['hippomap']) for r in ok)} used); "
+        f"accepted {false} (of {sum(r['hippomap']['closures_accepted'] for r in ok)} accepted)"
+    )
     return lines
 
 
 def bicocca_table(rows: list[dict[str, Any]]) -> list[str]:
-    out = ["| file | method | ATE rmse m | RPE rmse m | closures proposed | used | false > 2 m | false > 5 m | "
-           "true rejected | other rule: used / false > 2 m | time s |",
-           "|---|---|---:|---:|---:|---:|---:|---:|---:|---|---:|"]
+    out = [
+        "| file | method | ATE rmse m | RPE rmse m | closures proposed | used | false > 2 m | false > 5 m | "
+        "true rejected | other rule: used / false > 2 m | time s |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---|---:|",
+    ]
     for r in rows:
         if "error" in r:
             out.append(f"| {r['file']} | {r['method']} | error: {r['error'][:80]} | | | | | | | | |")
             continue
         c = r.get("closures")
-        cc = ([str(c["proposed"]), str(c["accepted"]), str(c["false_2m"]), str(c["false_5m"]), str(c["true_rejected"])]
-              if c else ["", "", "", "", ""])
+        cc = (
+            [str(c["proposed"]), str(c["accepted"]), str(c["false_2m"]), str(c["false_5m"]), str(c["true_rejected"])]
+            if c
+            else ["", "", "", "", ""]
+        )
         alt = r.get("closures_alt")
         cc.append(f"{r['alt_rule']}: {alt['accepted']} / {alt['false_2m']}" if alt else "")
-        out.append("| " + " | ".join([r["file"], r["method"], f2(r["ate"]), f2(r.get("rpe")), *cc,
-                                       f2(r.get("seconds"), 1) if r.get("seconds") is not None else ""]) + " |")
+        out.append(
+            "| "
+            + " | ".join(
+                [
+                    r["file"],
+                    r["method"],
+                    f2(r["ate"]),
+                    f2(r.get("rpe")),
+                    *cc,
+                    f2(r.get("seconds"), 1) if r.get("seconds") is not None else "",
+                ]
+            )
+            + " |"
+        )
     return out
 
 
@@ -579,22 +726,33 @@ def bicocca_targets(rows: list[dict[str, Any]]) -> list[str]:
         if not g or not hm:
             continue
         best = min(g, key=lambda r: r["ate"])
-        lines.append(f"- {f}: hippomap ATE {hm['ate']:.2f} m vs best GTSAM ({best['method']}) {best['ate']:.2f} m "
-                     f"(ratio {hm['ate'] / best['ate']:.2f}); hippomap false closures > 2 m: "
-                     f"{hm['closures']['false_2m']}; online map never worse than odometry: "
-                     f"{hm.get('map_never_worse_than_odometry')}")
+        lines.append(
+            f"- {f}: hippomap ATE {hm['ate']:.2f} m vs best GTSAM ({best['method']}) {best['ate']:.2f} m "
+            f"(ratio {hm['ate'] / best['ate']:.2f}); hippomap false closures > 2 m: "
+            f"{hm['closures']['false_2m']}; online map never worse than odometry: "
+            f"{hm.get('map_never_worse_than_odometry')}"
+        )
         for r in hm.get("online") or []:
             if r["map_ate_rmse"] > r["odometry_ate_rmse"] + 1e-6:
                 ref = ", ".join(f"{m} {r[m]:.2f}" for m in r if m.startswith("gtsam"))
-                lines.append(f"  - at pose {r['pose']}: map {r['map_ate_rmse']:.2f} m vs odometry "
-                             f"{r['odometry_ate_rmse']:.2f} m; GTSAM on the same prefix: {ref or 'not run'}")
+                lines.append(
+                    f"  - at pose {r['pose']}: map {r['map_ate_rmse']:.2f} m vs odometry "
+                    f"{r['odometry_ate_rmse']:.2f} m; GTSAM on the same prefix: {ref or 'not run'}"
+                )
     return lines
 
 
 def report_lines(sim_rows: list[dict[str, Any]], bic_rows: list[dict[str, Any]]) -> list[str]:
     worlds = ["loop", "corridor", "bicocca"]
-    sim_rows = sorted(sim_rows, key=lambda r: (worlds.index(r["world"]) if r["world"] in worlds else 9,
-                                               int(r["size"].split("x")[0]), r["texture"], r["seed"]))
+    sim_rows = sorted(
+        sim_rows,
+        key=lambda r: (
+            worlds.index(r["world"]) if r["world"] in worlds else 9,
+            int(r["size"].split("x")[0]),
+            r["texture"],
+            r["seed"],
+        ),
+    )
     noise = ", ".join(f"{k} {v}" for k, v in NOISE.items())
     lines = ["", "## Simulated camera runs (noisy odometry: " + noise + ")", ""]
     lines += sim_table(sim_rows) if sim_rows else ["(none)"]
@@ -616,20 +774,37 @@ def parse_size(s: str) -> tuple[int, int]:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--shared", type=Path, default=REPO.parent / "shared",
-                    help="shared folder holding data/ and peers/ (default: 'shared' beside the repository)")
-    ap.add_argument("--quick", action="store_true",
-                    help="loop world, seed 3, 320x240, procedural, ORS stock + 2 thresholds, one Bicocca file")
-    ap.add_argument("--worlds", nargs="+", default=["loop", "corridor", "bicocca"],
-                    choices=["loop", "corridor", "bicocca"])
+    ap.add_argument(
+        "--shared",
+        type=Path,
+        default=REPO.parent / "shared",
+        help="shared folder holding data/ and peers/ (default: 'shared' beside the repository)",
+    )
+    ap.add_argument(
+        "--quick",
+        action="store_true",
+        help="loop world, seed 3, 320x240, procedural, ORS stock + 2 thresholds, one Bicocca file",
+    )
+    ap.add_argument(
+        "--worlds", nargs="+", default=["loop", "corridor", "bicocca"], choices=["loop", "corridor", "bicocca"]
+    )
     ap.add_argument("--seeds", nargs="+", type=int, default=[3, 4, 5])
     ap.add_argument("--sizes", nargs="+", type=parse_size, default=[(320, 240), (640, 480)])
-    ap.add_argument("--textures", nargs="+", default=["procedural", "rtabmap"],
-                    help="procedural | rtabmap | corridor | a folder of photos")
+    ap.add_argument(
+        "--textures",
+        nargs="+",
+        default=["procedural", "rtabmap"],
+        help="procedural | rtabmap | corridor | a folder of photos",
+    )
     ap.add_argument("--laps", type=int, default=None, help="loop laps / corridor passes (simulator default)")
     ap.add_argument("--config", help="hippomap JSON config overrides (default: the default config)")
-    ap.add_argument("--thresholds", nargs="+", type=float, default=None,
-                    help=f"OpenRatSLAM vt_match_threshold sweep (default {DEFAULT_THRESHOLDS})")
+    ap.add_argument(
+        "--thresholds",
+        nargs="+",
+        type=float,
+        default=None,
+        help=f"OpenRatSLAM vt_match_threshold sweep (default {DEFAULT_THRESHOLDS})",
+    )
     ap.add_argument("--bicocca-files", nargs="+", default=None, help=f"default {BICOCCA_FILES}")
     ap.add_argument("--skip-sim", action="store_true", help="no simulated camera runs")
     ap.add_argument("--skip-bicocca", action="store_true", help="no Bicocca proposal-file runs")
@@ -638,10 +813,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--jobs", type=int, default=1, help="parallel cases (timings comparable only with 1)")
     ap.add_argument("--keep", action="store_true", help="keep each case's output folders in the cache")
     ap.add_argument("--render-only", action="store_true", help="only render (and cache) the simulated runs")
-    ap.add_argument("--out", type=Path, default=None,
-                    help="JSON of all rows (default: bench_maps.json in the bench cache)")
-    ap.add_argument("--from-json", nargs="+", type=Path, metavar="FILE",
-                    help="run nothing: print the tables of earlier --out files (rows merged)")
+    ap.add_argument(
+        "--out", type=Path, default=None, help="JSON of all rows (default: bench_maps.json in the bench cache)"
+    )
+    ap.add_argument(
+        "--from-json",
+        nargs="+",
+        type=Path,
+        metavar="FILE",
+        help="run nothing: print the tables of earlier --out files (rows merged)",
+    )
     args = ap.parse_args(argv)
     if args.from_json:
         sim_rows, bic_rows = [], []
@@ -670,8 +851,11 @@ def main(argv: list[str] | None = None) -> int:
     cache = peers.cache_root()
     peer_dir = shared / "peers" / "openratslam"
     exe = None if args.skip_ors or args.skip_sim else peers.build_ors(peer_dir, cache)
-    print(f"cache {cache}; hippomap config: {config or 'default'}; ORS thresholds: "
-          f"{'skipped' if exe is None else thresholds}", flush=True)
+    print(
+        f"cache {cache}; hippomap config: {config or 'default'}; ORS thresholds: "
+        f"{'skipped' if exe is None else thresholds}",
+        flush=True,
+    )
 
     t_start = time.perf_counter()
     sim_rows: list[dict[str, Any]] = []
@@ -681,9 +865,15 @@ def main(argv: list[str] | None = None) -> int:
 
     def save() -> None:
         """Write every row so far (a long run that is cut short keeps what it measured)."""
-        meta = {"argv": sys.argv[1:] if argv is None else argv, "config": config, "thresholds": thresholds,
-                "hippomap_source": hippomap_source_hash(),
-                "noise": NOISE, "jobs": args.jobs, "seconds": time.perf_counter() - t_start}
+        meta = {
+            "argv": sys.argv[1:] if argv is None else argv,
+            "config": config,
+            "thresholds": thresholds,
+            "hippomap_source": hippomap_source_hash(),
+            "noise": NOISE,
+            "jobs": args.jobs,
+            "seconds": time.perf_counter() - t_start,
+        }
         args.out.write_text(json.dumps({"meta": meta, "sim": sim_rows, "bicocca": bic_rows}, indent=1, default=float))
 
     # the Bicocca proposal files first: quick, and never crowded out by a long simulated run
@@ -691,21 +881,46 @@ def main(argv: list[str] | None = None) -> int:
         for f in files:
             t0 = time.perf_counter()
             try:
-                rows = bicocca_case({"shared": str(shared), "cache": str(cache), "file": f, "config": config,
-                                     "skip_gtsam": args.skip_gtsam})
+                rows = bicocca_case(
+                    {
+                        "shared": str(shared),
+                        "cache": str(cache),
+                        "file": f,
+                        "config": config,
+                        "skip_gtsam": args.skip_gtsam,
+                    }
+                )
             except Exception as exc:  # report, keep going
                 rows = [{"kind": "bicocca", "file": f, "method": "all", "error": f"{type(exc).__name__}: {exc}"}]
             bic_rows += rows
             save()
             summary = ", ".join(f"{r['method']} {r['ate']:.2f}" if "ate" in r else f"{r['method']} error" for r in rows)
-            print(f"[{time.perf_counter() - t_start:6.0f} s] {f}: ATE {summary} [{time.perf_counter() - t0:.0f} s]",
-                  flush=True)
+            print(
+                f"[{time.perf_counter() - t_start:6.0f} s] {f}: ATE {summary} [{time.perf_counter() - t0:.0f} s]",
+                flush=True,
+            )
 
     if not args.skip_sim:
-        cases = [{"world": w, "seed": s, "size": list(sz), "texture": tx, "shared": str(shared), "cache": str(cache),
-                  "laps": args.laps, "config": config, "ors_exe": str(exe) if exe else None, "peer_dir": str(peer_dir),
-                  "thresholds": thresholds, "keep": args.keep}
-                 for s in args.seeds for tx in args.textures for sz in args.sizes for w in args.worlds]
+        cases = [
+            {
+                "world": w,
+                "seed": s,
+                "size": list(sz),
+                "texture": tx,
+                "shared": str(shared),
+                "cache": str(cache),
+                "laps": args.laps,
+                "config": config,
+                "ors_exe": str(exe) if exe else None,
+                "peer_dir": str(peer_dir),
+                "thresholds": thresholds,
+                "keep": args.keep,
+            }
+            for s in args.seeds
+            for tx in args.textures
+            for sz in args.sizes
+            for w in args.worlds
+        ]
 
         def report(r: dict[str, Any]) -> None:
             sim_rows.append(r)
@@ -714,13 +929,17 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"{head}: {r.get('error')}", flush=True)
                 return
             hm = r["hippomap"]
-            line = (f"{head}: odometry ATE {hm['odometry_ate']:.2f}, hippomap {hm['ate']:.2f} m "
-                    f"(closures {hm['closures_accepted']}, false {hm['closures_false']}, "
-                    f"{hm['core_ms']['mean']:.2f} ms/frame)")
+            line = (
+                f"{head}: odometry ATE {hm['odometry_ate']:.2f}, hippomap {hm['ate']:.2f} m "
+                f"(closures {hm['closures_accepted']}, false {hm['closures_false']}, "
+                f"{hm['core_ms']['mean']:.2f} ms/frame)"
+            )
             if "ors" in r:
-                line += (f"; ORS stock {r['ors']['stock']['ate']:.2f}, best {r['ors']['best']['ate']:.2f} m "
-                         f"at vt {r['ors']['best']['threshold']:g} "
-                         f"({r['ors']['best']['core_ms']['mean']:.2f} ms/frame)")
+                line += (
+                    f"; ORS stock {r['ors']['stock']['ate']:.2f}, best {r['ors']['best']['ate']:.2f} m "
+                    f"at vt {r['ors']['best']['threshold']:g} "
+                    f"({r['ors']['best']['core_ms']['mean']:.2f} ms/frame)"
+                )
             render = f"render {r['render_s']:.0f} s, " if r.get("render_s") else ""
             print(f"{line} [{render}case {r['case_s']:.0f} s]", flush=True)
 

@@ -64,8 +64,7 @@ async def reader(url: str, token: str, sid: str, stop: asyncio.Event, counts: di
             counts[r.status_code] = counts.get(r.status_code, 0) + 1
 
 
-async def phase(url: str, token: str, viewer: str | None, sid: str, t0: float, duration: float,
-                readers: int) -> dict:
+async def phase(url: str, token: str, viewer: str | None, sid: str, t0: float, duration: float, readers: int) -> dict:
     lat: list[float] = []
     counts: dict[int, int] = {}
     stop = asyncio.Event()
@@ -76,9 +75,14 @@ async def phase(url: str, token: str, viewer: str | None, sid: str, t0: float, d
     await asyncio.gather(*flood)
     elapsed = time.perf_counter() - started
     ms = np.asarray(lat) * 1000 if lat else np.zeros(1)
-    return {**res, "p50_ms": float(np.percentile(ms, 50)), "p99_ms": float(np.percentile(ms, 99)),
-            "reads": sum(counts.values()), "reads_refused": counts.get(429, 0),
-            "reads_per_s": sum(counts.values()) / elapsed}
+    return {
+        **res,
+        "p50_ms": float(np.percentile(ms, 50)),
+        "p99_ms": float(np.percentile(ms, 99)),
+        "reads": sum(counts.values()),
+        "reads_refused": counts.get(429, 0),
+        "reads_per_s": sum(counts.values()) / elapsed,
+    }
 
 
 def main() -> int:
@@ -88,22 +92,33 @@ def main() -> int:
     ap.add_argument("--ingest-rate", type=float, default=100.0)
     ap.add_argument("--read-rate", type=float, default=20.0)
     args = ap.parse_args()
-    env = {"HIPPOMAP_RATE_PER_S": str(args.ingest_rate), "HIPPOMAP_RATE_BURST": str(args.ingest_rate),
-           "HIPPOMAP_READ_RATE_PER_S": str(args.read_rate), "HIPPOMAP_READ_RATE_BURST": str(args.read_rate)}
+    env = {
+        "HIPPOMAP_RATE_PER_S": str(args.ingest_rate),
+        "HIPPOMAP_RATE_BURST": str(args.ingest_rate),
+        "HIPPOMAP_READ_RATE_PER_S": str(args.read_rate),
+        "HIPPOMAP_READ_RATE_BURST": str(args.read_rate),
+    }
     with tempfile.TemporaryDirectory() as tmp, LiveServer(Path(tmp) / "data", env=env) as srv, srv.client() as c:
         sid = c.create_session("robot")["id"]
         viewer = c.create_token("viewer", session=sid, label="flooding reader")["token"]
         alone = asyncio.run(phase(srv.url, srv.token, None, sid, 1.0, args.duration, 0))
-        flooded = asyncio.run(phase(srv.url, srv.token, viewer, sid, alone["last_t"] + 1.0, args.duration,
-                                    args.readers))
+        flooded = asyncio.run(
+            phase(srv.url, srv.token, viewer, sid, alone["last_t"] + 1.0, args.duration, args.readers)
+        )
         stored = c.wait_processed(sid)["inputs_stored"]
-    print(f"robot: {ODO_HZ} odometry requests/s over HTTP for {args.duration:g} s per phase; budgets: ingest "
-          f"{args.ingest_rate:g}/s per session, reads {args.read_rate:g}/s per session and token")
+    print(
+        f"robot: {ODO_HZ} odometry requests/s over HTTP for {args.duration:g} s per phase; budgets: ingest "
+        f"{args.ingest_rate:g}/s per session, reads {args.read_rate:g}/s per session and token"
+    )
     for name, r in (("alone (reference)", alone), (f"with {args.readers} readers flooding /stats", flooded)):
-        print(f"  {name:36s} p50 {r['p50_ms']:6.1f} ms  p99 {r['p99_ms']:6.1f} ms  robot 429s {r['refused']:4d}"
-              f"  other errors {r['other']}  reads {r['reads_per_s']:7.1f}/s ({r['reads_refused']} refused 429)")
-    print(f"p99 ratio flooded/alone: {flooded['p99_ms'] / max(alone['p99_ms'], 1e-9):.2f}; "
-          f"p50 ratio: {flooded['p50_ms'] / max(alone['p50_ms'], 1e-9):.2f}")
+        print(
+            f"  {name:36s} p50 {r['p50_ms']:6.1f} ms  p99 {r['p99_ms']:6.1f} ms  robot 429s {r['refused']:4d}"
+            f"  other errors {r['other']}  reads {r['reads_per_s']:7.1f}/s ({r['reads_refused']} refused 429)"
+        )
+    print(
+        f"p99 ratio flooded/alone: {flooded['p99_ms'] / max(alone['p99_ms'], 1e-9):.2f}; "
+        f"p50 ratio: {flooded['p50_ms'] / max(alone['p50_ms'], 1e-9):.2f}"
+    )
     sent = alone["sent"] + flooded["sent"]
     ok = flooded["refused"] == alone["refused"] == 0 and stored == sent - alone["other"] - flooded["other"]
     print(f"inputs stored {stored} of {sent} sent; robot never refused: {flooded['refused'] == 0}")

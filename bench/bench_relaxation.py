@@ -89,15 +89,19 @@ def sweep_costs(sizes, repeats):
         P = P0.copy()
         t_jac = timeit(lambda: relax_jacobi(P, src, dst, T, 1), repeats)
         print(f"  N={n:>7,} nodes, {len(src):>7,} links, {colours.max() + 1} colours")
-        print(f"    relax (vectorised ORS)   {ms(t_relax)}   (+ grouping by colour once per change: "
-              f"{np.median(t_groups) * 1e3:.2f} ms)")
+        print(
+            f"    relax (vectorised ORS)   {ms(t_relax)}   (+ grouping by colour once per change: "
+            f"{np.median(t_groups) * 1e3:.2f} ms)"
+        )
         print(f"    relax_jacobi             {ms(t_jac)}")
         if n <= 10_000:
             P = P0.copy()
             t_ref = timeit(lambda: relax_ors_reference(P, src, dst, T, 1), max(3, repeats // 5))
-            print(f"    ORS reference (Python)   {ms(t_ref)}   "
-                  f"ratio ref/relax {np.median(t_ref) / np.median(t_relax):6.1f}x"
-                  f"   ref/jacobi {np.median(t_ref) / np.median(t_jac):6.1f}x")
+            print(
+                f"    ORS reference (Python)   {ms(t_ref)}   "
+                f"ratio ref/relax {np.median(t_ref) / np.median(t_relax):6.1f}x"
+                f"   ref/jacobi {np.median(t_ref) / np.median(t_jac):6.1f}x"
+            )
 
 
 def lsq_costs(sizes, repeats):
@@ -111,8 +115,10 @@ def lsq_costs(sizes, repeats):
             its.append(solve_lsq(P, src, dst, T, iterations=10).iterations)
 
         t = timeit(run, repeats if n < 100_000 else max(2, repeats // 5))
-        print(f"  N={n:>7,} nodes, {len(src):>7,} links: {ms(t)}   GN iterations {int(np.median(its))}"
-              f"   per iteration {np.median(t) / np.median(its) * 1e3:.1f} ms")
+        print(
+            f"  N={n:>7,} nodes, {len(src):>7,} links: {ms(t)}   GN iterations {int(np.median(its))}"
+            f"   per iteration {np.median(t) / np.median(its) * 1e3:.1f} ms"
+        )
 
 
 def convergence(n=500, bias=0.001, cap=100_000, ors_cap=20_000):
@@ -138,9 +144,11 @@ def convergence(n=500, bias=0.001, cap=100_000, ors_cap=20_000):
     r = solve_lsq(Pl, src, dst, T)
     print(f"  open-loop error {e0:.3f} m; lsq: {r.iterations} iterations -> {err(Pl):.4f} m (the floor)")
     floor = err(Pl)
-    for name, fn, limit in (("relax", lambda P, k: relax(P, src, dst, T, k, anchor=None), cap),
-                            ("relax_jacobi", lambda P, k: relax_jacobi(P, src, dst, T, k, anchor=None), cap),
-                            ("ORS reference", lambda P, k: relax_ors_reference(P, src, dst, T, k), ors_cap)):
+    for name, fn, limit in (
+        ("relax", lambda P, k: relax(P, src, dst, T, k, anchor=None), cap),
+        ("relax_jacobi", lambda P, k: relax_jacobi(P, src, dst, T, k, anchor=None), cap),
+        ("ORS reference", lambda P, k: relax_ors_reference(P, src, dst, T, k), ors_cap),
+    ):
         P = odo.copy()
         done, marks, chunk = 0, {}, 10
         t0 = time.perf_counter()
@@ -182,9 +190,11 @@ def map_update_cost(steps: int):
             off.append(cm.robot_offset)
         t = np.array(t)
         acc = sum(d.status == "accepted" for d in cm.loop_decisions)
-        print(f"  solver={solver:6s} {cm.node_count:,} nodes {cm.link_count:,} links, {acc} loops accepted: "
-              f"per step median {np.median(t) * 1e6:.0f} us  p95 {np.percentile(t, 95) * 1e6:.0f} us  "
-              f"max {t.max() * 1e3:.1f} ms  total {t.sum():.2f} s")
+        print(
+            f"  solver={solver:6s} {cm.node_count:,} nodes {cm.link_count:,} links, {acc} loops accepted: "
+            f"per step median {np.median(t) * 1e6:.0f} us  p95 {np.percentile(t, 95) * 1e6:.0f} us  "
+            f"max {t.max() * 1e3:.1f} ms  total {t.sum():.2f} s"
+        )
 
 
 def main() -> None:

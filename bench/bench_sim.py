@@ -52,8 +52,10 @@ def main(argv=None):
     run = sim.simulate(loop, rate_hz=5.0, odometry_noise=sim.OdometryNoise())
     t_sim = time.perf_counter() - t0
     poses = run.groundtruth[np.linspace(0, len(run) - 1, args.frames).astype(int)]
-    print(f"loop world: {len(loop.segments)} wall segments, texture {loop.atlas.shape[1]} texels long; "
-          f"build {t_world * 1000:.0f} ms, simulate {len(run)} steps {t_sim * 1000:.0f} ms")
+    print(
+        f"loop world: {len(loop.segments)} wall segments, texture {loop.atlas.shape[1]} texels long; "
+        f"build {t_world * 1000:.0f} ms, simulate {len(run)} steps {t_sim * 1000:.0f} ms"
+    )
     for name, cam in cams.items():
         line(f"loop {name}", time_frames(loop, poses, cam))
 
@@ -62,8 +64,10 @@ def main(argv=None):
         t0 = time.perf_counter()
         short.write(tmp)
         dt = time.perf_counter() - t0
-        print(f"  write(): {short.n_frames} PNG frames 320x240 + csv in {dt * 1000:.0f} ms "
-              f"({dt / short.n_frames * 1000:.2f} ms/frame incl. rendering)")
+        print(
+            f"  write(): {short.n_frames} PNG frames 320x240 + csv in {dt * 1000:.0f} ms "
+            f"({dt / short.n_frames * 1000:.2f} ms/frame incl. rendering)"
+        )
 
     if not args.data.is_dir():
         print(f"Bicocca folder {args.data} not found: Bicocca figures skipped")
@@ -72,12 +76,15 @@ def main(argv=None):
     bic = sim.bicocca_world(args.data)
     t_world = time.perf_counter() - t0
     traj = bic.route
-    print(f"Bicocca world: {len(bic.segments)} wall segments around {len(traj)} ground-truth poses, "
-          f"texture {bic.atlas.shape[1]} texels long, grid {bic.grid.shape}; build {t_world * 1000:.0f} ms")
+    print(
+        f"Bicocca world: {len(bic.segments)} wall segments around {len(traj)} ground-truth poses, "
+        f"texture {bic.atlas.shape[1]} texels long, grid {bic.grid.shape}; build {t_world * 1000:.0f} ms"
+    )
     t0 = time.perf_counter()
     brun = sim.simulate(bic, odometry_noise=sim.OdometryNoise())
-    print(f"  simulate(): {len(brun)} steps, {brun.n_frames} frames (lazy) "
-          f"in {(time.perf_counter() - t0) * 1000:.0f} ms")
+    print(
+        f"  simulate(): {len(brun)} steps, {brun.n_frames} frames (lazy) in {(time.perf_counter() - t0) * 1000:.0f} ms"
+    )
     poses = traj.poses[np.linspace(0, len(traj) - 1, args.frames).astype(int)]
     brute = World(bic.name, bic.segments, bic.u0, bic.atlas, bic.texture)
     brute.grid = None

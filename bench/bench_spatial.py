@@ -69,19 +69,23 @@ def main() -> None:
     ap.add_argument("--literal-steps", type=int, default=150)
     args = ap.parse_args()
     base = SpatialConfig()
-    print(f"area {base.area_size_m * 100:.0f} cm x {base.area_size_m * 100:.0f} cm, "
-          f"delta {base.resolution_m * 100} cm, {base.n_modules} modules x {base.cells_per_module} cells, "
-          f"window {base.window}, T_s {base.variance_threshold_m2} m^2")
+    print(
+        f"area {base.area_size_m * 100:.0f} cm x {base.area_size_m * 100:.0f} cm, "
+        f"delta {base.resolution_m * 100} cm, {base.n_modules} modules x {base.cells_per_module} cells, "
+        f"window {base.window}, T_s {base.variance_threshold_m2} m^2"
+    )
 
     t0 = time.perf_counter()
     grid = GridCells(base)
     tables = grid.tables
     setup = time.perf_counter() - t0
     print(f"setup (rate matrices + argsort + histogram, once per config, shared): {setup:.2f} s")
-    print(f"cached tables: {tables.nbytes / 1e6:.1f} MB = levels uint16 {tables.levels.nbytes / 1e6:.1f} MB "
-          f"+ argsort int32 {tables.order.nbytes / 1e6:.1f} MB "
-          f"+ level histogram int32 {tables.cum.nbytes / 1e6:.1f} MB "
-          f"({tables.size}^2 x {tables.n_cells} cells)")
+    print(
+        f"cached tables: {tables.nbytes / 1e6:.1f} MB = levels uint16 {tables.levels.nbytes / 1e6:.1f} MB "
+        f"+ argsort int32 {tables.order.nbytes / 1e6:.1f} MB "
+        f"+ level histogram int32 {tables.cum.nbytes / 1e6:.1f} MB "
+        f"({tables.size}^2 x {tables.n_cells} cells)"
+    )
 
     traj = trajectory(args.steps)
     n_lit = min(args.literal_steps, args.steps)
@@ -92,22 +96,28 @@ def main() -> None:
         times, codes, sp = run(cfg, traj)
         its = np.array([c.iterations for c in codes if c is not None])
         n_none = sum(c is None for c in codes)
-        print(f"\nfast, order={order:15s} {fmt(times)}   "
-              f"(first {n_lit} steps: median {np.median(times[:n_lit]) * 1e3:.3f} ms)")
+        print(
+            f"\nfast, order={order:15s} {fmt(times)}   "
+            f"(first {n_lit} steps: median {np.median(times[:n_lit]) * 1e3:.3f} ms)"
+        )
         print(f"   phase resets {sp.resets}, no-field steps {n_none}, iterations mean {its.mean():.2f} max {its.max()}")
         lt, lcodes, _ = run(cfg, traj[:n_lit], literal=True)
         same = all(
             (a is None and b is None)
-            or (a is not None and b is not None and np.array_equal(a.field.indices, b.field.indices)
-                and a.iterations == b.iterations and (a.x, a.y) == (b.x, b.y))
+            or (
+                a is not None
+                and b is not None
+                and np.array_equal(a.field.indices, b.field.indices)
+                and a.iterations == b.iterations
+                and (a.x, a.y) == (b.x, b.y)
+            )
             for a, b in zip(codes[:n_lit], lcodes)
         )
         print(f"literal, order={order:12s} {fmt(lt)}   over {n_lit} steps; identical outputs: {same}")
         results[order] = (times, lt)
     fast, lit_same = results["narrowest_first"][0], results["narrowest_first"][1]
     lit_paper = results["cyclic"][1]
-    print("\nspeed-up of the default (fast, narrowest_first), medians over the same first "
-          f"{n_lit} steps:")
+    print(f"\nspeed-up of the default (fast, narrowest_first), medians over the same first {n_lit} steps:")
     print(f"   vs literal, same order:            x{np.median(lit_same) / np.median(fast[:n_lit]):.0f}")
     print(f"   vs literal, paper order (cyclic):  x{np.median(lit_paper) / np.median(fast[:n_lit]):.0f}")
     cyclic_ratio = np.median(lit_paper) / np.median(results["cyclic"][0][:n_lit])

@@ -62,8 +62,9 @@ def run(store, threads: int, window: int, duration: float, tag: str) -> dict:
         while not stop.is_set() or inflight:
             if not stop.is_set() and len(inflight) < window:
                 kind, data = ("frame", frame) if seq % 5 == 4 else ("odometry", odo)
-                inflight.append((time.perf_counter(), store.append_inputs(sid, [InputRecord(seq, kind, seq * 0.01,
-                                                                                              data)])))
+                inflight.append(
+                    (time.perf_counter(), store.append_inputs(sid, [InputRecord(seq, kind, seq * 0.01, data)]))
+                )
                 seq += 1
                 if len(inflight) < window:
                     continue
@@ -83,8 +84,12 @@ def run(store, threads: int, window: int, duration: float, tag: str) -> dict:
         th.join()
     elapsed = time.perf_counter() - t0
     all_lat = np.concatenate([np.asarray(x) for x in lat]) * 1e3
-    return {"rate": sum(counts) / elapsed, "p50": float(np.median(all_lat)), "p95": float(np.percentile(all_lat, 95)),
-            "n": sum(counts)}
+    return {
+        "rate": sum(counts) / elapsed,
+        "p50": float(np.median(all_lat)),
+        "p95": float(np.percentile(all_lat, 95)),
+        "n": sum(counts),
+    }
 
 
 def count_batches(store) -> list[int]:
@@ -95,6 +100,7 @@ def count_batches(store) -> list[int]:
     def counted(*a):
         counter[0] += 1
         return inner(*a)
+
     store._run_batch = counted
     return counter
 
@@ -115,10 +121,14 @@ def main() -> None:
         url = cluster.url()
     tmp = tempfile.TemporaryDirectory(prefix="bench-store-")
     stores = {"sqlite": SQLiteStore(Path(tmp.name) / "bench.sqlite3"), "postgres": PostgresStore(url)}
-    print(f"# bench_store: {args.duration:.0f} s per configuration; 4 odometry (~60 B) : 1 frame "
-          f"({len(_payloads()[1]) / 1e3:.0f} kB JPEG); full durability; {os.cpu_count()} cores")
-    print(f"{'store':9s} {'threads':>7s} {'window':>6s} {'inputs/s':>9s} {'p50 ms':>7s} {'p95 ms':>7s} "
-          f"{'inputs/commit':>13s}")
+    print(
+        f"# bench_store: {args.duration:.0f} s per configuration; 4 odometry (~60 B) : 1 frame "
+        f"({len(_payloads()[1]) / 1e3:.0f} kB JPEG); full durability; {os.cpu_count()} cores"
+    )
+    print(
+        f"{'store':9s} {'threads':>7s} {'window':>6s} {'inputs/s':>9s} {'p50 ms':>7s} {'p95 ms':>7s} "
+        f"{'inputs/commit':>13s}"
+    )
     results: dict[tuple, dict] = {}
     batches = {name: count_batches(store) for name, store in stores.items()}
     try:
@@ -130,8 +140,11 @@ def main() -> None:
                 r = run(store, threads, window, args.duration, f"t{threads}w{window}")
                 per_commit = f"{r['n'] / max(1, batches[name][0] - b0):13.1f}"
                 results[(name, threads, window)] = r
-                print(f"{name:9s} {threads:7d} {window:6d} {r['rate']:9.0f} {r['p50']:7.2f} {r['p95']:7.2f} "
-                      f"{per_commit:>13s}", flush=True)
+                print(
+                    f"{name:9s} {threads:7d} {window:6d} {r['rate']:9.0f} {r['p50']:7.2f} {r['p95']:7.2f} "
+                    f"{per_commit:>13s}",
+                    flush=True,
+                )
         print("\n# PostgreSQL / SQLite (inputs/s)")
         for (name, threads, window), r in results.items():
             if name == "postgres":

@@ -49,8 +49,15 @@ from web.settings import ViewerSettings  # noqa: E402
 from web.source import LocalSession  # noqa: E402
 
 CHROMIUM = "/usr/bin/chromium"
-ARGS = ["--no-sandbox", "--enable-unsafe-swiftshader", "--use-angle=swiftshader", "--disable-background-networking",
-        "--disable-component-update", "--disable-sync", "--no-first-run"]
+ARGS = [
+    "--no-sandbox",
+    "--enable-unsafe-swiftshader",
+    "--use-angle=swiftshader",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--no-first-run",
+]
 
 
 # ------------------------------------------------------------------------------ the large map
@@ -80,10 +87,21 @@ def big_state(template: dict, n: int) -> dict:
     m = len(src)
     state = {**template}
     frames = np.where(np.arange(n) % 3 == 0, np.arange(n) // 3, -1)
-    state["nodes"] = {"pose": P, "place_code": P.copy(), "frame": frames,
-                      "time": np.arange(n, dtype=float), "path": np.arange(n) * 0.25}
-    state["links"] = {"source": src, "target": dst, "transform": np.zeros((m, 3)), "dt": np.ones(m),
-                      "kind": kind, "colour": np.zeros(m, np.int64)}
+    state["nodes"] = {
+        "pose": P,
+        "place_code": P.copy(),
+        "frame": frames,
+        "time": np.arange(n, dtype=float),
+        "path": np.arange(n) * 0.25,
+    }
+    state["links"] = {
+        "source": src,
+        "target": dst,
+        "transform": np.zeros((m, 3)),
+        "dt": np.ones(m),
+        "kind": kind,
+        "colour": np.zeros(m, np.int64),
+    }
     state["robot"] = {**template["robot"], "current": n - 1}
     state["loop"] = {"decisions": [], "pending": [], "accepted": []}
     state["events"] = []
@@ -156,14 +174,15 @@ class Wire:
         self._ready.wait(10)
 
     async def _run(self) -> None:
-        async with websockets.connect(f"ws://127.0.0.1:{self.port}", subprotocols=[f"viser-v{viser.__version__}"],
-                                      max_size=None, compression=None) as ws:
+        async with websockets.connect(
+            f"ws://127.0.0.1:{self.port}", subprotocols=[f"viser-v{viser.__version__}"], max_size=None, compression=None
+        ) as ws:
             self._ready.set()
             async for frame in ws:
                 self.bytes += len(frame)
                 size = int.from_bytes(frame[:8], "little")
                 packed = int.from_bytes(frame[8:16], "little")
-                payload = self._zstd.decompress(frame[16:16 + packed], max_output_size=size)
+                payload = self._zstd.decompress(frame[16 : 16 + packed], max_output_size=size)
                 for num in re.findall(rb"/bench/mark_(\d+)", payload):
                     self.seen.setdefault(num.decode(), (time.perf_counter(), self.bytes))
 
@@ -176,8 +195,10 @@ def pct(xs: list[float], q: float) -> float:
 def orbit_fps(page, seconds: float = 4.0) -> float:
     """Frames per second while the mouse orbits the camera (viser renders on demand: orbiting forces
     a render every frame). Software WebGL on a shared CPU: indicative only."""
-    page.evaluate("() => { window.__ts = []; const f = t => { window.__ts.push(t); if (!window.__stop) "
-                  "requestAnimationFrame(f); }; window.__stop = false; requestAnimationFrame(f); }")
+    page.evaluate(
+        "() => { window.__ts = []; const f = t => { window.__ts.push(t); if (!window.__stop) "
+        "requestAnimationFrame(f); }; window.__stop = false; requestAnimationFrame(f); }"
+    )
     page.mouse.move(500, 400)
     page.mouse.down()
     t0 = time.perf_counter()
@@ -205,8 +226,9 @@ def run_size(n: int, repeat: int, page) -> dict:
         up = viewer.update_graph()
         viewer.server.scene.add_label(f"/bench/mark_{marks}", label, visible=False)
         key = str(marks)
-        page.wait_for_function("n => !!window.__viserSceneTree?.getState()[n]", arg=f"/bench/mark_{marks}",
-                               timeout=120_000, polling=5)
+        page.wait_for_function(
+            "n => !!window.__viserSceneTree?.getState()[n]", arg=f"/bench/mark_{marks}", timeout=120_000, polling=5
+        )
         page.evaluate("() => new Promise(r => requestAnimationFrame(() => requestAnimationFrame(r)))")
         t_browser = time.perf_counter() - t0
         deadline = time.time() + 60
@@ -221,8 +243,9 @@ def run_size(n: int, repeat: int, page) -> dict:
     t0 = time.perf_counter()
     page.goto(f"http://127.0.0.1:{viewer.port}/")
     last_chunk = chunk_layout(n, viewer.settings.chunk_size, viewer.settings.tail_size)[-1][0]
-    page.wait_for_function("n => !!window.__viserSceneTree?.getState()[n]", arg=f"/map/nodes/{last_chunk}",
-                           timeout=300_000, polling=20)
+    page.wait_for_function(
+        "n => !!window.__viserSceneTree?.getState()[n]", arg=f"/map/nodes/{last_chunk}", timeout=300_000, polling=20
+    )
     out["first_load_s"] = time.perf_counter() - t0
     push("warm-up")
     P = spiral(n + 20 * (repeat + 1))
@@ -233,7 +256,7 @@ def run_size(n: int, repeat: int, page) -> dict:
         session.set_map(P, cur)
         rows["append"].append(push("append"))
         P = P.copy()
-        P[cur - 1000: cur, :2] += 0.05 * (1 if r % 2 else -1)
+        P[cur - 1000 : cur, :2] += 0.05 * (1 if r % 2 else -1)
         session.set_map(P, cur)
         rows["local"].append(push("local"))
         P = P.copy()
@@ -244,11 +267,16 @@ def run_size(n: int, repeat: int, page) -> dict:
     out["orbit_fps"] = orbit_fps(page)
     for k, v in rows.items():
         copy, build, wire_s, browser, nbytes, items = map(list, zip(*v))
-        out[k] = {"copy_ms": statistics.median(copy) * 1e3, "build_ms": statistics.median(build) * 1e3,
-                  "wire_ms": statistics.median(wire_s) * 1e3,
-                  "build_ms_p95": pct(build, 95) * 1e3, "browser_ms": statistics.median(browser) * 1e3,
-                  "browser_ms_p95": pct(browser, 95) * 1e3, "kbytes": statistics.median(nbytes) / 1e3,
-                  "items": statistics.median(items)}
+        out[k] = {
+            "copy_ms": statistics.median(copy) * 1e3,
+            "build_ms": statistics.median(build) * 1e3,
+            "wire_ms": statistics.median(wire_s) * 1e3,
+            "build_ms_p95": pct(build, 95) * 1e3,
+            "browser_ms": statistics.median(browser) * 1e3,
+            "browser_ms_p95": pct(browser, 95) * 1e3,
+            "kbytes": statistics.median(nbytes) / 1e3,
+            "items": statistics.median(items),
+        }
     viewer.close()
     return out
 
@@ -269,18 +297,24 @@ def main() -> int:
             page.close()
         browser.close()
     vs = ViewerSettings()
-    print(f"viser {viser.__version__}, chunks of {vs.chunk_size} items (tails of {vs.tail_size}), "
-          "headless Chromium (SwiftShader software WebGL)")
+    print(
+        f"viser {viser.__version__}, chunks of {vs.chunk_size} items (tails of {vs.tail_size}), "
+        "headless Chromium (SwiftShader software WebGL)"
+    )
     for r in results:
         print(f"\n== {r['n']} nodes, {r['links']} links, {r['traj_rows']} trajectory rows ==")
         print(f"first load (page open -> whole map in the browser's scene): {r['first_load_s']:.2f} s")
         print(f"orbiting the camera (a render per frame, software WebGL): {r['orbit_fps']:.1f} frames/s")
-        print(f"{'update':8s} {'items':>7s} {'kB':>8s} {'copy ms':>8s} {'build ms':>9s} {'(p95)':>7s} "
-              f"{'wire ms':>8s} {'browser ms':>11s} {'(p95)':>7s}")
+        print(
+            f"{'update':8s} {'items':>7s} {'kB':>8s} {'copy ms':>8s} {'build ms':>9s} {'(p95)':>7s} "
+            f"{'wire ms':>8s} {'browser ms':>11s} {'(p95)':>7s}"
+        )
         for k in ("append", "local", "global", "idle"):
             u = r[k]
-            print(f"{k:8s} {u['items']:7.0f} {u['kbytes']:8.1f} {u['copy_ms']:8.2f} {u['build_ms']:9.2f} "
-                  f"{u['build_ms_p95']:7.2f} {u['wire_ms']:8.1f} {u['browser_ms']:11.1f} {u['browser_ms_p95']:7.1f}")
+            print(
+                f"{k:8s} {u['items']:7.0f} {u['kbytes']:8.1f} {u['copy_ms']:8.2f} {u['build_ms']:9.2f} "
+                f"{u['build_ms_p95']:7.2f} {u['wire_ms']:8.1f} {u['browser_ms']:11.1f} {u['browser_ms_p95']:7.1f}"
+            )
     return 0
 
 

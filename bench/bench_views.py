@@ -54,10 +54,23 @@ def _synthetic_map(n: int, rng: np.random.Generator) -> tuple[MapSnapshot, np.nd
     rows[:, 0] = np.linspace(0, 3600, k)
     rows[:, 4] = np.minimum(np.arange(k) // 10, n - 1)
     rows[:, 1:4] = poses[rows[:, 4].astype(int)]
-    snap = MapSnapshot(node_poses=poses, node_frames=np.where(np.arange(n) % 7 == 0, np.arange(n), -1),
-                       link_source=src, link_target=dst, link_kind=kind, trajectory_start=0, trajectory=rows[:0],
-                       trajectory_total=k, current_node=n - 1, robot_pose=poses[-1], decisions=(),
-                       recognition_count=0, last_recognition=None, place_field=None, stats={})
+    snap = MapSnapshot(
+        node_poses=poses,
+        node_frames=np.where(np.arange(n) % 7 == 0, np.arange(n), -1),
+        link_source=src,
+        link_target=dst,
+        link_kind=kind,
+        trajectory_start=0,
+        trajectory=rows[:0],
+        trajectory_total=k,
+        current_node=n - 1,
+        robot_pose=poses[-1],
+        decisions=(),
+        recognition_count=0,
+        last_recognition=None,
+        place_field=None,
+        stats={},
+    )
     return snap, rows
 
 
@@ -86,14 +99,24 @@ def main() -> None:
     print(f"  Fig. 8 figure, PNG endpoint       {1e3 * t_png:8.1f} ms")
 
     snap, rows = _synthetic_map(a.nodes, rng)
-    t_copy = _best(lambda: (snap.node_poses.copy(), snap.link_source.copy(), snap.link_target.copy(),
-                            snap.link_kind.copy(), rows.copy()), a.repeat)
+    t_copy = _best(
+        lambda: (
+            snap.node_poses.copy(),
+            snap.link_source.copy(),
+            snap.link_target.copy(),
+            snap.link_kind.copy(),
+            rows.copy(),
+        ),
+        a.repeat,
+    )
     t_replay = _best(lambda: replay_at(snap, rows, None, 1800.0), a.repeat)
     fr = replay_at(snap, rows, None, 1800.0)
     print(f"time slider on a {a.nodes}-node map ({len(snap.link_source)} links, {len(rows)} trajectory samples):")
     print(f"  snapshot-size array copy          {1e3 * t_copy:8.2f} ms")
-    print(f"  replay_at(half the run)           {1e3 * t_replay:8.2f} ms   = {t_replay / t_copy:6.1f} x the copy"
-          f"   ({fr.n_nodes} nodes, {len(fr.links) + len(fr.loop_links)} links)")
+    print(
+        f"  replay_at(half the run)           {1e3 * t_replay:8.2f} ms   = {t_replay / t_copy:6.1f} x the copy"
+        f"   ({fr.n_nodes} nodes, {len(fr.links) + len(fr.loop_links)} links)"
+    )
     lo, hi = snap.node_poses[:, :2].min(0), snap.node_poses[:, :2].max(0)
     t_fit = _best(lambda: fit_camera(lo, hi, math.radians(75), 1.6, 1.15, 0.3, covered_left=0.2), 20 * a.repeat)
     print(f"camera fit                          {1e3 * t_fit:8.3f} ms")

@@ -111,9 +111,18 @@ ABLATION = {
     "grey-level sensory cells [S]": {"retina_mode": "none"},
     "n_std 2.8 [BBc]": {"n_std": 2.8},
     "verify 1 + 0.5 per reset [ours]": {"verify_saccades": 1, "verify_per_reset": 0.5},
-    "all [BBc]/spec values": {"tolerance_px": 4, "next_target": "stochastic", "prediction_tolerance": 1.0,
-                              "start_order": "random", "verify_saccades": 0, "verify_per_reset": 0.0,
-                              "max_survivors": 0, "anchor": "none", "retina_mode": "none", "n_std": 2.8},
+    "all [BBc]/spec values": {
+        "tolerance_px": 4,
+        "next_target": "stochastic",
+        "prediction_tolerance": 1.0,
+        "start_order": "random",
+        "verify_saccades": 0,
+        "verify_per_reset": 0.0,
+        "max_survivors": 0,
+        "anchor": "none",
+        "retina_mode": "none",
+        "n_std": 2.8,
+    },
 }
 
 
@@ -145,8 +154,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--sizes", type=int, nargs="+", default=[100, 1000, 10000])
     ap.add_argument("--queries", type=int, default=40, help="recognitions timed per library size")
     ap.add_argument("--rejections", type=int, default=10, help="never-learned queries timed per size")
-    ap.add_argument("--ablation", nargs="+", metavar="DATA_DIR",
-                    help="run the deviation ablation on eval-vpr data sets")
+    ap.add_argument(
+        "--ablation", nargs="+", metavar="DATA_DIR", help="run the deviation ablation on eval-vpr data sets"
+    )
     ap.add_argument("--seeds", type=int, default=3, help="seeds per ablation variant")
     ap.add_argument("--no-lighting", action="store_true", help="skip the retina / lighting-change figures")
     args = ap.parse_args(argv)
@@ -154,8 +164,10 @@ def main(argv: list[str] | None = None) -> int:
         return ablation(args.ablation, args.seeds)
 
     cfg = VisualConfig()
-    print(f"hippomap visual memory benchmark: fovea {cfg.fovea}, {cfg.n_fixations} fixations/frame, "
-          f"working width {cfg.working_width}, index shortlist {cfg.index_shortlist}")
+    print(
+        f"hippomap visual memory benchmark: fovea {cfg.fovea}, {cfg.n_fixations} fixations/frame, "
+        f"working width {cfg.working_width}, index shortlist {cfg.index_shortlist}"
+    )
     mem = VisualMemory(cfg)
     learn_t: list[float] = []
     images: list[np.ndarray] = []
@@ -191,8 +203,10 @@ def main(argv: list[str] | None = None) -> int:
             rej_t.append(time.perf_counter() - t0)
             rejected += int(not rec.accepted)
         print(f"\n{size:6d} stored frames ({mem.n_features} feature units, {mem.memory_bytes() / 1e6:.1f} MB)")
-        print(f"  recognise a learned frame : {stats(rec_t)}   fixations median {np.median(fix):.0f}   "
-              f"correct {ok}/{len(pick)}, wrong {wrong}")
+        print(
+            f"  recognise a learned frame : {stats(rec_t)}   fixations median {np.median(fix):.0f}   "
+            f"correct {ok}/{len(pick)}, wrong {wrong}"
+        )
         print(f"  reject a new frame        : {stats(rej_t)}   rejected {rejected}/{args.rejections}")
         if size >= 1000:
             cand_t, cok = [], 0
@@ -205,8 +219,10 @@ def main(argv: list[str] | None = None) -> int:
                 cok += int(rec.frame_id == int(i))
             print(f"  20 candidate frames only  : {stats(cand_t)}   correct {cok}/{len(cand_t)}")
     print(f"\nlearn one key frame          : {stats(learn_t)}  (over {len(learn_t)} frames)")
-    print(f"memory per stored frame      : {mem.memory_bytes() / mem.n_frames:.0f} bytes "
-          f"({mem.memory_bytes() / mem.n_features:.0f} per feature unit)")
+    print(
+        f"memory per stored frame      : {mem.memory_bytes() / mem.n_frames:.0f} bytes "
+        f"({mem.memory_bytes() / mem.n_features:.0f} per feature unit)"
+    )
     if not args.no_lighting:
         print("\nlighting change, 100 stored frames:")
         lighting()

@@ -45,6 +45,7 @@ def _tree_hash(paths: list[Path]) -> str:
 # OpenRatSLAM
 # --------------------------------------------------------------------------------------
 
+
 def build_ors(peer_dir: Path, cache: Path | None = None) -> Path:
     """Build OpenRatSLAM's core + driver (the peer's ``build.sh``) once per source version;
     returns the driver executable."""
@@ -60,8 +61,10 @@ def build_ors(peer_dir: Path, cache: Path | None = None) -> Path:
     t0 = time.perf_counter()
     r = subprocess.run(["sh", str(peer_dir / "build.sh"), str(out)], capture_output=True, text=True)
     if r.returncode != 0 or not exe.is_file():
-        raise SystemExit(f"building OpenRatSLAM failed (needs: apt-get install g++ libboost-dev libopencv-dev "
-                         f"pkg-config):\n{r.stdout}\n{r.stderr}")
+        raise SystemExit(
+            f"building OpenRatSLAM failed (needs: apt-get install g++ libboost-dev libopencv-dev "
+            f"pkg-config):\n{r.stdout}\n{r.stderr}"
+        )
     print(f"built OpenRatSLAM driver in {time.perf_counter() - t0:.0f} s -> {exe}", flush=True)
     return exe
 
@@ -117,10 +120,20 @@ def _read_ors_frames(path: Path) -> list[dict[str, float]]:
                 k = (len(f) - len(cols)) // 3
                 for i in range(k):
                     cut.add(len(rows))
-                    rows.append({"frame": float(frame + i), "t": float(f[3 * i + 1]), "vt_id": float(f[3 * i + 2]),
-                                 "vt_err": float("inf"), "n_vt": float("nan"), "action": float("nan"),
-                                 "src_exp": float("nan"), "exp_id": float("nan"), "n_exp": float("nan"),
-                                 "core_us": float("nan")})
+                    rows.append(
+                        {
+                            "frame": float(frame + i),
+                            "t": float(f[3 * i + 1]),
+                            "vt_id": float(f[3 * i + 2]),
+                            "vt_err": float("inf"),
+                            "n_vt": float("nan"),
+                            "action": float("nan"),
+                            "src_exp": float("nan"),
+                            "exp_id": float("nan"),
+                            "n_exp": float("nan"),
+                            "core_us": float("nan"),
+                        }
+                    )
                 rows.append({"frame": float(frame + k), **{c: float(v) for c, v in zip(cols[1:], f[-9:])}})
             elif f and f[0]:
                 raise ValueError(f"{path}: unexpected line {line[:80]!r}")
@@ -206,8 +219,9 @@ class ORSResult:
     link_check: dict[str, int] | None = None
 
 
-def run_ors(exe: Path, peer_dir: Path, data_dir: Path, width: int, height: int, threshold: float | None,
-            work: Path) -> ORSResult:
+def run_ors(
+    exe: Path, peer_dir: Path, data_dir: Path, width: int, height: int, threshold: float | None, work: Path
+) -> ORSResult:
     """Run the OpenRatSLAM driver on a data folder (one odometry row per frame)."""
     work.mkdir(parents=True, exist_ok=True)
     tag = "stock" if threshold is None else f"vt{threshold:g}"
@@ -215,8 +229,11 @@ def run_ors(exe: Path, peer_dir: Path, data_dir: Path, width: int, height: int, 
     ini.write_text(ors_config_text(peer_dir, width, height, threshold))
     prefix = work / f"ors_{tag}"
     t0 = time.perf_counter()
-    r = subprocess.run([str(exe), str(ini), str(data_dir), str(Path(data_dir) / "odometry.csv"), str(prefix)],
-                       capture_output=True, text=True)
+    r = subprocess.run(
+        [str(exe), str(ini), str(data_dir), str(Path(data_dir) / "odometry.csv"), str(prefix)],
+        capture_output=True,
+        text=True,
+    )
     wall = time.perf_counter() - t0
     if r.returncode != 0:
         raise RuntimeError(f"OpenRatSLAM failed on {data_dir}: {r.stderr[-2000:]}")
@@ -237,12 +254,24 @@ def run_ors(exe: Path, peer_dir: Path, data_dir: Path, width: int, height: int, 
             times.append(row["t"])
             poses.append(exps[e])
     links, n_pairs, self_links = ors_loop_links(rows)
-    core = {"mean": float(kv["core_ms_per_frame"]), "median": float(kv["median_ms"]),
-            "first_third": float(kv["first_third_ms"]), "last_third": float(kv["last_third_ms"])}
-    return ORSResult(threshold if threshold is not None else stock_threshold(peer_dir, width, height),
-                     np.array(times), np.array(poses).reshape(-1, 3), links, created, core,
-                     int(kv["templates"]), int(kv["experiences"]), wall,
-                     {"driver_links": int(kv["links"]), "counted_links": n_pairs, "self_links": self_links})
+    core = {
+        "mean": float(kv["core_ms_per_frame"]),
+        "median": float(kv["median_ms"]),
+        "first_third": float(kv["first_third_ms"]),
+        "last_third": float(kv["last_third_ms"]),
+    }
+    return ORSResult(
+        threshold if threshold is not None else stock_threshold(peer_dir, width, height),
+        np.array(times),
+        np.array(poses).reshape(-1, 3),
+        links,
+        created,
+        core,
+        int(kv["templates"]),
+        int(kv["experiences"]),
+        wall,
+        {"driver_links": int(kv["links"]), "counted_links": n_pairs, "self_links": self_links},
+    )
 
 
 # --------------------------------------------------------------------------------------
@@ -335,8 +364,9 @@ def run_gtsam(g2o_file: Path, kernel: str, max_iterations: int = 100, upto: int 
         w = 1.0 if est is None else float(est.weight(r))
         used = est is None or r <= CHI2_GATE
         loops.append({"i": i, "j": j, "residual": r, "weight": w, "used": bool(used), "weight_half": bool(w >= 0.5)})
-    return GtsamResult(kernel, poses, loops, int(opt.iterations()), seconds, float(g.error(initial)),
-                       float(g.error(result)))
+    return GtsamResult(
+        kernel, poses, loops, int(opt.iterations()), seconds, float(g.error(initial)), float(g.error(result))
+    )
 
 
 def make_workdir(root: Path, name: str) -> Path:

@@ -77,8 +77,9 @@ def group(before: dict, after: dict, names: dict[str, str]) -> dict[str, float]:
     return g
 
 
-async def robot(url: str, token: str, sid: str, duration: float, frames: list[bytes], start: float,
-                lat: dict[str, list[float]]) -> int:
+async def robot(
+    url: str, token: str, sid: str, duration: float, frames: list[bytes], start: float, lat: dict[str, list[float]]
+) -> int:
     """``bench_load.robot`` with the latencies kept per kind; returns the messages sent."""
     sent = 0
 
@@ -86,6 +87,7 @@ async def robot(url: str, token: str, sid: str, duration: float, frames: list[by
         def done(fut: asyncio.Future) -> None:
             if fut.exception() is None:
                 lat[kind].append(fut.result()["latency_s"])
+
         return done
 
     per_frame = bl.ODO_HZ // bl.FRAME_HZ
@@ -132,17 +134,23 @@ def level(srv: LiveServer, n: int, duration: float, frames: list[bytes]) -> None
             c.delete_session(sid)
     acked = len(lat["odometry"]) + len(lat["frame"])
     both = np.array(lat["odometry"] + lat["frame"]) * 1e3
-    print(f"N={n} (load average {load:.2f}): sent {sent}, acked {acked}, stored {stored}; ack p50 "
-          f"{np.percentile(both, 50):.1f} ms, p99 {np.percentile(both, 99):.1f} ms (odometry p99 "
-          f"{np.percentile(lat['odometry'], 99) * 1e3:.1f}, frames p99 {np.percentile(lat['frame'], 99) * 1e3:.1f}); "
-          f"drain {drain:.1f} s", flush=True)
+    print(
+        f"N={n} (load average {load:.2f}): sent {sent}, acked {acked}, stored {stored}; ack p50 "
+        f"{np.percentile(both, 50):.1f} ms, p99 {np.percentile(both, 99):.1f} ms (odometry p99 "
+        f"{np.percentile(lat['odometry'], 99) * 1e3:.1f}, frames p99 {np.percentile(lat['frame'], 99) * 1e3:.1f}); "
+        f"drain {drain:.1f} s",
+        flush=True,
+    )
     robot_s = n * duration
     g = group(before, after, names)
     total = sum(v for k, v in g.items() if not k.startswith("sys:"))
     client = (ca.ru_utime + ca.ru_stime) - (cb.ru_utime + cb.ru_stime)
     parts = ", ".join(f"{k} {v / robot_s * 1e3:.1f}" for k, v in sorted(g.items(), key=lambda x: -x[1]) if v > 0.005)
-    print(f"   CPU ms per robot-second: server {total / robot_s * 1e3:.1f} ({parts}); this client "
-          f"{client / robot_s * 1e3:.1f}", flush=True)
+    print(
+        f"   CPU ms per robot-second: server {total / robot_s * 1e3:.1f} ({parts}); this client "
+        f"{client / robot_s * 1e3:.1f}",
+        flush=True,
+    )
 
 
 def main() -> int:
@@ -154,8 +162,12 @@ def main() -> int:
     args = ap.parse_args()
     bl.SESSION_CONFIG = None if args.config is None else json.loads(args.config)
     frames = bl.jpeg_pool()
-    env = {"HIPPOMAP_RATE_PER_S": "100000", "HIPPOMAP_RATE_BURST": "100000", "HIPPOMAP_DURABILITY": "full",
-           "HIPPOMAP_MAX_SESSIONS_PER_TOKEN": "1000"}
+    env = {
+        "HIPPOMAP_RATE_PER_S": "100000",
+        "HIPPOMAP_RATE_BURST": "100000",
+        "HIPPOMAP_DURABILITY": "full",
+        "HIPPOMAP_MAX_SESSIONS_PER_TOKEN": "1000",
+    }
     server_args = [] if args.backend is None else ["--backend", args.backend]
     with tempfile.TemporaryDirectory() as tmp, LiveServer(Path(tmp) / "data", env=env, args=server_args) as srv:
         bl.run_level(srv, 1, 2.0, frames)  # warm-up

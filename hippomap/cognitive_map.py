@@ -53,8 +53,23 @@ from .map_graph import LINK_KINDS, LOOP, ODOMETRY, PRUNE
 from .pruning import Pruning
 
 # names long imported from this module (tests, server, viewer, benchmarks)
-__all__ = ["CognitiveMap", "LINK_KINDS", "ODOMETRY", "LOOP", "PRUNE", "LoopDecision", "LoopHypothesis", "MapEvent",
-           "NodeCreated", "NodeMerged", "LoopPending", "LoopAccepted", "LoopRejected", "MapRelaxed", "NodesPruned"]
+__all__ = [
+    "CognitiveMap",
+    "LINK_KINDS",
+    "ODOMETRY",
+    "LOOP",
+    "PRUNE",
+    "LoopDecision",
+    "LoopHypothesis",
+    "MapEvent",
+    "NodeCreated",
+    "NodeMerged",
+    "LoopPending",
+    "LoopAccepted",
+    "LoopRejected",
+    "MapRelaxed",
+    "NodesPruned",
+]
 
 _STATE_VERSION = 1
 
@@ -136,19 +151,41 @@ class CognitiveMap(Pruning):
         n, m = self._n, self._m
         return {
             "version": _STATE_VERSION,
-            "nodes": {"pose": self._P[:n].copy(), "place_code": self._C[:n].copy(), "frame": self._F[:n].copy(),
-                      "time": self._Tn[:n].copy(), "path": self._S[:n].copy()},
-            "links": {"source": self._src[:m].copy(), "target": self._dst[:m].copy(),
-                      "transform": self._tr[:m].copy(), "dt": self._dt[:m].copy(),
-                      "kind": self._kind[:m].astype(np.int64), "colour": self._col[:m].copy(),
-                      "weight": self._w[:m].copy(), "information": self._linfo[:m].copy(),
-                      "kernel_width": self._lkw[:m].copy()},
-            "robot": {"current": self._cur, "delta": list(self._delta), "odom": list(self._odom), "path": self._path,
-                      "step": self._step, "t": self._t, "t_arrive": self._t_arrive, "arrival": self._arrival,
-                      "code": None if self._code is None else list(self._code), "code_odom": list(self._code_odom),
-                      "anchor": None if self._anchor is None else list(self._anchor), "dirty": self._dirty,
-                      "touched": list(self._touched), "local_solves": self._local_solves,
-                      "odometry_bias": self._bias},
+            "nodes": {
+                "pose": self._P[:n].copy(),
+                "place_code": self._C[:n].copy(),
+                "frame": self._F[:n].copy(),
+                "time": self._Tn[:n].copy(),
+                "path": self._S[:n].copy(),
+            },
+            "links": {
+                "source": self._src[:m].copy(),
+                "target": self._dst[:m].copy(),
+                "transform": self._tr[:m].copy(),
+                "dt": self._dt[:m].copy(),
+                "kind": self._kind[:m].astype(np.int64),
+                "colour": self._col[:m].copy(),
+                "weight": self._w[:m].copy(),
+                "information": self._linfo[:m].copy(),
+                "kernel_width": self._lkw[:m].copy(),
+            },
+            "robot": {
+                "current": self._cur,
+                "delta": list(self._delta),
+                "odom": list(self._odom),
+                "path": self._path,
+                "step": self._step,
+                "t": self._t,
+                "t_arrive": self._t_arrive,
+                "arrival": self._arrival,
+                "code": None if self._code is None else list(self._code),
+                "code_odom": list(self._code_odom),
+                "anchor": None if self._anchor is None else list(self._anchor),
+                "dirty": self._dirty,
+                "touched": list(self._touched),
+                "local_solves": self._local_solves,
+                "odometry_bias": self._bias,
+            },
             "loop": self._loops.state_dict(),
             "events": [e.to_dict() for e in self._events],
         }

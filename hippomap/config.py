@@ -82,31 +82,39 @@ class VisualConfig(_Frozen):
     )
     min_fixations: int = Field(3, ge=1, description="skip a frame with fewer corners [spec §2]")
     n_std: float = Field(
-        3.3, ge=0,
+        3.3,
+        ge=0,
         description="N_std, FLC pruning threshold (0.8 for 10 images, 2.8 for 99) [BBc]; at scale the survivors are "
         "capped by max_survivors instead of raising it (spec §6.4). 3.3 with the retina front end: contrast-normalised "
         "patches are more alike than grey-level ones, so the evidence test must be stricter "
         "(eval-vpr, both sets) [ours]",
     )
     max_survivors: int = Field(
-        5, ge=0, description="at most this many FLCs survive the N_std pruning (the strongest); 0 = no cap "
-        "[spec §6.4: 'tune N_std so that 1-5 FLCs survive'; a cap keeps that true at any library size, ours]"
+        5,
+        ge=0,
+        description="at most this many FLCs survive the N_std pruning (the strongest); 0 = no cap "
+        "[spec §6.4: 'tune N_std so that 1-5 FLCs survive'; a cap keeps that true at any library size, ours]",
     )
     kappa: float = Field(0.4, gt=0, description="FLC -> frame gain [BBc]")
     weight_jitter: float = Field(0.1, ge=0, description="W_FLC->ID = 1 - U(0, jitter) [BBc]")
     prediction_bias: float = Field(2.0, ge=1, description="bias on the predicted FLC [BBc]")
     decision_threshold: float = Field(0.9, gt=0, le=1, description="theta_dec, frame accepted above it [S §3.2], [BBc]")
     tolerance_px: int = Field(
-        8, ge=0, description="tol, vector tolerance and microsaccade radius: [BBc] 4; 8 for revisits from another "
+        8,
+        ge=0,
+        description="tol, vector tolerance and microsaccade radius: [BBc] 4; 8 for revisits from another "
         "viewpoint [ours]. 10 recalled slightly more on eval-vpr (rtabmap 0.83 vs 0.82, corridor 0.03 vs 0.01, with "
-        "verify_saccades 1) but let a recognition >= 2 m from the truth into a simulated mapper run"
+        "verify_saccades 1) but let a recognition >= 2 m from the truth into a simulated mapper run",
     )
     microsaccade_gain: float = Field(
-        0.0, ge=0, le=1, description="the microsaccade's search radius grows by this fraction of the saccade's "
+        0.0,
+        ge=0,
+        le=1,
+        description="the microsaccade's search radius grows by this fraction of the saccade's "
         "amplitude (tolerance_px + gain x |d|, searched coarse to fine): saccadic endpoint scatter grows with "
         "amplitude, and a step towards or away from the scene scales every vector between features. Off (0) by "
         "default: 0.1 raised rtabmap_samples recall (3 seeds, mean 0.811 -> 0.848, no false match) but let 1 false "
-        "match through on corridor over 3 seeds (docs/MODEL.md item 15c) [ours]"
+        "match through on corridor over 3 seeds (docs/MODEL.md item 15c) [ours]",
     )
     max_prediction_errors: int = Field(2, ge=0, description="reset when wrong predictions exceed it [BBc]")
     max_total_activity: float = Field(5.0, gt=0, description="reset if sum of frame activity exceeds it [BBc]")
@@ -121,9 +129,10 @@ class VisualConfig(_Frozen):
     seed: int = Field(0, description="seed for fixation order, weight jitter and random saccade/start choices [ours]")
     contrast_clip: float = Field(0.01, ge=0, lt=0.5, description="imadjust: fraction saturated in each tail [BBc]")
     retina_mode: Literal["dog", "none"] = Field(
-        "dog", description="front end of the sensory cells (hippomap.retina): 'dog' = light adaptation, "
+        "dog",
+        description="front end of the sensory cells (hippomap.retina): 'dog' = light adaptation, "
         "centre-surround (difference of Gaussians) and divisive contrast normalisation, so sensory cells tune to local "
-        "contrast and survive lighting change; 'none' = grey levels stretched by imadjust as in [S]/[BBc] [ours]"
+        "contrast and survive lighting change; 'none' = grey levels stretched by imadjust as in [S]/[BBc] [ours]",
     )
     retina_center_sigma: float = Field(
         2.0, ge=0, description="ganglion receptive-field centre sigma, working px [ours]"
@@ -135,15 +144,20 @@ class VisualConfig(_Frozen):
         8.0, gt=0, description="pool of the divisive contrast normalisation, working px [ours]"
     )
     retina_semisaturation: float = Field(
-        0.5, ge=0, description="semi-saturation constant of the normalisation as a fraction of the frame's median "
-        "local contrast: keeps flat, noisy regions near zero [ours]"
+        0.5,
+        ge=0,
+        description="semi-saturation constant of the normalisation as a fraction of the frame's median "
+        "local contrast: keeps flat, noisy regions near zero [ours]",
     )
     retina_gain: float = Field(1.0, gt=0, description="gain of the tanh that codes the response as a grey level [ours]")
     v1_orientations: int = Field(
-        0, ge=0, le=16, description="V1 complex-cell orientation channels beside the centre-surround one "
+        0,
+        ge=0,
+        le=16,
+        description="V1 complex-cell orientation channels beside the centre-surround one "
         "(hippomap.retina; 0 = off): the sensory cells also tune to local oriented edge energy. Off by default: 4 "
         "channels cost precision on both eval-vpr sets (3 and 4 false matches over 3 seeds), 1.7-1.9x the recognition "
-        "time, and map ATE on the simulated loop (0.416 -> 0.452 m, seed 1); docs/MODEL.md item 15b [ours]"
+        "time, and map ATE on the simulated loop (0.416 -> 0.452 m, seed 1); docs/MODEL.md item 15b [ours]",
     )
     v1_sigma: float = Field(
         1.0, ge=0, description="scale of the V1 simple cells' derivative filters, working px [ours]"
@@ -155,17 +169,22 @@ class VisualConfig(_Frozen):
         8.0, gt=0, description="normalisation pool of the orientation energy, working px [ours]"
     )
     v1_semisaturation: float = Field(
-        0.5, ge=0, description="semi-saturation of the orientation normalisation, fraction of the frame's median "
-        "pooled energy [ours]"
+        0.5,
+        ge=0,
+        description="semi-saturation of the orientation normalisation, fraction of the frame's median "
+        "pooled energy [ours]",
     )
     v1_gain: float = Field(1.0, gt=0, description="gain of the tanh coding an orientation response as a rate [ours]")
     v1_stride: int = Field(
-        2, ge=1, description="the orientation channels are sampled every v1_stride px inside the fovea (complex cells "
-        "are pooled, so coarser sampling loses little and keeps the drive cost down) [ours]"
+        2,
+        ge=1,
+        description="the orientation channels are sampled every v1_stride px inside the fovea (complex cells "
+        "are pooled, so coarser sampling loses little and keeps the drive cost down) [ours]",
     )
     corner_source: Literal["gray", "retina"] = Field(
-        "gray", description="image whose Shi-Tomasi corners become fixation points: the contrast-stretched grey image "
-        "or the retina's output; corners of the retina image are noise-amplified (rtabmap recall 0.42) [ours]"
+        "gray",
+        description="image whose Shi-Tomasi corners become fixation points: the contrast-stretched grey image "
+        "or the retina's output; corners of the retina image are noise-amplified (rtabmap recall 0.42) [ours]",
     )
     corner_quality: float = Field(0.01, gt=0, le=1, description="Shi-Tomasi quality level of fixation points [ours]")
     corner_block: int = Field(3, ge=3, description="Shi-Tomasi block size [ours]")
@@ -194,34 +213,42 @@ class VisualConfig(_Frozen):
     )
     trace_hypotheses: int = Field(5, ge=1, description="leading frame hypotheses recorded per trace step [ours]")
     prediction_tolerance: float = Field(
-        0.9, gt=0, le=1,
+        0.9,
+        gt=0,
+        le=1,
         description="a prediction is confirmed when the predicted FLC's drive is >= this fraction of the best drive "
         "(1 = it must be the winner, [BBc]); < 1 because neighbouring key frames store the same physical "
         "feature [ours]",
     )
     update_on_mismatch: bool = Field(
-        True, description="a fixation whose winner is not the predicted feature still updates the frames [BBc]; "
-        "False: only the first fixation and confirmed predictions add evidence [ours]"
+        True,
+        description="a fixation whose winner is not the predicted feature still updates the frames [BBc]; "
+        "False: only the first fixation and confirmed predictions add evidence [ours]",
     )
     start_order: Literal["random", "strongest"] = Field(
-        "strongest", description="first fixation of each attempt: a random unused query corner [spec §6.2] or the "
-        "strongest unused one [ours]"
+        "strongest",
+        description="first fixation of each attempt: a random unused query corner [spec §6.2] or the "
+        "strongest unused one [ours]",
     )
     verify_saccades: int = Field(
-        2, ge=0, description="after the threshold, the accepted frame must predict this many more features correctly "
+        2,
+        ge=0,
+        description="after the threshold, the accepted frame must predict this many more features correctly "
         "([S] §3.2: 'once ... the recognition threshold [is reached], it will continue to scan'); a failure resets. "
         "[BBc] has none (0); 2 gave 100 % precision on both eval-vpr sets over 5 seeds, and no recognition >= 2 m from "
         "the truth in simulated mapper runs (1 + verify_per_reset 0.5 recalled as much on eval-vpr but let such "
-        "near misses through) [ours]"
+        "near misses through) [ours]",
     )
     verify_per_reset: float = Field(
-        0.0, ge=0, description="extra verification saccades per reset before the accepting attempt (floor of resets x "
+        0.0,
+        ge=0,
+        description="extra verification saccades per reset before the accepting attempt (floor of resets x "
         "this): each new attempt is one more chance for a wrong frame to pass, so later attempts may be made to verify "
-        "more; 0 = off [ours]"
+        "more; 0 = off [ours]",
     )
     out_of_view: Literal["reset", "skip"] = Field(
-        "reset", description="a saccade whose fovea leaves the frame resets the attempt [BBc] or picks another "
-        "feature [ours]"
+        "reset",
+        description="a saccade whose fovea leaves the frame resets the attempt [BBc] or picks another feature [ours]",
     )
 
 
@@ -234,13 +261,16 @@ class MapConfig(_Frozen):
     )
     loop_radius_m: float = Field(3.0, gt=0, description="S_loop, place-code radius of the visual check [spec §5]")
     loop_transform_radius_m: float = Field(
-        0.3, gt=0, description="gate base for a hypothesis that carries a measured transform: it says where the node "
+        0.3,
+        gt=0,
+        description="gate base for a hypothesis that carries a measured transform: it says where the node "
         "is, so only odometric drift may separate that from the node's place code; ~2 sigma of Bicocca's "
-        "loop-transform noise, measured in docs/BENCHMARKS.md [ours]"
+        "loop-transform noise, measured in docs/BENCHMARKS.md [ours]",
     )
     loop_radius_per_m: float = Field(
-        0.05, ge=0, description="gate growth per metre travelled between the two nodes: odometric drift "
-        "allowance [ours]"
+        0.05,
+        ge=0,
+        description="gate growth per metre travelled between the two nodes: odometric drift allowance [ours]",
     )
     exclude_recent: int = Field(
         5, ge=0, description="N_excl, recent nodes excluded from loop closure and pruning [spec §5]"
@@ -250,91 +280,135 @@ class MapConfig(_Frozen):
     relax_loops: int = Field(10, ge=0, description="EXP_LOOPS, relaxation sweeps per action [ORS]")
     prune_block_m: float = Field(0.5, gt=0, description="b, pruning block side, Eq. 15 [spec §4]")
     prune_online: bool | None = Field(
-        None, description="merge a new node into an older node of its block, Eq. 15 / Fig. 7 [S]. None (default): "
+        None,
+        description="merge a new node into an older node of its block, Eq. 15 / Fig. 7 [S]. None (default): "
         "only in runs of measured loop proposals (hippomap run-odometry), not in camera runs, whose revisits then "
         "keep their own nodes tied to the old ones by loop links: a merge copies the map's relative pose of the two "
         "nodes into a link as stiff as odometry and fixes the robot's offset from the old node, and in camera runs "
         "(visual links 0.2 m off) that cost 30-40 % of the map ATE, while on Bicocca's measured closures merging "
-        "gained 0.6-2.5 % [ours, docs/MODEL.md item 40]"
+        "gained 0.6-2.5 % [ours, docs/MODEL.md item 40]",
     )
     prune_graph_radius_m: float | None = Field(
-        3.0, gt=0,
+        3.0,
+        gt=0,
         description="online pruning only merges into nodes within this path length of the current node along the "
         "graph: literal Eq. 15 merging (None) is an unverified loop closure in a drifted map; 3 m measured best on "
         "Bicocca and the synthetic loop (docs/BENCHMARKS.md) [ours]",
     )
     loop_relocalise: bool = Field(
-        False, description="on a verified loop closure the matched node becomes the current node ([ORS] "
+        False,
+        description="on a verified loop closure the matched node becomes the current node ([ORS] "
         "on_set_experience); False (default) keeps the current node and only adds the loop links, so a revisit "
         "adds its own nodes, tied to the old ones by loop links: measured better on the simulated tuning set and "
-        "on all three Bicocca files, at the cost of more nodes per revisit (docs/MODEL.md item 35) [ours]"
+        "on all three Bicocca files, at the cost of more nodes per revisit (docs/MODEL.md item 35) [ours]",
     )
     loop_min_support: int = Field(
-        3, ge=1, description="mutually consistent hypotheses needed before a loop closes (geometric check); 3 is the "
-        "smallest that accepted no false proposal of B25b_0.000 (docs/BENCHMARKS.md) [ours]"
+        3,
+        ge=1,
+        description="mutually consistent hypotheses needed before a loop closes (geometric check); 3 is the "
+        "smallest that accepted no false proposal of B25b_0.000 (docs/BENCHMARKS.md) [ours]",
     )
     loop_support_window_m: float = Field(
-        5.0, gt=0, description="metres of path a hypothesis waits for support, and an accepted one backs newer ones; "
+        5.0,
+        gt=0,
+        description="metres of path a hypothesis waits for support, and an accepted one backs newer ones; "
         "in metres, not steps or frames, so that it means the same at any speed, frame rate and key-frame spacing "
-        "(B25b: the former 50 steps of 0.09 m) [ours]")
+        "(B25b: the former 50 steps of 0.09 m) [ours]",
+    )
     outside_min_support: int = Field(
-        3, ge=0, description="mutually consistent hypotheses from global searches needed before a group that names "
+        3,
+        ge=0,
+        description="mutually consistent hypotheses from global searches needed before a group that names "
         "nodes outside the gate becomes loop links (0: such hypotheses are rejected like any other outside the gate); "
-        "docs/MODEL.md [ours]")
+        "docs/MODEL.md [ours]",
+    )
     outside_window_m: float = Field(
-        15.0, gt=0, description="metres of path an outside-the-gate hypothesis waits for consistent support "
+        15.0,
+        gt=0,
+        description="metres of path an outside-the-gate hypothesis waits for consistent support "
         "(global searches run every mapper.global_search_every_m, and recognise a true revisit about one time in "
-        "three on the simulated worlds) [ours]")
+        "three on the simulated worlds) [ours]",
+    )
     loop_gate: Literal["map", "place_code"] = Field(
-        "map", description="what the gate compares: the robot's map pose with the node's ('map': the map learns from "
-        "loop closures, the place code does not) or the two place codes (Eq. 13 [S]); docs/MODEL.md [ours]")
+        "map",
+        description="what the gate compares: the robot's map pose with the node's ('map': the map learns from "
+        "loop closures, the place code does not) or the two place codes (Eq. 13 [S]); docs/MODEL.md [ours]",
+    )
     loop_view_rad: float = Field(
-        0.4, gt=0, description="a verified group's fit may turn the robot at most this far from the heading of the "
+        0.4,
+        gt=0,
+        description="a verified group's fit may turn the robot at most this far from the heading of the "
         "key frames it recognised (a recognised view is seen from roughly the same direction; half of a 60-70 "
-        "degree field of view) [ours]")
+        "degree field of view) [ours]",
+    )
     loop_fit_min_spread_m: float = Field(
-        0.5, gt=0, description="a group of visual hypotheses whose robot positions spread over at least this fits "
-        "its rotation from the positions, else from the headings (relative-pose fit, hippomap.loop_closure) [ours]")
+        0.5,
+        gt=0,
+        description="a group of visual hypotheses whose robot positions spread over at least this fits "
+        "its rotation from the positions, else from the headings (relative-pose fit, hippomap.loop_closure) [ours]",
+    )
     loop_consistency_m: float = Field(
-        0.5, gt=0, description="max translation error of a loop cycle [ours: measured on Bicocca, 1.0 let "
-        "false loops in]"
+        0.5,
+        gt=0,
+        description="max translation error of a loop cycle [ours: measured on Bicocca, 1.0 let false loops in]",
     )
     loop_consistency_rad: float = Field(
         0.1, gt=0, description="max rotation error of a loop cycle [ours: as above, was 0.3]"
     )
     loop_transform_consistency_rad: float = Field(
-        0.02, gt=0, description="max rotation error of a loop cycle between two hypotheses that both carry a measured "
+        0.02,
+        gt=0,
+        description="max rotation error of a loop cycle between two hypotheses that both carry a measured "
         "transform: such a cycle is made of two measurements and a short stretch of odometry, so it must close as "
         "tightly as the measurements do (B25b loop information 600-3800 rad^-2, i.e. sigma 0.016-0.04 rad). 0.1 let "
-        "true closures biased by 0.12 rad bend the Bicocca map below odometry's accuracy (docs/BENCHMARKS.md) [ours]"
+        "true closures biased by 0.12 rad bend the Bicocca map below odometry's accuracy (docs/BENCHMARKS.md) [ours]",
     )
     loop_consistency_rad_per_m: float = Field(
-        0.005, ge=0, description="heading drift allowed per metre of odometry inside such a cycle (robot path between "
-        "the two proposals plus map path between the two nodes), added to loop_transform_consistency_rad [ours]"
+        0.005,
+        ge=0,
+        description="heading drift allowed per metre of odometry inside such a cycle (robot path between "
+        "the two proposals plus map path between the two nodes), added to loop_transform_consistency_rad [ours]",
     )
     relax_tolerance_m: float = Field(
-        1e-4, gt=0, description="relaxation runs relax_loops sweeps per step until a sweep moves no node more than "
-        "this; then it stops until the graph changes (no work between closures) [ours]")
+        1e-4,
+        gt=0,
+        description="relaxation runs relax_loops sweeps per step until a sweep moves no node more than "
+        "this; then it stops until the graph changes (no work between closures) [ours]",
+    )
     loop_kernel: Literal["cauchy", "dcs", "none"] = Field(
-        "cauchy", description="robust kernel that sets each loop link's weight from its residual on the converged "
-        "map (iteratively reweighted relaxation); 'none' keeps every accepted link at weight 1 [ours]")
+        "cauchy",
+        description="robust kernel that sets each loop link's weight from its residual on the converged "
+        "map (iteratively reweighted relaxation); 'none' keeps every accepted link at weight 1 [ours]",
+    )
     loop_kernel_width: float = Field(
-        1.0, gt=0, description="kernel width of a measured loop link, in standard deviations of its information: a "
-        "link whose residual is this many sigmas keeps half its weight (Cauchy) [ours: Bicocca proposals]")
+        1.0,
+        gt=0,
+        description="kernel width of a measured loop link, in standard deviations of its information: a "
+        "link whose residual is this many sigmas keeps half its weight (Cauchy) [ours: Bicocca proposals]",
+    )
     visual_kernel_width: float = Field(
-        3.0, gt=0, description="kernel width of a visual loop link: its relative pose is fitted from recognitions, "
-        "not measured, so its errors reach about three times a measured link's (docs/MODEL.md) [ours]")
+        3.0,
+        gt=0,
+        description="kernel width of a visual loop link: its relative pose is fitted from recognitions, "
+        "not measured, so its errors reach about three times a measured link's (docs/MODEL.md) [ours]",
+    )
     loop_accept: Literal["robust", "verified"] = Field(
-        "robust", description="'robust': every hypothesis that passes the gate becomes a loop link weighted by the "
+        "robust",
+        description="'robust': every hypothesis that passes the gate becomes a loop link weighted by the "
         "robust kernel, and cycle consistency only decides which are verified (fitted, relocalising); 'verified': "
-        "only verified hypotheses become links, the rest are rejected [ours, docs/MODEL.md]")
+        "only verified hypotheses become links, the rest are rejected [ours, docs/MODEL.md]",
+    )
     loop_weight_init: Literal["one", "kernel"] = Field(
-        "kernel", description="weight of a new loop link: 1 (applied fully, then revised on the converged map) or the "
-        "kernel weight of its residual on the map as it stands [ours]")
+        "kernel",
+        description="weight of a new loop link: 1 (applied fully, then revised on the converged map) or the "
+        "kernel weight of its residual on the map as it stands [ours]",
+    )
     trust_verified: bool = Field(
-        False, description="verified loop links (cycle consistency) keep weight 1; the kernel weighs only unverified "
+        False,
+        description="verified loop links (cycle consistency) keep weight 1; the kernel weighs only unverified "
         "ones. False (default): the kernel revises every loop link; measured better on Bicocca and the simulated "
-        "worlds (biased true closures fade too) [ours, docs/MODEL.md]")
+        "worlds (biased true closures fade too) [ours, docs/MODEL.md]",
+    )
     reweight_tolerance: float = Field(0.05, gt=0, lt=1, description="a weight change above this relaxes again [ours]")
     solver: Literal["relax", "jacobi", "lsq"] = Field(
         "lsq",
@@ -347,97 +421,154 @@ class MapConfig(_Frozen):
         10, ge=1, description="max Gauss-Newton iterations per correction when solver='lsq' [ours]"
     )
     lsq_rotation_init: bool = Field(
-        True, description="before a whole-map lsq solve, re-initialise the poses headings first, then positions "
+        True,
+        description="before a whole-map lsq solve, re-initialise the poses headings first, then positions "
         "(two linear solves, LAGO's idea): from the odometric poses Gauss-Newton can settle with a long loop's "
         "heading error spread wrongly, leaving true closing links a metre off for the kernel to fade "
-        "[ours, docs/MODEL.md]")
+        "[ours, docs/MODEL.md]",
+    )
     lsq_window_hops: int = Field(
-        40, ge=0, description="when every link changed since the last solve agrees with the map within "
+        40,
+        ge=0,
+        description="when every link changed since the last solve agrees with the map within "
         "lsq_window_residual_m, solve only the nodes within this many links of them (10 m at the default node "
         "spacing), holding the nodes around; 0 = always the whole map. Keeps the cost of re-localising along a "
-        "mapped path independent of the map's size [ours, docs/MODEL.md]")
+        "mapped path independent of the map's size [ours, docs/MODEL.md]",
+    )
     lsq_window_every: int = Field(
-        10, ge=1, description="after this many local solves the next correction solves the whole map (and revises "
-        "the robust weights, which only a whole solve does) [ours]")
+        10,
+        ge=1,
+        description="after this many local solves the next correction solves the whole map (and revises "
+        "the robust weights, which only a whole solve does) [ours]",
+    )
     lsq_window_residual_m: float = Field(
-        0.5, gt=0, description="largest residual of a changed link that still counts as a local correction [ours]")
+        0.5, gt=0, description="largest residual of a changed link that still counts as a local correction [ours]"
+    )
     lsq_weighted: bool = Field(
-        True, description="solver='lsq' weights each link by its information (below) instead of alike: odometric "
-        "links by their length, loop links by loop_information [ours]")
+        True,
+        description="solver='lsq' weights each link by its information (below) instead of alike: odometric "
+        "links by their length, loop links by loop_information [ours]",
+    )
     odometry_information_per_m: tuple[_Positive, _Positive] = Field(
-        (362.0, 3620.0), description="information of 1 m of odometry, (x/y in m^-2, heading in rad^-2); a link of "
+        (362.0, 3620.0),
+        description="information of 1 m of odometry, (x/y in m^-2, heading in rad^-2); a link of "
         "length d gets this / d (variance grows with the path). Default: the B25b g2o files' 4000 / 40000 per 0.0905 m "
-        "step [ours, from the data]")
+        "step [ours, from the data]",
+    )
     odometry_bias_sigma: float = Field(
-        0.02, ge=0, le=1, description="lsq: estimate a constant heading bias of the odometry (rad/s: a gyro's drift, "
+        0.02,
+        ge=0,
+        le=1,
+        description="lsq: estimate a constant heading bias of the odometry (rad/s: a gyro's drift, "
         "a wheel-radius mismatch while driving) with the poses in every whole solve, with a zero-mean prior of this "
         "standard deviation (about an uncalibrated MEMS gyro's turn-on bias); each odometric link's heading change "
         "is corrected by bias x its duration, and only a significant estimate is kept "
         "(odometry_bias_significance). 0 = no bias (odometry calibration as in Kuemmerle et al. 2011) "
-        "[ours, docs/MODEL.md]")
+        "[ours, docs/MODEL.md]",
+    )
     odometry_bias_significance: float = Field(
-        3.0, ge=0, description="with odometry_bias_sigma > 0: a whole solve keeps its bias estimate only when "
+        3.0,
+        ge=0,
+        description="with odometry_bias_sigma > 0: a whole solve keeps its bias estimate only when "
         "|bias| exceeds this many of its posterior standard deviations (Wald test); otherwise the map is solved "
-        "without a bias, as with the option off. 0 = always keep it [ours, docs/MODEL.md]")
+        "without a bias, as with the option off. 0 = always keep it [ours, docs/MODEL.md]",
+    )
     odometry_turn_variance: float = Field(
-        0.0, ge=0, description="heading variance (rad^2) an odometric link gains per radian it turns, on top of its "
+        0.0,
+        ge=0,
+        description="heading variance (rad^2) an odometric link gains per radian it turns, on top of its "
         "length's: a gyro or wheel-odometry heading error grows with the turning too, so that a corner is not "
-        "held stiffer than a straight [ours, docs/MODEL.md]")
+        "held stiffer than a straight [ours, docs/MODEL.md]",
+    )
     visual_loop_information: tuple[_Positive, _Positive] = Field(
-        (100.0, 1000.0), description="information of a visual loop link (x/y, heading), as for a measured one: "
-        "softer visual links left loops partly open on the simulated worlds (docs/MODEL.md) [ours]")
+        (100.0, 1000.0),
+        description="information of a visual loop link (x/y, heading), as for a measured one: "
+        "softer visual links left loops partly open on the simulated worlds (docs/MODEL.md) [ours]",
+    )
     visual_lateral_information: float | None = Field(
-        10.0, gt=0, description="information (m^-2) of a visual loop link beside the robot's heading (y in the "
+        10.0,
+        gt=0,
+        description="information (m^-2) of a visual loop link beside the robot's heading (y in the "
         "link's source frame), apart from visual_loop_information's x/y along it: a recognition places the robot at "
         "the matched key frame, moved along its view by looming, but cannot see how far beside it the robot stands, "
         "so odometry decides there; None = as x/y. 10 chosen among 3 / 10 / 30 / None on the simulated tuning runs "
-        "[ours, docs/MODEL.md item 41]")
+        "[ours, docs/MODEL.md item 41]",
+    )
     loop_information: tuple[_Positive, _Positive] = Field(
-        (100.0, 1000.0), description="information of a loop link (x/y, heading): the middle of the B25b g2o loop "
-        "edges' 60-380 / 600-3800 [ours, from the data]")
+        (100.0, 1000.0),
+        description="information of a loop link (x/y, heading): the middle of the B25b g2o loop "
+        "edges' 60-380 / 600-3800 [ours, from the data]",
+    )
 
 
 class MapperConfig(_Frozen):
     """Glue between the pathways (paper Fig. 1)."""
 
     keyframe_interval: int | None = Field(
-        None, ge=1, description="learn a key frame every so many raw frames ([S] §3.2: 100) instead of by distance "
-        "and turn; None = by distance and turn, which means the same at any frame rate and speed [ours]")
+        None,
+        ge=1,
+        description="learn a key frame every so many raw frames ([S] §3.2: 100) instead of by distance "
+        "and turn; None = by distance and turn, which means the same at any frame rate and speed [ours]",
+    )
     keyframe_distance_m: float = Field(
-        0.5, gt=0, description="learn a key frame after this many metres of odometric path [ours: chosen on simulated "
-        "worlds, docs/MODEL.md]")
+        0.5,
+        gt=0,
+        description="learn a key frame after this many metres of odometric path [ours: chosen on simulated "
+        "worlds, docs/MODEL.md]",
+    )
     keyframe_turn_rad: float = Field(
-        0.35, gt=0, description="... or after turning this much (a robot turning on the spot sees new views) [ours]")
+        0.35, gt=0, description="... or after turning this much (a robot turning on the spot sees new views) [ours]"
+    )
     recognition_min_path_m: float = Field(
-        5.0, ge=0, description="a key frame can be recognised only after the robot has travelled this far since "
+        5.0,
+        ge=0,
+        description="a key frame can be recognised only after the robot has travelled this far since "
         "learning it: the camera still sees the scene it took a few metres back (such matches are not loop "
-        "closures); chosen on the simulated tuning worlds, docs/MODEL.md [ours]")
+        "closures); chosen on the simulated tuning worlds, docs/MODEL.md [ours]",
+    )
     global_search_after_m: float | None = Field(
-        60.0, ge=0, description="after this much odometric path without a verified loop closure, a key frame that "
+        60.0,
+        ge=0,
+        description="after this much odometric path without a verified loop closure, a key frame that "
         "the gated search did not recognise is also searched against every recognisable key frame outside the "
         "gate (its hypotheses need a consistent group: map.outside_min_support); None: never. 60 m chosen among "
-        "30 / 60 / 100 m on the simulated tuning runs (docs/MODEL.md item 38) [ours]")
+        "30 / 60 / 100 m on the simulated tuning runs (docs/MODEL.md item 38) [ours]",
+    )
     global_search_every_m: float = Field(
-        1.0, gt=0, description="metres of path between two global searches (each costs a recognition against the "
-        "whole visual memory) [ours]")
+        1.0,
+        gt=0,
+        description="metres of path between two global searches (each costs a recognition against the "
+        "whole visual memory) [ours]",
+    )
     learn_recognised: bool = Field(
-        False, description="also learn a key frame that was recognised: False learns only novel views (as "
+        False,
+        description="also learn a key frame that was recognised: False learns only novel views (as "
         "[ORS]'s view templates), so a key frame is always anchored to the node of the pass that first saw it, "
-        "and the visual memory grows with the places visited, not with the time spent there [ours, docs/MODEL.md]")
+        "and the visual memory grows with the places visited, not with the time spent there [ours, docs/MODEL.md]",
+    )
     camera_hfov_deg: float | None = Field(
-        None, gt=0, lt=180, description="horizontal field of view of the camera; when known, the image shift of a "
+        None,
+        gt=0,
+        lt=180,
+        description="horizontal field of view of the camera; when known, the image shift of a "
         "recognition's saccade correspondences turns into the robot's heading relative to the matched key frame "
-        "[ours]")
+        "[ours]",
+    )
     view_distance_m: float | None = Field(
-        3.0, gt=0, description="typical distance from the camera to the scene it sees; the scale change of a "
+        3.0,
+        gt=0,
+        description="typical distance from the camera to the scene it sees; the scale change of a "
         "recognition's saccade correspondences (looming) times this is how far the robot stands ahead of or behind "
         "the matched key frame along its view, so a visual loop link is not off by up to a key-frame spacing along "
         "the track. None = the robot is taken to be at the key frame [ours: fitted on the simulated tuning runs, "
-        "docs/MODEL.md]")
+        "docs/MODEL.md]",
+    )
     mode: Literal["map", "localise"] = Field(
-        "map", description="'map': build the map (new nodes, key frames, loop links); 'localise': recognise places "
+        "map",
+        description="'map': build the map (new nodes, key frames, loop links); 'localise': recognise places "
         "and relocalise the robot through the same loop-closure path, but add no node, link or key frame and never "
-        "move the map (localisation in a saved map, as RTAB-Map's localisation mode) [ours, docs/MODEL.md]")
+        "move the map (localisation in a saved map, as RTAB-Map's localisation mode) [ours, docs/MODEL.md]",
+    )
 
 
 class HippomapConfig(_Frozen):

@@ -33,8 +33,7 @@ class MissingExtraError(HippomapError, ImportError):
     any ``ImportError``) the missing module; the message says what needed it and the ``pip`` command."""
 
     def __init__(self, extra: str, module: str, needed_for: str) -> None:
-        super().__init__(f"{needed_for} needs {module}, which is not installed: "
-                         f"pip install 'hippomap[{extra}]'")
+        super().__init__(f"{needed_for} needs {module}, which is not installed: pip install 'hippomap[{extra}]'")
         self.extra = extra
         self.name = module
 

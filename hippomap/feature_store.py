@@ -84,13 +84,19 @@ class FlcSubset:
         self.exact_all = self.n <= cfg.index_shortlist + cfg.stats_sample
         if self.is_all:
             # stratified sample of the units outside the shortlist (local = global indices)
-            self.sample = None if self.exact_all else np.unique(
-                np.linspace(0, self.n - 1, cfg.stats_sample).round().astype(np.int64))
+            self.sample = (
+                None
+                if self.exact_all
+                else np.unique(np.linspace(0, self.n - 1, cfg.stats_sample).round().astype(np.int64))
+            )
         else:
             # the sensory layer is global: N_std statistics over the whole library, not the candidates
             n_all = mem.n_features
-            self.sample = (np.arange(n_all, dtype=np.int64) if n_all <= cfg.index_shortlist + cfg.stats_sample
-                           else np.unique(np.linspace(0, n_all - 1, cfg.stats_sample).round().astype(np.int64)))
+            self.sample = (
+                np.arange(n_all, dtype=np.int64)
+                if n_all <= cfg.index_shortlist + cfg.stats_sample
+                else np.unique(np.linspace(0, n_all - 1, cfg.stats_sample).round().astype(np.int64))
+            )
         # the FLCs whose drive is computed exactly at every fixation are fixed for the whole recognition when
         # no index is used: their learned patches (shifted into the high byte of the drive table's index)
         # and normalisers are gathered once here, not once per fixation
@@ -203,8 +209,13 @@ class FeatureStore:
         again instead of another pass through the retina. The kept arrays are read-only."""
         cfg = self.config
         last = self._last_views
-        if (last is not None and isinstance(image, np.ndarray) and image.shape == last[0].shape
-                and image.dtype == last[0].dtype and np.array_equal(image, last[0])):
+        if (
+            last is not None
+            and isinstance(image, np.ndarray)
+            and image.shape == last[0].shape
+            and image.dtype == last[0].dtype
+            and np.array_equal(image, last[0])
+        ):
             return last[1], last[2], last[3]
         gray, work, scale = prepare_views(image, cfg)
         cimg = _channel0(work) if cfg.corner_source == "retina" else imadjust(gray, cfg.contrast_clip)
@@ -233,8 +244,12 @@ class FeatureStore:
         mask = np.zeros_like(img)
         mask[m : H - m, m : W - m] = 255
         pts = cv2.goodFeaturesToTrack(
-            img, maxCorners=int(k), qualityLevel=self.config.corner_quality, minDistance=float(min_dist),
-            mask=mask, blockSize=self.config.corner_block,
+            img,
+            maxCorners=int(k),
+            qualityLevel=self.config.corner_quality,
+            minDistance=float(min_dist),
+            mask=mask,
+            blockSize=self.config.corner_block,
         )
         if pts is None:
             return np.zeros((0, 2), np.int32)
@@ -264,8 +279,10 @@ class FeatureStore:
         return np.concatenate([g, o.transpose(2, 0, 1).ravel()])
 
     def _patches(self, img: np.ndarray, pts: np.ndarray) -> np.ndarray:
-        return np.stack([self._patch_at(img, int(x), int(y)) for x, y in pts]) if len(pts) else np.zeros(
-            (0, self.P), np.uint8
+        return (
+            np.stack([self._patch_at(img, int(x), int(y)) for x, y in pts])
+            if len(pts)
+            else np.zeros((0, self.P), np.uint8)
         )
 
     def _reserve(self, n_features: int, n_frames: int) -> None:
@@ -335,8 +352,9 @@ class FeatureStore:
         idx = np.bitwise_or(sub.rows_hi, patch[None, :], out=sub.rows_buf)
         return _gather_k(self._K, idx).sum(axis=1) / sub.rows_z
 
-    def _shortlist_drive(self, patch: np.ndarray, x: int, y: int, sub: FlcSubset,
-                         predicted: int) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    def _shortlist_drive(
+        self, patch: np.ndarray, x: int, y: int, sub: FlcSubset, predicted: int
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
         """``(T, uT, uR)``: the local indices ``T`` of the FLCs whose drive is computed exactly at
         fixation (x, y) (all of the subset, or the index's shortlist plus the ``predicted`` unit),
         their drive ``uT``, and the drive ``uR`` of the statistics sample (None: the subset is the
@@ -371,8 +389,9 @@ class FeatureStore:
             uT, uR = u[: T.size], u[T.size :]
         return T, uT, uR
 
-    def _drive_stats(self, sub: FlcSubset, T: np.ndarray, uT: np.ndarray,
-                     uR: np.ndarray | None) -> tuple[float, float, int]:
+    def _drive_stats(
+        self, sub: FlcSubset, T: np.ndarray, uT: np.ndarray, uR: np.ndarray | None
+    ) -> tuple[float, float, int]:
         """``(mean, var, N)`` of the drive over the population of ``N`` FLCs (the ``N_std`` rule):
         exact, or the exact shortlist plus a stratified estimate of the rest; with candidates the
         sensory layer is global, so the statistics are those of the library sample."""
@@ -426,8 +445,9 @@ class FeatureStore:
             n = patch.shape[0]
             f = np.asarray(state["fstart"]).shape[0]
             if patch.ndim != 2 or patch.shape[1] != mem.P:
-                raise InputError(f"state patches have shape {patch.shape}, expected (n, {mem.P}) for the configured "
-                                 "fovea")
+                raise InputError(
+                    f"state patches have shape {patch.shape}, expected (n, {mem.P}) for the configured fovea"
+                )
             mem._reserve(n, f)
             mem._patch[:n] = patch
             desc = np.asarray(state["desc"], np.float32)

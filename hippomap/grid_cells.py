@@ -165,8 +165,15 @@ class GridCells:
         """The quantised rate matrices and their indexes, built on first use and shared (see module doc)."""
         if self._tables is None:
             cfg = self.cfg
-            key = (cfg.area_size_m, cfg.resolution_m, cfg.n_modules, cfg.cells_per_module,
-                   cfg.spacing_min_m, cfg.spacing_max_m, cfg.seed)
+            key = (
+                cfg.area_size_m,
+                cfg.resolution_m,
+                cfg.n_modules,
+                cfg.cells_per_module,
+                cfg.spacing_min_m,
+                cfg.spacing_max_m,
+                cfg.seed,
+            )
             with _CACHE_LOCK:
                 tables = _CACHE.get(key)
                 if tables is None:

@@ -143,16 +143,27 @@ def record_iteration(source: GridCells | RateTables, T, cfg: SpatialConfig | Non
         var = ((m * sxx - sx * sx) / (m * m) * d2, (m * syy - sy * sy) / (m * m) * d2) if m else (0.0, 0.0)
         frozen = np.array(cur, dtype=np.int64)
         frozen.flags.writeable = False
-        steps.append(IterationStep(cell=int(n), lo=lo_n, hi=hi_n, ones=int(counts[n]), applied=ok,
-                                   position=frozen, variance=(float(var[0]), float(var[1])), single=single))
+        steps.append(
+            IterationStep(
+                cell=int(n),
+                lo=lo_n,
+                hi=hi_n,
+                ones=int(counts[n]),
+                applied=ok,
+                position=frozen,
+                variance=(float(var[0]), float(var[1])),
+                single=single,
+            )
+        )
         if single:
             field = PlaceField._from_indices(pos, t.size, t.resolution, iterations, skipped, applied)
             break
     return IterationRecord(T=T.copy(), tables=t, cfg=cfg, steps=tuple(steps), field=field)
 
 
-def record_stored_field(source: GridCells | RateTables, cfg: SpatialConfig, indices,
-                        max_tries: int = 512) -> IterationRecord:
+def record_stored_field(
+    source: GridCells | RateTables, cfg: SpatialConfig, indices, max_tries: int = 512
+) -> IterationRecord:
     """Re-run, with recording, the iteration that produced a stored field given by its flat ``indices``.
 
     A stored field keeps no discharges. Without rate noise, the robot's grid point ``q(r_loc)`` passes

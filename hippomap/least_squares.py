@@ -44,8 +44,9 @@ def _sqrt_information(information, m: int) -> np.ndarray:
 def _structure_key(*arrays: np.ndarray) -> tuple[bytes, ...]:
     """The bytes of a graph's index arrays (int64) or masks (bool): a memo key that tells two
     structures apart exactly."""
-    return tuple(np.ascontiguousarray(x, dtype=bool if np.asarray(x).dtype == bool else np.int64).tobytes()
-                 for x in arrays)
+    return tuple(
+        np.ascontiguousarray(x, dtype=bool if np.asarray(x).dtype == bool else np.int64).tobytes() for x in arrays
+    )
 
 
 def group_order(n_groups: int, a: np.ndarray, b: np.ndarray, keep: np.ndarray) -> np.ndarray:
@@ -90,8 +91,9 @@ def _group_order(n_groups: int, a: np.ndarray, b: np.ndarray, keep: np.ndarray) 
     cols = np.concatenate([pb, pa, np.arange(nk)])
     vals = np.concatenate([-np.ones(2 * len(pa)), deg + 1.0])
     C = sp.csc_matrix((vals, (rows, cols)), shape=(nk, nk))
-    lu = spla.splu(C, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, relax=1, panel_size=1,
-                   options={"SymmetricMode": True})
+    lu = spla.splu(
+        C, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, relax=1, panel_size=1, options={"SymmetricMode": True}
+    )
     return kept[np.argsort(lu.perm_c, kind="stable")]
 
 
@@ -101,8 +103,14 @@ def _spd_factor(A: sp.spmatrix):
     no relaxed supernodes or panels (``relax=1, panel_size=1``): a pose graph's factor has only
     small supernodes, and SuperLU's defaults made the factorisation of a 400-node map 1.7 × slower
     (0.73 vs 0.44 ms CPU, same fill)."""
-    return spla.splu(sp.csc_matrix(A), permc_spec="NATURAL", diag_pivot_thresh=0.0, relax=1, panel_size=1,
-                     options={"SymmetricMode": True})
+    return spla.splu(
+        sp.csc_matrix(A),
+        permc_spec="NATURAL",
+        diag_pivot_thresh=0.0,
+        relax=1,
+        panel_size=1,
+        options={"SymmetricMode": True},
+    )
 
 
 def _normal_pattern(col: np.ndarray, src: np.ndarray, dst: np.ndarray, bias_col: int, damp: np.ndarray):
@@ -131,7 +139,7 @@ def _normal_pattern(col: np.ndarray, src: np.ndarray, dst: np.ndarray, bias_col:
     indices = (uniq % nk).astype(np.int32)
     indptr = np.zeros(nk + 1, dtype=np.int32)
     indptr[1:] = np.cumsum(np.bincount(uniq // nk, minlength=nk))
-    s_link, s_diag = slot[: int(ok.sum())], slot[int(ok.sum()):]
+    s_link, s_diag = slot[: int(ok.sum())], slot[int(ok.sum()) :]
     g_ok = gk >= 0
 
     def H_of(Jk: np.ndarray, e: np.ndarray):
@@ -167,8 +175,9 @@ def _lsq_errors(P, src, dst, T, sw=None):
     return e, c, s, dx, dy
 
 
-def graph_cost(poses, src, dst, transforms, information=None, bias_dt=None, bias: float = 0.0,
-               bias_information: float = 0.0) -> float:
+def graph_cost(
+    poses, src, dst, transforms, information=None, bias_dt=None, bias: float = 0.0, bias_information: float = 0.0
+) -> float:
     """Sum of squared link errors in the links' own frames, weighted by ``information`` (M, 3)
     when given: the objective of :func:`solve_lsq`. With ``bias_dt``, each link's heading change
     is corrected by ``bias · bias_dt`` and the bias's prior ``bias_information · bias²`` is added,
@@ -183,31 +192,49 @@ def graph_cost(poses, src, dst, transforms, information=None, bias_dt=None, bias
     return float(np.sum(e * e)) + prior
 
 
-def _lsq_layout(n: int, src: np.ndarray, dst: np.ndarray, anchor: int | None, fixed, bdt: np.ndarray | None,
-                bias_information: float):
+def _lsq_layout(
+    n: int, src: np.ndarray, dst: np.ndarray, anchor: int | None, fixed, bdt: np.ndarray | None, bias_information: float
+):
     """:func:`_lsq_layout_of`, remembered for the last two structures (the layout depends on
     ``bdt`` only through which links carry the bias): consecutive solves of an unchanged graph
     (the robust reweighting's, a closure being applied over several steps) reuse its order and
     normal-equation pattern. Returns the same numbers as computing it (read-only arrays)."""
     fx = np.zeros(0, np.int64) if fixed is None else np.asarray(fixed, dtype=np.int64).reshape(-1)
     odo = np.zeros(0, bool) if bdt is None else np.asarray(bdt) != 0
-    return _lsq_layout_memo(int(n), *_structure_key(src, dst, fx, odo), None if anchor is None else int(anchor),
-                            fixed is None, bdt is None, float(bias_information))
+    return _lsq_layout_memo(
+        int(n),
+        *_structure_key(src, dst, fx, odo),
+        None if anchor is None else int(anchor),
+        fixed is None,
+        bdt is None,
+        float(bias_information),
+    )
 
 
 @functools.lru_cache(maxsize=2)
-def _lsq_layout_memo(n: int, src: bytes, dst: bytes, fixed: bytes, odo: bytes, anchor: int | None, no_fixed: bool,
-                     no_bias: bool, bias_information: float):
+def _lsq_layout_memo(
+    n: int,
+    src: bytes,
+    dst: bytes,
+    fixed: bytes,
+    odo: bytes,
+    anchor: int | None,
+    no_fixed: bool,
+    no_bias: bool,
+    bias_information: float,
+):
     bdt = None if no_bias else np.frombuffer(odo, bool).astype(float)
     fx = None if no_fixed else np.frombuffer(fixed, np.int64)
-    nv, idx, col, H_of = _lsq_layout_of(n, np.frombuffer(src, np.int64), np.frombuffer(dst, np.int64), anchor, fx,
-                                        bdt, bias_information)
+    nv, idx, col, H_of = _lsq_layout_of(
+        n, np.frombuffer(src, np.int64), np.frombuffer(dst, np.int64), anchor, fx, bdt, bias_information
+    )
     idx.flags.writeable = col.flags.writeable = False
     return nv, idx, col, H_of
 
 
-def _lsq_layout_of(n: int, src: np.ndarray, dst: np.ndarray, anchor: int | None, fixed, bdt: np.ndarray | None,
-                   bias_information: float):
+def _lsq_layout_of(
+    n: int, src: np.ndarray, dst: np.ndarray, anchor: int | None, fixed, bdt: np.ndarray | None, bias_information: float
+):
     """The unknowns of one :func:`solve_lsq` and their normal equations' pattern, computed once per
     solve: the three pose unknowns of every node, then the bias when ``bdt`` (the links' bias
     factors, only when the bias is estimated) is given. The anchor's and ``fixed`` nodes' unknowns
@@ -223,7 +250,7 @@ def _lsq_layout_of(n: int, src: np.ndarray, dst: np.ndarray, anchor: int | None,
         damp = np.append(damp, bias_information if bias_information > 0 else 1e-9)
     keep = np.ones(nv, dtype=bool)
     if anchor is not None:
-        keep[3 * anchor: 3 * anchor + 3] = False
+        keep[3 * anchor : 3 * anchor + 3] = False
     if fixed is not None:
         f3 = 3 * np.asarray(fixed, dtype=np.int64).reshape(-1)
         keep[np.concatenate([f3, f3 + 1, f3 + 2])] = False
@@ -373,8 +400,17 @@ def solve_lsq(
     return RelaxResult("lsq", done, shift, b)
 
 
-def bias_sigma(poses, src, dst, transforms, bias_dt, bias: float = 0.0, bias_information: float = 0.0,
-               information=None, anchor: int | None = 0) -> float:
+def bias_sigma(
+    poses,
+    src,
+    dst,
+    transforms,
+    bias_dt,
+    bias: float = 0.0,
+    bias_information: float = 0.0,
+    information=None,
+    anchor: int | None = 0,
+) -> float:
     """Posterior standard deviation of the odometry's heading bias of :func:`solve_lsq` at ``poses``
     (rad/s when ``bias_dt`` holds durations): ``sqrt([H⁻¹]_bb)`` of the weighted Gauss–Newton
     normal matrix ``H = JᵀJ`` (with the bias's prior) linearised there, i.e. the bias's marginal
@@ -404,9 +440,18 @@ def bias_sigma(poses, src, dst, transforms, bias_dt, bias: float = 0.0, bias_inf
     return float(np.sqrt(var)) if var > 0 and np.isfinite(var) else float("inf")
 
 
-def _laplacian_solve(n: int, src: np.ndarray, dst: np.ndarray, w: np.ndarray, rhs_links: np.ndarray,
-                     keep: np.ndarray, extra: np.ndarray | None = None, extra_prior: float = 0.0,
-                     extra_start: float = 0.0, order: np.ndarray | None = None):
+def _laplacian_solve(
+    n: int,
+    src: np.ndarray,
+    dst: np.ndarray,
+    w: np.ndarray,
+    rhs_links: np.ndarray,
+    keep: np.ndarray,
+    extra: np.ndarray | None = None,
+    extra_prior: float = 0.0,
+    extra_start: float = 0.0,
+    order: np.ndarray | None = None,
+):
     """Weighted least squares ``min Σ_k w_k (u_dst − u_src + extra_k β − b_k)²`` over the nodes in
     ``keep`` (the others held at 0), for one or more right-hand sides ``b`` (M, C). With ``extra``
     (M,), one more unknown β shared by all links: the change of a parameter now at ``extra_start``
@@ -453,9 +498,18 @@ def _laplacian_solve(n: int, src: np.ndarray, dst: np.ndarray, w: np.ndarray, rh
     return out[:n], (float(out[n, 0]) if extra is not None else 0.0)
 
 
-def rotation_first_init(poses: np.ndarray, src, dst, transforms, information=None, anchor: int | None = 0,
-                        fixed=None, bias_dt=None, bias: float = 0.0,
-                        bias_information: float = 0.0) -> tuple[float, float]:
+def rotation_first_init(
+    poses: np.ndarray,
+    src,
+    dst,
+    transforms,
+    information=None,
+    anchor: int | None = 0,
+    fixed=None,
+    bias_dt=None,
+    bias: float = 0.0,
+    bias_information: float = 0.0,
+) -> tuple[float, float]:
     """Re-initialise the poses of a pose graph **in place**, headings first (the LAGO idea of
     Carlone et al., 2014), and return the largest position change.
 
@@ -488,9 +542,18 @@ def rotation_first_init(poses: np.ndarray, src, dst, transforms, information=Non
     T_th = T[:, 2] if bdt is None else T[:, 2] - bias * bdt
     e_th = _wrap_inplace(P[dst, 2] - P[src, 2] - T_th)
     order = group_order(n, src, dst, keep)  # the node graph's order, for both solves
-    sol, dbias = _laplacian_solve(n, src, dst, info[:, 2], -e_th[:, None], keep, extra=bdt,
-                                  extra_prior=bias_information, extra_start=float(bias),
-                                  order=None if bdt is not None else order)
+    sol, dbias = _laplacian_solve(
+        n,
+        src,
+        dst,
+        info[:, 2],
+        -e_th[:, None],
+        keep,
+        extra=bdt,
+        extra_prior=bias_information,
+        extra_start=float(bias),
+        order=None if bdt is not None else order,
+    )
     th = P[:, 2] + sol[:, 0]
     new_bias = float(bias) + dbias
     c, s = np.cos(th[src]), np.sin(th[src])

@@ -71,7 +71,7 @@ class LoopClosing(MapCorrection):
         d = np.hypot(self._P[:n, 0] - r[0], self._P[:n, 1] - r[1])
         lim = gate_limit(self.cfg, False, drift_path(self._path, self._S[:n], self._loops.last_verified_path))
         mask = d < lim
-        mask[max(0, n - self.cfg.exclude_recent):] = False
+        mask[max(0, n - self.cfg.exclude_recent) :] = False
         mask[self._cur] = False
         ids = np.flatnonzero(mask)
         ids = ids[np.argsort(d[ids], kind="stable")]
@@ -140,10 +140,20 @@ class LoopClosing(MapCorrection):
             info = cfg.visual_loop_information
         else:  # a visual link is looser beside the robot's heading, which recognition cannot see
             info = (cfg.visual_loop_information[0], cfg.visual_lateral_information, cfg.visual_loop_information[1])
-        return Candidate(did, h.node, self._cur, link_tr, _between3(self._delta, link_tr), self._odom, self._step,
-                         self._arrival if h.node == self._cur else -1, h.transform is not None, self._path,
-                         tuple(float(v) for v in info),
-                         cfg.loop_kernel_width if h.transform is not None else cfg.visual_kernel_width)
+        return Candidate(
+            did,
+            h.node,
+            self._cur,
+            link_tr,
+            _between3(self._delta, link_tr),
+            self._odom,
+            self._step,
+            self._arrival if h.node == self._cur else -1,
+            h.transform is not None,
+            self._path,
+            tuple(float(v) for v in info),
+            cfg.loop_kernel_width if h.transform is not None else cfg.visual_kernel_width,
+        )
 
     def _screen(self, h: LoopHypothesis, cand: Candidate) -> tuple[LoopDecision, str, bool]:
         """The first checks of :meth:`propose_loop`: (pending decision with its gate distance and
@@ -204,14 +214,21 @@ class LoopClosing(MapCorrection):
         older = [c for c in book.outside if c.step != cand.step]
         # consistent in space, and in sequence: a revisit retraces the old path, so the old path between
         # the two named nodes is as long as the robot's path between the two proposals
-        ok = [c for c, good in zip(older, consistent(cfg, older, cand, P, S))
-              if good and abs((S[cand.node] - S[c.node]) - (cand.path - c.path))
-              < cfg.loop_consistency_m + 0.1 * abs(cand.path - c.path)]
+        ok = [
+            c
+            for c, good in zip(older, consistent(cfg, older, cand, P, S))
+            if good
+            and abs((S[cand.node] - S[c.node]) - (cand.path - c.path))
+            < cfg.loop_consistency_m + 0.1 * abs(cand.path - c.path)
+        ]
         group = self._fit_group(ok + [cand], []) if 1 + len(ok) >= cfg.outside_min_support else None
         if group is None:
             book.outside.append(cand)
-            d = replace(book.decisions[cand.id], reason=f"{gate_reason}: waits for consistent global recognitions",
-                        support=tuple(c.id for c in ok))
+            d = replace(
+                book.decisions[cand.id],
+                reason=f"{gate_reason}: waits for consistent global recognitions",
+                support=tuple(c.id for c in ok),
+            )
             book.decisions[cand.id] = d
             self._events.append(LoopPending(cand.id, cand.node, cand.from_node, len(ok), t))
             return d
@@ -221,9 +238,15 @@ class LoopClosing(MapCorrection):
             if link >= 0:
                 self._trust(link)
             sup = tuple(sorted(ids - {c.id}))
-            book.decisions[c.id] = replace(book.decisions[c.id], status="accepted", link=link, support=sup,
-                                           reason="outside the gate; verified by a group of consistent global "
-                                                  "recognitions", decided_step=self._step, transform=c.link_tr)
+            book.decisions[c.id] = replace(
+                book.decisions[c.id],
+                status="accepted",
+                link=link,
+                support=sup,
+                reason="outside the gate; verified by a group of consistent global recognitions",
+                decided_step=self._step,
+                transform=c.link_tr,
+            )
             self._events.append(LoopAccepted(c.id, c.node, c.from_node, link, sup, False, t))
         book.outside = [c for c in book.outside if c.id not in ids]
         book.accepted.extend(group)
@@ -267,8 +290,10 @@ class LoopClosing(MapCorrection):
         targets = np.array([place_of(c, P) for c in vis])
         T = align_group(odom, targets, cfg.loop_fit_min_spread_m)
         fitted = compose(T, odom)
-        if (np.max(np.hypot(*(fitted[:, :2] - targets[:, :2]).T)) > cfg.loop_consistency_m
-                or np.max(np.abs(wrap_angle(fitted[:, 2] - targets[:, 2]))) > cfg.loop_view_rad):
+        if (
+            np.max(np.hypot(*(fitted[:, :2] - targets[:, :2]).T)) > cfg.loop_consistency_m
+            or np.max(np.abs(wrap_angle(fitted[:, 2] - targets[:, 2]))) > cfg.loop_view_rad
+        ):
             return None
         out = []
         for c in group:
@@ -279,8 +304,14 @@ class LoopClosing(MapCorrection):
             out.append(c.with_offset(_between3(P[c.node], robot)))
         return out
 
-    def _accept(self, group: list[Candidate], reloc: Candidate, t: float, support: tuple[int, ...] = (),
-                anchors: list[Candidate] | None = None) -> None:
+    def _accept(
+        self,
+        group: list[Candidate],
+        reloc: Candidate,
+        t: float,
+        support: tuple[int, ...] = (),
+        anchors: list[Candidate] | None = None,
+    ) -> None:
         book = self._loops
         ids = {c.id for c in group}
         group = sorted(self._fit_group(group, anchors or []) or group, key=lambda c: c.id)
@@ -296,8 +327,15 @@ class LoopClosing(MapCorrection):
             reason = "gate" if self.cfg.loop_min_support <= 1 else "gate and cycle consistency"
             if link < 0:
                 reason += "; names the node it was proposed from: robot offset corrected, no link"
-            book.decisions[c.id] = replace(book.decisions[c.id], status="accepted", reason=reason, link=link,
-                                           support=sup, decided_step=self._step, transform=c.link_tr)
+            book.decisions[c.id] = replace(
+                book.decisions[c.id],
+                status="accepted",
+                reason=reason,
+                link=link,
+                support=sup,
+                decided_step=self._step,
+                transform=c.link_tr,
+            )
             self._events.append(LoopAccepted(c.id, c.node, c.from_node, link, sup, c is reloc, t))
             book.accepted.append(c)
         book.pending = [c for c in book.pending if c.id not in ids]
@@ -314,14 +352,21 @@ class LoopClosing(MapCorrection):
             if np.any(consistent(self.cfg, others, c, self._P, self._S)):  # the cycle test is symmetric in the pair
                 link = self._add_loop_link(c)
                 sup = tuple(sorted(ids))
-                book.decisions[c.id] = replace(book.decisions[c.id], status="accepted",
-                                               reason="supported by an accepted loop closure", link=link,
-                                               support=sup, decided_step=self._step, transform=c.link_tr)
+                book.decisions[c.id] = replace(
+                    book.decisions[c.id],
+                    status="accepted",
+                    reason="supported by an accepted loop closure",
+                    link=link,
+                    support=sup,
+                    decided_step=self._step,
+                    transform=c.link_tr,
+                )
                 self._events.append(LoopAccepted(c.id, c.node, c.from_node, link, sup, False, t))
                 book.accepted.append(c)
             else:
-                self._reject(c.id, "contradicted by the accepted loop closure(s) " + ", ".join(map(str, sorted(ids))),
-                             t)
+                self._reject(
+                    c.id, "contradicted by the accepted loop closure(s) " + ", ".join(map(str, sorted(ids))), t
+                )
         book.pending = still
         self._events.extend(self._optimise(t))
 
@@ -343,8 +388,15 @@ class LoopClosing(MapCorrection):
         verified = group is not None
         support = tuple(c.id for c in ok_pend + ok_acc)
         reason = "gate; weighted by the robust kernel" + ("; verified by cycle consistency" if verified else "")
-        book.decisions[cand.id] = replace(book.decisions[cand.id], status="accepted", reason=reason, link=link,
-                                          support=support, decided_step=self._step, transform=cand.link_tr)
+        book.decisions[cand.id] = replace(
+            book.decisions[cand.id],
+            status="accepted",
+            reason=reason,
+            link=link,
+            support=support,
+            decided_step=self._step,
+            transform=cand.link_tr,
+        )
         reloc = verified and cfg.loop_relocalise
         self._events.append(LoopAccepted(cand.id, cand.node, cand.from_node, link, support, reloc, t))
         if not verified:
@@ -381,8 +433,16 @@ class LoopClosing(MapCorrection):
         only corrects the robot's offset when it relocalises.
         """
         if c.node != c.from_node:
-            return self._add_link(c.from_node, c.node, c.link_tr, LOOP, 0.0, allow_duplicate=True, info=c.info,
-                                  kernel_width=c.kernel_width)
+            return self._add_link(
+                c.from_node,
+                c.node,
+                c.link_tr,
+                LOOP,
+                0.0,
+                allow_duplicate=True,
+                info=c.info,
+                kernel_width=c.kernel_width,
+            )
         k = c.arrival
         if k < 0 or k >= self._m or self._dst[k] != c.node:
             return -1
@@ -397,8 +457,9 @@ class LoopClosing(MapCorrection):
             self._dirty = True
             self._touched.append(k)
             return k
-        return self._add_link(int(self._src[k]), c.node, tr, LOOP, 0.0, allow_duplicate=True, info=c.info,
-                                  kernel_width=c.kernel_width)
+        return self._add_link(
+            int(self._src[k]), c.node, tr, LOOP, 0.0, allow_duplicate=True, info=c.info, kernel_width=c.kernel_width
+        )
 
     def _trust(self, k: int) -> None:
         """A verified loop link: weight 1, and (``trust_verified``) out of the kernel's reach,

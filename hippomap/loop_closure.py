@@ -43,13 +43,32 @@ from .geometry import between, compose, wrap_angle
 
 _Pose = tuple[float, float, float]  # (x, y, theta): the fixed length the type checker needs
 
-__all__ = ["USED_WEIGHT", "LoopHypothesis", "LoopDecision", "Candidate", "LoopBook", "gate_limit", "cycle_errors",
-           "consistent", "align_group", "looming_offset", "robust_weight", "kernel_weights", "link_info3",
-           "se2_compose", "se2_inverse", "se2_between", "vec3", "node_id", "jsonable"]
+__all__ = [
+    "USED_WEIGHT",
+    "LoopHypothesis",
+    "LoopDecision",
+    "Candidate",
+    "LoopBook",
+    "gate_limit",
+    "cycle_errors",
+    "consistent",
+    "align_group",
+    "looming_offset",
+    "robust_weight",
+    "kernel_weights",
+    "link_info3",
+    "se2_compose",
+    "se2_inverse",
+    "se2_between",
+    "vec3",
+    "node_id",
+    "jsonable",
+]
 
 
 #: a loop link whose robust weight is at least this counts as used (applied); below, it has faded
 USED_WEIGHT = 0.5
+
 
 # --------------------------------------------------------------------------- small SE(2) scalars
 def _wrap(a: float) -> float:
@@ -158,17 +177,30 @@ class LoopHypothesis:
         return self.transform is not None
 
     def to_dict(self) -> dict[str, Any]:
-        return {"node": self.node, "transform": None if self.transform is None else list(self.transform),
-                "offset": None if self.offset is None else list(self.offset),
-                "information": None if self.information is None else list(self.information),
-                "evidence": self.evidence, "source": self.source, "time": self.time, "meta": jsonable(self.meta)}
+        return {
+            "node": self.node,
+            "transform": None if self.transform is None else list(self.transform),
+            "offset": None if self.offset is None else list(self.offset),
+            "information": None if self.information is None else list(self.information),
+            "evidence": self.evidence,
+            "source": self.source,
+            "time": self.time,
+            "meta": jsonable(self.meta),
+        }
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "LoopHypothesis":
         t, o, i = d.get("transform"), d.get("offset"), d.get("information")
-        return cls(node=d["node"], transform=None if t is None else tuple(t), evidence=d.get("evidence", 1.0),
-                   source=d.get("source", "visual"), time=d.get("time", 0.0), meta=dict(d.get("meta", {})),
-                   offset=None if o is None else tuple(o), information=None if i is None else tuple(i))
+        return cls(
+            node=d["node"],
+            transform=None if t is None else tuple(t),
+            evidence=d.get("evidence", 1.0),
+            source=d.get("source", "visual"),
+            time=d.get("time", 0.0),
+            meta=dict(d.get("meta", {})),
+            offset=None if o is None else tuple(o),
+            information=None if i is None else tuple(i),
+        )
 
 
 @dataclass(frozen=True)
@@ -196,25 +228,39 @@ class LoopDecision:
     transform: tuple[float, float, float] | None = None
 
     def to_dict(self) -> dict[str, Any]:
-        return {"id": self.id, "status": self.status, "reason": self.reason, "hypothesis": self.hypothesis.to_dict(),
-                "from_node": self.from_node, "support": list(self.support),
-                "gate_distance_m": None if math.isnan(self.gate_distance) else self.gate_distance,
-                "gate_limit_m": None if math.isnan(self.gate_limit) else self.gate_limit,
-                "link": self.link, "proposed_step": self.proposed_step, "decided_step": self.decided_step,
-                "transform": None if self.transform is None else list(self.transform)}
+        return {
+            "id": self.id,
+            "status": self.status,
+            "reason": self.reason,
+            "hypothesis": self.hypothesis.to_dict(),
+            "from_node": self.from_node,
+            "support": list(self.support),
+            "gate_distance_m": None if math.isnan(self.gate_distance) else self.gate_distance,
+            "gate_limit_m": None if math.isnan(self.gate_limit) else self.gate_limit,
+            "link": self.link,
+            "proposed_step": self.proposed_step,
+            "decided_step": self.decided_step,
+            "transform": None if self.transform is None else list(self.transform),
+        }
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "LoopDecision":
         nan = float("nan")
         tr = d.get("transform")
-        return cls(id=int(d["id"]), status=d["status"], reason=d["reason"],
-                   hypothesis=LoopHypothesis.from_dict(d["hypothesis"]), from_node=int(d["from_node"]),
-                   support=tuple(int(s) for s in d.get("support", ())),
-                   gate_distance=nan if d.get("gate_distance_m") is None else float(d["gate_distance_m"]),
-                   gate_limit=nan if d.get("gate_limit_m") is None else float(d["gate_limit_m"]),
-                   link=int(d.get("link", -1)), proposed_step=int(d.get("proposed_step", 0)),
-                   decided_step=int(d.get("decided_step", -1)),
-                   transform=None if tr is None else cast(_Pose, tuple(float(v) for v in tr)))
+        return cls(
+            id=int(d["id"]),
+            status=d["status"],
+            reason=d["reason"],
+            hypothesis=LoopHypothesis.from_dict(d["hypothesis"]),
+            from_node=int(d["from_node"]),
+            support=tuple(int(s) for s in d.get("support", ())),
+            gate_distance=nan if d.get("gate_distance_m") is None else float(d["gate_distance_m"]),
+            gate_limit=nan if d.get("gate_limit_m") is None else float(d["gate_limit_m"]),
+            link=int(d.get("link", -1)),
+            proposed_step=int(d.get("proposed_step", 0)),
+            decided_step=int(d.get("decided_step", -1)),
+            transform=None if tr is None else cast(_Pose, tuple(float(v) for v in tr)),
+        )
 
 
 @dataclass(frozen=True)
@@ -245,18 +291,37 @@ class Candidate:
         return replace(self, link_tr=se2_compose(self.delta, M), M=M)
 
     def to_dict(self) -> dict[str, Any]:
-        return {"id": self.id, "node": self.node, "from_node": self.from_node, "link_tr": list(self.link_tr),
-                "M": list(self.M), "odom": list(self.odom), "step": self.step, "arrival": self.arrival,
-                "measured": self.measured, "path": self.path, "info": list(self.info),
-                "kernel_width": self.kernel_width}
+        return {
+            "id": self.id,
+            "node": self.node,
+            "from_node": self.from_node,
+            "link_tr": list(self.link_tr),
+            "M": list(self.M),
+            "odom": list(self.odom),
+            "step": self.step,
+            "arrival": self.arrival,
+            "measured": self.measured,
+            "path": self.path,
+            "info": list(self.info),
+            "kernel_width": self.kernel_width,
+        }
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "Candidate":
-        return cls(int(d["id"]), int(d["node"]), int(d["from_node"]), cast(_Pose, tuple(map(float, d["link_tr"]))),
-                   cast(_Pose, tuple(map(float, d["M"]))), cast(_Pose, tuple(map(float, d["odom"]))), int(d["step"]),
-                   int(d.get("arrival", -1)), bool(d.get("measured", False)), float(d.get("path", 0.0)),
-                   tuple(float(v) for v in d.get("info", (100.0, 1000.0))),
-                   float(d.get("kernel_width", 1.0)))
+        return cls(
+            int(d["id"]),
+            int(d["node"]),
+            int(d["from_node"]),
+            cast(_Pose, tuple(map(float, d["link_tr"]))),
+            cast(_Pose, tuple(map(float, d["M"]))),
+            cast(_Pose, tuple(map(float, d["odom"]))),
+            int(d["step"]),
+            int(d.get("arrival", -1)),
+            bool(d.get("measured", False)),
+            float(d.get("path", 0.0)),
+            tuple(float(v) for v in d.get("info", (100.0, 1000.0))),
+            float(d.get("kernel_width", 1.0)),
+        )
 
 
 # --------------------------------------------------------------------------- verification
@@ -347,7 +412,7 @@ def align_group(odom: np.ndarray, targets: np.ndarray, min_spread_m: float) -> n
     a, b = odom[:, :2], targets[:, :2]
     ca, cb = a.mean(axis=0), b.mean(axis=0)
     A, B = a - ca, b - cb
-    spread = float(np.sqrt((A ** 2).sum(axis=1).max())) * 2 if len(a) > 1 else 0.0
+    spread = float(np.sqrt((A**2).sum(axis=1).max())) * 2 if len(a) > 1 else 0.0
     if spread >= min_spread_m:
         num = float(np.sum(A[:, 0] * B[:, 1] - A[:, 1] * B[:, 0]))
         den = float(np.sum(A[:, 0] * B[:, 0] + A[:, 1] * B[:, 1]))
@@ -423,7 +488,7 @@ def kernel_weights(e: np.ndarray, info: np.ndarray, width: np.ndarray, kernel: s
     """Kernel weights of loop links with residuals ``e`` (K, 3) in their source frames,
     information ``info`` (K, 3: x, y, heading) and kernel widths ``width`` (K,): whitened by
     both, floored so that no link is divided away entirely."""
-    chi2 = (e[:, 0] ** 2 * info[:, 0] + e[:, 1] ** 2 * info[:, 1] + e[:, 2] ** 2 * info[:, 2]) / width ** 2
+    chi2 = (e[:, 0] ** 2 * info[:, 0] + e[:, 1] ** 2 * info[:, 1] + e[:, 2] ** 2 * info[:, 2]) / width**2
     return np.maximum(robust_weight(chi2, kernel), 1e-4)
 
 
@@ -457,9 +522,13 @@ class LoopBook:
         return old
 
     def state_dict(self) -> dict[str, Any]:
-        return {"decisions": [d.to_dict() for d in self.decisions], "pending": [c.to_dict() for c in self.pending],
-                "accepted": [c.to_dict() for c in self.accepted],
-                "last_verified_path": self.last_verified_path, "outside": [c.to_dict() for c in self.outside]}
+        return {
+            "decisions": [d.to_dict() for d in self.decisions],
+            "pending": [c.to_dict() for c in self.pending],
+            "accepted": [c.to_dict() for c in self.accepted],
+            "last_verified_path": self.last_verified_path,
+            "outside": [c.to_dict() for c in self.outside],
+        }
 
     @classmethod
     def from_state(cls, d: dict[str, Any]) -> "LoopBook":

@@ -72,8 +72,9 @@ class MapCorrection(MapGraph):
         self._dirty = not converged or (self._local_solves == 0 and self._reweight())
         return [MapRelaxed(res.solver, res.iterations, res.max_shift, t)]
 
-    def _solve_lsq(self, window: tuple[np.ndarray, np.ndarray, np.ndarray] | None,
-                   rotation_init: bool = True) -> tuple[RelaxResult, bool]:
+    def _solve_lsq(
+        self, window: tuple[np.ndarray, np.ndarray, np.ndarray] | None, rotation_init: bool = True
+    ) -> tuple[RelaxResult, bool]:
         """The 'lsq' solve of :meth:`_optimise`: the whole map (headings first when
         ``lsq_rotation_init`` and ``rotation_init``; the odometry's bias estimated with the poses), or
         only the nodes of ``window`` (:meth:`_local_window`) with the nodes just outside it fixed.
@@ -101,16 +102,33 @@ class MapCorrection(MapGraph):
             Q = P[nodes].copy()
             if bias:
                 bias = {**bias, "bias_dt": bias["bias_dt"][links], "estimate_bias": False}
-            res = solve_lsq(Q, local[src[links]], local[dst[links]], tr[links], iterations=cfg.lsq_iterations,
-                            anchor=None, information=info[links], fixed=local[fixed], **bias)
+            res = solve_lsq(
+                Q,
+                local[src[links]],
+                local[dst[links]],
+                tr[links],
+                iterations=cfg.lsq_iterations,
+                anchor=None,
+                information=info[links],
+                fixed=local[fixed],
+                **bias,
+            )
             P[nodes] = Q
         # a solve cut off by lsq_iterations has not converged: the weights are revised only on a
         # converged map (IRLS), else a closure still being applied looks like an outlier and fades
         converged = res.iterations < cfg.lsq_iterations or res.max_shift < cfg.relax_tolerance_m
         return res, converged
 
-    def _whole_solve(self, P: np.ndarray, src: np.ndarray, dst: np.ndarray, tr: np.ndarray, info: np.ndarray,
-                     bias: dict[str, Any], rotation_init: bool) -> RelaxResult:
+    def _whole_solve(
+        self,
+        P: np.ndarray,
+        src: np.ndarray,
+        dst: np.ndarray,
+        tr: np.ndarray,
+        info: np.ndarray,
+        bias: dict[str, Any],
+        rotation_init: bool,
+    ) -> RelaxResult:
         """A whole-map 'lsq' solve of ``P`` in place (headings first when ``rotation_init``).
 
         With the bias estimated (``bias`` not empty), the poses and the bias are solved together on
@@ -124,11 +142,13 @@ class MapCorrection(MapGraph):
         if bias:
             Q = P.copy()
             b = self._rotation_init(Q, src, dst, tr, info, bias) if rotation_init else self._bias
-            res = solve_lsq(Q, src, dst, tr, iterations=cfg.lsq_iterations, anchor=0, information=info,
-                            **{**bias, "bias": b})
+            res = solve_lsq(
+                Q, src, dst, tr, iterations=cfg.lsq_iterations, anchor=0, information=info, **{**bias, "bias": b}
+            )
             k = cfg.odometry_bias_significance
-            sigma = bias_sigma(Q, src, dst, tr, bias["bias_dt"], res.bias, bias["bias_information"], info) \
-                if k > 0 else 0.0
+            sigma = (
+                bias_sigma(Q, src, dst, tr, bias["bias_dt"], res.bias, bias["bias_information"], info) if k > 0 else 0.0
+            )
             self._bias_sigma = sigma
             if abs(res.bias) > k * sigma:
                 P[:] = Q
@@ -150,10 +170,11 @@ class MapCorrection(MapGraph):
             return {}
         m = self._m
         bdt = np.where(self._kind[:m] == ODOMETRY, self._dt[:m], 0.0)
-        return {"bias_dt": bdt, "bias": self._bias, "bias_information": 1.0 / sigma ** 2}
+        return {"bias_dt": bdt, "bias": self._bias, "bias_information": 1.0 / sigma**2}
 
-    def _rotation_init(self, P: np.ndarray, src: np.ndarray, dst: np.ndarray, tr: np.ndarray, info: np.ndarray,
-                       bias: dict[str, Any]) -> float:
+    def _rotation_init(
+        self, P: np.ndarray, src: np.ndarray, dst: np.ndarray, tr: np.ndarray, info: np.ndarray, bias: dict[str, Any]
+    ) -> float:
         """Headings-first re-initialisation before a whole solve (with the bias when it is
         estimated), kept only when it lowers the weighted cost (it cannot on a map that is
         already at its optimum). Returns the bias to start the solve from."""
@@ -178,8 +199,12 @@ class MapCorrection(MapGraph):
         loop = np.flatnonzero(self._kind[:m] == LOOP)
         if not len(loop):
             return False
-        new = kernel_weights(link_residuals(self._P[: self._n], self._src[loop], self._dst[loop], self._tr[loop]),
-                             self._linfo[loop], self._lkw[loop], cfg.loop_kernel)
+        new = kernel_weights(
+            link_residuals(self._P[: self._n], self._src[loop], self._dst[loop], self._tr[loop]),
+            self._linfo[loop],
+            self._lkw[loop],
+            cfg.loop_kernel,
+        )
         changed = np.abs(new - self._w[loop]) > cfg.reweight_tolerance
         if not changed.any():
             return False

@@ -17,9 +17,23 @@ from .errors import InputError
 from .loop_closure import LoopDecision
 from .loop_closure import jsonable as _jsonable
 
-__all__ = ["MapEvent", "NodeCreated", "NodeMerged", "LoopPending", "LoopAccepted", "LoopRejected", "MapRelaxed",
-           "NodesPruned", "FrameAssigned", "RecognitionMade", "LoopDecided", "KeyframeLearned", "InputRejected",
-           "InputFailed", "EVENT_TYPES"]
+__all__ = [
+    "MapEvent",
+    "NodeCreated",
+    "NodeMerged",
+    "LoopPending",
+    "LoopAccepted",
+    "LoopRejected",
+    "MapRelaxed",
+    "NodesPruned",
+    "FrameAssigned",
+    "RecognitionMade",
+    "LoopDecided",
+    "KeyframeLearned",
+    "InputRejected",
+    "InputFailed",
+    "EVENT_TYPES",
+]
 
 
 @dataclass(frozen=True)
@@ -246,9 +260,22 @@ class InputFailed(MapEvent):
 
 
 EVENT_TYPES: dict[str, type[MapEvent]] = {
-    c.type: c for c in (NodeCreated, NodeMerged, LoopPending, LoopAccepted, LoopRejected, MapRelaxed,
-                        NodesPruned, FrameAssigned, RecognitionMade, LoopDecided, KeyframeLearned, InputRejected,
-                        InputFailed)
+    c.type: c
+    for c in (
+        NodeCreated,
+        NodeMerged,
+        LoopPending,
+        LoopAccepted,
+        LoopRejected,
+        MapRelaxed,
+        NodesPruned,
+        FrameAssigned,
+        RecognitionMade,
+        LoopDecided,
+        KeyframeLearned,
+        InputRejected,
+        InputFailed,
+    )
 }
 """Event classes by their ``type``."""
 

@@ -176,7 +176,7 @@ class MapGraph:
             old = getattr(self, name)
             new = np.empty((cap,) + old.shape[1:], dtype=old.dtype)
             new[: len(old)] = old
-            new[len(old):] = np.nan if name == "_C" else (-1 if name == "_F" else 0)
+            new[len(old) :] = np.nan if name == "_C" else (-1 if name == "_F" else 0)
             setattr(self, name, new)
 
     def _grow_links(self) -> None:
@@ -200,8 +200,17 @@ class MapGraph:
         self._n += 1
         return i
 
-    def _add_link(self, a: int, b: int, tr, kind: int, dt: float, allow_duplicate: bool = False,
-                  info: tuple[float, ...] | None = None, kernel_width: float | None = None) -> int:
+    def _add_link(
+        self,
+        a: int,
+        b: int,
+        tr,
+        kind: int,
+        dt: float,
+        allow_duplicate: bool = False,
+        info: tuple[float, ...] | None = None,
+        kernel_width: float | None = None,
+    ) -> int:
         """Append link a→b (ORS ``on_create_link``); -1 if the pair is already linked (either way)."""
         key = (min(a, b), max(a, b))
         if key in self._pairs and not allow_duplicate:
@@ -225,7 +234,7 @@ class MapGraph:
             self._dirty = True
             self._touched.append(k)
         if kind == LOOP and self.cfg.loop_weight_init == "kernel":
-            self._w[k] = kernel_weights(r, self._linfo[k: k + 1], self._lkw[k: k + 1], self.cfg.loop_kernel)[0]
+            self._w[k] = kernel_weights(r, self._linfo[k : k + 1], self._lkw[k : k + 1], self.cfg.loop_kernel)[0]
         return k
 
     def _rebuild_link_index(self, colours=None) -> None:
@@ -269,7 +278,7 @@ class MapGraph:
         d = self.cfg.mu_p * np.hypot(self._C[:n, 0] - p[0], self._C[:n, 1] - p[1])
         mask = d < r
         if exclude_recent:
-            mask[max(0, n - self.cfg.exclude_recent):] = False
+            mask[max(0, n - self.cfg.exclude_recent) :] = False
             mask[self._cur] = False
         ids = np.flatnonzero(mask)
         return ids[np.argsort(d[ids], kind="stable")]

@@ -94,8 +94,9 @@ class ReuseMap(CognitiveMap):
         waiting = [c.id for c in book.pending]  # the decisions this call may accept besides its own
         decision = super().propose_loop(h)
         if was_lost:
-            book.decisions[decision.id] = _replace(book.decisions[decision.id], gate_distance=math.nan,
-                                                   gate_limit=math.nan)
+            book.decisions[decision.id] = _replace(
+                book.decisions[decision.id], gate_distance=math.nan, gate_limit=math.nan
+            )
         for i in waiting + [decision.id]:
             d = book.decisions[i]
             if d.status != "accepted" or d.decided_step != self._step:
@@ -103,7 +104,8 @@ class ReuseMap(CognitiveMap):
             checks, _, rest = d.reason.partition(";")
             if was_lost and checks.startswith("gate"):
                 checks = "no gate (the robot was not placed on the map yet)" + checks.removeprefix("gate").replace(
-                    " and ", "; ", 1)
+                    " and ", "; ", 1
+                )
             if self.localise_only and d.link < 0:
                 rest = " localisation only: robot relocalised, no link"
             book.decisions[i] = _replace(d, reason=checks + (";" + rest if rest else ""))
@@ -129,7 +131,7 @@ class ReuseMap(CognitiveMap):
         k = self.component_from
         new_from = se2_compose(tuple(self._P[c.node]), se2_inverse(c.link_tr))
         T = np.asarray(se2_compose(new_from, se2_inverse(tuple(self._P[c.from_node]))))
-        P = self._P[k: self._n]
+        P = self._P[k : self._n]
         P[:] = compose(T, P)
         P[:, 2] = wrap_angle(P[:, 2])
         self.configure(self.localise_only, False)

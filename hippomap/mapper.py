@@ -139,13 +139,16 @@ class Mapper:
             raise InputError(f"from_base needs a mapper snapshot (bytes) or a Mapper, got {type(base).__name__}")
         m = cls.from_bytes(bytes(data))
         if m.cmap.lost and m.cmap.component_from >= 0:
-            raise InputError("the saved map holds a run that was never placed on it: its nodes float apart from "
-                             "the map, so it cannot be a base map")
+            raise InputError(
+                "the saved map holds a run that was never placed on it: its nodes float apart from "
+                "the map, so it cannot be a base map"
+            )
         if overrides:
             config = config_over(m.config, overrides)
             if config.visual != m.config.visual:
-                raise InputError("a run in a saved map must keep the saved map's visual config (its key frames "
-                                 "were learned with it)")
+                raise InputError(
+                    "a run in a saved map must keep the saved map's visual config (its key frames were learned with it)"
+                )
             m.config = config
             m.cmap.own_cfg = config.map
         cfg = m.config
@@ -188,7 +191,8 @@ class Mapper:
         self.distance += math.hypot(inc[0], inc[1])
         self.turn += abs(inc[2])
         events = self.cmap.update(  # localising: no place code, so no new node
-            None if code is None or self.localise_only else (code.x, code.y, code.theta), inc, t)
+            None if code is None or self.localise_only else (code.x, code.y, code.theta), inc, t
+        )
         if code is not None:
             self.place = (code.x, code.y, code.theta)
             self.place_field = code
@@ -234,15 +238,17 @@ class Mapper:
             node = int(self.cmap.current)
             self.cmap.set_frame(node, fid)
             self.frame_node[int(fid)] = node
-            self.frame_offset[int(fid)] = cast("tuple[float, float, float]",
-                                               tuple(float(v) for v in self.cmap.robot_offset))
+            self.frame_offset[int(fid)] = cast(
+                "tuple[float, float, float]", tuple(float(v) for v in self.cmap.robot_offset)
+            )
             self.frame_path[int(fid)] = float(self.distance)
             events.append(KeyframeLearned(frame.t, int(fid), node))
             events.extend(self.cmap.take_events())
         return events
 
-    def _recognise(self, gray: np.ndarray, t: float, candidates: list[int], events: list[MapEvent],
-                   search: str = "gated") -> bool:
+    def _recognise(
+        self, gray: np.ndarray, t: float, candidates: list[int], events: list[MapEvent], search: str = "gated"
+    ) -> bool:
         """Recognise ``gray`` among ``candidates``; a match is offered to the map as a loop
         hypothesis. Appends the events; True when the map did not reject the hypothesis."""
         rec = self.memory.recognise(gray, candidates=candidates)
@@ -255,8 +261,15 @@ class Mapper:
         meta: dict[str, Any] = {"recognition": rec_id, "frame": int(rec.frame)}
         if search != "gated":
             meta["search"] = search
-        hyp = LoopHypothesis(node=self.frame_node[int(rec.frame)], transform=None, evidence=float(rec.evidence),
-                             source="visual", time=t, meta=meta, offset=self._visual_offset(rec, gray.shape[1]))
+        hyp = LoopHypothesis(
+            node=self.frame_node[int(rec.frame)],
+            transform=None,
+            evidence=float(rec.evidence),
+            source="visual",
+            time=t,
+            meta=meta,
+            offset=self._visual_offset(rec, gray.shape[1]),
+        )
         decision = self.cmap.propose_loop(hyp)
         events.append(LoopDecided(t, decision))
         events.extend(self.cmap.take_events())
@@ -268,9 +281,13 @@ class Mapper:
         is ``global_search_every_m`` behind. Not while localising in a saved map (it already
         searches the whole saved map while lost)."""
         m = self.config.mapper
-        return (m.global_search_after_m is not None and not self.localise_only and not self.cmap.lost
-                and self.cmap.path_since_verified >= m.global_search_after_m
-                and self.distance - self.global_search_path >= m.global_search_every_m)
+        return (
+            m.global_search_after_m is not None
+            and not self.localise_only
+            and not self.cmap.lost
+            and self.cmap.path_since_verified >= m.global_search_after_m
+            and self.distance - self.global_search_path >= m.global_search_every_m
+        )
 
     def _recognisable(self, frames: np.ndarray) -> list[int]:
         """The key frames a recognition may name, sorted: those learned at least
@@ -312,8 +329,10 @@ class Mapper:
         # previous frame, so that the spacing does not depend on the frame rate
         moved, turned = self.distance - self._frame_distance, self.turn - self._frame_turn
         self._frame_distance, self._frame_turn = self.distance, self.turn
-        return (self.distance - self.distance_at_keyframe >= m.keyframe_distance_m - moved / 2
-                or self.turn - self.turn_at_keyframe >= m.keyframe_turn_rad - turned / 2)
+        return (
+            self.distance - self.distance_at_keyframe >= m.keyframe_distance_m - moved / 2
+            or self.turn - self.turn_at_keyframe >= m.keyframe_turn_rad - turned / 2
+        )
 
     def _visual_offset(self, rec: Any, width: int) -> tuple[float, float, float]:
         """The robot's pose in the matched node's frame as recognition tells it: where the
@@ -411,8 +430,12 @@ class Mapper:
             "frame_turn": self._frame_turn,
             "recognitions": self.recognitions,
             "place": self.place,
-            "reuse": {"base_nodes": self.base_nodes, "lost": self.cmap.lost, "component_from": self.cmap.component_from,
-                      "fresh_start": self.cmap._fresh_start},
+            "reuse": {
+                "base_nodes": self.base_nodes,
+                "lost": self.cmap.lost,
+                "component_from": self.cmap.component_from,
+                "fresh_start": self.cmap._fresh_start,
+            },
         }
         arrays["traj"] = self._traj.view
         buf = io.BytesIO()
@@ -448,8 +471,10 @@ class Mapper:
         gs = meta.get("global_search_path")
         self.global_search_path = -math.inf if gs is None else float(gs)
         self.frame_node = {int(k): int(v) for k, v in meta["frame_node"]}
-        self.frame_offset = {int(k): cast("tuple[float, float, float]", tuple(float(x) for x in v))
-                             for k, v in meta.get("frame_offset", [])}
+        self.frame_offset = {
+            int(k): cast("tuple[float, float, float]", tuple(float(x) for x in v))
+            for k, v in meta.get("frame_offset", [])
+        }
         self.frame_path = {int(k): float(v) for k, v in meta.get("frame_path", [])}
         self.turn = float(meta.get("turn", 0.0))
         self.turn_at_keyframe = float(meta.get("turn_at_keyframe", 0.0))

@@ -29,9 +29,26 @@ if TYPE_CHECKING:
     from .mapper import Mapper
     from .spatial_pathway import PlaceCode
 
-__all__ = ["Query", "Stats", "GraphArrays", "Trajectory", "LoopDecisions", "Recognitions", "RecognitionById",
-           "ViewerState", "MapView", "PlaceCellIteration", "MapperConfig", "LastInputTime", "BaseSnapshot",
-           "MapperState", "QUERY_TYPES", "check_query", "run_query", "query_named"]
+__all__ = [
+    "Query",
+    "Stats",
+    "GraphArrays",
+    "Trajectory",
+    "LoopDecisions",
+    "Recognitions",
+    "RecognitionById",
+    "ViewerState",
+    "MapView",
+    "PlaceCellIteration",
+    "MapperConfig",
+    "LastInputTime",
+    "BaseSnapshot",
+    "MapperState",
+    "QUERY_TYPES",
+    "check_query",
+    "run_query",
+    "query_named",
+]
 
 T = TypeVar("T")
 
@@ -73,9 +90,16 @@ class GraphArrays(Query[dict[str, np.ndarray]]):
     def run(self, mapper: "Mapper") -> dict[str, np.ndarray]:
         cm = mapper.cmap
         links = cm.links
-        out = {"poses": np.array(cm.poses), "place_codes": np.array(cm.place_codes), "frames": np.array(cm.frames),
-               "times": np.array(cm.times), "source": np.array(links["source"]), "target": np.array(links["target"]),
-               "transform": np.array(links["transform"]), "kind": np.array(links["kind"])}
+        out = {
+            "poses": np.array(cm.poses),
+            "place_codes": np.array(cm.place_codes),
+            "frames": np.array(cm.frames),
+            "times": np.array(cm.times),
+            "source": np.array(links["source"]),
+            "target": np.array(links["target"]),
+            "transform": np.array(links["transform"]),
+            "kind": np.array(links["kind"]),
+        }
         if self.information:
             out["information"] = np.array(cm.weighted_link_information())
         return out
@@ -122,7 +146,7 @@ class Recognitions(Query[list[dict[str, Any]]]):
 
     def run(self, mapper: "Mapper") -> list[dict[str, Any]]:
         start = self.since_id + 1
-        return list(mapper.recognitions[start:start + self.limit])
+        return list(mapper.recognitions[start : start + self.limit])
 
 
 @dataclass(frozen=True)
@@ -263,8 +287,21 @@ class MapperState(Query[bytes]):
 
 
 QUERY_TYPES: dict[str, type[Query[Any]]] = {
-    c.op: c for c in (Stats, GraphArrays, Trajectory, LoopDecisions, Recognitions, RecognitionById, ViewerState,
-                      PlaceCellIteration, MapperConfig, LastInputTime, BaseSnapshot, MapperState)
+    c.op: c
+    for c in (
+        Stats,
+        GraphArrays,
+        Trajectory,
+        LoopDecisions,
+        Recognitions,
+        RecognitionById,
+        ViewerState,
+        PlaceCellIteration,
+        MapperConfig,
+        LastInputTime,
+        BaseSnapshot,
+        MapperState,
+    )
 }
 """The operations a mapper answers, by name."""
 
@@ -275,8 +312,10 @@ def check_query(query: Any) -> None:
     mapper in another process, and again where it runs."""
     cls = QUERY_TYPES.get(getattr(type(query), "op", ""))
     if cls is None or type(query) is not cls:
-        raise InputError(f"unknown mapper query {query!r}: a query is one of hippomap.mapper_queries' operations "
-                         f"({', '.join(sorted(QUERY_TYPES))})")
+        raise InputError(
+            f"unknown mapper query {query!r}: a query is one of hippomap.mapper_queries' operations "
+            f"({', '.join(sorted(QUERY_TYPES))})"
+        )
 
 
 def run_query(mapper: "Mapper", query: Query[T]) -> T:

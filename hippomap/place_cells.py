@@ -222,8 +222,9 @@ class PlaceCells:
             applied.append(n)
             if new.size <= n_max:
                 iy, ix = np.divmod(new.astype(np.int64), size)
-                if is_single_field(int(new.size), int(ix.sum()), int((ix * ix).sum()), int(iy.sum()),
-                                   int((iy * iy).sum()), tau):
+                if is_single_field(
+                    int(new.size), int(ix.sum()), int((ix * ix).sum()), int(iy.sum()), int((iy * iy).sum()), tau
+                ):
                     return PlaceField._from_indices(new, size, t.resolution, iterations, skipped, applied)
         return None
 
@@ -273,4 +274,3 @@ def noise_free_discharges(source: GridCells | RateTables, cfg: SpatialConfig, lo
         raise InputError(f"local position must be 2 finite numbers, got {local!r}")
     ix, iy = np.clip(np.rint(loc / t.resolution), 0, t.size - 1).astype(np.int64)
     return t.levels[:, iy * t.size + ix] * (cfg.g_max / LEVELS)
-

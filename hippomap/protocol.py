@@ -32,8 +32,9 @@ def unpack_frame(data: bytes) -> tuple[int, float, bytes]:
     when it is shorter than the header or does not start with :data:`FRAME_MAGIC`."""
     if len(data) < FRAME_HEADER.size:
         raise InputError(
-            f"binary message of {len(data)} bytes is shorter than the {FRAME_HEADER.size}-byte frame header")
+            f"binary message of {len(data)} bytes is shorter than the {FRAME_HEADER.size}-byte frame header"
+        )
     magic, mid, t = FRAME_HEADER.unpack_from(data)
     if magic != FRAME_MAGIC:
         raise InputError(f"binary message does not start with the frame magic {FRAME_MAGIC!r} (got {magic!r})")
-    return int(mid), float(t), data[FRAME_HEADER.size:]
+    return int(mid), float(t), data[FRAME_HEADER.size :]

@@ -57,8 +57,9 @@ def merged_frames(F: np.ndarray, inv: np.ndarray, keep: np.ndarray) -> tuple[np.
     return newF, int(has.sum() - (newF >= 0).sum())
 
 
-def merged_links(P: np.ndarray, rep: np.ndarray, src: np.ndarray, dst: np.ndarray, tr: np.ndarray,
-                 loop: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def merged_links(
+    P: np.ndarray, rep: np.ndarray, src: np.ndarray, dst: np.ndarray, tr: np.ndarray, loop: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """(transform of every link between the representatives of its ends, which links to keep):
     re-expressed through the map's relative pose of member -> representative; self-links dropped,
     and duplicate pairs but for the first, unless they are ``loop`` links."""
@@ -88,7 +89,7 @@ class Pruning(LoopClosing):
         b = cfg.prune_block_m
         same = np.all(np.floor(self._P[:n, :2] / b) == np.floor(np.array(q[:2]) / b), axis=1)
         same[cur] = False
-        same[max(0, n - cfg.exclude_recent):] = False
+        same[max(0, n - cfg.exclude_recent) :] = False
         if same.any() and cfg.prune_graph_radius_m is not None:
             same &= self._graph_distance(cur, cfg.prune_graph_radius_m) <= cfg.prune_graph_radius_m
         if same.any():
@@ -138,8 +139,7 @@ class Pruning(LoopClosing):
         keep = rep == np.arange(n)
         old_to_new = (np.cumsum(keep) - 1)[rep]
         newF, frames_dropped = merged_frames(self._F[:n].copy(), inv, keep)
-        new_tr, keep_link = merged_links(P, rep, self._src[:m], self._dst[:m], self._tr[:m],
-                                         self._kind[:m] == LOOP)
+        new_tr, keep_link = merged_links(P, rep, self._src[:m], self._dst[:m], self._tr[:m], self._kind[:m] == LOOP)
         # the robot, in the frame of its node's representative
         delta = _between3(P[int(rep[self._cur])], _compose3(P[self._cur], self._delta))
         # compact nodes

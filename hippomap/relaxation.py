@@ -163,8 +163,16 @@ class RelaxResult:
 class ColourGroups:
     """Links grouped by colour, ready for :func:`relax` (build once, reuse while links are unchanged)."""
 
-    def __init__(self, src: np.ndarray, dst: np.ndarray, transforms: np.ndarray, colours: np.ndarray, n: int,
-                 check: bool = True, weights: np.ndarray | None = None):
+    def __init__(
+        self,
+        src: np.ndarray,
+        dst: np.ndarray,
+        transforms: np.ndarray,
+        colours: np.ndarray,
+        n: int,
+        check: bool = True,
+        weights: np.ndarray | None = None,
+    ):
         """``weights`` (M,) in (0, 1] scale each link's correction (robust loop weights); None = 1."""
         colours = np.asarray(colours, dtype=np.int64)
         if weights is not None:
@@ -186,8 +194,14 @@ class ColourGroups:
             if not len(g):
                 continue
             s, d = src[g], dst[g]
-            item = (s, d, np.ascontiguousarray(transforms[g, 0]), np.ascontiguousarray(transforms[g, 1]),
-                    np.ascontiguousarray(transforms[g, 2]), 1.0 if weights is None else weights[g])
+            item = (
+                s,
+                d,
+                np.ascontiguousarray(transforms[g, 0]),
+                np.ascontiguousarray(transforms[g, 1]),
+                np.ascontiguousarray(transforms[g, 2]),
+                1.0 if weights is None else weights[g],
+            )
             if colours[g[0]] < 0:
                 self.overflow = item
             else:

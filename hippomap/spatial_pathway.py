@@ -154,8 +154,9 @@ class SpatialPathway:
         noise-free discharges: draws no noise, so the pathway's future outputs are unchanged. Without
         rate noise its field is the one the last step produced."""
         loc = self._pose[:2] - self._origin
-        return record_iteration(self.place_cells.tables, noise_free_discharges(self.place_cells.tables, self.cfg, loc),
-                                self.cfg)
+        return record_iteration(
+            self.place_cells.tables, noise_free_discharges(self.place_cells.tables, self.cfg, loc), self.cfg
+        )
 
     def _step(self, inc) -> PlaceCode | None:
         self._pose = compose(self._pose, inc)

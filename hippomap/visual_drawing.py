@@ -41,8 +41,13 @@ def _to_bgr(image: Any) -> np.ndarray:
     raise InputError(f"draw_trace: bad image shape {gray_or_bgr.shape}")
 
 
-def draw_trace(image: Any, recognition: Recognition, attempt: int | Literal["last", "all"] = "last",
-               fovea: int | None = None, scale: float = 1.0) -> np.ndarray:
+def draw_trace(
+    image: Any,
+    recognition: Recognition,
+    attempt: int | Literal["last", "all"] = "last",
+    fovea: int | None = None,
+    scale: float = 1.0,
+) -> np.ndarray:
     """Draw a recognition's saccade trace on the query frame -> BGR uint8 image.
 
     Numbered fixations (blue = start, green = predicted feature found, red = another
@@ -77,8 +82,16 @@ def draw_trace(image: Any, recognition: Recognition, attempt: int | Literal["las
             hf = int(round(fovea * scale)) // 2
             cv2.rectangle(canvas, (p[0] - hf, p[1] - hf), (p[0] + hf, p[1] + hf), col, 1)
         cv2.circle(canvas, p, int(5 * s), col, max(1, int(s)), cv2.LINE_AA)
-        cv2.putText(canvas, str(i), (p[0] + int(6 * s), p[1] - int(4 * s)), cv2.FONT_HERSHEY_SIMPLEX, 0.4 * s,
-                    (255, 255, 255), max(1, int(s)), cv2.LINE_AA)
+        cv2.putText(
+            canvas,
+            str(i),
+            (p[0] + int(6 * s), p[1] - int(4 * s)),
+            cv2.FONT_HERSHEY_SIMPLEX,
+            0.4 * s,
+            (255, 255, 255),
+            max(1, int(s)),
+            cv2.LINE_AA,
+        )
         prev, prev_attempt = p, st.attempt
     label = f"frame {recognition.frame_id}" if recognition.accepted else "rejected"
     label += f"  a={recognition.evidence:.2f}  resets={recognition.n_resets}"
@@ -102,8 +115,9 @@ def _scaled(canvas: np.ndarray, scale: float) -> np.ndarray:
     return cv2.resize(canvas, None, fx=scale, fy=scale, interpolation=cv2.INTER_LINEAR)
 
 
-def draw_frame_features(image: Any, memory: FeatureStore, frame_id: int,
-                        highlight: Iterable[int] | dict[int, str] = (), scale: float = 1.0) -> np.ndarray:
+def draw_frame_features(
+    image: Any, memory: FeatureStore, frame_id: int, highlight: Iterable[int] | dict[int, str] = (), scale: float = 1.0
+) -> np.ndarray:
     """Draw a learned frame's fixation points -> BGR uint8 (the learned image, any size).
 
     Points are numbered in learning order; ``highlight``: FLC ids drawn filled (e.g. the
@@ -114,18 +128,35 @@ def draw_frame_features(image: Any, memory: FeatureStore, frame_id: int,
     W = canvas.shape[1]
     to_px = W / float(info["size"][0])
     s = max(1.0, W / 320.0)
-    labels = {int(k): str(v) for k, v in highlight.items()} if isinstance(highlight, dict) else {
-        int(k): "" for k in highlight}
+    labels = (
+        {int(k): str(v) for k, v in highlight.items()}
+        if isinstance(highlight, dict)
+        else {int(k): "" for k in highlight}
+    )
     for i, (k, (x, y)) in enumerate(zip(info["features"], info["points"]), 1):
         p = (int(round(x * to_px)), int(round(y * to_px)))
         filled = int(k) in labels
-        cv2.circle(canvas, p, int(5 * s), (0, 200, 0) if filled else (255, 160, 0), -1 if filled else max(1, int(s)),
-                   cv2.LINE_AA)
+        cv2.circle(
+            canvas,
+            p,
+            int(5 * s),
+            (0, 200, 0) if filled else (255, 160, 0),
+            -1 if filled else max(1, int(s)),
+            cv2.LINE_AA,
+        )
         if isinstance(highlight, dict):  # label only the found features, by fixation number
             text = labels.get(int(k), "")
         else:
             text = str(i)
-        cv2.putText(canvas, text, (p[0] + int(6 * s), p[1] - int(4 * s)), cv2.FONT_HERSHEY_SIMPLEX, 0.4 * s,
-                    (255, 255, 255), max(1, int(s)), cv2.LINE_AA)
+        cv2.putText(
+            canvas,
+            text,
+            (p[0] + int(6 * s), p[1] - int(4 * s)),
+            cv2.FONT_HERSHEY_SIMPLEX,
+            0.4 * s,
+            (255, 255, 255),
+            max(1, int(s)),
+            cv2.LINE_AA,
+        )
     _label(canvas, f"learned frame {frame_id}", s)
     return canvas

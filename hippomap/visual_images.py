@@ -23,8 +23,9 @@ __all__ = ["check_image", "prepare_image", "prepare_views", "working_size"]
 def check_image(image: Any, name: str = "image") -> np.ndarray:
     """The frame as grey levels, or :class:`InputError` naming what is wrong with it."""
     if not isinstance(image, np.ndarray):
-        raise InputError(f"{name} must be a numpy array (H x W gray or H x W x 3 BGR, uint8), "
-                         f"got {type(image).__name__}")
+        raise InputError(
+            f"{name} must be a numpy array (H x W gray or H x W x 3 BGR, uint8), got {type(image).__name__}"
+        )
     if image.size == 0:
         raise InputError(f"{name} is empty (shape {image.shape})")
     if image.dtype != np.uint8:
@@ -72,8 +73,9 @@ def working_size(image: Any, cfg: VisualConfig, name: str = "image") -> tuple[np
     return gray, width, height
 
 
-def prepare_views(image: Any, config: VisualConfig | None = None,
-                  name: str = "image") -> tuple[np.ndarray, np.ndarray, float]:
+def prepare_views(
+    image: Any, config: VisualConfig | None = None, name: str = "image"
+) -> tuple[np.ndarray, np.ndarray, float]:
     """Like :func:`prepare_image`, also returning the working-size grey image before the retina:
     ``(gray, work, scale)``; fixation points are chosen on ``gray`` or ``work`` (``corner_source``).
     ``work`` is ``H x W`` (the ganglion image), or ``H x W x (1 + v1_orientations)`` with the V1
@@ -84,4 +86,3 @@ def prepare_views(image: Any, config: VisualConfig | None = None,
     interp = cv2.INTER_AREA if width < w0 else cv2.INTER_LINEAR
     work = cv2.resize(gray, (width, height), interpolation=interp) if (width, height) != (w0, h0) else gray.copy()
     return work, Retina(cfg).sensory_image(work), w0 / float(width)
-

@@ -109,7 +109,6 @@ class _Sense:
     upred: float = 0.0  # drive of the predicted unit
 
 
-
 @dataclass
 class _Attempt:
     """The state of one recognition attempt: from its start fixation to an accept or a reset."""
@@ -262,8 +261,11 @@ class VisualMemory(FeatureStore):
             region = img[y0 - h : y1 + h + 1, x0 - h : x1 + h + 1]
             half = (region.shape[1] // 2, region.shape[0] // 2)
             th = (tmpl.shape[1] // 2, tmpl.shape[0] // 2)
-            res = cv2.matchTemplate(cv2.resize(region, half, interpolation=cv2.INTER_AREA),
-                                    cv2.resize(tmpl, th, interpolation=cv2.INTER_AREA), cv2.TM_SQDIFF)
+            res = cv2.matchTemplate(
+                cv2.resize(region, half, interpolation=cv2.INTER_AREA),
+                cv2.resize(tmpl, th, interpolation=cv2.INTER_AREA),
+                cv2.TM_SQDIFF,
+            )
             _, _, loc, _ = cv2.minMaxLoc(res)
             cx, cy = x0 + 2 * loc[0], y0 + 2 * loc[1]
             x0, x1 = max(x0, cx - 2), min(x1, cx + 2)
@@ -315,11 +317,16 @@ class VisualMemory(FeatureStore):
                 outcome, found = self._observe(st, s, sub, a)
                 steps.append(
                     SaccadeStep(
-                        attempt=resets, fixation=cast("tuple[float, float]", _to_img(st.e, scale)),
-                        target=_to_img(st.target, scale), predicted_frame=pf,
+                        attempt=resets,
+                        fixation=cast("tuple[float, float]", _to_img(st.e, scale)),
+                        target=_to_img(st.target, scale),
+                        predicted_frame=pf,
                         predicted_feature=None if st.predicted < 0 else int(st.predicted),
-                        found_frame=None if found is None else int(self._frame[found]), found_feature=found,
-                        similarity=float(s.umax), outcome=outcome, evidence=_leading(a, cfg.trace_hypotheses),
+                        found_frame=None if found is None else int(self._frame[found]),
+                        found_feature=found,
+                        similarity=float(s.umax),
+                        outcome=outcome,
+                        evidence=_leading(a, cfg.trace_hypotheses),
                     )
                 )
                 st.first = False
@@ -332,12 +339,20 @@ class VisualMemory(FeatureStore):
                 steps[-1].event = f"reset: {st.reset_reason}"
                 resets += 1
                 if resets > cfg.max_resets:
-                    return Recognition(None, float(a.max()) if a.size else 0.0, steps, resets - 1, 0.0, size,
-                                       f"no match after {cfg.max_resets} resets")
+                    return Recognition(
+                        None,
+                        float(a.max()) if a.size else 0.0,
+                        steps,
+                        resets - 1,
+                        0.0,
+                        size,
+                        f"no match after {cfg.max_resets} resets",
+                    )
                 break
 
-    def _accepted(self, st: _Attempt, steps: list[SaccadeStep], a: np.ndarray, resets: int,
-                  size: tuple[int, int]) -> Recognition:
+    def _accepted(
+        self, st: _Attempt, steps: list[SaccadeStep], a: np.ndarray, resets: int, size: tuple[int, int]
+    ) -> Recognition:
         """The recognition of the attempt's accepted frame: its confidence (the fraction of
         confirmed predictions, discounted by the resets needed) and image correspondences."""
         fid = st.accepted_frame
@@ -421,8 +436,9 @@ class VisualMemory(FeatureStore):
                 st.reset_reason = "saccade cap reached"
         if st.reset_reason is not None:
             return False
-        k_star, tgt, land, why = self._choose_target(a, st.e, st.m, st.visited, self._rng, img,
-                                                     st.accepted_frame if st.verify_left > 0 else -1)
+        k_star, tgt, land, why = self._choose_target(
+            a, st.e, st.m, st.visited, self._rng, img, st.accepted_frame if st.verify_left > 0 else -1
+        )
         if k_star < 0:
             st.reset_reason = why
             return False
@@ -433,8 +449,9 @@ class VisualMemory(FeatureStore):
         st.predicted = k_star
         return True
 
-    def _correspondences(self, steps: list[SaccadeStep], attempt: int,
-                         fid: int) -> tuple[list[dict[str, Any]], dict[str, Any] | None]:
+    def _correspondences(
+        self, steps: list[SaccadeStep], attempt: int, fid: int
+    ) -> tuple[list[dict[str, Any]], dict[str, Any] | None]:
         """Image correspondences of the accepting attempt and their robust shift summary.
 
         One per fixation of ``attempt`` whose feature belongs to the accepted frame ``fid``:
@@ -455,12 +472,26 @@ class VisualMemory(FeatureStore):
                 continue
             sc = float(self._fscale[fid])
             mx, my = (float(v) * sc for v in self._pos[k])
-            corr.append({"query": [float(st.fixation[0]), float(st.fixation[1])], "memory": [mx, my],
-                         "feature": int(k), "outcome": st.outcome})
+            corr.append(
+                {
+                    "query": [float(st.fixation[0]), float(st.fixation[1])],
+                    "memory": [mx, my],
+                    "feature": int(k),
+                    "outcome": st.outcome,
+                }
+            )
         return corr, shift_summary(corr)
 
-    def _choose_target(self, a: np.ndarray, e: np.ndarray, m: np.ndarray, visited: list[int],
-                       rng: np.random.Generator, img: np.ndarray, frame: int = -1) -> tuple[int, Any, Any, str]:
+    def _choose_target(
+        self,
+        a: np.ndarray,
+        e: np.ndarray,
+        m: np.ndarray,
+        visited: list[int],
+        rng: np.random.Generator,
+        img: np.ndarray,
+        frame: int = -1,
+    ) -> tuple[int, Any, Any, str]:
         """Next feature k* chosen by the frame hypotheses, its saccade vector decoded from the
         grid code, and the landing point after the microsaccade (spec §2 steps 5-7).
 

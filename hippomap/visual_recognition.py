@@ -32,8 +32,7 @@ def shift_summary(correspondences: list[dict[str, Any]]) -> dict[str, Any] | Non
     d = np.array([[c["query"][0] - c["memory"][0], c["query"][1] - c["memory"][1]] for c in correspondences], float)
     med = np.median(d, axis=0)
     mad = np.median(np.abs(d - med), axis=0)
-    return {"x": float(med[0]), "y": float(med[1]), "mad_x": float(mad[0]), "mad_y": float(mad[1]),
-            "n": int(len(d))}
+    return {"x": float(med[0]), "y": float(med[1]), "mad_x": float(mad[0]), "mad_y": float(mad[1]), "n": int(len(d))}
 
 
 @dataclass
@@ -135,28 +134,40 @@ class Recognition:
         try:
             steps = [
                 SaccadeStep(
-                    attempt=int(s["attempt"]), fixation=tuple(s["fixation"]),
+                    attempt=int(s["attempt"]),
+                    fixation=tuple(s["fixation"]),
                     target=None if s.get("target") is None else tuple(s["target"]),
-                    predicted_frame=s.get("predicted_frame"), predicted_feature=s.get("predicted_feature"),
-                    found_frame=s.get("found_frame"), found_feature=s.get("found_feature"),
-                    similarity=float(s.get("similarity", 0.0)), outcome=str(s["outcome"]),
-                    evidence=[(int(f), float(a)) for f, a in s.get("evidence", [])], event=s.get("event"),
+                    predicted_frame=s.get("predicted_frame"),
+                    predicted_feature=s.get("predicted_feature"),
+                    found_frame=s.get("found_frame"),
+                    found_feature=s.get("found_feature"),
+                    similarity=float(s.get("similarity", 0.0)),
+                    outcome=str(s["outcome"]),
+                    evidence=[(int(f), float(a)) for f, a in s.get("evidence", [])],
+                    event=s.get("event"),
                 )
                 for s in d.get("steps", [])
             ]
             return cls(
                 frame_id=None if d.get("frame_id") is None else int(d["frame_id"]),
-                evidence=float(d.get("evidence") or 0.0), steps=steps, n_resets=int(d.get("n_resets", 0)),
-                confidence=float(d.get("confidence") or 0.0), image_size=tuple(d.get("image_size", (0, 0))),
+                evidence=float(d.get("evidence") or 0.0),
+                steps=steps,
+                n_resets=int(d.get("n_resets", 0)),
+                confidence=float(d.get("confidence") or 0.0),
+                image_size=tuple(d.get("image_size", (0, 0))),
                 reason=str(d.get("reason", "")),
                 correspondences=[
-                    {"query": [float(c["query"][0]), float(c["query"][1])],
-                     "memory": [float(c["memory"][0]), float(c["memory"][1])],
-                     "feature": int(c.get("feature", -1)), "outcome": str(c.get("outcome", ""))}
+                    {
+                        "query": [float(c["query"][0]), float(c["query"][1])],
+                        "memory": [float(c["memory"][0]), float(c["memory"][1])],
+                        "feature": int(c.get("feature", -1)),
+                        "outcome": str(c.get("outcome", "")),
+                    }
                     for c in d.get("correspondences") or []
                 ],
-                shift=None if not d.get("shift") else {str(k): (int(v) if k == "n" else float(v))
-                                                       for k, v in d["shift"].items()},
+                shift=None
+                if not d.get("shift")
+                else {str(k): (int(v) if k == "n" else float(v)) for k, v in d["shift"].items()},
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise InputError(f"malformed recognition dict: {exc!r}") from exc
@@ -173,11 +184,15 @@ class Recognition:
             "reason": self.reason,
             "steps": [s.to_dict() for s in self.steps],
             "correspondences": [
-                {"query": [float(c["query"][0]), float(c["query"][1])],
-                 "memory": [float(c["memory"][0]), float(c["memory"][1])],
-                 "feature": int(c["feature"]), "outcome": str(c["outcome"])} for c in self.correspondences
+                {
+                    "query": [float(c["query"][0]), float(c["query"][1])],
+                    "memory": [float(c["memory"][0]), float(c["memory"][1])],
+                    "feature": int(c["feature"]),
+                    "outcome": str(c["outcome"]),
+                }
+                for c in self.correspondences
             ],
-            "shift": None if self.shift is None else {k: (int(v) if k == "n" else float(v))
-                                                      for k, v in self.shift.items()},
+            "shift": None
+            if self.shift is None
+            else {k: (int(v) if k == "n" else float(v)) for k, v in self.shift.items()},
         }
-

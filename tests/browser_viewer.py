@@ -14,12 +14,25 @@ import cv2
 import numpy as np
 
 CHROMIUM = "/usr/bin/chromium"
-ARGS = ["--no-sandbox", "--enable-unsafe-swiftshader", "--use-angle=swiftshader", "--disable-background-networking",
-        "--disable-component-update", "--disable-sync", "--no-first-run"]
+ARGS = [
+    "--no-sandbox",
+    "--enable-unsafe-swiftshader",
+    "--use-angle=swiftshader",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--no-first-run",
+]
 #: the scene nodes every viewer page of a session with ground truth and loop closures holds
 SCENE_NODES = ("/map/nodes/0", "/loops/accepted/0", "/ground_truth/0", "/trajectories/map/0")
-LEGEND_LABELS = ("map nodes", "map trajectory", "ground truth", "raw odometry", "loop closures (accepted)",
-                 "place field")
+LEGEND_LABELS = (
+    "map nodes",
+    "map trajectory",
+    "ground truth",
+    "raw odometry",
+    "loop closures (accepted)",
+    "place field",
+)
 
 
 def launch(playwright):
@@ -60,7 +73,9 @@ def message_types(page, *prefixes: str) -> dict[str, str | None]:
     return page.evaluate(
         "ps => { const s = window.__viserSceneTree.getState();"
         " return Object.fromEntries(Object.entries(s).filter(([k]) => ps.some(p => k.startsWith(p)))"
-        ".map(([k, v]) => [k, v?.message?.type ?? null])) }", list(prefixes))
+        ".map(([k, v]) => [k, v?.message?.type ?? null])) }",
+        list(prefixes),
+    )
 
 
 def canvas(page, path: Path) -> np.ndarray:
@@ -89,6 +104,6 @@ def tan(img: np.ndarray, panels: bool = False) -> int:
     mask = (r - g > 12) & (g - b > 12) & (r - b > 35) & (r < 240)
     if not panels:
         h, w = mask.shape
-        mask[:, int(0.66 * w):] = False
-        mask[int(0.6 * h):, : int(0.2 * w)] = False
+        mask[:, int(0.66 * w) :] = False
+        mask[int(0.6 * h) :, : int(0.2 * w)] = False
     return int(mask.sum())

@@ -26,8 +26,13 @@ from tests.support.synthetic import view
 ADMIN = "hm_api_docs_admin_token_0123456789"
 AUTH = {"Authorization": f"Bearer {ADMIN}"}
 CHROMIUM = "/usr/bin/chromium"
-ARGS = ["--no-sandbox", "--disable-background-networking", "--disable-component-update", "--disable-sync",
-        "--no-first-run"]
+ARGS = [
+    "--no-sandbox",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--no-first-run",
+]
 #: every URL a page may name: src=, href=, spec-url= attributes and Swagger UI's `url: '...'`
 URL_IN_HTML = re.compile(r"""(?:src|href|spec-url)\s*=\s*["']([^"']+)["']|\burl:\s*["']([^"']+)["']""")
 CONTENT_TYPES = {".js": "javascript", ".css": "text/css", ".png": "image/png", ".json": "application/json"}
@@ -71,7 +76,7 @@ def test_docs_pages_load_every_asset_from_the_app_itself(client, page):
         parts = urlsplit(url)
         assert not parts.scheme and not parts.netloc and url.startswith("/"), url
         asset = client.get(url)
-        suffix = url[url.rfind("."):]
+        suffix = url[url.rfind(".") :]
         suffixes.add(suffix)
         assert asset.status_code == 200, url
         assert CONTENT_TYPES[suffix] in asset.headers["content-type"], (url, asset.headers["content-type"])
@@ -137,8 +142,9 @@ def test_docs_render_in_chromium_without_any_outside_network(tmp_path):
             page, browser, outside = _offline_page(p, f"{server.url}/docs")
             try:
                 page.wait_for_selector(".opblock", timeout=60_000)
-                page.wait_for_function("n => document.querySelectorAll('.opblock').length >= n", arg=n_operations,
-                                       timeout=30_000)
+                page.wait_for_function(
+                    "n => document.querySelectorAll('.opblock').length >= n", arg=n_operations, timeout=30_000
+                )
                 text = page.inner_text("body")
                 assert "hippomap server" in text and "Websockets" in text  # the description, with the protocol
                 for tag in ("sessions", "ingest", "queries", "tokens", "server", "viewer"):
@@ -172,8 +178,9 @@ def _examples(document, media: dict) -> list:
     if "example" in media:
         return [media["example"]]
     if "examples" in media:  # named examples: a value, or (binary bodies) a file's URL
-        return [e["value"] if "value" in e else {"externalValue": e["externalValue"]}
-                for e in media["examples"].values()]
+        return [
+            e["value"] if "value" in e else {"externalValue": e["externalValue"]} for e in media["examples"].values()
+        ]
     schema = media.get("schema", {})
     if "$ref" in schema:
         schema = document["components"]["schemas"][schema["$ref"].rsplit("/", 1)[1]]
@@ -202,6 +209,7 @@ def test_every_operation_with_a_body_has_valid_examples(document):
 
 def test_the_json_examples_are_accepted_by_the_server(client, document):
     """Each JSON example, sent as it stands, is accepted (2xx): they are requests that work."""
+
     def body_examples(path: str) -> list:
         return _examples(document, document["paths"][path]["post"]["requestBody"]["content"]["application/json"])
 
@@ -230,8 +238,12 @@ def test_the_json_examples_are_accepted_by_the_server(client, document):
         image = client.get(url)
         assert image.status_code == 200 and image.headers["content-type"] == media_type
         t += 1
-        r = client.post(f"/sessions/{sid}/frames", params={"t": t}, content=image.content,
-                        headers={**AUTH, "Content-Type": media_type})
+        r = client.post(
+            f"/sessions/{sid}/frames",
+            params={"t": t},
+            content=image.content,
+            headers={**AUTH, "Content-Type": media_type},
+        )
         assert r.status_code == 200, r.text
 
 
@@ -295,8 +307,10 @@ def test_real_stream_messages_match_the_documented_schemas(client, document):
         received.append(_receive(ws))
         assert received[-1]["type"] == "ack" and received[-1]["id"] == 77
         # what the document forbids, the server refuses: an undocumented field; a message type it does not list
-        for bad in ({"type": "odometry", "id": 90, "t": last_t + 1, "v": 0.1, "omega": 0.0, "speed": 3},
-                    {"type": "frame", "id": 91}):
+        for bad in (
+            {"type": "odometry", "id": 90, "t": last_t + 1, "v": 0.1, "omega": 0.0, "speed": 3},
+            {"type": "frame", "id": 91},
+        ):
             assert not client_text.is_valid(bad)
             ws.send_json(bad)
             received.append(_receive(ws))

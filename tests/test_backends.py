@@ -103,8 +103,10 @@ def test_worker_replaces_a_killed_actor_and_ends_in_the_uninterrupted_state(tmp_
     reg = metrics.registry
     n_odo = sum(1 for it in items if it[0] == "odometry")
     assert reg.get_sample_value("hippomap_step_seconds_count", {"session": "s_unit", "kind": "odometry"}) == n_odo
-    assert reg.get_sample_value("hippomap_step_seconds_count",
-                                {"session": "s_unit", "kind": "frame"}) == len(items) - n_odo
+    assert (
+        reg.get_sample_value("hippomap_step_seconds_count", {"session": "s_unit", "kind": "frame"})
+        == len(items) - n_odo
+    )
     accepted = state["stats"]["loop_closures_accepted"]
     assert accepted > 0
     assert reg.get_sample_value("hippomap_loop_closures_total", {"session": "s_unit"}) == accepted
@@ -116,8 +118,11 @@ def _ray_server(tmp_path, env=None):
     from tests.support.live import LiveServer
 
     data = tmp_path / "data"
-    return LiveServer(data, env={**ray_test_env(data), "HIPPOMAP_SNAPSHOT_EVERY_INPUTS": "60", **(env or {})},
-                      args=["--backend", "ray"])
+    return LiveServer(
+        data,
+        env={**ray_test_env(data), "HIPPOMAP_SNAPSHOT_EVERY_INPUTS": "60", **(env or {})},
+        args=["--backend", "ray"],
+    )
 
 
 def _kind_t(it):
@@ -138,8 +143,7 @@ def test_killing_a_sessions_actor_mid_stream_loses_no_acknowledged_input(tmp_pat
                 for k, it in enumerate(ITEMS):
                     if k == len(ITEMS) // 2:  # the robot keeps streaming while the actor's process is killed
                         await asyncio.to_thread(os.kill, pid0, signal.SIGKILL)
-                    futs.append(await (st.send_odometry(it[1]) if it[0] == "odometry"
-                                       else st.send_frame(it[1], it[2])))
+                    futs.append(await (st.send_odometry(it[1]) if it[0] == "odometry" else st.send_frame(it[1], it[2])))
                 acks = list(await asyncio.gather(*futs))
             return acks
 
@@ -256,8 +260,14 @@ with TestClient(app) as c:
 assert "ray" not in sys.modules, "ray was imported"
 print("ok")
 """
-    res = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120,
-                         env={**os.environ, "PYTHONPATH": str(ROOT)})
+    res = subprocess.run(
+        [sys.executable, "-c", code],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+    )
     assert res.returncode == 0 and res.stdout.strip().endswith("ok"), res.stdout + res.stderr
 
 

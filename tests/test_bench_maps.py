@@ -58,8 +58,13 @@ def test_ors_frames_parser_recovers_the_truncated_first_row(tmp_path):
     # and its newline lost, so row 1 is glued to it
     row0 = ("0,0.000,0,%.6f,0,0,-1,0,1,3398.7\n" % sys.float_info.max)[:255]
     p = tmp_path / "run_frames.csv"
-    p.write_text("frame,t,vt_id,vt_err,n_vt,action,src_exp,exp_id,n_exp,core_us\n" + row0
-                 + _row(1, 0.2, 0, us=1234.5) + _row(2, 0.4, 1, action=1, src=0) + _row(3, 0.6, 0, action=2, src=1))
+    p.write_text(
+        "frame,t,vt_id,vt_err,n_vt,action,src_exp,exp_id,n_exp,core_us\n"
+        + row0
+        + _row(1, 0.2, 0, us=1234.5)
+        + _row(2, 0.4, 1, action=1, src=0)
+        + _row(3, 0.6, 0, action=2, src=1)
+    )
     rows = peers._read_ors_frames(p)
     assert [int(r["frame"]) for r in rows] == [0, 1, 2, 3]
     assert rows[1]["t"] == pytest.approx(0.2) and rows[1]["core_us"] == pytest.approx(1234.5)
@@ -100,10 +105,21 @@ def test_ors_scoring_counts_false_links_by_ground_truth_separation():
     t, gt = _gt_circle()
     # experiences: 0 created at t=0 (angle 0), 1 at the opposite side of the circle
     created = {0: 0.0, 1: float(t[100])}
-    links = [(float(t[199]), 1, 0),   # back at the start, linked to experience 0: true (~0.16 m)
-             (float(t[10]), 0, 1)]    # near the start, linked to the far experience: false (~10 m)
-    res = peers.ORSResult(0.03, t, gt + np.array([0.05, 0.0, 0.0]), links, created,
-                          {"mean": 1.0, "median": 1.0, "first_third": 1.0, "last_third": 1.0}, 3, 2, 0.1)
+    links = [
+        (float(t[199]), 1, 0),  # back at the start, linked to experience 0: true (~0.16 m)
+        (float(t[10]), 0, 1),
+    ]  # near the start, linked to the far experience: false (~10 m)
+    res = peers.ORSResult(
+        0.03,
+        t,
+        gt + np.array([0.05, 0.0, 0.0]),
+        links,
+        created,
+        {"mean": 1.0, "median": 1.0, "first_third": 1.0, "last_third": 1.0},
+        3,
+        2,
+        0.1,
+    )
     s = bench_maps.score_ors(res, (t, gt))
     assert s["closures_accepted"] == 2 and s["closures_false"] == 1
     assert s["ate"] == pytest.approx(0.0, abs=1e-6)  # a constant offset is aligned away
@@ -166,19 +182,21 @@ def test_sim_cache_key_changes_with_arguments(tmp_path, monkeypatch):
     assert "--omega-bias" in calls[0] and calls[0][calls[0].index("--seed") + 1] == "3"
 
 
-
 def test_ors_loop_links_follow_the_experience_map_rules():
     def r(t, action, src, exp):
         return {"t": t, "action": float(action), "src_exp": float(src), "exp_id": float(exp)}
 
     N, E = peers.ORS_CREATE_NODE, peers.ORS_CREATE_EDGE
-    rows = [r(0.2, N, 0, 0),   # the first experience: no link
-            r(0.4, N, 0, 1), r(0.6, N, 1, 2),
-            r(0.8, E, 2, 0),   # a loop link
-            r(1.0, E, 0, 2),   # the same pair again: the map makes no new link
-            r(1.2, E, 2, 1),   # already linked at creation
-            r(1.4, 0, 2, 2),   # no action
-            r(1.6, E, 1, 1)]   # a self-link, not a loop closure
+    rows = [
+        r(0.2, N, 0, 0),  # the first experience: no link
+        r(0.4, N, 0, 1),
+        r(0.6, N, 1, 2),
+        r(0.8, E, 2, 0),  # a loop link
+        r(1.0, E, 0, 2),  # the same pair again: the map makes no new link
+        r(1.2, E, 2, 1),  # already linked at creation
+        r(1.4, 0, 2, 2),  # no action
+        r(1.6, E, 1, 1),
+    ]  # a self-link, not a loop closure
     links, n, self_links = peers.ors_loop_links(rows)
     assert links == [(0.8, 2, 0)]
     assert n == 4 and self_links == 1
@@ -189,9 +207,15 @@ def test_ors_frames_parser_recovers_a_row_cut_mid_run(tmp_path):
     # and glued to the next; its experience is the next row's src_exp
     cut = ("3,0.600,7,%.6f,2,1,1,2,3,999.0\n" % sys.float_info.max)[:255]
     p = tmp_path / "run_frames.csv"
-    p.write_text("frame,t,vt_id,vt_err,n_vt,action,src_exp,exp_id,n_exp,core_us\n"
-                 + _row(0, 0.0, 0) + _row(1, 0.2, 0, action=1, src=0) + _row(2, 0.4, 1, action=1, src=0)
-                 + cut + _row(4, 0.8, 2, src=2) + _row(5, 1.0, 0, action=2, src=2))
+    p.write_text(
+        "frame,t,vt_id,vt_err,n_vt,action,src_exp,exp_id,n_exp,core_us\n"
+        + _row(0, 0.0, 0)
+        + _row(1, 0.2, 0, action=1, src=0)
+        + _row(2, 0.4, 1, action=1, src=0)
+        + cut
+        + _row(4, 0.8, 2, src=2)
+        + _row(5, 1.0, 0, action=2, src=2)
+    )
     rows = peers._read_ors_frames(p)
     assert [int(r["frame"]) for r in rows] == [0, 1, 2, 3, 4, 5]
     assert int(rows[3]["exp_id"]) == 2 and int(rows[3]["action"]) == peers.ORS_CREATE_NODE
@@ -205,9 +229,16 @@ def test_ors_frames_parser_recovers_consecutive_cut_rows(tmp_path):
     cut3 = ("3,0.600,7," + big + ",2,1,1,2,3,999.0\n")[:255]
     cut4 = ("4,0.800,8," + big + ",3,1,2,3,4,999.0\n")[:255]
     p = tmp_path / "run_frames.csv"
-    p.write_text("frame,t,vt_id,vt_err,n_vt,action,src_exp,exp_id,n_exp,core_us\n"
-                 + _row(0, 0.0, 0) + _row(1, 0.2, 0, action=1, src=0) + _row(2, 0.4, 1, action=1, src=0)
-                 + cut3 + cut4 + _row(5, 1.0, 3, src=3) + _row(6, 1.2, 3, src=3))
+    p.write_text(
+        "frame,t,vt_id,vt_err,n_vt,action,src_exp,exp_id,n_exp,core_us\n"
+        + _row(0, 0.0, 0)
+        + _row(1, 0.2, 0, action=1, src=0)
+        + _row(2, 0.4, 1, action=1, src=0)
+        + cut3
+        + cut4
+        + _row(5, 1.0, 3, src=3)
+        + _row(6, 1.2, 3, src=3)
+    )
     rows = peers._read_ors_frames(p)
     assert [int(r["frame"]) for r in rows] == [0, 1, 2, 3, 4, 5, 6]
     assert [r["t"] for r in rows] == pytest.approx([0.0, 0.2, 0.4, 0.6, 0.8, 1.0, 1.2])

@@ -39,8 +39,9 @@ def test_version_is_the_package_metadata():
         main(["--version"])
     assert e.value.code == 0
     assert out.getvalue().strip() == f"hippomap {version('hippomap')}"
-    r = subprocess.run([sys.executable, "-m", "hippomap", "--version"], capture_output=True, text=True, cwd=ROOT,
-                       timeout=120)
+    r = subprocess.run(
+        [sys.executable, "-m", "hippomap", "--version"], capture_output=True, text=True, cwd=ROOT, timeout=120
+    )
     assert r.returncode == 0 and r.stdout.strip() == f"hippomap {version('hippomap')}"
 
 
@@ -50,18 +51,19 @@ def test_every_long_command_has_the_same_progress_switch(command):
     flags = {s for a in sub._actions for s in a.option_strings if "progress" in s or s == "--quiet"}
     assert flags == {"--progress", "--no-progress", "--quiet"}
     assert "--quiet" not in sub.format_help()  # the old spelling is accepted, not advertised
-    required = {"run": ["d", "--out", "o"], "run-odometry": ["d", "--loops", "l", "--out", "o"],
-                "eval-vpr": ["d", "--out", "o"], "simulate": ["loop", "--out", "o"],
-                "replay": ["d", "--server", "http://x"]}[command]
+    required = {
+        "run": ["d", "--out", "o"],
+        "run-odometry": ["d", "--loops", "l", "--out", "o"],
+        "eval-vpr": ["d", "--out", "o"],
+        "simulate": ["loop", "--out", "o"],
+        "replay": ["d", "--server", "http://x"],
+    }[command]
     parser = build_parser()
     parse = lambda *extra: parser.parse_args([command, *required, *extra])  # noqa: E731
     assert progress_enabled(parse("--progress")) is True
     assert progress_enabled(parse("--no-progress")) is False
     assert progress_enabled(parse("--quiet")) is False
     assert parse().progress is None  # left to the terminal test below
-
-
-
 
 
 @pytest.mark.parametrize("tty", [True, False])
@@ -74,10 +76,20 @@ def test_progress_defaults_to_whether_stderr_is_a_terminal(monkeypatch, tty):
 def test_simulate_progress_bar_follows_the_switch(tmp_path):
     """The switch reaches the work: a bar on stderr with --progress, none with --no-progress."""
     base = ["simulate", "corridor", "--laps", "1", "--width", "32", "--height", "24", "--frame-every", "20"]
-    shown = subprocess.run([sys.executable, "-m", "hippomap", *base, "--out", str(tmp_path / "a"), "--progress"],
-                           capture_output=True, text=True, cwd=ROOT, timeout=300)
-    hidden = subprocess.run([sys.executable, "-m", "hippomap", *base, "--out", str(tmp_path / "b"), "--no-progress"],
-                            capture_output=True, text=True, cwd=ROOT, timeout=300)
+    shown = subprocess.run(
+        [sys.executable, "-m", "hippomap", *base, "--out", str(tmp_path / "a"), "--progress"],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        timeout=300,
+    )
+    hidden = subprocess.run(
+        [sys.executable, "-m", "hippomap", *base, "--out", str(tmp_path / "b"), "--no-progress"],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        timeout=300,
+    )
     assert shown.returncode == 0 and hidden.returncode == 0, shown.stderr + hidden.stderr
     assert "frames:" in shown.stderr and "frame/s" in shown.stderr
     assert hidden.stderr == ""
@@ -104,8 +116,9 @@ def test_help_texts_have_no_sphinx_markup():
 def test_every_subcommand_help_runs():
     """``hippomap COMMAND --help`` as a user runs it: exit 0, usage printed, no markup."""
     for name in _subparsers(build_parser()):
-        r = subprocess.run([sys.executable, "-m", "hippomap", name, "--help"], capture_output=True, text=True,
-                           cwd=ROOT, timeout=120)
+        r = subprocess.run(
+            [sys.executable, "-m", "hippomap", name, "--help"], capture_output=True, text=True, cwd=ROOT, timeout=120
+        )
         assert r.returncode == 0 and r.stdout.startswith(f"usage: hippomap {name}"), r.stderr
         assert not any(mark in r.stdout for mark in MARKUP), r.stdout
 
@@ -138,14 +151,29 @@ def _odometry_drift(folder: Path) -> float:
 
 
 def test_simulate_writes_noisy_odometry_by_default_and_exact_with_no_noise(tmp_path):
-    base = ["simulate", "loop", "--laps", "1", "--width", "32", "--height", "24", "--frame-every", "50",
-            "--no-progress"]
+    base = [
+        "simulate",
+        "loop",
+        "--laps",
+        "1",
+        "--width",
+        "32",
+        "--height",
+        "24",
+        "--frame-every",
+        "50",
+        "--no-progress",
+    ]
     assert main([*base, "--out", str(tmp_path / "noisy")]) == 0
     assert main([*base, "--out", str(tmp_path / "exact"), "--no-noise"]) == 0
     assert main([*base, "--out", str(tmp_path / "bias"), "--no-noise", "--omega-bias", "0.01"]) == 0
     meta = json.loads((tmp_path / "noisy" / "sim.json").read_text())
-    assert meta["config"]["odometry_noise"] == {"sigma_v": 0.02, "sigma_omega": 0.01, "omega_bias": 0.01,
-                                                "scale_error": 0.0}
+    assert meta["config"]["odometry_noise"] == {
+        "sigma_v": 0.02,
+        "sigma_omega": 0.01,
+        "omega_bias": 0.01,
+        "scale_error": 0.0,
+    }
     assert _odometry_drift(tmp_path / "exact") < 1e-6
     assert _odometry_drift(tmp_path / "noisy") > 0.2  # one 52 m lap drifting 0.01 rad/s
     assert _odometry_drift(tmp_path / "bias") > 0.2
@@ -235,8 +263,7 @@ def test_readme_python_client_example_runs_against_a_live_server(tmp_path):
     from tests.support.live import LiveServer
 
     readme = (ROOT / "README.md").read_text()
-    m = re.search(r"<!-- python-client-example -->\n```python\n(.*?)```\n<!-- /python-client-example -->", readme,
-                  re.S)
+    m = re.search(r"<!-- python-client-example -->\n```python\n(.*?)```\n<!-- /python-client-example -->", readme, re.S)
     assert m, "README.md has no marked Python client example"
     code = m.group(1)
     assert len(code.splitlines()) <= 20
@@ -245,10 +272,14 @@ def test_readme_python_client_example_runs_against_a_live_server(tmp_path):
         assert code.count("http://127.0.0.1:8000") == 1
         script = tmp_path / "example.py"
         script.write_text(code.replace("http://127.0.0.1:8000", srv.url))
-        env = {**os.environ, "HIPPOMAP_TOKEN": srv.token,
-               "PYTHONPATH": os.pathsep.join(p for p in (str(ROOT), os.environ.get("PYTHONPATH", "")) if p)}
-        r = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, cwd=tmp_path, env=env,
-                           timeout=300)
+        env = {
+            **os.environ,
+            "HIPPOMAP_TOKEN": srv.token,
+            "PYTHONPATH": os.pathsep.join(p for p in (str(ROOT), os.environ.get("PYTHONPATH", "")) if p),
+        }
+        r = subprocess.run(
+            [sys.executable, str(script)], capture_output=True, text=True, cwd=tmp_path, env=env, timeout=300
+        )
         assert r.returncode == 0, r.stderr
         sid = re.search(r"^session (s_\w+): \d+ nodes$", r.stdout, re.M).group(1)
         printed = re.findall(r"^loop closure at t = [\d.]+ s: node (\d+) -> node (\d+)$", r.stdout, re.M)

@@ -74,11 +74,13 @@ def check_viewer_url(server, out, sid):
 def test_replay_folder_dataset_matches_offline(server, tmp_path):
     folder = write_folder(tmp_path / "run", ITEMS)
     assert [e.t for e in read_folder_dataset(folder).events()] == [
-        it[1].t if it[0] == "odometry" else it[1] for it in ITEMS]
+        it[1].t if it[0] == "odometry" else it[1] for it in ITEMS
+    ]
     cfg = tmp_path / "cfg.json"
     cfg.write_text(json.dumps(CONFIG))
-    rc, out = run_replay(str(folder), "--server", server.url, "--token", server.token, "--config", str(cfg),
-                         "--no-progress")
+    rc, out = run_replay(
+        str(folder), "--server", server.url, "--token", server.token, "--config", str(cfg), "--no-progress"
+    )
     assert rc == 0
     sid = re.search(r"session (\S+)", out).group(1)
     assert "all acknowledged" in out and "nodes" in out
@@ -96,15 +98,37 @@ def test_interrupted_replay_resumes_without_duplicates(server, tmp_path):
     full = write_folder(tmp_path / "full", ITEMS)
     with server.client() as c:
         sid = c.create_session("resume", CONFIG)["id"]
-    rc, _ = run_replay(str(half), "--server", server.url, "--token", server.token, "--session", sid, "--no-progress",
-                       "--no-wait", "--speed", "50")
+    rc, _ = run_replay(
+        str(half),
+        "--server",
+        server.url,
+        "--token",
+        server.token,
+        "--session",
+        sid,
+        "--no-progress",
+        "--no-wait",
+        "--speed",
+        "50",
+    )
     assert rc == 0
     with pytest.raises(InputError, match="--resume"):  # replaying from the start again is refused before sending
         run_replay(str(full), "--server", server.url, "--token", server.token, "--session", sid, "--no-progress")
     with server.client() as c:
         assert len(c.all_inputs(sid)) == 70  # nothing of the refused replay was stored
-    rc, out = run_replay(str(full), "--server", server.url, "--token", server.token, "--session", sid, "--no-progress",
-                         "--resume", "--window", "8")
+    rc, out = run_replay(
+        str(full),
+        "--server",
+        server.url,
+        "--token",
+        server.token,
+        "--session",
+        sid,
+        "--no-progress",
+        "--resume",
+        "--window",
+        "8",
+    )
     assert rc == 0 and "skipped 70 already stored" in out
     check_viewer_url(server, out, sid)  # an existing session: its own viewer
     with server.client() as c:
@@ -118,8 +142,9 @@ def test_sync_stream_and_client_errors(server):
         sid = c.create_session("sync", CONFIG)["id"]
         with c.stream(sid, max_in_flight=4) as st:
             assert st.hello["last_seq"] == -1 and st.hello["last_t"] is None
-            futs = [st.send_odometry(it[1]) if it[0] == "odometry" else st.send_frame(it[1], it[2])
-                    for it in ITEMS[:40]]
+            futs = [
+                st.send_odometry(it[1]) if it[0] == "odometry" else st.send_frame(it[1], it[2]) for it in ITEMS[:40]
+            ]
             bad = st.send_odometry({"t": 0.0, "v": 0.0, "omega": 0.0})  # before the last input
             st.drain()
         assert [f.result(10)["seq"] for f in futs] == list(range(40))

@@ -55,8 +55,11 @@ def true_loops(gt, first_lap, every=5, start=20):
             return []
         j = k - first_lap
         rel = compose(compose(cmap.robot_offset, between(gt[k], gt[j])), between(off[j], np.zeros(3)))
-        return [LoopHypothesis(node=int(node_at[j]), transform=tuple(rel), source="test", time=float(k),
-                               meta={"poses": [k, j]})]
+        return [
+            LoopHypothesis(
+                node=int(node_at[j]), transform=tuple(rel), source="test", time=float(k), meta={"poses": [k, j]}
+            )
+        ]
 
     return make
 
@@ -139,9 +142,17 @@ def test_loop_closure_removes_injected_heading_drift(solver):
     first_lap = len(inc) // 2
     # a strong drift (0.02 rad/m): open the gate and the cycle tolerance wide enough for it (the tolerance of
     # transform-less hypotheses), support as in [ours] v1
-    cmap = CognitiveMap(MapConfig(**VERIFIED, solver=solver, prune_online=False, loop_transform_radius_m=3.0,
-                                  loop_min_support=2, loop_transform_consistency_rad=0.1,
-                                  loop_consistency_rad_per_m=0.0))
+    cmap = CognitiveMap(
+        MapConfig(
+            **VERIFIED,
+            solver=solver,
+            prune_online=False,
+            loop_transform_radius_m=3.0,
+            loop_min_support=2,
+            loop_transform_consistency_rad=0.1,
+            loop_consistency_rad_per_m=0.0,
+        )
+    )
     node_at, off, _ = drive(cmap, noisy, hypotheses=true_loops(gt, first_lap))
     cmap.finish(iterations=2000)
     before, after = rms_xy(odo, gt), rms_xy(corrected(cmap, node_at, off), gt)
@@ -160,13 +171,27 @@ def test_weighted_lsq_trusts_exact_odometry_over_a_biased_loop():
     truth = true_loops(gt, first_lap, every=10)
 
     def biased(k, cmap, node_at, off):
-        return [LoopHypothesis(node=h.node, transform=tuple(compose(h.transform, (0.0, 0.0, 0.03))), source="test",
-                               time=h.time, meta=h.meta) for h in truth(k, cmap, node_at, off)]
+        return [
+            LoopHypothesis(
+                node=h.node,
+                transform=tuple(compose(h.transform, (0.0, 0.0, 0.03))),
+                source="test",
+                time=h.time,
+                meta=h.meta,
+            )
+            for h in truth(k, cmap, node_at, off)
+        ]
 
     errors = {}
     for weighted in (True, False):
-        cfg = MapConfig(solver="lsq", lsq_weighted=weighted, prune_online=False, loop_min_support=1,
-                        odometry_information_per_m=(1e4, 1e5), loop_information=(1.0, 10.0))
+        cfg = MapConfig(
+            solver="lsq",
+            lsq_weighted=weighted,
+            prune_online=False,
+            loop_min_support=1,
+            odometry_information_per_m=(1e4, 1e5),
+            loop_information=(1.0, 10.0),
+        )
         cmap = CognitiveMap(cfg)
         node_at, off, _ = drive(cmap, inc, hypotheses=biased)
         cmap.finish()
@@ -207,13 +232,18 @@ def test_gate_rejects_far_hypotheses_without_touching_the_map():
 
 def test_gate_radius_grows_with_the_path_travelled():
     """The same 4 m place-code discrepancy passes after a long trip, not after a short one."""
-    cfg = MapConfig(loop_min_support=1, loop_radius_m=3.0, loop_transform_radius_m=3.0, loop_radius_per_m=0.05,
-                    exclude_recent=2)
+    cfg = MapConfig(
+        loop_min_support=1, loop_radius_m=3.0, loop_transform_radius_m=3.0, loop_radius_per_m=0.05, exclude_recent=2
+    )
     short = CognitiveMap(cfg)
     drive(short, np.tile([0.1, 0.0, 0.0], (60, 1)))  # 6 m
     far = CognitiveMap(cfg)
-    drive(far, np.vstack([np.tile([0.1, 0.0, 0.0], (60, 1)), np.tile([0.0, 0.0, 0.0], (1, 1)),
-                          np.tile([0.1, 0.0, 0.0], (400, 1))]))
+    drive(
+        far,
+        np.vstack(
+            [np.tile([0.1, 0.0, 0.0], (60, 1)), np.tile([0.0, 0.0, 0.0], (1, 1)), np.tile([0.1, 0.0, 0.0], (400, 1))]
+        ),
+    )
     # node 1 (x = 0.26) claimed to be 4 m off where its place code puts it
     for cmap, expected in ((short, "rejected"), (far, "accepted")):
         rel = between(cmap.robot_pose, cmap.poses[1] + [4.0, 0.0, 0.0])
@@ -233,8 +263,15 @@ def test_random_hypotheses_are_rejected_and_never_move_nodes():
     def random_only(k, cmap, node_at, off):
         if k > first_lap and k % 7 == 0:
             node = int(rng.integers(0, max(1, cmap.node_count - 10)))
-            return [LoopHypothesis(node=node, transform=tuple(rng.uniform(-2, 2, 3)), source="random",
-                                   time=float(k), meta={"random": True})]
+            return [
+                LoopHypothesis(
+                    node=node,
+                    transform=tuple(rng.uniform(-2, 2, 3)),
+                    source="random",
+                    time=float(k),
+                    meta={"random": True},
+                )
+            ]
         return []
 
     plain = CognitiveMap(cfg)
@@ -386,8 +423,11 @@ def test_graph_gated_pruning_avoids_merging_across_a_drifted_loop():
     first_lap = len(inc) // 2
     errors, nodes = {}, {}
     common = dict(VERIFIED, solver="lsq", loop_transform_radius_m=3.0, loop_min_support=2, loop_relocalise=True)
-    for name, over in {"none": dict(prune_online=False), "literal": dict(prune_online=True, prune_graph_radius_m=None),
-                       "gated": dict(prune_online=True, prune_graph_radius_m=3.0)}.items():
+    for name, over in {
+        "none": dict(prune_online=False),
+        "literal": dict(prune_online=True, prune_graph_radius_m=None),
+        "gated": dict(prune_online=True, prune_graph_radius_m=3.0),
+    }.items():
         cmap = CognitiveMap(MapConfig(**common, **over))
         node_at, off, _ = drive(cmap, noisy, hypotheses=true_loops(gt, first_lap))
         errors[name] = rms_xy(corrected(cmap, node_at, off), gt)
@@ -400,8 +440,11 @@ def test_graph_gated_pruning_avoids_merging_across_a_drifted_loop():
 def test_hypothesis_on_a_node_reached_by_pruning_replaces_the_prune_link():
     """The robot came back and online pruning put it on old node A through an unverified prune
     link; a loop hypothesis naming A (the current node) turns that link into a measured one."""
-    cmap = CognitiveMap(MapConfig(loop_min_support=1, initial_pose=(0.0, 0.25, 0.0), exclude_recent=3,
-                                  loop_relocalise=True, prune_online=True))
+    cmap = CognitiveMap(
+        MapConfig(
+            loop_min_support=1, initial_pose=(0.0, 0.25, 0.0), exclude_recent=3, loop_relocalise=True, prune_online=True
+        )
+    )
     out_and_back = np.array([(0.05, 0.0, 0.0)] * 60 + [(0.0, 0.0, math.pi / 10)] * 10 + [(0.05, 0.0, 0.0)] * 30)
     _, _, events = drive(cmap, out_and_back)
     assert isinstance([e for e in events if e.type in ("node_created", "node_merged")][-1], NodeMerged)
@@ -544,8 +587,9 @@ def test_measured_transform_gets_the_tight_gate():
     """After a short trip a 1 m disagreement between a measured transform and the place
     code is a false proposal (odometry is good to centimetres there) and is rejected;
     the same node proposed as 'same place' (no transform) uses the wide visual radius."""
-    cfg = MapConfig(loop_min_support=1, loop_radius_m=3.0, loop_transform_radius_m=0.3, loop_radius_per_m=0.05,
-                    exclude_recent=2)
+    cfg = MapConfig(
+        loop_min_support=1, loop_radius_m=3.0, loop_transform_radius_m=0.3, loop_radius_per_m=0.05, exclude_recent=2
+    )
     cmap = CognitiveMap(cfg)
     drive(cmap, np.tile([0.1, 0.0, 0.0], (40, 1)))  # 4 m
     for offset, expected in ((1.0, "rejected"), (0.1, "accepted")):
@@ -640,8 +684,9 @@ def test_turning_links_hold_the_heading_less_stiffly():
             np.testing.assert_allclose(per_m, MapConfig().odometry_information_per_m[1])
         else:
             assert per_m[turning].max() < 0.5 * per_m[straight].min()
-            np.testing.assert_allclose(1 / info[turning, 2],
-                                       length[turning] / 3620.0 + turn_var * np.abs(tr[turning, 2]))
+            np.testing.assert_allclose(
+                1 / info[turning, 2], length[turning] / 3620.0 + turn_var * np.abs(tr[turning, 2])
+            )
 
 
 def test_faded_loop_links_are_no_path_for_online_pruning():
@@ -689,10 +734,17 @@ def _bias_run(beta, sigma_omega, significance, seed=0):
     noisy = inc.copy()
     noisy[:, 2] += beta * 0.2 + np.random.default_rng(seed).normal(0.0, sigma_omega, len(inc))
     times = 1.7e9 + 0.2 * np.arange(len(inc) + 1)
-    cfg = MapConfig(**VERIFIED, solver="lsq", prune_online=False, loop_transform_radius_m=3.0, loop_min_support=2,
-                    loop_transform_consistency_rad=0.1, loop_consistency_rad_per_m=0.0,
-                    odometry_bias_sigma=0.02 if significance is not None else 0.0,
-                    odometry_bias_significance=significance or 0.0)
+    cfg = MapConfig(
+        **VERIFIED,
+        solver="lsq",
+        prune_online=False,
+        loop_transform_radius_m=3.0,
+        loop_min_support=2,
+        loop_transform_consistency_rad=0.1,
+        loop_consistency_rad_per_m=0.0,
+        odometry_bias_sigma=0.02 if significance is not None else 0.0,
+        odometry_bias_significance=significance or 0.0,
+    )
     cmap = CognitiveMap(cfg)
     node_at, off, _ = drive(cmap, noisy, times=times, hypotheses=true_loops(gt, len(inc) // 2))
     cmap.finish()

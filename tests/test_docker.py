@@ -226,9 +226,14 @@ def built_from_dockerfile(service: dict) -> bool:
 
 
 HIPPOMAP_SERVICES = {name: s for name, s in SERVICES.items() if built_from_dockerfile(s)}
-SERVE_SERVICES = {name: s for name, s in HIPPOMAP_SERVICES.items()
-                  if any(hippomap_serve_args(line) is not None
-                         for line in command_lines(s, RUNTIME.all("ENTRYPOINT")[-1].json_args() or []))}
+SERVE_SERVICES = {
+    name: s
+    for name, s in HIPPOMAP_SERVICES.items()
+    if any(
+        hippomap_serve_args(line) is not None
+        for line in command_lines(s, RUNTIME.all("ENTRYPOINT")[-1].json_args() or [])
+    )
+}
 
 
 # ------------------------------------------------------------------ Dockerfile
@@ -250,7 +255,7 @@ def test_every_copied_path_exists_and_reaches_the_build_context():
         flags, words = ins.flags_and_rest()
         *srcs, _dest = words
         if "from" in flags:  # from another stage: that stage must exist and be earlier
-            assert flags["from"] in [s.name for s in STAGES[:STAGES.index(stage)]], ins
+            assert flags["from"] in [s.name for s in STAGES[: STAGES.index(stage)]], ins
             continue
         for src in srcs:
             path = ROOT / src
@@ -266,8 +271,15 @@ def test_every_copied_path_exists_and_reaches_the_build_context():
 
 def test_dockerignore_keeps_the_context_small():
     patterns = ignore_patterns()
-    for heavy in (".venv/lib/python3.11/site-packages/numpy/__init__.py", ".git/HEAD", "tests/conftest.py",
-                  "bench/bench_mapper.py", "docs/MODEL.md", "test-artifacts/x.png", "hippomap/__pycache__/a.pyc"):
+    for heavy in (
+        ".venv/lib/python3.11/site-packages/numpy/__init__.py",
+        ".git/HEAD",
+        "tests/conftest.py",
+        "bench/bench_mapper.py",
+        "docs/MODEL.md",
+        "test-artifacts/x.png",
+        "hippomap/__pycache__/a.pyc",
+    ):
         assert dockerignore_excludes(heavy, patterns), heavy
     for needed in ("hippomap/mapper.py", "server/app.py", "server/viewer.py", "pyproject.toml"):
         assert (ROOT / needed).exists() and not dockerignore_excludes(needed, patterns), needed
@@ -284,8 +296,12 @@ def test_runtime_stage_copies_only_the_virtualenv():
     assert 'pip install ".[${EXTRAS}]"' in install  # a regular (not editable) install: no sources needed at run time
     assert "/opt/venv" in " ".join(i.args for i in STAGES[0].all("RUN"))
     assert RUNTIME.env()["PATH"].startswith("/opt/venv/bin:")
-    copied_roots = {src.strip("/").split("/")[0] for stage in STAGES for ins in stage.all("COPY")
-                    for src in ins.flags_and_rest()[1][:-1]}
+    copied_roots = {
+        src.strip("/").split("/")[0]
+        for stage in STAGES
+        for ins in stage.all("COPY")
+        for src in ins.flags_and_rest()[1][:-1]
+    }
     assert not copied_roots & {"tests", "bench", "docs", ".ci", ".", "test-artifacts"}, copied_roots
 
 
@@ -352,16 +368,18 @@ def test_volume_is_the_data_folder_and_user_is_not_root():
     assert ServerSettings.model_validate({"data_dir": env["HIPPOMAP_DATA_DIR"]}).data_dir == Path(volumes[0])
     for key in env:
         if key.startswith("HIPPOMAP_"):
-            assert key[len("HIPPOMAP_"):].lower() in ServerSettings.model_fields or key in EXTRA_ENV, key
+            assert key[len("HIPPOMAP_") :].lower() in ServerSettings.model_fields or key in EXTRA_ENV, key
     users = RUNTIME.all("USER")
     assert users, "the runtime stage must set USER"
     user = users[-1].args.split(":")[0]
     assert user not in ("root", "0")
     runs = " ".join(i.args for i in RUNTIME.all("RUN"))
-    assert (re.search(rf"useradd\b.*--uid {re.escape(user)}\b", runs)
-            or re.search(rf"useradd\b.*\b{user}\s*(&&|$)", runs))
-    assert re.search(r"chown [^ ]+ /data|chown [^ ]+ " + re.escape(volumes[0]), runs), \
+    assert re.search(rf"useradd\b.*--uid {re.escape(user)}\b", runs) or re.search(
+        rf"useradd\b.*\b{user}\s*(&&|$)", runs
+    )
+    assert re.search(r"chown [^ ]+ /data|chown [^ ]+ " + re.escape(volumes[0]), runs), (
         "the data folder must be writable"
+    )
     order = [i.op for i in RUNTIME.instructions]
     assert order.index("USER") < order.index("ENTRYPOINT") and order.index("USER") < order.index("VOLUME")
 
@@ -410,10 +428,11 @@ def test_compose_serve_commands_parse_and_match_the_image():
         assert [m[1] for m in mounts] == [data_dir], name
         env = {k: resolve_compose_env(v) for k, v in (service.get("environment") or {}).items()}
         for key in env:
-            assert key.startswith("HIPPOMAP_") and (key[len("HIPPOMAP_"):].lower() in ServerSettings.model_fields
-                                                    or key in EXTRA_ENV), f"{name}: {key}"
+            assert key.startswith("HIPPOMAP_") and (
+                key[len("HIPPOMAP_") :].lower() in ServerSettings.model_fields or key in EXTRA_ENV
+            ), f"{name}: {key}"
         # what the server will run with, from these flags and this environment
-        settings = ServerSettings.model_validate({k[len("HIPPOMAP_"):].lower(): v for k, v in env.items() if v})
+        settings = ServerSettings.model_validate({k[len("HIPPOMAP_") :].lower(): v for k, v in env.items() if v})
         if "scale" in service.get("profiles", []):
             assert args.backend == "ray" or settings.backend == "ray", name
             ray_address = args.ray_address or settings.ray_address
@@ -520,8 +539,8 @@ def _third_party_imports(path: Path) -> set[str]:
     optional: set[int] = set()
     for node in ast.walk(tree):
         if isinstance(node, ast.Try) and any(
-                isinstance(h.type, ast.Name) and h.type.id in ("ImportError", "ModuleNotFoundError")
-                for h in node.handlers):
+            isinstance(h.type, ast.Name) and h.type.id in ("ImportError", "ModuleNotFoundError") for h in node.handlers
+        ):
             optional |= {id(n) for stmt in node.body for n in ast.walk(stmt)}
     found = set()
     for node in ast.walk(tree):
@@ -567,7 +586,9 @@ def test_the_image_installs_everything_the_server_imports():
             if not dists:
                 problems.append(f"{rel} imports {module}, which no installed distribution provides")
             elif not dists & allowed:
-                problems.append(f"{rel} imports {module} ({', '.join(sorted(dists))}), not installed by "
-                                f"hippomap[{','.join(image_extras)}]" + (f" + {OPTIONAL_MODULES[rel]}"
-                                                                         if rel in OPTIONAL_MODULES else ""))
+                problems.append(
+                    f"{rel} imports {module} ({', '.join(sorted(dists))}), not installed by "
+                    f"hippomap[{','.join(image_extras)}]"
+                    + (f" + {OPTIONAL_MODULES[rel]}" if rel in OPTIONAL_MODULES else "")
+                )
     assert not problems, "\n".join(problems)

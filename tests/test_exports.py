@@ -54,8 +54,15 @@ def _map_with_weak_and_strong_loops() -> CognitiveMap:
     def hyps(k, cmap, node_at, off):
         out = truth(k, cmap, node_at, off)
         if k == first + 200:
-            out += [LoopHypothesis(node=h.node, transform=tuple(compose(h.transform, (0.6, 0.3, 0.1))),
-                                   source="false", time=h.time + 0.5) for h in out]
+            out += [
+                LoopHypothesis(
+                    node=h.node,
+                    transform=tuple(compose(h.transform, (0.6, 0.3, 0.1))),
+                    source="false",
+                    time=h.time + 0.5,
+                )
+                for h in out
+            ]
         return out
 
     # relocalising on the closures: the next node hangs off an old one, so the map is no chain
@@ -87,8 +94,9 @@ def test_g2o_carries_each_links_information_and_reads_back(tmp_path):
     length = np.maximum(np.hypot(links["transform"][odo, 0], links["transform"][odo, 1]), 0.05)
     xy, th = cfg.odometry_information_per_m
     np.testing.assert_allclose(info[odo, 0], xy / length)
-    np.testing.assert_allclose(info[odo, 2], 1 / (length / th + cfg.odometry_turn_variance
-                                                  * np.abs(links["transform"][odo, 2])))
+    np.testing.assert_allclose(
+        info[odo, 2], 1 / (length / th + cfg.odometry_turn_variance * np.abs(links["transform"][odo, 2]))
+    )
     # loop links: their information times their robust weight
     strong, weak = loop[np.argmax(w[loop])], loop[np.argmin(w[loop])]
     lx, lth = cfg.loop_information
@@ -188,8 +196,12 @@ def test_data_folder_round_trip_and_run_writes_groundtruth_tum(tmp_path):
 def test_increment_readings_export_as_increments_the_mapper_integrates_alike(tmp_path):
     rng = np.random.default_rng(0)
     t = np.cumsum(rng.uniform(0.05, 0.1, 40)) + 10
-    readings = [Odometry(float(t[k]), v=0.4, omega=0.2) if k % 3 else
-                Odometry(float(t[k]), increment=tuple(map(float, rng.normal(0, 0.05, 3)))) for k in range(40)]
+    readings = [
+        Odometry(float(t[k]), v=0.4, omega=0.2)
+        if k % 3
+        else Odometry(float(t[k]), increment=tuple(map(float, rng.normal(0, 0.05, 3))))
+        for k in range(40)
+    ]
     folder = write_data_dir(tmp_path / "inc", readings)
     assert (folder / "odometry.csv").read_text().startswith("t,dx,dy,dtheta\n")
     ds = read_folder_dataset(folder)
@@ -259,10 +271,12 @@ def _unzip(path: Path, into: Path, sid: str) -> Path:
 def _assert_same_map(map_json: dict, session_map: dict, atol: float) -> None:
     assert len(map_json["nodes"]) == len(session_map["nodes"]) > 3
     assert any(ln["kind"] == "loop" for ln in session_map["links"])  # the run closed loops
-    np.testing.assert_allclose([n["pose"] for n in map_json["nodes"]], [n["pose"] for n in session_map["nodes"]],
-                               atol=atol)
-    assert [(ln["source"], ln["target"], ln["kind"]) for ln in map_json["links"]] == \
-        [(ln["source"], ln["target"], ln["kind"]) for ln in session_map["links"]]
+    np.testing.assert_allclose(
+        [n["pose"] for n in map_json["nodes"]], [n["pose"] for n in session_map["nodes"]], atol=atol
+    )
+    assert [(ln["source"], ln["target"], ln["kind"]) for ln in map_json["links"]] == [
+        (ln["source"], ln["target"], ln["kind"]) for ln in session_map["links"]
+    ]
 
 
 def test_session_groundtruth_and_g2o_downloads(server, recorded):
@@ -294,8 +308,11 @@ def test_session_groundtruth_and_g2o_downloads(server, recorded):
         (m.step if isinstance(x, Odometry) else m.observe)(x)
     links = m.cmap.links
     src, dst, _, info = g.edges()
-    np.testing.assert_allclose(_rows(src, dst, info[:, [0, 3, 5]]),
-                               _rows(links["source"], links["target"], link_information(m.cmap)), rtol=1e-12)
+    np.testing.assert_allclose(
+        _rows(src, dst, info[:, [0, 3, 5]]),
+        _rows(links["source"], links["target"], link_information(m.cmap)),
+        rtol=1e-12,
+    )
     assert not np.all(info[:, [0, 3, 5]] == 1.0)
 
 
@@ -309,9 +326,24 @@ def test_data_zip_re_runs_offline_to_the_sessions_map(server, recorded, tmp_path
     ds = read_folder_dataset(folder)
     assert [e.t for e in ds.events()] == [it[1].t if it[0] == "odometry" else it[1] for it in items]
     out = tmp_path / "out"
-    proc = subprocess.run([sys.executable, "-m", "hippomap", "run", str(folder), "--out", str(out), "--config",
-                           str(folder / "config.json"), "--quiet"], cwd=ROOT, capture_output=True, text=True,
-                          timeout=300)
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "hippomap",
+            "run",
+            str(folder),
+            "--out",
+            str(out),
+            "--config",
+            str(folder / "config.json"),
+            "--quiet",
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert proc.returncode == 0, proc.stderr
     _assert_same_map(json.loads((out / "map.json").read_text()), session_map, atol=1e-9)
     t, _ = read_tum(out / "groundtruth.tum")

@@ -40,8 +40,9 @@ BLOCKER = textwrap.dedent("""
 def _run_without(blocked: list[str], script: str, tmp_path: Path) -> dict:
     """Run ``script`` in a child interpreter without the ``blocked`` packages; it prints one JSON line."""
     code = BLOCKER.format(blocked=blocked) + textwrap.dedent(script)
-    proc = subprocess.run([sys.executable, "-c", code, str(tmp_path)], cwd=ROOT, capture_output=True, text=True,
-                          timeout=240)
+    proc = subprocess.run(
+        [sys.executable, "-c", code, str(tmp_path)], cwd=ROOT, capture_output=True, text=True, timeout=240
+    )
     assert proc.returncode == 0, proc.stderr
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
@@ -50,7 +51,9 @@ def test_the_model_and_the_command_line_need_no_extra(tmp_path):
     """Every module of the package imports without the extras, ``hippomap --help`` lists every command
     as available, and a simulated run is mapped; only its exports and metrics (through evo) need the
     ``eval`` extra, which ``hippomap run`` says before it starts mapping."""
-    out = _run_without(EXTRA_MODULES, """
+    out = _run_without(
+        EXTRA_MODULES,
+        """
         import contextlib, importlib, io, json, pkgutil, sys
         from pathlib import Path
         import hippomap
@@ -70,23 +73,36 @@ def test_the_model_and_the_command_line_need_no_extra(tmp_path):
             code = main(["run", str(tmp / "sim"), "--out", str(tmp / "out"), "--no-progress"])
         print(json.dumps({"modules": modules, "help": help_text, "nodes": len(mapper.cmap.poses),
                           "code": code, "stderr": err.getvalue()}))
-    """, tmp_path)
-    assert {"hippomap.mapper", "hippomap.io.rosbag", "hippomap.eval.evaluation", "hippomap.viz.place_field_figure",
-            "hippomap.client", "hippomap.client.replay", "hippomap.cli.run"} <= set(out["modules"])
+    """,
+        tmp_path,
+    )
+    assert {
+        "hippomap.mapper",
+        "hippomap.io.rosbag",
+        "hippomap.eval.evaluation",
+        "hippomap.viz.place_field_figure",
+        "hippomap.client",
+        "hippomap.client.replay",
+        "hippomap.cli.run",
+    } <= set(out["modules"])
     assert "unavailable" not in out["help"]
     for command in ("run", "run-odometry", "eval-vpr", "simulate", "replay"):
         assert command in out["help"]
     assert out["nodes"] > 10
     assert out["code"] == 2
-    assert out["stderr"] == "hippomap run: error: hippomap run (TUM files, metrics, map plot) needs evo, " \
-                            "which is not installed: pip install 'hippomap[eval]'\n"
+    assert (
+        out["stderr"] == "hippomap run: error: hippomap run (TUM files, metrics, map plot) needs evo, "
+        "which is not installed: pip install 'hippomap[eval]'\n"
+    )
     assert not (tmp_path / "out").exists()  # refused before mapping, not after
 
 
 def test_each_entry_point_of_an_extra_names_that_extra(tmp_path):
     """The functions that need an extra's package raise :class:`MissingExtraError` naming the extra
     when the package is missing: figures (viz), evaluation (eval), ROS bags (rosbag), the client."""
-    out = _run_without(EXTRA_MODULES, """
+    out = _run_without(
+        EXTRA_MODULES,
+        """
         import json, sys
         from pathlib import Path
         import numpy as np
@@ -114,10 +130,17 @@ def test_each_entry_point_of_an_extra_names_that_extra(tmp_path):
             except MissingExtraError as exc:
                 seen[name] = [exc.extra, exc.name, str(exc), isinstance(exc, ImportError)]
         print(json.dumps(seen))
-    """, tmp_path)
-    expected = {"write_tum": ("eval", "evo"), "plot_map": ("viz", "matplotlib"),
-                "trajectory_metrics": ("eval", "evo"), "read_rosbag": ("rosbag", "rosbags"),
-                "write_rosbag2": ("rosbag", "rosbags"), "Client": ("client", "httpx")}
+    """,
+        tmp_path,
+    )
+    expected = {
+        "write_tum": ("eval", "evo"),
+        "plot_map": ("viz", "matplotlib"),
+        "trajectory_metrics": ("eval", "evo"),
+        "read_rosbag": ("rosbag", "rosbags"),
+        "write_rosbag2": ("rosbag", "rosbags"),
+        "Client": ("client", "httpx"),
+    }
     for name, (extra, module) in expected.items():
         assert out[name] is not None, f"{name} ran without {module}"
         got_extra, got_module, message, is_import_error = out[name]
@@ -168,7 +191,9 @@ def test_extra_for_names_the_smallest_extra():
 
 
 def test_check_finds_a_missing_package_without_importing_it(tmp_path):
-    out = _run_without(["rosbags"], """
+    out = _run_without(
+        ["rosbags"],
+        """
         import json, sys
         from hippomap.extras import MissingExtraError, check
         check("eval", "x")  # installed: nothing raised
@@ -178,9 +203,13 @@ def test_check_finds_a_missing_package_without_importing_it(tmp_path):
         except MissingExtraError as exc:
             raised = str(exc)
         print(json.dumps({"raised": raised, "evo_imported": "evo" in sys.modules}))
-    """, tmp_path)
-    assert out == {"raised": "hippomap run BAG needs rosbags, which is not installed: pip install 'hippomap[rosbag]'",
-                   "evo_imported": False}
+    """,
+        tmp_path,
+    )
+    assert out == {
+        "raised": "hippomap run BAG needs rosbags, which is not installed: pip install 'hippomap[rosbag]'",
+        "evo_imported": False,
+    }
 
 
 def test_the_import_contracts_cover_every_model_module():
@@ -192,8 +221,14 @@ def test_the_import_contracts_cover_every_model_module():
     config = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["importlinter"]
     model = {f"hippomap.{p.stem}" for p in (ROOT / "hippomap").glob("*.py") if p.stem not in ("__init__", "__main__")}
     subpackages = {f"hippomap.{p.parent.name}" for p in (ROOT / "hippomap").glob("*/__init__.py")}
-    assert subpackages == {"hippomap.cli", "hippomap.io", "hippomap.eval", "hippomap.viz", "hippomap.client",
-                           "hippomap.sim"}
+    assert subpackages == {
+        "hippomap.cli",
+        "hippomap.io",
+        "hippomap.eval",
+        "hippomap.viz",
+        "hippomap.client",
+        "hippomap.sim",
+    }
     contracts = {c["name"]: c for c in config["contracts"] if c["type"] == "forbidden"}
     around = [c for c in contracts.values() if set(c["forbidden_modules"]) == subpackages]
     extras = [c for c in contracts.values() if set(c["forbidden_modules"]) == set(EXTRA_MODULES)]

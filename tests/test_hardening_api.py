@@ -70,9 +70,20 @@ def test_map_before_the_first_odometry_reading(client):
     assert client.get(f"/sessions/{sid}/map.g2o", headers=AUTH).status_code == 200
 
 
-@pytest.mark.parametrize("path", [
-    "/inputs?since_seq={n}", "/events?since_id={n}", "/place-fields?since_step={n}", "/loop-closures?since_id={n}",
-    "/recognitions?since_id={n}", "/frames/{n}", "/saccades/{n}", "/place-fields/{n}", "/place-fields/{n}/png"])
+@pytest.mark.parametrize(
+    "path",
+    [
+        "/inputs?since_seq={n}",
+        "/events?since_id={n}",
+        "/place-fields?since_step={n}",
+        "/loop-closures?since_id={n}",
+        "/recognitions?since_id={n}",
+        "/frames/{n}",
+        "/saccades/{n}",
+        "/place-fields/{n}",
+        "/place-fields/{n}/png",
+    ],
+)
 def test_ids_beyond_64_bits_are_422(client, path):
     sid = client.post("/sessions", json={"name": "ids"}, headers=AUTH).json()["id"]
     for n in (BIG, BIG - 1, 10**30):
@@ -83,8 +94,15 @@ def test_ids_beyond_64_bits_are_422(client, path):
     assert r.status_code in (200, 404), r.text
 
 
-@pytest.mark.parametrize("path,methods", [("/sessions", "GET, POST"), ("/sessions/{sid}", "DELETE, GET"),
-                                          ("/tokens", "GET, POST"), ("/sessions/{sid}/odometry", "POST")])
+@pytest.mark.parametrize(
+    "path,methods",
+    [
+        ("/sessions", "GET, POST"),
+        ("/sessions/{sid}", "DELETE, GET"),
+        ("/tokens", "GET, POST"),
+        ("/sessions/{sid}/odometry", "POST"),
+    ],
+)
 def test_405_names_every_method_of_the_path(client, path, methods):
     sid = client.post("/sessions", json={"name": "allow"}, headers=AUTH).json()["id"]
     for verb in ("OPTIONS", "PATCH", "PUT"):
@@ -124,8 +142,10 @@ def test_revoking_a_writer_revokes_its_viewers_and_hands_its_sessions_to_the_adm
     # the session is the admin's now: listed, readable, writable, deletable
     assert sid in {s["id"] for s in client.get("/sessions", headers=AUTH).json()}
     assert client.get(f"/sessions/{sid}/map", headers=AUTH).status_code == 200
-    assert client.post(f"/sessions/{sid}/odometry", json={"t": 1.0, "v": 0.1, "omega": 0.0},
-                       headers=AUTH).status_code == 200
+    assert (
+        client.post(f"/sessions/{sid}/odometry", json={"t": 1.0, "v": 0.1, "omega": 0.0}, headers=AUTH).status_code
+        == 200
+    )
     listed = {t["id"] for t in client.get("/tokens", headers=AUTH).json()}
     assert not listed & {viewer_all["id"], viewer_one["id"], writer["id"]}
     assert client.delete(f"/sessions/{sid}", headers=AUTH).status_code == 204
@@ -164,8 +184,10 @@ def test_sockets_opened_before_a_revocation_are_closed(client):
     for k in range(5):
         client.post(f"/sessions/{sid}/odometry", json={"t": 0.1 * (k + 1), "v": 0.3, "omega": 0.1}, headers=w)
     viewer = client.post("/tokens", json={"role": "viewer", "session": sid}, headers=w).json()
-    with client.websocket_connect(f"/sessions/{sid}/stream", headers=w) as robot, \
-            client.websocket_connect(f"/viewer/{sid}?token={viewer['token']}", subprotocols=[SUBPROTOCOL]) as page:
+    with (
+        client.websocket_connect(f"/sessions/{sid}/stream", headers=w) as robot,
+        client.websocket_connect(f"/viewer/{sid}?token={viewer['token']}", subprotocols=[SUBPROTOCOL]) as page,
+    ):
         assert robot.receive_json()["type"] == "hello"
         robot.send_text(json.dumps({"type": "ping", "id": 1}))
         assert robot.receive_json()["type"] == "pong"
@@ -344,16 +366,24 @@ def test_a_flooding_reader_never_makes_ingest_429(tmp_path):
         r = c.get(f"/sessions/{sid}/stats", headers=viewer)
         assert r.status_code == 429 and "read rate" in r.json()["detail"] and int(r.headers["retry-after"]) >= 1
         # the owner's ingest budget is untouched, and its own reads have their own budget
-        acks = [c.post(f"/sessions/{sid}/odometry", json={"t": 0.1 * (k + 1), "v": 0.1, "omega": 0.0},
-                       headers=AUTH).status_code for k in range(20)]
+        acks = [
+            c.post(
+                f"/sessions/{sid}/odometry", json={"t": 0.1 * (k + 1), "v": 0.1, "omega": 0.0}, headers=AUTH
+            ).status_code
+            for k in range(20)
+        ]
         assert acks == [200] * 20
         assert c.get(f"/sessions/{sid}/stats", headers=AUTH).status_code == 200
 
 
 # ------------------------------------------------- the live server: access log, files
 def test_live_server_access_log_shows_no_token(tmp_path):
-    srv = LiveServer(tmp_path / "data", token=ADMIN, args=["--access-log", "--log-level", "info"],
-                     env={"HIPPOMAP_LOG_FORMAT": "json"}).start()
+    srv = LiveServer(
+        tmp_path / "data",
+        token=ADMIN,
+        args=["--access-log", "--log-level", "info"],
+        env={"HIPPOMAP_LOG_FORMAT": "json"},
+    ).start()
     try:
         with srv.client() as c:
             sid = c.create_session("logged")["id"]
@@ -362,8 +392,9 @@ def test_live_server_access_log_shows_no_token(tmp_path):
         assert httpx.get(f"{srv.url}/sessions", headers=AUTH).status_code == 200
 
         async def stream():
-            async with websockets.connect(f"{srv.url.replace('http', 'ws', 1)}/sessions/{sid}/stream?token={ADMIN}",
-                                          additional_headers=AUTH) as ws:
+            async with websockets.connect(
+                f"{srv.url.replace('http', 'ws', 1)}/sessions/{sid}/stream?token={ADMIN}", additional_headers=AUTH
+            ) as ws:
                 assert json.loads(await ws.recv())["type"] == "hello"
                 await ws.send(json.dumps({"type": "ping", "id": 1}))
                 return json.loads(await ws.recv())
@@ -391,8 +422,9 @@ def test_session_viewer_refuses_connections_without_its_key():
 
         async def attempt(headers):
             try:
-                async with websockets.connect(url, subprotocols=[SUBPROTOCOL], additional_headers=headers,
-                                              open_timeout=10) as ws:
+                async with websockets.connect(
+                    url, subprotocols=[SUBPROTOCOL], additional_headers=headers, open_timeout=10
+                ) as ws:
                     return len(await asyncio.wait_for(ws.recv(), 10)) > 0
             except websockets.InvalidStatus as exc:
                 return exc.response.status_code

@@ -73,7 +73,7 @@ def _corrupt(jpeg: bytes, seed: int, length: int) -> bytes:
     rng = np.random.default_rng(seed)
     out = bytearray(jpeg)
     start = len(out) // 2 - length // 2
-    out[start:start + length] = rng.integers(0, 256, length, dtype=np.uint8).tobytes()
+    out[start : start + length] = rng.integers(0, 256, length, dtype=np.uint8).tobytes()
     return bytes(out)
 
 
@@ -165,8 +165,12 @@ def test_store_settles_around_cancelled_futures_and_survives_failing_batches(sto
     blocker = store._submit(lambda conn: inside.set() or gate.wait(10))  # holds the writer while we cancel
     assert inside.wait(10)
     durable: list[int] = []
-    futs = [store.append_inputs("s", [InputRecord(k, "odometry", float(k), b"{}")],
-                                on_durable=lambda k=k: durable.append(k)) for k in range(4)]
+    futs = [
+        store.append_inputs(
+            "s", [InputRecord(k, "odometry", float(k), b"{}")], on_durable=lambda k=k: durable.append(k)
+        )
+        for k in range(4)
+    ]
     assert futs[1].cancel() and futs[2].cancel()  # waiters gone: the writes still happen
     gate.set()
     assert blocker.result(10) is True
@@ -217,8 +221,10 @@ def test_dead_writer_turns_health_and_ready_503_and_exits(tmp_path, monkeypatch)
     app = create_app(_settings(tmp_path, fatal_exit_s=0.0))
     with TestClient(app) as c:
         sid = _session(c)
-        assert c.post(f"/sessions/{sid}/odometry", json={"t": 1.0, "v": 0.1, "omega": 0.0},
-                      headers=AUTH).status_code == 200
+        assert (
+            c.post(f"/sessions/{sid}/odometry", json={"t": 1.0, "v": 0.1, "omega": 0.0}, headers=AUTH).status_code
+            == 200
+        )
         store = app.state.store
         doomed = store._submit(_kill_writer)
         assert isinstance(doomed.exception(10), StoreDead)
@@ -267,8 +273,9 @@ def test_a_real_server_exits_nonzero_when_its_writer_dies(tmp_path):
     srv.start = _start_with(srv, script)  # type: ignore[method-assign]
     srv.start()
     try:
-        r = httpx.post(f"{srv.url}/tokens", json={"role": "viewer", "label": "kill-the-writer"},
-                       headers=AUTH, timeout=30)
+        r = httpx.post(
+            f"{srv.url}/tokens", json={"role": "viewer", "label": "kill-the-writer"}, headers=AUTH, timeout=30
+        )
         assert r.status_code >= 500
         assert httpx.get(f"{srv.url}/health", timeout=10).status_code == 503
         assert srv.proc is not None
@@ -295,6 +302,7 @@ def _start_with(srv, script: Path):
                 pass
             assert time.monotonic() < deadline, "".join(srv.output)
             time.sleep(0.1)
+
     return start
 
 
@@ -305,9 +313,13 @@ def test_json_depth_is_the_nesting_outside_strings():
 
 
 @settings(max_examples=60, deadline=None)
-@given(st.recursive(st.none() | st.booleans() | st.floats(allow_nan=False) | st.text(max_size=5),
-                    lambda inner: st.lists(inner, max_size=3) | st.dictionaries(st.text(max_size=3), inner, max_size=3),
-                    max_leaves=20))
+@given(
+    st.recursive(
+        st.none() | st.booleans() | st.floats(allow_nan=False) | st.text(max_size=5),
+        lambda inner: st.lists(inner, max_size=3) | st.dictionaries(st.text(max_size=3), inner, max_size=3),
+        max_leaves=20,
+    )
+)
 def test_json_depth_matches_the_structure(value):
     def depth(v):
         if isinstance(v, list):
@@ -315,17 +327,18 @@ def test_json_depth_matches_the_structure(value):
         if isinstance(v, dict):
             return 1 + max((depth(x) for x in v.values()), default=0)
         return 0
+
     assert json_depth(json.dumps(value)) == depth(value)
 
 
 def test_parse_text_message_bounds_size_depth_and_never_raises_anything_else():
     with pytest.raises(ValueError, match="exceeds the limit of 100"):
         parse_text_message("x" * 101, 100, 16)
-    for text in ("[" * 100000, "[" * 100000 + "]" * 100000, "{\"a\":" * 5000 + "1" + "}" * 5000):
+    for text in ("[" * 100000, "[" * 100000 + "]" * 100000, '{"a":' * 5000 + "1" + "}" * 5000):
         with pytest.raises(ValueError, match="nested"):
             parse_text_message(text, 1 << 20, 16)
     with pytest.raises(ValueError, match="not JSON"):
-        parse_text_message("{\"a\": ", 100, 16)
+        parse_text_message('{"a": ', 100, 16)
     assert parse_text_message('{"type": "ping", "id": "[[["}', 100, 16) == {"type": "ping", "id": "[[["}
 
 
@@ -356,11 +369,16 @@ def test_absurd_or_coerced_odometry_is_422_naming_the_field_and_the_session_goes
     app = create_app(_settings(tmp_path))
     with TestClient(app) as c:
         sid = _session(c)
-        assert c.post(f"/sessions/{sid}/odometry", json={"t": 1.0, "v": 0.1, "omega": 0.0},
-                      headers=AUTH).status_code == 200
+        assert (
+            c.post(f"/sessions/{sid}/odometry", json={"t": 1.0, "v": 0.1, "omega": 0.0}, headers=AUTH).status_code
+            == 200
+        )
         for body, field in BAD_READINGS:
-            r = c.post(f"/sessions/{sid}/odometry", content=json.dumps(body), headers={**AUTH, "Content-Type":
-                       "application/json"})
+            r = c.post(
+                f"/sessions/{sid}/odometry",
+                content=json.dumps(body),
+                headers={**AUTH, "Content-Type": "application/json"},
+            )
             assert r.status_code == 422, (body, r.text)
             assert _names(r.json()["detail"], field), (body, r.text)
         batch = {"readings": [{"t": 2.0, "v": 0.1, "omega": 0.0}, {"t": 3e6, "v": 0.1, "omega": 0.0}]}
@@ -376,8 +394,9 @@ def test_absurd_or_coerced_odometry_is_422_naming_the_field_and_the_session_goes
             ws.send_text(_odo(2.0, mid=77))
             assert _reply(ws)["type"] == "ack"
         # a frame timestamp is bounded too
-        frame_t = c.post(f"/sessions/{sid}/frames?t=1e300", content=_jpeg(), headers={**AUTH,
-                         "Content-Type": "image/jpeg"})
+        frame_t = c.post(
+            f"/sessions/{sid}/frames?t=1e300", content=_jpeg(), headers={**AUTH, "Content-Type": "image/jpeg"}
+        )
         assert frame_t.status_code == 422 and "frame t" in frame_t.text
         r = c.post(f"/sessions/{sid}/odometry", json={"t": 3.0, "v": 0.1, "omega": 0.0}, headers=AUTH)
         assert r.status_code == 200 and r.json()["seq"] == 2  # nothing refused was stored
@@ -422,18 +441,21 @@ def _wait_processed(c: TestClient, sid: str, seq: int) -> dict:
 
 
 # ------------------------------------------------------------------------ config overrides
-@pytest.mark.parametrize("overrides, field", [
-    ({"spatial": {"n_modules": 100000}}, "n_modules"),
-    ({"spatial": {"cells_per_module": 1000}}, "cells_per_module"),
-    ({"spatial": {"resolution_m": 0.0002}}, "grid-cell tables"),  # 2001^2 cells: 770 MB
-    ({"map": {"relax_loops": 20000}}, "relax_loops"),
-    ({"map": {"lsq_iterations": 10**6}}, "lsq_iterations"),
-    ({"visual": {"working_width": 100000}}, "working_width"),
-    ({"visual": {"vgc_frequencies": [0.001] * 500}}, "vgc_frequencies"),
-    ({"spatial": {"seed": -1}}, "seed"),
-    ({"spatial": {"seed": 2**64}}, "seed"),
-    ({"map": {"mu_p": 1e999}}, "mu_p"),  # sent as 1e999: JSON's way to say infinity
-])
+@pytest.mark.parametrize(
+    "overrides, field",
+    [
+        ({"spatial": {"n_modules": 100000}}, "n_modules"),
+        ({"spatial": {"cells_per_module": 1000}}, "cells_per_module"),
+        ({"spatial": {"resolution_m": 0.0002}}, "grid-cell tables"),  # 2001^2 cells: 770 MB
+        ({"map": {"relax_loops": 20000}}, "relax_loops"),
+        ({"map": {"lsq_iterations": 10**6}}, "lsq_iterations"),
+        ({"visual": {"working_width": 100000}}, "working_width"),
+        ({"visual": {"vgc_frequencies": [0.001] * 500}}, "vgc_frequencies"),
+        ({"spatial": {"seed": -1}}, "seed"),
+        ({"spatial": {"seed": 2**64}}, "seed"),
+        ({"map": {"mu_p": 1e999}}, "mu_p"),  # sent as 1e999: JSON's way to say infinity
+    ],
+)
 def test_config_overrides_outside_safe_ranges_are_422(tmp_path, overrides, field):
     app = create_app(_settings(tmp_path))
     with TestClient(app) as c:
@@ -454,8 +476,14 @@ def test_defaults_and_every_safe_range_bound_are_accepted():
         assert defaults[section][field] is None or lo <= defaults[section][field] <= hi, (section, field)
 
 
-@pytest.mark.parametrize("spatial", [{"resolution_m": 0.004}, {"resolution_m": 0.008, "n_modules": 3},
-                                     {"area_size_m": 0.2, "resolution_m": 0.005, "cells_per_module": 2}])
+@pytest.mark.parametrize(
+    "spatial",
+    [
+        {"resolution_m": 0.004},
+        {"resolution_m": 0.008, "n_modules": 3},
+        {"area_size_m": 0.2, "resolution_m": 0.005, "cells_per_module": 2},
+    ],
+)
 def test_documented_grid_table_memory_is_what_the_model_allocates(spatial):
     cfg = HippomapConfig.with_overrides({"spatial": spatial}).spatial
     assert grid_table_bytes(cfg) == GridCells(cfg).tables.nbytes
@@ -471,8 +499,11 @@ def test_per_token_quotas_on_grid_memory_and_session_count(tmp_path):
         _session(c, {"spatial": {**SMALL["spatial"], "seed": 2}})  # shares seed 2's tables: free
         # another writer has its own quota
         w = c.post("/tokens", json={"role": "writer"}, headers=AUTH).json()["token"]
-        r = c.post("/sessions", json={"config": {"spatial": {**SMALL["spatial"], "seed": 3}}},
-                   headers={"Authorization": f"Bearer {w}"})
+        r = c.post(
+            "/sessions",
+            json={"config": {"spatial": {**SMALL["spatial"], "seed": 3}}},
+            headers={"Authorization": f"Bearer {w}"},
+        )
         assert r.status_code == 201
         assert c.delete(f"/sessions/{seeds[0]}", headers=AUTH).status_code == 204  # frees seed 1's share
         _session(c, {"spatial": {**SMALL["spatial"], "seed": 3}})
@@ -579,8 +610,9 @@ def test_backpressure_releases_when_the_mapper_catches_up(tmp_path, monkeypatch)
     with TestClient(app) as c:
         sid = _session(c)
         headers = {**AUTH, "Content-Type": "image/jpeg"}
-        codes = [c.post(f"/sessions/{sid}/frames?t={k + 1}", content=frame, headers=headers).status_code
-                 for k in range(4)]
+        codes = [
+            c.post(f"/sessions/{sid}/frames?t={k + 1}", content=frame, headers=headers).status_code for k in range(4)
+        ]
         assert codes == [200, 200, 200, 429]
         gate.set()
         r = c.post(f"/sessions/{sid}/frames?t=4", content=frame, headers={**headers})
@@ -591,9 +623,15 @@ def test_backpressure_releases_when_the_mapper_catches_up(tmp_path, monkeypatch)
 # ---------------------------------------------------------------------------- protocol fuzzing
 _KEYS = st.sampled_from(["type", "id", "v", "omega", "increment", "readings", "x", ""])  # never "t"
 _JSON = st.recursive(
-    st.none() | st.booleans() | st.integers() | st.floats() | st.text(max_size=20)
+    st.none()
+    | st.booleans()
+    | st.integers()
+    | st.floats()
+    | st.text(max_size=20)
     | st.sampled_from(["odometry", "ping", "frame"]),
-    lambda inner: st.lists(inner, max_size=4) | st.dictionaries(_KEYS, inner, max_size=4), max_leaves=12)
+    lambda inner: st.lists(inner, max_size=4) | st.dictionaries(_KEYS, inner, max_size=4),
+    max_leaves=12,
+)
 _TEXT = st.one_of(
     st.text(max_size=200),
     _JSON.map(lambda v: json.dumps(v)),
@@ -604,11 +642,13 @@ _TEXT = st.one_of(
 _BINARY = st.one_of(
     st.binary(max_size=300),
     st.tuples(st.integers(0, 2**32 - 1), st.floats(), st.binary(max_size=200)).map(
-        lambda x: struct.pack("<4sId", b"HMF1", *x[:2]) + x[2]),
+        lambda x: struct.pack("<4sId", b"HMF1", *x[:2]) + x[2]
+    ),
     st.integers(0, 5).map(lambda s: pack_frame(1, 1e9, _corrupt(_jpeg(s), s, 300))),
 )
-_MESSAGES = st.lists(st.one_of(_TEXT.map(lambda s: ("text", s)), _BINARY.map(lambda b: ("bytes", b))),
-                     min_size=1, max_size=6)
+_MESSAGES = st.lists(
+    st.one_of(_TEXT.map(lambda s: ("text", s)), _BINARY.map(lambda b: ("bytes", b))), min_size=1, max_size=6
+)
 
 
 def test_fuzzed_websocket_messages_never_stop_valid_input_being_acknowledged(tmp_path):
@@ -617,8 +657,7 @@ def test_fuzzed_websocket_messages_never_stop_valid_input_being_acknowledged(tmp
         sid = _session(c)
         clock = {"t": 0.0, "seq": -1}
 
-        @settings(max_examples=40, deadline=None, suppress_health_check=list(HealthCheck),
-                  derandomize=True)
+        @settings(max_examples=40, deadline=None, suppress_health_check=list(HealthCheck), derandomize=True)
         @given(_MESSAGES)
         def run(messages):
             with c.websocket_connect(f"/sessions/{sid}/stream", headers=dict(AUTH)) as ws:

@@ -99,11 +99,15 @@ def test_folder_dataset_events_in_time_order(tmp_path):
     "edit, needle",
     [
         (lambda p: (p / "odometry.csv").write_text("t,v\n0,1\n"), "header must be 't,v,omega'"),
-        (lambda p: (p / "odometry.csv").write_text("t,v,omega\n0,1,0\n0,1,0\n"),
-         "odometry.csv:3: timestamps must increase"),
+        (
+            lambda p: (p / "odometry.csv").write_text("t,v,omega\n0,1,0\n0,1,0\n"),
+            "odometry.csv:3: timestamps must increase",
+        ),
         (lambda p: (p / "odometry.csv").write_text("t,v,omega\n0,nan,0\n"), "non-finite value nan"),
-        (lambda p: (p / "frames.csv").write_text("t,file\n0,missing.png\n"),
-         "frames.csv:2: image 'missing.png' not found"),
+        (
+            lambda p: (p / "frames.csv").write_text("t,file\n0,missing.png\n"),
+            "frames.csv:2: image 'missing.png' not found",
+        ),
         (lambda p: (p / "frames.csv").unlink(), "frames.csv is missing"),
     ],
 )

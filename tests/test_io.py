@@ -13,9 +13,7 @@ from hippomap.geometry import between, compose, integrate, wrap_angle
 from hippomap.io.datasets import load_odometry_dataset, read_g2o, read_groundtruth_csv, read_timestamps
 from hippomap.io.exports import graph_dict, link_transforms, plot_map, read_tum, write_g2o, write_tum
 
-poses_st = st.lists(
-    st.tuples(st.floats(-50, 50), st.floats(-50, 50), st.floats(-3.1, 3.1)), min_size=1, max_size=20
-)
+poses_st = st.lists(st.tuples(st.floats(-50, 50), st.floats(-50, 50), st.floats(-3.1, 3.1)), min_size=1, max_size=20)
 
 
 @given(poses_st, poses_st)

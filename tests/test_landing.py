@@ -24,8 +24,9 @@ def _rows(page: str) -> dict[str, list[str]]:
     """The sessions table of a landing page: session id -> its cells' text."""
     rows = {}
     for sid, body in re.findall(r"<tr data-session='([^']+)'>(.*?)</tr>", page, re.DOTALL):
-        rows[unescape(sid)] = [unescape(re.sub(r"<[^>]+>", " ", c)).strip() for c in re.findall(r"<td[^>]*>(.*?)</td>",
-                                                                                                    body, re.DOTALL)]
+        rows[unescape(sid)] = [
+            unescape(re.sub(r"<[^>]+>", " ", c)).strip() for c in re.findall(r"<td[^>]*>(.*?)</td>", body, re.DOTALL)
+        ]
     return rows
 
 
@@ -52,9 +53,9 @@ def test_without_a_token_it_explains_how_to_get_one_and_lists_nothing(service):
     r = c.get("/")
     assert r.status_code == 200 and r.headers["content-type"].startswith("text/html")
     assert r.headers["cache-control"] == "no-store"
-    for link in ("href=\"/docs\"", "href=\"/redoc\"", "href=\"/viewer/\""):
+    for link in ('href="/docs"', 'href="/redoc"', 'href="/viewer/"'):
         assert link in r.text
-    assert "admin.token" in r.text and "POST /tokens" in r.text and "name=\"token\"" in r.text
+    assert "admin.token" in r.text and "POST /tokens" in r.text and 'name="token"' in r.text
     assert "http://testserver/tokens" in r.text  # the command to mint a token names this server
     assert _rows(r.text) == {} and mine not in r.text and other not in r.text and "admin lap" not in r.text
     assert "set-cookie" not in r.headers
@@ -80,8 +81,10 @@ def test_a_token_sees_its_sessions_with_viewer_links_and_statistics(service):
     nodes, accepted, rejected, inputs, pending = rows[mine][2:]
     assert int(inputs) == stats["inputs_stored"] == 60 and int(pending) == 0
     assert int(nodes) == stats["mapper"]["nodes"] >= 1
-    assert (int(accepted), int(rejected)) == (stats["mapper"]["loop_closures_accepted"],
-                                              stats["mapper"]["loop_closures_rejected"])
+    assert (int(accepted), int(rejected)) == (
+        stats["mapper"]["loop_closures_accepted"],
+        stats["mapper"]["loop_closures_rejected"],
+    )
     # the writer sees its own session only; its name is escaped
     page = c.get("/", headers=_bearer(writer)).text
     assert list(_rows(page)) == [other] and "writer lap &lt;b&gt;" in page and "<b>" not in page.split("<body>")[1]

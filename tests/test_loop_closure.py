@@ -101,8 +101,11 @@ def test_a_false_closure_fades_while_true_ones_are_applied(solver):
         if k == fake_at:  # a false closure inside the gate: the start, but 1.5 m off
             j = 0
             rel = compose(compose(cmap.robot_offset, between(gt[k], gt[j])), between(off[j], np.zeros(3)))
-            out.append(LoopHypothesis(node=int(node_at[j]), transform=tuple(rel + [0.0, 1.5, 0.0]),
-                                      source="false", time=float(k)))
+            out.append(
+                LoopHypothesis(
+                    node=int(node_at[j]), transform=tuple(rel + [0.0, 1.5, 0.0]), source="false", time=float(k)
+                )
+            )
         return out
 
     cmap = CognitiveMap(MapConfig(solver=solver, prune_online=False, relax_loops=200))
@@ -128,8 +131,9 @@ def test_relaxation_stops_between_closures():
 def _frames_at(rate_hz, speed=0.5, seconds=20.0):
     n = int(rate_hz * seconds)
     img = np.random.default_rng(0).integers(0, 255, (120, 160), dtype=np.uint8)
-    return [(k / rate_hz, Odometry(t=k / rate_hz, v=speed, omega=0.05), Frame(t=k / rate_hz, image=img))
-            for k in range(n)]
+    return [
+        (k / rate_hz, Odometry(t=k / rate_hz, v=speed, omega=0.05), Frame(t=k / rate_hz, image=img)) for k in range(n)
+    ]
 
 
 def test_keyframes_mean_the_same_at_any_frame_rate():
@@ -261,8 +265,14 @@ def _visual(gt, node_at, off, k, j, search="global"):
     in that node's frame (as a recognition's fitted offset would be)."""
     node_pose = compose(gt[j], between(off[j], np.zeros(3)))
     meta = {"poses": [k, j]} | ({"search": search} if search else {})
-    return LoopHypothesis(node=int(node_at[j]), transform=None, source="visual", time=float(k), meta=meta,
-                          offset=tuple(between(node_pose, gt[k])))
+    return LoopHypothesis(
+        node=int(node_at[j]),
+        transform=None,
+        source="visual",
+        time=float(k),
+        meta=meta,
+        offset=tuple(between(node_pose, gt[k])),
+    )
 
 
 @pytest.mark.parametrize("search, support", [("global", 3), ("global", 0), (None, 3)])
@@ -300,8 +310,16 @@ def test_inconsistent_global_recognitions_expire_without_touching_the_map():
         if k <= first_lap + 20 or k % 25:
             return []
         j = int(rng.integers(0, first_lap - 50))
-        return [LoopHypothesis(node=int(node_at[j]), transform=None, source="false", time=float(k),
-                               meta={"poses": [k, j], "search": "global"}, offset=(0.2, 0.0, 0.0))]
+        return [
+            LoopHypothesis(
+                node=int(node_at[j]),
+                transform=None,
+                source="false",
+                time=float(k),
+                meta={"poses": [k, j], "search": "global"},
+                offset=(0.2, 0.0, 0.0),
+            )
+        ]
 
     cmap = CognitiveMap(MapConfig())
     node_at, off, _ = drive(cmap, noisy, hypotheses=hyps)
@@ -361,8 +379,16 @@ def test_loose_lateral_information_lets_odometry_place_a_visual_link_beside_the_
             return []
         h = _visual(gt, node_at, off, k, j, search=None)
         assert h.offset is not None
-        return [LoopHypothesis(node=h.node, transform=None, source="visual", time=h.time, meta=h.meta,
-                               offset=tuple(compose(np.array(h.offset), np.array([0.0, 0.3, 0.0]))))]
+        return [
+            LoopHypothesis(
+                node=h.node,
+                transform=None,
+                source="visual",
+                time=h.time,
+                meta=h.meta,
+                offset=tuple(compose(np.array(h.offset), np.array([0.0, 0.3, 0.0]))),
+            )
+        ]
 
     errors, infos = {}, {}
     for lateral in (None, 1.0):

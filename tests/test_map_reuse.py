@@ -106,7 +106,7 @@ def run_second(snapshot: bytes, items, overrides=None) -> tuple[Mapper, int | No
 
 def ate_in_run1_frame(m: Mapper, to_gt: np.ndarray, run2: sim.SimRun, start: int) -> float:
     traj = compose(to_gt, m.corrected_trajectory())[start:]
-    gt = run2.groundtruth[start: len(m.trajectory_times)]
+    gt = run2.groundtruth[start : len(m.trajectory_times)]
     return float(np.sqrt(np.mean(np.sum((traj[:, :2] - gt[:, :2]) ** 2, axis=1))))
 
 
@@ -198,12 +198,27 @@ def test_command_line_base_map(base, run2, tmp_path, capsys):
     m1, snap, _ = base
     (tmp_path / "base.npz").write_bytes(snap)
     n = 160
-    sub = sim.simulate(run2.world, sim.Trajectory(run2.times[:n], run2.groundtruth[:n]), rate_hz=5.0, seed=2,
-                       odometry_noise=NOISE)
+    sub = sim.simulate(
+        run2.world, sim.Trajectory(run2.times[:n], run2.groundtruth[:n]), rate_hz=5.0, seed=2, odometry_noise=NOISE
+    )
     sub.write(tmp_path / "run2")
     (tmp_path / "loc.json").write_text(json.dumps({"mapper": {"mode": "localise"}}))
-    assert main(["run", str(tmp_path / "run2"), "--out", str(tmp_path / "out"), "--quiet",
-                 "--base-map", str(tmp_path / "base.npz"), "--config", str(tmp_path / "loc.json")]) == 0
+    assert (
+        main(
+            [
+                "run",
+                str(tmp_path / "run2"),
+                "--out",
+                str(tmp_path / "out"),
+                "--quiet",
+                "--base-map",
+                str(tmp_path / "base.npz"),
+                "--config",
+                str(tmp_path / "loc.json"),
+            ]
+        )
+        == 0
+    )
     metrics = json.loads((tmp_path / "out" / "metrics.json").read_text())
     assert metrics["stats"]["nodes"] == m1.stats()["nodes"] and metrics["stats"]["lost"] is False
     assert metrics["stats"]["mode"] == "localise" and metrics["stats"]["loop_closures_accepted"] >= 3
@@ -211,8 +226,20 @@ def test_command_line_base_map(base, run2, tmp_path, capsys):
     rows = json.loads((tmp_path / "out" / "loop_closures.json").read_text())
     assert rows and not any("groundtruth_distance_m" in r for r in rows)
     assert metrics["loop_closures"].get("accepted_false", 0) == 0
-    assert main(["run", str(tmp_path / "run2"), "--out", str(tmp_path / "o2"), "--quiet",
-                 "--base-map", str(tmp_path / "none")]) == 2
+    assert (
+        main(
+            [
+                "run",
+                str(tmp_path / "run2"),
+                "--out",
+                str(tmp_path / "o2"),
+                "--quiet",
+                "--base-map",
+                str(tmp_path / "none"),
+            ]
+        )
+        == 2
+    )
     assert "cannot read base map" in capsys.readouterr().err
 
 
@@ -231,8 +258,13 @@ def jpeg_items(run: sim.SimRun, n: int) -> tuple:
 
 
 def tum_xy(text: str) -> tuple[np.ndarray, np.ndarray]:
-    rows = np.array([[float(v) for v in line.split()[:3]] for line in text.splitlines()
-                     if line.strip() and not line.startswith("#")])
+    rows = np.array(
+        [
+            [float(v) for v in line.split()[:3]]
+            for line in text.splitlines()
+            if line.strip() and not line.startswith("#")
+        ]
+    )
     return rows[:, 0], rows[:, 1:3]
 
 
@@ -281,14 +313,18 @@ def test_service_reuse_end_to_end(service, run1, run2):
     items2 = jpeg_items(run2, RUN2_STEPS)
     reused = client._json("POST", "/sessions", {"name": "run 2", "base_session": base})
     assert reused["stats"]["mapper"]["lost"] is True and reused["stats"]["mapper"]["base_nodes"] == n_base
-    localise = client._json("POST", "/sessions", {"name": "run 2, localising", "base_session": base,
-                                                  "config": {"mapper": {"mode": "localise"}}})
+    localise = client._json(
+        "POST",
+        "/sessions",
+        {"name": "run 2, localising", "base_session": base, "config": {"mapper": {"mode": "localise"}}},
+    )
     assert localise["config"]["mapper"]["mode"] == "localise"
     plain = client.create_session("run 2 alone")["id"]
 
     async def streams():
-        await asyncio.gather(*(stream_items(service.url, service.token, sid, items2)
-                               for sid in (reused["id"], localise["id"], plain)))
+        await asyncio.gather(
+            *(stream_items(service.url, service.token, sid, items2) for sid in (reused["id"], localise["id"], plain))
+        )
 
     asyncio.run(streams())
     for sid in (reused["id"], localise["id"], plain):
@@ -307,8 +343,9 @@ def test_service_reuse_end_to_end(service, run1, run2):
     # merge: the plain run 2 session into the base's map, as a new session replaying run 2's inputs
     merged = client._json("POST", f"/sessions/{base}/merge", {"from": plain, "name": "run 1 + run 2"})
     client.wait_processed(merged["id"])
-    assert [(r["seq"], r["kind"], r["t"]) for r in client.all_inputs(merged["id"])] == \
-        [(r["seq"], r["kind"], r["t"]) for r in client.all_inputs(plain)]
+    assert [(r["seq"], r["kind"], r["t"]) for r in client.all_inputs(merged["id"])] == [
+        (r["seq"], r["kind"], r["t"]) for r in client.all_inputs(plain)
+    ]
     st = client.stats(merged["id"])["mapper"]
     assert st["lost"] is False and st["base_nodes"] == n_base and st["nodes"] > n_base
     assert ate_from(client, merged["id"], run2, to_gt, placed_after(client, merged["id"])) < ATE_M
@@ -343,8 +380,10 @@ def test_service_reuse_refuses_bad_requests(service):
             c._json(method, path, body)
         return exc.value.status, str(exc.value.detail)
 
-    assert status("POST", "/sessions", {"base_session": "s_0000000000000000"}) == \
-        (404, "base_session session 's_0000000000000000' not found")
+    assert status("POST", "/sessions", {"base_session": "s_0000000000000000"}) == (
+        404,
+        "base_session session 's_0000000000000000' not found",
+    )
     code, detail = status("POST", "/sessions", {"base_session": sid, "config": {"visual": {"n_fixations": 12}}})
     assert code == 422 and "visual config" in detail
     code, detail = status("POST", "/sessions", {"base_session": sid, "config": {"mapper": {"mode": "explore"}}})
@@ -380,6 +419,8 @@ if __name__ == "__main__":  # the figures of the module doc: python tests/test_m
     _items = sim_inputs(_run2, RUN2_STEPS)
     for _mode in ("map", "localise"):
         _m, _placed, _step = run_second(_m1.to_bytes(), _items, {"mapper": {"mode": _mode}})
-        print(f"run 2 ({_mode}): placed after {_placed} key frames (t = {_m.trajectory_times[_step - 1]:.1f} s), "
-              f"ATE after placement {ate_in_run1_frame(_m, _to_gt, _run2, _step):.2f} m in run 1's frame, "
-              f"{_m.stats()['nodes']} nodes")
+        print(
+            f"run 2 ({_mode}): placed after {_placed} key frames (t = {_m.trajectory_times[_step - 1]:.1f} s), "
+            f"ATE after placement {ate_in_run1_frame(_m, _to_gt, _run2, _step):.2f} m in run 1's frame, "
+            f"{_m.stats()['nodes']} nodes"
+        )

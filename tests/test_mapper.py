@@ -20,8 +20,13 @@ CONFIG = HippomapConfig.with_overrides({"mapper": {"keyframe_interval": 5}})
 @pytest.fixture(scope="module")
 def inputs():
     world = sim.loop_world(seed=3, size=(8.0, 5.0))
-    run = sim.simulate(world, None, rate_hz=5.0, seed=1,
-                       odometry_noise=sim.OdometryNoise(sigma_v=0.02, sigma_omega=0.01, omega_bias=0.01))
+    run = sim.simulate(
+        world,
+        None,
+        rate_hz=5.0,
+        seed=1,
+        odometry_noise=sim.OdometryNoise(sigma_v=0.02, sigma_omega=0.01, omega_bias=0.01),
+    )
     n = min(len(run), 260)
     out = []
     for i in range(n):
@@ -137,12 +142,14 @@ def test_recent_key_frames_are_not_recognised(inputs):
     not a return to a place. Without the rule such matches happen on this run; with it, every
     recognition names a key frame learned at least recognition_min_path_m of path earlier."""
     base = {"keyframe_interval": 5}
-    loose = _recognised_path_gaps(HippomapConfig.with_overrides(
-        {"mapper": {**base, "recognition_min_path_m": 0.0}}), inputs)
+    loose = _recognised_path_gaps(
+        HippomapConfig.with_overrides({"mapper": {**base, "recognition_min_path_m": 0.0}}), inputs
+    )
     assert loose and min(loose) < 3.0  # the recent track is recognised when allowed
     gap = 4.0
-    strict = _recognised_path_gaps(HippomapConfig.with_overrides(
-        {"mapper": {**base, "recognition_min_path_m": gap}}), inputs)
+    strict = _recognised_path_gaps(
+        HippomapConfig.with_overrides({"mapper": {**base, "recognition_min_path_m": gap}}), inputs
+    )
     assert all(g >= gap for g in strict)
 
 
@@ -150,17 +157,18 @@ def test_only_novel_views_are_learned(inputs):
     """A key frame whose recognition closed a loop is not learned again (as OpenRatSLAM learns a
     view template only when none matches): the memory grows with the places seen, and a key frame
     stays anchored to the pass that first saw its place."""
+
     def run(learn_recognised: bool) -> tuple[Mapper, list[dict]]:
-        m = Mapper(HippomapConfig.with_overrides({"mapper": {"keyframe_interval": 5,
-                                                              "learn_recognised": learn_recognised}}))
+        m = Mapper(
+            HippomapConfig.with_overrides({"mapper": {"keyframe_interval": 5, "learn_recognised": learn_recognised}})
+        )
         events = []
         for item in inputs:
             events.extend(e.to_dict() for e in (m.step(item) if isinstance(item, Odometry) else m.observe(item)))
         return m, events
 
     novel, events = run(False)
-    closed = {e["hypothesis"]["time"] for e in events
-              if e["type"] == "loop_decision" and e["status"] != "rejected"}
+    closed = {e["hypothesis"]["time"] for e in events if e["type"] == "loop_decision" and e["status"] != "rejected"}
     learned = {e["t"] for e in events if e["type"] == "keyframe_learned"}
     assert closed and not closed & learned
     every, _ = run(True)

@@ -70,7 +70,7 @@ def test_every_operation_answers_from_the_mapper_and_pickles_without_closures(ma
     assert len(t) == len(poses) == mapper.stats()["odometry_steps"]
     np.testing.assert_array_equal(poses, mapper.odometry_trajectory())
     recs = mapper.answer(mq.Recognitions(0, 2))
-    assert [r["id"] for r in recs] == [1, 2][:len(recs)]
+    assert [r["id"] for r in recs] == [1, 2][: len(recs)]
     assert mapper.answer(mq.RecognitionById(10**6)) is None
     assert mapper.answer(mq.RecognitionById(0)) == mapper.recognitions[0]
     arrays = mapper.answer(mq.GraphArrays(information=True))

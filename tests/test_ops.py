@@ -139,8 +139,9 @@ def record(msg: str, *args, name: str = "hippomap.server", level: int = logging.
 
 
 def test_json_formatter_fields():
-    line = logs.JSONFormatter().format(record("session %s created", "s_1", session="s_1", duration_s=1.25,
-                                              odd=object()))
+    line = logs.JSONFormatter().format(
+        record("session %s created", "s_1", session="s_1", duration_s=1.25, odd=object())
+    )
     assert "\n" not in line
     out = json.loads(line)
     assert out["message"] == "session s_1 created" and out["session"] == "s_1"
@@ -171,9 +172,6 @@ def test_text_formatter_keeps_the_record_intact():
     assert json.loads(logs.JSONFormatter().format(rec))["message"] == "session s_3 restored"  # msg/args restored
 
 
-
-
-
 def test_resolve_format(monkeypatch):
     monkeypatch.delenv(logs.ENV_FORMAT, raising=False)
     assert logs.resolve_format(None, FakeTTY(tty=True)) == "text"
@@ -201,8 +199,10 @@ def test_configure_routes_every_logger_through_one_handler(clean_logging, monkey
     logging.getLogger("some.library").warning("a library warning")
     lines = [json.loads(ln) for ln in stream.getvalue().splitlines()]
     assert [(r["logger"], r["message"]) for r in lines] == [
-        ("hippomap.server", "session s_4 deleted"), ("uvicorn.error", "uvicorn says"),
-        ("some.library", "a library warning")]
+        ("hippomap.server", "session s_4 deleted"),
+        ("uvicorn.error", "uvicorn says"),
+        ("some.library", "a library warning"),
+    ]
     assert lines[0]["session"] == "s_4"
     with pytest.raises(InputError, match="loud"):
         logs.configure("json", "loud", stream)

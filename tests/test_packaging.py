@@ -28,9 +28,22 @@ PACKAGES = ("hippomap", "server", "web")
 #: module names of the former test/benchmark scaffolding in the product packages
 SCAFFOLDING = {"testing.py", "simfeed.py", "screenshot.py"}
 #: what the copy leaves out: version control, caches and build output (tests/ and bench/ are copied)
-NOT_COPIED = shutil.ignore_patterns(".git", ".venv", "__pycache__", "*.pyc", "*.egg-info", "build", "dist",
-                                    ".pytest_cache", ".hypothesis", ".ruff_cache", ".import_linter_cache",
-                                    "test-artifacts", "results", "hippomap-data")
+NOT_COPIED = shutil.ignore_patterns(
+    ".git",
+    ".venv",
+    "__pycache__",
+    "*.pyc",
+    "*.egg-info",
+    "build",
+    "dist",
+    ".pytest_cache",
+    ".hypothesis",
+    ".ruff_cache",
+    ".import_linter_cache",
+    "test-artifacts",
+    "results",
+    "hippomap-data",
+)
 
 
 @pytest.fixture(scope="module")
@@ -40,8 +53,18 @@ def wheel_file(tmp_path_factory) -> Path:
     src, out = tmp / "src", tmp / "out"
     shutil.copytree(ROOT, src, ignore=NOT_COPIED)
     assert (src / "tests" / "support" / "live.py").is_file()  # the scaffolding is there to be left out
-    cmd = [sys.executable, "-m", "pip", "wheel", "--no-deps", "--disable-pip-version-check", "-q", "-w", str(out),
-           str(src)]
+    cmd = [
+        sys.executable,
+        "-m",
+        "pip",
+        "wheel",
+        "--no-deps",
+        "--disable-pip-version-check",
+        "-q",
+        "-w",
+        str(out),
+        str(src),
+    ]
     res = subprocess.run(cmd, cwd=tmp, capture_output=True, text=True, timeout=280)
     assert res.returncode == 0, f"{' '.join(cmd)} failed:\n{res.stdout}\n{res.stderr}"
     wheels = list(out.glob("hippomap-*.whl"))
@@ -96,8 +119,12 @@ def test_the_find_configuration_names_only_the_product_packages():
 
 def test_wheel_holds_every_product_module(wheel):
     names = set(wheel)
-    modules = {p.relative_to(ROOT).as_posix() for pkg in PACKAGES for p in (ROOT / pkg).rglob("*.py")
-               if "__pycache__" not in p.parts}
+    modules = {
+        p.relative_to(ROOT).as_posix()
+        for pkg in PACKAGES
+        for p in (ROOT / pkg).rglob("*.py")
+        if "__pycache__" not in p.parts
+    }
     assert "hippomap/protocol.py" in modules and "server/formats/protocol.py" in modules
     assert not modules - names, f"modules missing from the wheel: {sorted(modules - names)}"
     version = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["version"]

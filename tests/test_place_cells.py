@@ -288,8 +288,14 @@ def test_state_round_trip_gives_identical_future_outputs(grid):
         if ca is None or cb is None:
             assert ca is None and cb is None
             continue
-        assert ((ca.x, ca.y, ca.theta, ca.iterations, ca.reset, ca.origin)
-                == (cb.x, cb.y, cb.theta, cb.iterations, cb.reset, cb.origin))
+        assert (ca.x, ca.y, ca.theta, ca.iterations, ca.reset, ca.origin) == (
+            cb.x,
+            cb.y,
+            cb.theta,
+            cb.iterations,
+            cb.reset,
+            cb.origin,
+        )
         assert np.array_equal(ca.field.indices, cb.field.indices)
     assert sp.steps == 65 and clone.steps == 65
     # the noisy discharges themselves continue identically, and differ with another noise stream

@@ -90,7 +90,7 @@ def test_record_rejects_bad_input(small):
     with pytest.raises(InputError):
         record_stored_field(tables, cfg, [])
     with pytest.raises(InputError):
-        record_stored_field(tables, cfg, [tables.size ** 2])
+        record_stored_field(tables, cfg, [tables.size**2])
     with pytest.raises(InputError):
         noise_free_discharges(tables, cfg, (np.nan, 0.0))
 
@@ -101,8 +101,13 @@ def _dark_panels(img: np.ndarray) -> int:
     mask = (np.abs(img.astype(int) - off).max(axis=2) <= 6).astype(np.uint8)
     mask = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, np.ones((7, 7), np.uint8))
     n, _, stats, _ = cv2.connectedComponentsWithStats(mask)
-    big = [s for s in stats[1:] if s[cv2.CC_STAT_WIDTH] > 80 and s[cv2.CC_STAT_HEIGHT] > 80
-           and 0.8 < s[cv2.CC_STAT_WIDTH] / s[cv2.CC_STAT_HEIGHT] < 1.25]
+    big = [
+        s
+        for s in stats[1:]
+        if s[cv2.CC_STAT_WIDTH] > 80
+        and s[cv2.CC_STAT_HEIGHT] > 80
+        and 0.8 < s[cv2.CC_STAT_WIDTH] / s[cv2.CC_STAT_HEIGHT] < 1.25
+    ]
     return len(big)
 
 

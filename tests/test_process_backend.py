@@ -97,8 +97,14 @@ finally:
     backend.shutdown()
 print("ok")
 """
-    res = subprocess.run([sys.executable, "-c", code], cwd=root, capture_output=True, text=True, timeout=240,
-                         env={**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), str(root)])})
+    res = subprocess.run(
+        [sys.executable, "-c", code],
+        cwd=root,
+        capture_output=True,
+        text=True,
+        timeout=240,
+        env={**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), str(root)])},
+    )
     assert res.returncode == 0 and res.stdout.strip().endswith("ok"), res.stdout + res.stderr
 
 
@@ -138,8 +144,9 @@ def test_worker_replaces_a_killed_mapper_process_and_ends_in_the_uninterrupted_s
 
 
 def test_live_server_on_processes_loses_nothing_when_the_mapper_process_dies(tmp_path):
-    srv = LiveServer(tmp_path / "data", env={"HIPPOMAP_SNAPSHOT_EVERY_INPUTS": "60"},
-                     args=["--backend", "process"]).start()
+    srv = LiveServer(
+        tmp_path / "data", env={"HIPPOMAP_SNAPSHOT_EVERY_INPUTS": "60"}, args=["--backend", "process"]
+    ).start()
     try:
         with srv.client() as c:
             sid = c.create_session("proc-kill", CONFIG)["id"]
@@ -152,8 +159,7 @@ def test_live_server_on_processes_loses_nothing_when_the_mapper_process_dies(tmp
                 for k, it in enumerate(ITEMS):
                     if k == len(ITEMS) // 2:  # the robot keeps streaming while the mapper process is killed
                         await asyncio.to_thread(os.kill, pid0, signal.SIGKILL)
-                    futs.append(await (st.send_odometry(it[1]) if it[0] == "odometry"
-                                       else st.send_frame(it[1], it[2])))
+                    futs.append(await (st.send_odometry(it[1]) if it[0] == "odometry" else st.send_frame(it[1], it[2])))
                 return list(await asyncio.gather(*futs))
 
         acks = asyncio.run(stream())

@@ -84,8 +84,12 @@ def test_relaxation_removes_injected_heading_drift(solver):
 def test_uncorrupted_loop_stays_put(solver):
     gt, _, src, dst, T = square_loop(bias=0.0)
     P = gt.copy()
-    {"relax": lambda: relax(P, src, dst, T, 50), "jacobi": lambda: relax_jacobi(P, src, dst, T, 50),
-     "lsq": lambda: solve_lsq(P, src, dst, T), "ors": lambda: relax_ors_reference(P, src, dst, T, 50)}[solver]()
+    {
+        "relax": lambda: relax(P, src, dst, T, 50),
+        "jacobi": lambda: relax_jacobi(P, src, dst, T, 50),
+        "lsq": lambda: solve_lsq(P, src, dst, T),
+        "ors": lambda: relax_ors_reference(P, src, dst, T, 50),
+    }[solver]()
     np.testing.assert_allclose(P, gt, atol=1e-9)
 
 
@@ -133,8 +137,11 @@ def test_uniformly_scaled_information_gives_the_unit_solution(seed, scale):
 
 def test_bad_information_raises_input_error():
     gt, odo, src, dst, T = square_loop()
-    for info, text in ((np.ones((3, 3)), "shape"), (np.full((len(src), 3), -1.0), "finite and > 0"),
-                       (np.full((len(src), 3), np.nan), "finite and > 0")):
+    for info, text in (
+        (np.ones((3, 3)), "shape"),
+        (np.full((len(src), 3), -1.0), "finite and > 0"),
+        (np.full((len(src), 3), np.nan), "finite and > 0"),
+    ):
         with pytest.raises(InputError, match=text):
             solve_lsq(odo.copy(), src, dst, T, information=info)
 
@@ -257,8 +264,12 @@ graphs = st.tuples(st.integers(0, 10_000), st.integers(3, 12), st.integers(0, 6)
 def test_consistent_graph_is_a_fixed_point(g):
     seed, n, extra = g
     true, src, dst, T = random_graph(np.random.default_rng(seed), n=n, extra=extra)
-    for fn in (lambda P: relax(P, src, dst, T, 20), lambda P: relax_jacobi(P, src, dst, T, 20),
-               lambda P: solve_lsq(P, src, dst, T), lambda P: relax_ors_reference(P, src, dst, T, 5)):
+    for fn in (
+        lambda P: relax(P, src, dst, T, 20),
+        lambda P: relax_jacobi(P, src, dst, T, 20),
+        lambda P: solve_lsq(P, src, dst, T),
+        lambda P: relax_ors_reference(P, src, dst, T, 5),
+    ):
         P = true.copy()
         fn(P)
         np.testing.assert_allclose(P, true, atol=1e-8)
@@ -272,9 +283,12 @@ def test_relaxation_commutes_with_a_rigid_motion(g, th, x, y):
     true, src, dst, T = random_graph(rng, n=n, extra=extra, noise=0.1)
     P = true + rng.normal(0, 0.2, true.shape)
     motion = np.array([x, y, th])
-    for fn in (lambda Q: relax(Q, src, dst, T, 15, anchor=None),
-               lambda Q: relax_jacobi(Q, src, dst, T, 15, anchor=None),
-               lambda Q: relax(Q, src, dst, T, 15), lambda Q: solve_lsq(Q, src, dst, T, iterations=3)):
+    for fn in (
+        lambda Q: relax(Q, src, dst, T, 15, anchor=None),
+        lambda Q: relax_jacobi(Q, src, dst, T, 15, anchor=None),
+        lambda Q: relax(Q, src, dst, T, 15),
+        lambda Q: solve_lsq(Q, src, dst, T, iterations=3),
+    ):
         A = P.copy()
         B = compose(motion, P)
         fn(A)
@@ -377,12 +391,15 @@ def test_the_odometry_heading_bias_is_estimated_with_the_poses(beta):
     assert rms_xy(est, gt) < 1e-4 < 0.01 < rms_xy(plain, gt)
     # Gauss-Newton alone (from zero) finds it too
     gn = odo.copy()
-    assert solve_lsq(gn, src, dst, T, iterations=50, information=info, bias_dt=dt,
-                     bias_information=1.0).bias == pytest.approx(beta, rel=1e-3)
+    assert solve_lsq(
+        gn, src, dst, T, iterations=50, information=info, bias_dt=dt, bias_information=1.0
+    ).bias == pytest.approx(beta, rel=1e-3)
     # held fixed, it is only applied
     fixed = odo.copy()
-    assert solve_lsq(fixed, src, dst, T, iterations=50, information=info, bias_dt=dt, bias=beta,
-                     estimate_bias=False).bias == beta
+    assert (
+        solve_lsq(fixed, src, dst, T, iterations=50, information=info, bias_dt=dt, bias=beta, estimate_bias=False).bias
+        == beta
+    )
     assert rms_xy(fixed, gt) < 1e-4
 
 
@@ -429,15 +446,15 @@ def test_bias_sigma_is_the_marginal_uncertainty_of_the_bias(closed):
     if not closed:
         src, dst, T, dt, info = src[:-1], dst[:-1], T[:-1], dt[:-1], info[:-1]
     P = odo.copy()
-    solve_lsq(P, src, dst, T, iterations=50, information=info, bias_dt=dt, bias_information=1.0 / 0.02 ** 2)
-    sigma = bias_sigma(P, src, dst, T, dt, 0.002, 1.0 / 0.02 ** 2, information=info)
+    solve_lsq(P, src, dst, T, iterations=50, information=info, bias_dt=dt, bias_information=1.0 / 0.02**2)
+    sigma = bias_sigma(P, src, dst, T, dt, 0.002, 1.0 / 0.02**2, information=info)
     if not closed:
         assert sigma == pytest.approx(0.02, rel=1e-6)
         return
     assert sigma < 0.02 / 10
-    assert sigma == pytest.approx(_dense_bias_sigma(P, src, dst, T, dt, 0.002, 1.0 / 0.02 ** 2, info), rel=1e-3)
+    assert sigma == pytest.approx(_dense_bias_sigma(P, src, dst, T, dt, 0.002, 1.0 / 0.02**2, info), rel=1e-3)
     moved = compose(np.tile([3.0, -2.0, 1.0], (len(P), 1)), P)  # the same map, rigidly moved
-    prior = 1.0 / 0.02 ** 2
+    prior = 1.0 / 0.02**2
     assert bias_sigma(moved, src, dst, T, dt, 0.002, prior, information=info) == pytest.approx(sigma, rel=1e-6)
     assert bias_sigma(P, src, dst, T, np.zeros(len(src)), information=info) == float("inf")  # nothing to observe
     with pytest.raises(InputError, match="bias_dt"):
@@ -470,7 +487,7 @@ def test_normal_equations_on_the_fixed_pattern_equal_the_dense_jacobian_product(
     keep[:3] = False  # the anchor
     if with_fixed:
         f = int(rng.integers(1, n))
-        keep[3 * f: 3 * f + 3] = False
+        keep[3 * f : 3 * f + 3] = False
     idx = rng.permutation(np.flatnonzero(keep))  # any order of the kept unknowns
     col = np.full(nv, -1, dtype=np.int64)
     col[idx] = np.arange(len(idx))
@@ -483,7 +500,7 @@ def test_normal_equations_on_the_fixed_pattern_equal_the_dense_jacobian_product(
     for k, (i, j) in enumerate(zip(src, dst)):
         cols = [3 * i, 3 * i + 1, 3 * i + 2, 3 * j, 3 * j + 1, 3 * j + 2] + ([3 * n] if with_bias else [])
         for c_local, c in enumerate(cols):
-            J[3 * k: 3 * k + 3, c] += Jk[k, :, c_local]
+            J[3 * k : 3 * k + 3, c] += Jk[k, :, c_local]
     Jr = J[:, idx]
     ref = Jr.T @ Jr + np.diag(damp)
     np.testing.assert_allclose(H.toarray(), ref, rtol=1e-12, atol=1e-12)
@@ -513,10 +530,10 @@ def test_solves_in_the_node_order_equal_a_dense_solve(seed):
     for i, j in zip(src, dst):
         B = rng.normal(size=(3, 3))
         W = B @ B.T + np.eye(3)
-        A[3 * i: 3 * i + 3, 3 * i: 3 * i + 3] += W
-        A[3 * j: 3 * j + 3, 3 * j: 3 * j + 3] += W
-        A[3 * i: 3 * i + 3, 3 * j: 3 * j + 3] -= W
-        A[3 * j: 3 * j + 3, 3 * i: 3 * i + 3] -= W
+        A[3 * i : 3 * i + 3, 3 * i : 3 * i + 3] += W
+        A[3 * j : 3 * j + 3, 3 * j : 3 * j + 3] += W
+        A[3 * i : 3 * i + 3, 3 * j : 3 * j + 3] -= W
+        A[3 * j : 3 * j + 3, 3 * i : 3 * i + 3] -= W
     A += np.eye(3 * n)
     idx = (3 * order[:, None] + np.arange(3)).ravel()
     b = rng.normal(size=len(idx))

@@ -30,8 +30,12 @@ TTL = 1.5
 
 
 def _replica(tmp_path, name: str, url: str) -> LiveServer:
-    env = {"HIPPOMAP_DATABASE": url, "HIPPOMAP_REPLICA_ID": name, "HIPPOMAP_LEASE_TTL_S": str(TTL),
-           "HIPPOMAP_SNAPSHOT_EVERY_INPUTS": "60"}
+    env = {
+        "HIPPOMAP_DATABASE": url,
+        "HIPPOMAP_REPLICA_ID": name,
+        "HIPPOMAP_LEASE_TTL_S": str(TTL),
+        "HIPPOMAP_SNAPSHOT_EVERY_INPUTS": "60",
+    }
     return LiveServer(tmp_path / name, env=env)
 
 
@@ -109,10 +113,12 @@ def test_a_graceful_stop_hands_sessions_over_at_once(tmp_path):
     takes the session over on the next request without waiting for the lease to expire."""
     url = postgres_url_for(tmp_path / "shared", fresh=True)
     env_ttl = 60.0  # long: only the release can explain an immediate takeover
-    a = LiveServer(tmp_path / "a", env={"HIPPOMAP_DATABASE": url, "HIPPOMAP_REPLICA_ID": "a",
-                                        "HIPPOMAP_LEASE_TTL_S": str(env_ttl)}).start()
-    b = LiveServer(tmp_path / "b", env={"HIPPOMAP_DATABASE": url, "HIPPOMAP_REPLICA_ID": "b",
-                                        "HIPPOMAP_LEASE_TTL_S": str(env_ttl)}).start()
+    a = LiveServer(
+        tmp_path / "a", env={"HIPPOMAP_DATABASE": url, "HIPPOMAP_REPLICA_ID": "a", "HIPPOMAP_LEASE_TTL_S": str(env_ttl)}
+    ).start()
+    b = LiveServer(
+        tmp_path / "b", env={"HIPPOMAP_DATABASE": url, "HIPPOMAP_REPLICA_ID": "b", "HIPPOMAP_LEASE_TTL_S": str(env_ttl)}
+    ).start()
     try:
         from urllib.parse import urlsplit
 

@@ -31,20 +31,30 @@ def _msgs(n=6):
             covariance=np.zeros(36),
         )
         twist = T["geometry_msgs/msg/TwistWithCovariance"](
-            twist=T["geometry_msgs/msg/Twist"](linear=T["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0),
-                                               angular=T["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0)),
+            twist=T["geometry_msgs/msg/Twist"](
+                linear=T["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0),
+                angular=T["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0),
+            ),
             covariance=np.zeros(36),
         )
-        odo = T["nav_msgs/msg/Odometry"](header=Header(stamp=stamp, frame_id="odom"), child_frame_id="base",
-                                         pose=pose, twist=twist)
+        odo = T["nav_msgs/msg/Odometry"](
+            header=Header(stamp=stamp, frame_id="odom"), child_frame_id="base", pose=pose, twist=twist
+        )
         img = np.full((12, 16), 10 * k, np.uint8)
         ok, jpg = cv2.imencode(".jpg", img)
         header = Header(stamp=Time(sec=100 + k, nanosec=500_000_000), frame_id="cam")
-        cimg = T["sensor_msgs/msg/CompressedImage"](header=header, format="jpeg",
-                                                   data=np.frombuffer(jpg.tobytes(), np.uint8))
-        raw = T["sensor_msgs/msg/Image"](header=Header(stamp=Time(sec=100 + k, nanosec=500_000_000), frame_id="cam"),
-                                        height=12, width=16, encoding="mono8", is_bigendian=0, step=16,
-                                        data=img.reshape(-1))
+        cimg = T["sensor_msgs/msg/CompressedImage"](
+            header=header, format="jpeg", data=np.frombuffer(jpg.tobytes(), np.uint8)
+        )
+        raw = T["sensor_msgs/msg/Image"](
+            header=Header(stamp=Time(sec=100 + k, nanosec=500_000_000), frame_id="cam"),
+            height=12,
+            width=16,
+            encoding="mono8",
+            is_bigendian=0,
+            step=16,
+            data=img.reshape(-1),
+        )
         out.append((k, odo, cimg, raw))
     return out, poses
 

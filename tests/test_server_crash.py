@@ -74,14 +74,15 @@ def test_sigkill_mid_stream_then_restart_restores_exactly(tmp_path, variant: Ser
             stored = c.all_inputs(sid)
             # every acknowledged input is there, unchanged, and nothing else but a prefix of what was sent
             assert [r["seq"] for r in stored] == list(range(len(stored)))
-            assert [(r["kind"], r["t"]) for r in stored] == [_kind_t(it) for it in ITEMS[:len(stored)]]
+            assert [(r["kind"], r["t"]) for r in stored] == [_kind_t(it) for it in ITEMS[: len(stored)]]
             assert len(stored) >= max(a["last_seq"] for a in acks) + 1
             for r in stored:
                 if r["kind"] == "odometry":
                     o = ITEMS[r["seq"]][1]
                     assert r["odometry"] == {"t": o.t, "v": o.v, "omega": o.omega}
             assert c.frame(sid, next(r["seq"] for r in stored if r["kind"] == "frame")) == next(
-                it[2] for it in ITEMS if it[0] == "frame")
+                it[2] for it in ITEMS if it[0] == "frame"
+            )
             # restored (snapshot + replay) to exactly the state of those inputs
             n = len(stored)
             assert session_state(c, sid) == offline_reference(ITEMS[:n], CONFIG)

@@ -37,8 +37,12 @@ ITEMS = synthetic_inputs(n_odometry=300, frame_every=3)
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory, variant):
-    env = {"HIPPOMAP_MAX_BODY_BYTES": "400000", "HIPPOMAP_MAX_FRAME_BYTES": "300000",
-           "HIPPOMAP_MAX_IMAGE_SIDE": "2000", "HIPPOMAP_SNAPSHOT_EVERY_INPUTS": "150"}
+    env = {
+        "HIPPOMAP_MAX_BODY_BYTES": "400000",
+        "HIPPOMAP_MAX_FRAME_BYTES": "300000",
+        "HIPPOMAP_MAX_IMAGE_SIDE": "2000",
+        "HIPPOMAP_SNAPSHOT_EVERY_INPUTS": "150",
+    }
     srv = variant.server(tmp_path_factory.mktemp("live"), env=env).start()
     yield srv
     srv.stop()
@@ -59,8 +63,9 @@ def test_concurrent_sessions_stream_and_match_the_offline_mapper(server, client)
     sids = [client.create_session(f"robot{k}", CONFIG)["id"] for k in range(3)]
 
     async def all_at_once():
-        return await asyncio.gather(*(stream_items(server.url, server.token, sid, items)
-                                      for sid, items in zip(sids, runs)))
+        return await asyncio.gather(
+            *(stream_items(server.url, server.token, sid, items) for sid, items in zip(sids, runs))
+        )
 
     acks = asyncio.run(all_at_once())
     for sid, items, session_acks in zip(sids, runs, acks):
@@ -68,7 +73,8 @@ def test_concurrent_sessions_stream_and_match_the_offline_mapper(server, client)
         stored = client.all_inputs(sid)
         assert [(r["seq"], r["kind"], r["t"]) for r in stored] == [
             (k, "odometry" if it[0] == "odometry" else "frame", it[1].t if it[0] == "odometry" else it[1])
-            for k, it in enumerate(items)]
+            for k, it in enumerate(items)
+        ]
         assert session_state(client, sid) == offline_reference(items, CONFIG)
     listed = {s["id"] for s in client.sessions()}
     assert set(sids) <= listed
@@ -78,9 +84,16 @@ LOOPY = synthetic_inputs(n_odometry=400, frame_every=2, speed=0.6)  # closes loo
 # the paper's rules (place-code gate with a tight radius, every key frame learned, the recent track
 # recognised, online merging) reject some hypotheses, so both statuses are there to query
 # relocalising onto the matched nodes, the circling robot also proposes closures that the gate rejects
-LOOPY_CONFIG = {"mapper": {**CONFIG["mapper"], "recognition_min_path_m": 0.0, "learn_recognised": True},
-                "map": {"loop_gate": "place_code", "loop_radius_m": 0.3, "loop_radius_per_m": 0.0,
-                        "loop_relocalise": True, "prune_online": True}}
+LOOPY_CONFIG = {
+    "mapper": {**CONFIG["mapper"], "recognition_min_path_m": 0.0, "learn_recognised": True},
+    "map": {
+        "loop_gate": "place_code",
+        "loop_radius_m": 0.3,
+        "loop_radius_per_m": 0.0,
+        "loop_relocalise": True,
+        "prune_online": True,
+    },
+}
 
 
 def test_queries_serve_the_session_state(server, client):
@@ -158,11 +171,16 @@ def test_queries_serve_the_session_state(server, client):
     assert client.frame(sid, frame_seq) == LOOPY[frame_seq][2]
     # the OpenAPI document lists every route
     paths = client._http.get("/openapi.json").json()["paths"]
-    for p in ("/sessions", "/sessions/{session_id}/odometry", "/sessions/{session_id}/frames",
-              "/sessions/{session_id}/map.graphml", "/sessions/{session_id}/loop-closures",
-              "/sessions/{session_id}/place-fields/{step}/png",
-              "/sessions/{session_id}/saccades/{recognition_id}/image",
-              "/tokens"):
+    for p in (
+        "/sessions",
+        "/sessions/{session_id}/odometry",
+        "/sessions/{session_id}/frames",
+        "/sessions/{session_id}/map.graphml",
+        "/sessions/{session_id}/loop-closures",
+        "/sessions/{session_id}/place-fields/{step}/png",
+        "/sessions/{session_id}/saccades/{recognition_id}/image",
+        "/tokens",
+    ):
         assert p in paths
 
 
@@ -261,8 +279,11 @@ def test_bad_inputs_get_their_4xx_and_the_session_stays_correct(server, client):
             r = raw_post("odometry", b'{"readings": [')
             assert r.status_code == 422
         elif kind == 13:
-            code, msg = _status(client.send_odometry, sid, [{"t": t_last + 1.0, "v": 0, "omega": 0},
-                                                            {"t": t_last + 0.5, "v": 0, "omega": 0}])
+            code, msg = _status(
+                client.send_odometry,
+                sid,
+                [{"t": t_last + 1.0, "v": 0, "omega": 0}, {"t": t_last + 0.5, "v": 0, "omega": 0}],
+            )
             assert code == 409 and "readings[1]" in msg
         if it[0] == "odometry":
             client.send_odometry(sid, it[1])
@@ -278,8 +299,13 @@ def test_bad_inputs_get_their_4xx_and_the_session_stays_correct(server, client):
             t = hello["last_t"]
             assert hello["last_odometry_t"] == last_odo and hello["last_frame_t"] == last_frame
             msgs = [
-                ("text", json.dumps({"type": "odometry", "id": 1, "t": t + 1, "v": "NaN", "omega": 0})
-                 .replace('"NaN"', "NaN"), 422),
+                (
+                    "text",
+                    json.dumps({"type": "odometry", "id": 1, "t": t + 1, "v": "NaN", "omega": 0}).replace(
+                        '"NaN"', "NaN"
+                    ),
+                    422,
+                ),
                 ("text", "{not json", 422),
                 ("text", json.dumps({"type": "teleport", "id": 3}), 422),
                 ("text", json.dumps({"type": "odometry", "id": 4, "t": last_odo, "v": 0, "omega": 0}), 409),
@@ -317,20 +343,35 @@ def test_tokens_isolate_sessions(server, client):
     sid2 = client.create_session("mine too", CONFIG)["id"]
     from hippomap.client import Client
 
-    with Client(server.url, other["token"]) as b, Client(server.url, viewer["token"]) as v, \
-            Client(server.url, viewer_one["token"]) as v1, Client(server.url, "hm_nobody") as nobody:
+    with (
+        Client(server.url, other["token"]) as b,
+        Client(server.url, viewer["token"]) as v,
+        Client(server.url, viewer_one["token"]) as v1,
+        Client(server.url, "hm_nobody") as nobody,
+    ):
         assert b.sessions() == []
-        for call, args in [(b.session, (sid,)), (b.map, (sid,)), (b.stats, (sid,)), (b.delete_session, (sid,)),
-                           (b.send_odometry, (sid, {"t": 99.0, "v": 0, "omega": 0})), (b.place_fields, (sid,)),
-                           (b.frame, (sid, 0)), (b.inputs, (sid,))]:
+        for call, args in [
+            (b.session, (sid,)),
+            (b.map, (sid,)),
+            (b.stats, (sid,)),
+            (b.delete_session, (sid,)),
+            (b.send_odometry, (sid, {"t": 99.0, "v": 0, "omega": 0})),
+            (b.place_fields, (sid,)),
+            (b.frame, (sid, 0)),
+            (b.inputs, (sid,)),
+        ]:
             assert _status(call, *args)[0] == 404, call.__name__
         bs = b.create_session("B's")["id"]
         assert _status(client.session, bs)[0] == 404  # even the admin cannot see B's session
         assert _status(b.create_token, "writer")[0] == 403 and _status(b.create_token, "viewer", sid)[0] == 404
         assert {sid, sid2} <= {s["id"] for s in v.sessions()}
         assert v.map(sid)["nodes"] is not None and v.stats(sid)["inputs_stored"] == 1
-        for call, args in [(v.send_odometry, (sid, {"t": 99.0, "v": 0, "omega": 0})), (v.delete_session, (sid,)),
-                           (v.create_session, ("x",)), (v.create_token, ("viewer",))]:
+        for call, args in [
+            (v.send_odometry, (sid, {"t": 99.0, "v": 0, "omega": 0})),
+            (v.delete_session, (sid,)),
+            (v.create_session, ("x",)),
+            (v.create_token, ("viewer",)),
+        ]:
             assert _status(call, *args)[0] == 403, call.__name__
         assert [s["id"] for s in v1.sessions()] == [sid] and _status(v1.map, sid2)[0] == 404
         assert _status(nobody.sessions)[0] == 401 and _status(nobody.map, sid)[0] == 401
@@ -364,8 +405,14 @@ def test_invalid_config_overrides_are_422(client):
 
 
 def test_backpressure_and_rate_limit_slow_or_tell_and_lose_nothing(tmp_path, variant):
-    env = {"HIPPOMAP_MAX_PENDING": "3", "HIPPOMAP_BACKPRESSURE_WAIT_S": "0", "HIPPOMAP_RATE_PER_S": "40",
-           "HIPPOMAP_RATE_BURST": "40", "HIPPOMAP_READ_RATE_PER_S": "40", "HIPPOMAP_READ_RATE_BURST": "40"}
+    env = {
+        "HIPPOMAP_MAX_PENDING": "3",
+        "HIPPOMAP_BACKPRESSURE_WAIT_S": "0",
+        "HIPPOMAP_RATE_PER_S": "40",
+        "HIPPOMAP_RATE_BURST": "40",
+        "HIPPOMAP_READ_RATE_PER_S": "40",
+        "HIPPOMAP_READ_RATE_BURST": "40",
+    }
     config = {"mapper": {"keyframe_interval": 1}}  # every frame is learned: the mapper is the bottleneck
     items = synthetic_inputs(n_odometry=50, frame_every=1, seed=7)
     from hippomap.client import AsyncStream
@@ -376,8 +423,10 @@ def test_backpressure_and_rate_limit_slow_or_tell_and_lose_nothing(tmp_path, var
 
         async def stream():
             async with AsyncStream(srv.url, srv.token, sid, max_in_flight=64) as st:
-                futs = [await (st.send_odometry(it[1]) if it[0] == "odometry" else st.send_frame(it[1], it[2]))
-                        for it in items]
+                futs = [
+                    await (st.send_odometry(it[1]) if it[0] == "odometry" else st.send_frame(it[1], it[2]))
+                    for it in items
+                ]
                 return await asyncio.gather(*futs), st.busy_notices
 
         acks, busy = asyncio.run(stream())
@@ -391,7 +440,7 @@ def test_backpressure_and_rate_limit_slow_or_tell_and_lose_nothing(tmp_path, var
         for k in range(0, len(odo), 100):
             while True:
                 try:
-                    c.send_odometry(sid2, odo[k:k + 100])
+                    c.send_odometry(sid2, odo[k : k + 100])
                     break
                 except ServerError as exc:
                     assert exc.status == 429, exc
@@ -399,18 +448,24 @@ def test_backpressure_and_rate_limit_slow_or_tell_and_lose_nothing(tmp_path, var
                     time.sleep(0.01)
         assert told["busy"] > 0
         c.wait_processed(sid2)
-        r = c._http.post(f"/sessions/{sid2}/odometry", content=json.dumps(
-            {"readings": [{"t": 1e6 + 0.05 * i, "v": 0.5, "omega": 0.3} for i in range(2000)]}),
-            headers={"Content-Type": "application/json"})
-        r2 = c._http.post(f"/sessions/{sid2}/odometry", content=json.dumps(
-            {"readings": [{"t": 2e6 + i, "v": 0, "omega": 0} for i in range(100)]}),
-            headers={"Content-Type": "application/json"})
+        r = c._http.post(
+            f"/sessions/{sid2}/odometry",
+            content=json.dumps({"readings": [{"t": 1e6 + 0.05 * i, "v": 0.5, "omega": 0.3} for i in range(2000)]}),
+            headers={"Content-Type": "application/json"},
+        )
+        r2 = c._http.post(
+            f"/sessions/{sid2}/odometry",
+            content=json.dumps({"readings": [{"t": 2e6 + i, "v": 0, "omega": 0} for i in range(100)]}),
+            headers={"Content-Type": "application/json"},
+        )
         assert r.status_code == 200 and r2.status_code == 429 and r2.headers["Retry-After"] == "1" and "busy" in r2.text
+
         # reads have a rate limit too (their own budget, per token: see test_hardening_api)
         async def burst():
             async with httpx.AsyncClient(base_url=srv.url, headers={"Authorization": f"Bearer {srv.token}"}) as h:
-                return await asyncio.gather(*(h.get(f"/sessions/{sid2}/events", params={"limit": 1})
-                                              for _ in range(80)))
+                return await asyncio.gather(
+                    *(h.get(f"/sessions/{sid2}/events", params={"limit": 1}) for _ in range(80))
+                )
 
         limited = [r for r in asyncio.run(burst()) if r.status_code == 429]
         assert limited and "rate limit" in limited[0].text and int(limited[0].headers["Retry-After"]) >= 1

@@ -32,21 +32,24 @@ ACCEPTED = [200, 201, 204, 401, 403, 404, 409, 429]
 
 
 def _config(token: str, sid: str) -> str:
-    return (f'headers = {{ Authorization = "Bearer {token}" }}\n'
-            'generation.max-examples = 6\n'
-            f'[parameters]\n"path.session_id" = "{sid}"\n'
-            # the place-field figures take seconds each: fewer examples keep the run about a minute
-            '[[operations]]\ninclude-path-regex = "/png$"\ngeneration.max-examples = 2\n'
-            '[[operations]]\ninclude-name = "POST /sessions"\ngeneration.mode = "negative"\n'
-            '[[operations]]\n'
-            'include-name = ["POST /sessions/{session_id}/frames", "POST /sessions/{session_id}/odometry"]\n'
-            f'checks.positive_data_acceptance.expected-statuses = {ACCEPTED + [422]}\n')
+    return (
+        f'headers = {{ Authorization = "Bearer {token}" }}\n'
+        "generation.max-examples = 6\n"
+        f'[parameters]\n"path.session_id" = "{sid}"\n'
+        # the place-field figures take seconds each: fewer examples keep the run about a minute
+        '[[operations]]\ninclude-path-regex = "/png$"\ngeneration.max-examples = 2\n'
+        '[[operations]]\ninclude-name = "POST /sessions"\ngeneration.mode = "negative"\n'
+        "[[operations]]\n"
+        'include-name = ["POST /sessions/{session_id}/frames", "POST /sessions/{session_id}/odometry"]\n'
+        f"checks.positive_data_acceptance.expected-statuses = {ACCEPTED + [422]}\n"
+    )
 
 
 def test_schemathesis_all_checks_find_nothing(tmp_path):
     # generous read budget: the fuzzer's requests must reach the handlers, not the rate limit
-    srv = LiveServer(tmp_path / "data",
-                     env={"HIPPOMAP_READ_RATE_PER_S": "5000", "HIPPOMAP_READ_RATE_BURST": "5000"}).start()
+    srv = LiveServer(
+        tmp_path / "data", env={"HIPPOMAP_READ_RATE_PER_S": "5000", "HIPPOMAP_READ_RATE_BURST": "5000"}
+    ).start()
     try:
         with srv.client() as c:
             sid = c.create_session("fuzzed", {"mapper": {"keyframe_interval": 5}})["id"]
@@ -54,9 +57,26 @@ def test_schemathesis_all_checks_find_nothing(tmp_path):
             c.wait_processed(sid)
         cfg = tmp_path / "schemathesis.toml"
         cfg.write_text(_config(srv.token, sid))
-        cmd = [sys.executable, "-m", "schemathesis.cli", "--config-file", str(cfg), "run", f"{srv.url}/openapi.json",
-               "--checks", "all", "--seed", "1", "--workers", "1",
-               "--phases", "examples,coverage,fuzzing", "--request-timeout", "20", "--no-shrink"]
+        cmd = [
+            sys.executable,
+            "-m",
+            "schemathesis.cli",
+            "--config-file",
+            str(cfg),
+            "run",
+            f"{srv.url}/openapi.json",
+            "--checks",
+            "all",
+            "--seed",
+            "1",
+            "--workers",
+            "1",
+            "--phases",
+            "examples,coverage,fuzzing",
+            "--request-timeout",
+            "20",
+            "--no-shrink",
+        ]
         # everything but DELETE first (a DELETE would remove the pinned session), then DELETE alone
         for selector in (["--exclude-method", "DELETE"], ["--include-method", "DELETE"]):
             proc = subprocess.run(cmd + selector, capture_output=True, text=True, timeout=240, cwd=tmp_path)

@@ -96,8 +96,10 @@ def test_store_snapshots_keep_newest_and_derived_truncation(store):
     for seq in (10, 20, 30):
         store.put_snapshot("s", seq, f"snap{seq}".encode(), keep=2).result(10)
     assert store.latest_snapshot("s") == (30, b"snap30")
-    ev = [EventRecord(id=i, seq=i * 10, type="recognition" if i % 2 else "node_created", t=float(i), data={"i": i},
-                      ref=i) for i in range(6)]
+    ev = [
+        EventRecord(id=i, seq=i * 10, type="recognition" if i % 2 else "node_created", t=float(i), data={"i": i}, ref=i)
+        for i in range(6)
+    ]
     pf = [PlaceFieldRecord(step=i, seq=i * 10, t=float(i), data=b"x") for i in range(6)]
     store.append_derived("s", ev, pf).result(10)
     assert store.derived_counts("s") == (6, 6)
@@ -227,13 +229,16 @@ def test_odometry_validation_names_the_problem():
 def test_websocket_odometry_messages():
     one = parse_odometry_message({"type": "odometry", "id": 1, "t": 1.0, "v": 0.2, "omega": 0.1}, 10)
     assert one[0].value == Odometry(1.0, v=0.2, omega=0.1)
-    many = parse_odometry_message({"type": "odometry", "readings": [{"t": 1, "v": 0, "omega": 0},
-                                                                   {"t": 2, "v": 0, "omega": 0}]}, 10)
+    many = parse_odometry_message(
+        {"type": "odometry", "readings": [{"t": 1, "v": 0, "omega": 0}, {"t": 2, "v": 0, "omega": 0}]}, 10
+    )
     assert len(many) == 2
-    for msg, status in [({"type": "odometry", "t": "x", "v": 0, "omega": 0}, 422),
-                        ({"type": "odometry", "t": 1, "v": 0, "omega": 0, "bogus": 1}, 422),
-                        ({"type": "odometry", "readings": "no"}, 422),
-                        ({"type": "odometry", "readings": [{"t": i, "v": 0, "omega": 0} for i in range(20)]}, 413)]:
+    for msg, status in [
+        ({"type": "odometry", "t": "x", "v": 0, "omega": 0}, 422),
+        ({"type": "odometry", "t": 1, "v": 0, "omega": 0, "bogus": 1}, 422),
+        ({"type": "odometry", "readings": "no"}, 422),
+        ({"type": "odometry", "readings": [{"t": i, "v": 0, "omega": 0} for i in range(20)]}, 413),
+    ]:
         with pytest.raises(IngestError) as e:
             parse_odometry_message(msg, 10)
         assert e.value.status == status
@@ -279,8 +284,7 @@ def test_the_worker_stores_each_event_under_the_input_that_caused_it(tmp_path):
     from tests.worker_harness import run_worker
 
     items = synthetic_inputs(n_odometry=120, frame_every=3)
-    _, _, w, events, _ = run_worker(tmp_path, items, {"mapper": {"keyframe_interval": 3}},
-                                    lambda sid: InProcessHost())
+    _, _, w, events, _ = run_worker(tmp_path, items, {"mapper": {"keyframe_interval": 3}}, lambda sid: InProcessHost())
     learned = {e.data["frame"]: e.seq for e in events if e.type == "keyframe_learned"}
     assigned = {e.data["frame"]: e.seq for e in events if e.type == "frame_assigned"}
     assert learned and assigned == learned

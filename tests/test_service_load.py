@@ -60,8 +60,9 @@ def test_mapper_gate_bounds_the_mappers_stepping_at_once(slots):
     results: dict[int, list] = {}
 
     def feed(i: int) -> None:
-        results[i] = [r.seq for r in hosts[i].process([(k, Odometry(0.05 * (k + 1), v=0.2, omega=0.1))
-                                                       for k in range(20)])]
+        results[i] = [
+            r.seq for r in hosts[i].process([(k, Odometry(0.05 * (k + 1), v=0.2, omega=0.1)) for k in range(20)])
+        ]
 
     threads = [threading.Thread(target=feed, args=(i,)) for i in range(4)]
     for t in threads:
@@ -170,11 +171,19 @@ def test_sqlite_batch_with_a_failing_write_commits_the_others_once(tmp_path):
         blocker = store._submit(lambda conn: inside.set() or gate.wait(10))
         assert inside.wait(10)  # what follows is queued behind the blocker: one batch
         durable: list[int] = []
-        futs = [store.append_inputs("s", [InputRecord(k, "odometry", float(k), b"x")],
-                                    on_durable=lambda k=k: durable.append(k)) for k in range(3)]
+        futs = [
+            store.append_inputs(
+                "s", [InputRecord(k, "odometry", float(k), b"x")], on_durable=lambda k=k: durable.append(k)
+            )
+            for k in range(3)
+        ]
         dup = store.append_inputs("s", [InputRecord(1, "odometry", 9.0, b"dup")], on_durable=lambda: durable.append(-1))
-        futs += [store.append_inputs("s", [InputRecord(k, "odometry", float(k), b"x")],
-                                     on_durable=lambda k=k: durable.append(k)) for k in range(3, 5)]
+        futs += [
+            store.append_inputs(
+                "s", [InputRecord(k, "odometry", float(k), b"x")], on_durable=lambda k=k: durable.append(k)
+            )
+            for k in range(3, 5)
+        ]
         gate.set()
         blocker.result(10)
         assert [f.result(10) for f in futs] == [None] * 5

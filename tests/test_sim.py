@@ -252,8 +252,9 @@ def test_drive_plan_circle_closes():
 
 def test_write_produces_the_dataset_folder_format(tmp_path, loop):
     plan = sim.DrivePlan([(3.0, 0.4, 0.0), (2.0, 0.3, 0.4)], start=(8.0, 0.0, 0.0))
-    run = sim.simulate(loop, plan, rate_hz=10.0, frame_every=3,
-                       odometry_noise=sim.OdometryNoise(sigma_omega=0.01), seed=2)
+    run = sim.simulate(
+        loop, plan, rate_hz=10.0, frame_every=3, odometry_noise=sim.OdometryNoise(sigma_omega=0.01), seed=2
+    )
     out = run.write(tmp_path / "run")
     files = sorted((out / "frames").iterdir())
     assert len(files) == run.n_frames == len(range(0, len(run), 3))
@@ -353,8 +354,9 @@ def test_bicocca_trajectory_matches_ground_truth_by_timestamp(tmp_path):
     np.testing.assert_allclose(traj.poses[:, 0], 0.5 * (traj.times - 1000), atol=1e-6)
     np.testing.assert_allclose(traj.poses[:, 2], wrap_angle(0.1 * (traj.times - 1000)), atol=1e-6)
     np.testing.assert_array_equal(traj.odometry, inc[3:])
-    run = sim.simulate(World.from_polylines(sim.walls_around_path(traj.poses[:, :2])), traj,
-                       odometry_noise=sim.OdometryNoise())
+    run = sim.simulate(
+        World.from_polylines(sim.walls_around_path(traj.poses[:, :2])), traj, odometry_noise=sim.OdometryNoise()
+    )
     np.testing.assert_allclose(run.increments, inc[3:])  # real odometry passed through
 
 
@@ -379,10 +381,26 @@ def test_bad_input_raises_input_error(loop):
 def test_command_line_writes_a_run(tmp_path, capsys):
     from hippomap.sim.cli import main
 
-    rc = main(["corridor", "--out", str(tmp_path / "c"), "--laps", "1", "--frame-every", "40",
-               "--sigma-omega", "0.01", "--format", "jpg"])
+    rc = main(
+        [
+            "corridor",
+            "--out",
+            str(tmp_path / "c"),
+            "--laps",
+            "1",
+            "--frame-every",
+            "40",
+            "--sigma-omega",
+            "0.01",
+            "--format",
+            "jpg",
+        ]
+    )
     assert rc == 0
-    assert len(list((tmp_path / "c" / "frames").glob("*.jpg"))) == len(
-        (tmp_path / "c" / "frames.csv").read_text().splitlines()) - 1 > 0
+    assert (
+        len(list((tmp_path / "c" / "frames").glob("*.jpg")))
+        == len((tmp_path / "c" / "frames.csv").read_text().splitlines()) - 1
+        > 0
+    )
     assert main(["loop", "--out", str(tmp_path / "x"), "--width", "4"]) == 2
     assert "width" in capsys.readouterr().err

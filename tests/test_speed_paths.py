@@ -44,8 +44,14 @@ def test_remembered_group_order_equals_a_fresh_one(seed, n, extra):
 
 
 @settings(max_examples=30, deadline=None)
-@given(seed=st.integers(0, 10_000), n=st.integers(3, 30), extra=st.integers(0, 20), bias=st.booleans(),
-       anchor=st.sampled_from([None, 0]), n_fixed=st.integers(0, 2))
+@given(
+    seed=st.integers(0, 10_000),
+    n=st.integers(3, 30),
+    extra=st.integers(0, 20),
+    bias=st.booleans(),
+    anchor=st.sampled_from([None, 0]),
+    n_fixed=st.integers(0, 2),
+)
 def test_remembered_lsq_layout_equals_a_fresh_one(seed, n, extra, bias, anchor, n_fixed):
     src, dst, rng = _graph(seed, n, extra)
     fixed = rng.choice(np.arange(1, n), size=min(n_fixed, n - 1), replace=False) if n_fixed else None
@@ -95,7 +101,7 @@ def test_recognisable_matches_the_dict_reading(inputs):  # noqa: F811
     m = Mapper(CONFIG)
     checked = 0
     for i in range(0, len(inputs), 40):
-        feed(m, inputs[i:i + 40])
+        feed(m, inputs[i : i + 40])
         frames = np.arange(-1, len(m.frame_path) + 3)  # unknown and negative ids too
         frames = frames[frames >= 0]
         assert m._recognisable(frames) == _recognisable_reference(m, frames)

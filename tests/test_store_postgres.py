@@ -62,6 +62,7 @@ def _hold_writer(store):
     def op(conn):
         parked.set()
         gate.wait(30)
+
     store._submit(op)
     assert parked.wait(30)
     return gate
@@ -74,8 +75,9 @@ def test_failed_writes_inside_one_batch_fail_alone_and_callbacks_keep_order(stor
     futs = {}
     for k in range(30):
         seq = 5 if k in (10, 20) else k  # writes 10 and 20 repeat the key of write 5
-        futs[k] = store.append_inputs("s", [InputRecord(seq, "odometry", float(k), bytes([k]))],
-                                      on_durable=lambda k=k: order.append(k))
+        futs[k] = store.append_inputs(
+            "s", [InputRecord(seq, "odometry", float(k), bytes([k]))], on_durable=lambda k=k: order.append(k)
+        )
     gate.set()
     good = [k for k in range(30) if k not in (10, 20)]
     for k in good:
@@ -97,8 +99,10 @@ def test_mixed_batch_keeps_submission_order(store):
     gate.set()
     for f in [*a, d, *b, snap]:
         f.result(30)
-    assert [(r.seq, r.kind, r.data) for r in store.read_inputs("s", -1, 10)] == [(0, "frame", b"new"),
-                                                                                 (1, "frame", b"new")]
+    assert [(r.seq, r.kind, r.data) for r in store.read_inputs("s", -1, 10)] == [
+        (0, "frame", b"new"),
+        (1, "frame", b"new"),
+    ]
     assert store.latest_snapshot("s") == (1, b"snap") and store.last_times("s") == {"frame": 11.0}
 
 
@@ -115,9 +119,14 @@ def test_concurrent_group_commit_from_many_threads_in_order(store):
     done: dict[str, list[int]] = {f"s{i}": [] for i in range(n_threads)}
 
     def work(sid: str) -> None:
-        futs = [store.append_inputs(sid, [InputRecord(k, "frame" if k % 4 == 0 else "odometry", k * 0.05,
-                                                      bytes(100 + k))],
-                                    on_durable=lambda k=k: done[sid].append(k)) for k in range(n_each)]
+        futs = [
+            store.append_inputs(
+                sid,
+                [InputRecord(k, "frame" if k % 4 == 0 else "odometry", k * 0.05, bytes(100 + k))],
+                on_durable=lambda k=k: done[sid].append(k),
+            )
+            for k in range(n_each)
+        ]
         for f in futs:
             f.result(60)
 
@@ -209,8 +218,16 @@ s.close()
 def test_lease_race_between_processes(location):
     _open(location).close()  # schema in place before the race
     start = time.time() + 3.0  # every process claims at the same moment, after its imports
-    procs = [subprocess.Popen([sys.executable, "-c", _CLAIMER, location, f"proc{i}", str(start)], cwd=ROOT,
-                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for i in range(4)]
+    procs = [
+        subprocess.Popen(
+            [sys.executable, "-c", _CLAIMER, location, f"proc{i}", str(start)],
+            cwd=ROOT,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for i in range(4)
+    ]
     outs = []
     for p in procs:
         out, err = p.communicate(timeout=60)
@@ -222,7 +239,7 @@ def test_lease_race_between_processes(location):
 # ---------------------------------------------------------- URLs and errors
 def test_open_store_picks_backend_by_url(tmp_path):
     url = postgres_url_for(tmp_path / "a", fresh=True)
-    for u in (url, "postgres://" + url[len("postgresql://"):]):
+    for u in (url, "postgres://" + url[len("postgresql://") :]):
         s = open_store(ServerSettings(data_dir=tmp_path, database=u))
         try:
             assert isinstance(s, PostgresStore)
@@ -258,7 +275,7 @@ def test_unreachable_server_names_host_and_database_not_password(tmp_path):
 def test_wrong_password_is_reported_without_it(tmp_path):
     url = postgres_url_for(tmp_path, fresh=True)
     user_at = url.index("@")
-    bad = url[:url.index(":", len("postgresql://")) + 1] + "not-the-pw-42" + url[user_at:]
+    bad = url[: url.index(":", len("postgresql://")) + 1] + "not-the-pw-42" + url[user_at:]
     with pytest.raises(StoreConnectionError) as exc:
         PostgresStore(bad)
     assert "not-the-pw-42" not in str(exc.value) and "password" in str(exc.value).lower()
@@ -305,6 +322,7 @@ def test_connection_dropped_mid_write_fails_the_batch_not_hangs(pg):
     def slow(conn):  # a write in progress on the server when its connection is killed
         started.set()
         conn.execute("SELECT pg_sleep(30)")
+
     gate = _hold_writer(pg)
     doomed = pg._submit(slow)
     queued = pg.append_inputs("s", [InputRecord(1, "odometry", 1.0, b"lost")])  # same batch, after it
@@ -326,8 +344,11 @@ def test_idle_connections_dropped_by_the_server_are_replaced_without_failing(pg)
     assert pg.last_input("s") == (0, 0.0)  # a pooled read connection now exists
     dbname = pg.url.rsplit("/", 1)[1]
     with psycopg.connect(postgres_test_url(), autocommit=True) as c:  # as a database restart would
-        n = c.execute("SELECT count(pg_terminate_backend(pid, 10000)) FROM pg_stat_activity WHERE datname=%s "
-                      "AND application_name='hippomap'", (dbname,)).fetchone()[0]
+        n = c.execute(
+            "SELECT count(pg_terminate_backend(pid, 10000)) FROM pg_stat_activity WHERE datname=%s "
+            "AND application_name='hippomap'",
+            (dbname,),
+        ).fetchone()[0]
     assert n >= 2  # the writer and the reader
     pg.append_inputs("s", [InputRecord(1, "odometry", 1.0, b"y")]).result(30)
     assert pg.last_input("s") == (1, 1.0) and [r.data for r in pg.read_inputs("s", -1, 5)] == [b"x", b"y"]

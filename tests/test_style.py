@@ -72,8 +72,12 @@ def test_mypy_checks_the_three_packages():
 def test_import_contracts_cover_the_model_boundary():
     """The contracts that keep the model free of the service exist (a config edit cannot drop them silently)."""
     config = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["importlinter"]
-    forbidden = {m for c in config["contracts"] if c["type"] == "forbidden" and c["source_modules"] == ["hippomap"]
-                 for m in c["forbidden_modules"]}
+    forbidden = {
+        m
+        for c in config["contracts"]
+        if c["type"] == "forbidden" and c["source_modules"] == ["hippomap"]
+        for m in c["forbidden_modules"]
+    }
     assert {"server", "web", "fastapi", "starlette", "uvicorn", "viser"} <= forbidden
     assert config["include_external_packages"] is True  # required for the contract on external packages
 
@@ -151,8 +155,10 @@ def test_no_function_is_over_60_lines_without_a_stated_reason():
     for path in _modules():
         found.update(long_functions(path.read_text(), _dotted(path)))
     over = {name: n for name, n in found.items() if name not in ALLOWED_LONG}
-    assert not over, (f"functions over {MAX_FUNCTION_LINES} lines with no 'One function on purpose: <why>' in their "
-                      f"docstring (break them into named steps, or state why they stay whole): {over}")
+    assert not over, (
+        f"functions over {MAX_FUNCTION_LINES} lines with no 'One function on purpose: <why>' in their "
+        f"docstring (break them into named steps, or state why they stay whole): {over}"
+    )
     stale = ALLOWED_LONG - set(found)
     assert not stale, f"no longer long (or renamed): remove from ALLOWED_LONG: {sorted(stale)}"
 
@@ -170,15 +176,21 @@ def test_the_function_size_check_sees_long_functions_and_reasons():
     no reason after it does not count."""
     n = MAX_FUNCTION_LINES
     method = "class C:\n    def method(self):\n" + _function("inner", n + 1, indent="        ") + "        return 1\n"
-    source = "\n".join([
-        _function("long", n + 1),
-        _function("at_the_limit", n),
-        method,
-        _function("kept", n + 5, doc="Does a thing. One function on\n    purpose: one critical section."),
-        _function("unexplained", n + 5, doc="One function on purpose:"),
-    ])
-    assert long_functions(source, "m") == {"m.long": n + 1, "m.C.method": n + 3, "m.C.method.inner": n + 1,
-                                           "m.unexplained": n + 5}
+    source = "\n".join(
+        [
+            _function("long", n + 1),
+            _function("at_the_limit", n),
+            method,
+            _function("kept", n + 5, doc="Does a thing. One function on\n    purpose: one critical section."),
+            _function("unexplained", n + 5, doc="One function on purpose:"),
+        ]
+    )
+    assert long_functions(source, "m") == {
+        "m.long": n + 1,
+        "m.C.method": n + 3,
+        "m.C.method.inner": n + 1,
+        "m.unexplained": n + 5,
+    }
 
 
 def test_the_architecture_module_map_names_every_module():
@@ -186,7 +198,7 @@ def test_the_architecture_module_map_names_every_module():
     no row for a module that is gone (each ``### `folder/``` section lists that folder's modules)."""
     text = (ROOT / "docs" / "ARCHITECTURE.md").read_text()
     documented, folder = set(), None
-    for line in text[text.index("## Module map"):].splitlines():
+    for line in text[text.index("## Module map") :].splitlines():
         if heading := re.match(r"### `([^`]+)/`", line):
             folder = heading.group(1)
         elif (row := re.match(r"\| `([^`]+\.py)` \|", line)) and folder:

@@ -78,8 +78,13 @@ def test_chunks_shrinking_resends_everything():
 
 
 @settings(max_examples=60, deadline=None)
-@given(st.lists(st.tuples(st.integers(0, 9), st.lists(st.floats(-0.05, 0.05), min_size=1, max_size=6)),
-                min_size=1, max_size=12), st.integers(1, 6), st.integers(1, 6))
+@given(
+    st.lists(
+        st.tuples(st.integers(0, 9), st.lists(st.floats(-0.05, 0.05), min_size=1, max_size=6)), min_size=1, max_size=12
+    ),
+    st.integers(1, 6),
+    st.integers(1, 6),
+)
 def test_chunks_browser_copy_stays_within_tolerance(ops, chunk, tail):
     """Whatever appends and moves happen, what the browser holds is within tolerance of the map, a
     chunk that was not resent still holds exactly what it held before, and the chunks it holds
@@ -130,7 +135,7 @@ def test_trajectory_sampling_is_independent_of_how_rows_arrive(pieces):
     parts = TrajectorySampler(0.05)
     start = 0
     for p in pieces:
-        parts.add(start, rows[start:start + p])
+        parts.add(start, rows[start : start + p])
         start += p
     assert np.array_equal(whole.samples, parts.samples)
 
@@ -143,7 +148,7 @@ def test_trajectory_budget_thins_exactly_like_sampling_coarser(pieces, budget):
     s = TrajectorySampler(0.05, budget)
     start = 0
     for p in pieces:
-        s.add(start, rows[start:start + p])
+        s.add(start, rows[start : start + p])
         start += p
         assert len(s.samples) <= budget
     coarse = TrajectorySampler(s.spacing)
@@ -211,13 +216,38 @@ def test_place_field_heatmap_follows_the_map_frame():
 
 def _recognition_dict() -> dict:
     steps = []
-    for k, (ev, out) in enumerate([([(3, 0.2), (7, 0.1)], "start"), ([(3, 0.5), (7, 0.3)], "confirmed"),
-                                   ([(3, 0.95), (9, 0.4)], "confirmed")]):
-        steps.append({"attempt": 0, "fixation": [40.0 + 30 * k, 50.0], "target": [42.0 + 30 * k, 50.0],
-                      "predicted_frame": 3, "predicted_feature": k, "found_frame": 3, "found_feature": k,
-                      "similarity": 0.8, "outcome": out, "evidence": [list(e) for e in ev], "event": None})
-    return {"id": 4, "t": 12.5, "node": 9, "frame_id": 3, "accepted": True, "evidence": 0.95, "confidence": 1.0,
-            "n_resets": 0, "n_fixations": 3, "image_size": [160, 120], "reason": "", "steps": steps}
+    for k, (ev, out) in enumerate(
+        [([(3, 0.2), (7, 0.1)], "start"), ([(3, 0.5), (7, 0.3)], "confirmed"), ([(3, 0.95), (9, 0.4)], "confirmed")]
+    ):
+        steps.append(
+            {
+                "attempt": 0,
+                "fixation": [40.0 + 30 * k, 50.0],
+                "target": [42.0 + 30 * k, 50.0],
+                "predicted_frame": 3,
+                "predicted_feature": k,
+                "found_frame": 3,
+                "found_feature": k,
+                "similarity": 0.8,
+                "outcome": out,
+                "evidence": [list(e) for e in ev],
+                "event": None,
+            }
+        )
+    return {
+        "id": 4,
+        "t": 12.5,
+        "node": 9,
+        "frame_id": 3,
+        "accepted": True,
+        "evidence": 0.95,
+        "confidence": 1.0,
+        "n_resets": 0,
+        "n_fixations": 3,
+        "image_size": [160, 120],
+        "reason": "",
+        "steps": steps,
+    }
 
 
 def test_evidence_curves_put_the_accepted_frame_first():
@@ -428,7 +458,7 @@ def _viser_payload(frame: bytes) -> bytes:
 
     size = int.from_bytes(frame[:8], "little")
     packed = int.from_bytes(frame[8:16], "little")
-    return zstandard.ZstdDecompressor().decompress(frame[16:16 + packed], max_output_size=size)
+    return zstandard.ZstdDecompressor().decompress(frame[16 : 16 + packed], max_output_size=size)
 
 
 def test_websocket_proxy_forwards_the_viser_protocol(client):
@@ -470,9 +500,16 @@ def _project(points, pos, look, fov, aspect):
 
 
 @settings(max_examples=60, deadline=None)
-@given(cx=st.floats(-50, 50), cy=st.floats(-50, 50), w=st.floats(0.5, 200), h=st.floats(0.5, 200),
-       aspect=st.floats(0.6, 2.5), covered=st.floats(0.0, 0.4), left=st.floats(0.0, 0.3),
-       fov=st.floats(0.5, 1.6))
+@given(
+    cx=st.floats(-50, 50),
+    cy=st.floats(-50, 50),
+    w=st.floats(0.5, 200),
+    h=st.floats(0.5, 200),
+    aspect=st.floats(0.6, 2.5),
+    covered=st.floats(0.0, 0.4),
+    left=st.floats(0.0, 0.3),
+    fov=st.floats(0.5, 1.6),
+)
 def test_fitted_camera_shows_the_whole_map_in_the_free_canvas_and_fills_it(cx, cy, w, h, aspect, covered, left, fov):
     lo, hi = np.array([cx - w / 2, cy - h / 2]), np.array([cx + w / 2, cy + h / 2])
     pos, look = fit_camera(lo, hi, fov, aspect, margin=1.15, covered=covered, covered_left=left)
@@ -711,8 +748,9 @@ def localising_session():
         base.step(x) if isinstance(x, Odometry) else base.observe(x)
     plan = sim.RoutePlan(((0.0, 5.0), (0.0, 0.0), (8.0, 0.0), (8.0, 5.0)), closed=True, laps=1, seed=2)
     run2 = sim.simulate(world, plan, rate_hz=5.0, seed=2, odometry_noise=REUSE_NOISE)
-    session = LocalSession("loc", mapper=Mapper.from_base(base.to_bytes(), {"mapper": {"mode": "localise"}}),
-                           title="localising run")
+    session = LocalSession(
+        "loc", mapper=Mapper.from_base(base.to_bytes(), {"mapper": {"mode": "localise"}}), title="localising run"
+    )
     return session, run2
 
 

@@ -25,8 +25,15 @@ from tests.support.live import ROOT, LiveServer
 from tests.support.simfeed import sim_inputs
 
 CHROMIUM = "/usr/bin/chromium"
-ARGS = ["--no-sandbox", "--enable-unsafe-swiftshader", "--use-angle=swiftshader", "--disable-background-networking",
-        "--disable-component-update", "--disable-sync", "--no-first-run"]
+ARGS = [
+    "--no-sandbox",
+    "--enable-unsafe-swiftshader",
+    "--use-angle=swiftshader",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--no-first-run",
+]
 ARTIFACTS = ROOT / "test-artifacts"
 
 
@@ -78,8 +85,16 @@ def test_viewer_shows_the_live_map_and_saccades_in_chromium(streamed):
             link.click()  # the token now travels in the HttpOnly cookie, as it must for the websocket
             page.wait_for_url(f"{server.url}/viewer/{sid}/")
             page.wait_for_function("() => !document.body.innerText.includes('Connecting...')", timeout=60_000)
-            for node in ("/map/nodes/0", "/map/links/0", "/trajectories/odometry/0", "/trajectories/map/0",
-                         "/loops/accepted/0", "/place_field", "/robot", "/ground_truth/0"):
+            for node in (
+                "/map/nodes/0",
+                "/map/links/0",
+                "/trajectories/odometry/0",
+                "/trajectories/map/0",
+                "/loops/accepted/0",
+                "/place_field",
+                "/robot",
+                "/ground_truth/0",
+            ):
                 page.wait_for_function("n => !!window.__viserSceneTree?.getState()[n]", arg=node, timeout=60_000)
             # the panel: stats of this session, the saccade trace of the last recognition
             page.wait_for_function("n => document.body.innerText.includes(n)", arg="loop closures", timeout=30_000)
@@ -90,7 +105,8 @@ def test_viewer_shows_the_live_map_and_saccades_in_chromium(streamed):
             assert page.locator(".hippomap-legend").first.is_visible()
             page.wait_for_function(
                 "() => Array.from(document.images).filter(i => i.complete && i.naturalWidth === 484).length >= 1",
-                timeout=30_000)
+                timeout=30_000,
+            )
             page.wait_for_timeout(1500)  # let the renderer draw the received scene
             shot = page.screenshot(path=str(ARTIFACTS / "viewer-e2e.png"))
             canvas = page.locator("canvas").first
@@ -116,8 +132,9 @@ def test_place_field_png_draws_the_iteration_like_fig_8(streamed):
     import httpx
 
     server, sid, _, _ = streamed
-    r = httpx.get(f"{server.url}/sessions/{sid}/place-field/png", headers={"Authorization": f"Bearer {server.token}"},
-                  timeout=60)
+    r = httpx.get(
+        f"{server.url}/sessions/{sid}/place-field/png", headers={"Authorization": f"Bearer {server.token}"}, timeout=60
+    )
     assert r.status_code == 200 and r.headers["content-type"] == "image/png"
     img = cv2.imdecode(np.frombuffer(r.content, np.uint8), cv2.IMREAD_COLOR)
     ARTIFACTS.mkdir(exist_ok=True)
@@ -129,11 +146,15 @@ def test_place_field_png_draws_the_iteration_like_fig_8(streamed):
     b, g, r_ = (img[:, :, i].astype(int) for i in range(3))
     assert ((r_ > 230) & (g > 190) & (b < 90)).sum() > 1000  # binarised grid-cell windows (MB = 1)
     assert ((r_ < 90) & (g > 200) & (b > 230)).sum() > 100  # the position matrix (POS = 1)
-    meta = httpx.get(f"{server.url}/sessions/{sid}/place-field", headers={"Authorization": f"Bearer {server.token}"},
-                     timeout=60).json()
+    meta = httpx.get(
+        f"{server.url}/sessions/{sid}/place-field", headers={"Authorization": f"Bearer {server.token}"}, timeout=60
+    ).json()
     step = meta["step"]
-    past = httpx.get(f"{server.url}/sessions/{sid}/place-fields/{step}/png",
-                     headers={"Authorization": f"Bearer {server.token}"}, timeout=60)
+    past = httpx.get(
+        f"{server.url}/sessions/{sid}/place-fields/{step}/png",
+        headers={"Authorization": f"Bearer {server.token}"},
+        timeout=60,
+    )
     assert past.status_code == 200 and past.content[:4] == b"\x89PNG"
 
 

@@ -38,8 +38,10 @@ LOOP_M = 1.5  # longest loop segment drawn (0.64 m measured; a decision made whi
 
 def _items(run: sim.SimRun, steps: int) -> tuple:
     """``stream_items`` items of the first ``steps`` steps: odometry with its ground truth, JPEG frames."""
-    return tuple(("odometry", x) if isinstance(x, Odometry) else ("frame", x.t, encode_image(x.image))
-                 for x in sim_inputs(run, 0, steps))
+    return tuple(
+        ("odometry", x) if isinstance(x, Odometry) else ("frame", x.t, encode_image(x.image))
+        for x in sim_inputs(run, 0, steps)
+    )
 
 
 @pytest.fixture(scope="module")
@@ -57,8 +59,11 @@ def localising(tmp_path_factory):
         asyncio.run(stream_items(server.url, server.token, base, _items(run1, BASE_STEPS)))
         client.wait_processed(base, timeout=180)
         base_map = client.map(base)
-        sid = client._json("POST", "/sessions", {"name": "localising run", "base_session": base,
-                                                 "config": {"mapper": {"mode": "localise"}}})["id"]
+        sid = client._json(
+            "POST",
+            "/sessions",
+            {"name": "localising run", "base_session": base, "config": {"mapper": {"mode": "localise"}}},
+        )["id"]
         asyncio.run(stream_items(server.url, server.token, sid, _items(run2, RUN_STEPS)))
         stats = client.wait_processed(sid, timeout=180)["mapper"]
         token = client.create_token("viewer", session=sid, label="localise")["token"]
@@ -77,7 +82,9 @@ def _scene_points(page, prefix: str, but: str = "") -> np.ndarray:
         "   const a = props.points ?? props.vertices; if (!a) continue;"
         "   const f = new Float32Array(a.buffer.slice(a.byteOffset, a.byteOffset + a.byteLength));"
         "   for (const x of f) out.push(x); }"
-        " return out; }", [prefix, but])
+        " return out; }",
+        [prefix, but],
+    )
     return np.asarray(flat, float).reshape(-1, 3)
 
 

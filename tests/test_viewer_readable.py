@@ -55,10 +55,12 @@ def free_port() -> int:
 def ten_laps():
     """A LocalSession holding ten laps with ground truth, served by the viewer's routes."""
     world = sim.loop_world(seed=3, size=(5.0, 3.5), corridor_width=2.0, laps=10, speed_mps=0.6)
-    run = sim.simulate(world, rate_hz=4, frame_every=4, seed=3,
-                       odometry_noise=sim.OdometryNoise(sigma_omega=0.02, omega_bias=0.005))
-    session = LocalSession("s_ten", config=HippomapConfig.with_overrides({"mapper": {"keyframe_interval": 3}}),
-                           title="ten laps")
+    run = sim.simulate(
+        world, rate_hz=4, frame_every=4, seed=3, odometry_noise=sim.OdometryNoise(sigma_omega=0.02, omega_bias=0.005)
+    )
+    session = LocalSession(
+        "s_ten", config=HippomapConfig.with_overrides({"mapper": {"keyframe_interval": 3}}), title="ten laps"
+    )
     session.feed(sim_inputs(run))  # each odometry reading carries its ground-truth pose (gt)
     app = FastAPI()
     router = make_router(_Access(session), settings=ViewerSettings(idle_timeout_s=120.0))
@@ -116,8 +118,8 @@ def test_ten_laps_stay_readable_in_chromium(ten_laps, tmp_path):
             gt_px, map_px, odo_px = teal(img), blue(img), tan(img)
             assert gt_px > 300 and map_px > 300, (gt_px, map_px)
             assert odo_px > 1000, odo_px  # the raw odometry, shown by default (14,408 px measured)
-            ink = (np.abs(img.astype(int) - img[5, w // 2].astype(int)).max(axis=2) > 40)
-            ink[:, int(0.66 * w):] = False  # the control panel floats over the right third
+            ink = np.abs(img.astype(int) - img[5, w // 2].astype(int)).max(axis=2) > 40
+            ink[:, int(0.66 * w) :] = False  # the control panel floats over the right third
             ink[: int(0.5 * h), : int(0.2 * w)] = False  # the legend floats top left
             ys, xs = np.nonzero(ink)
             assert (xs.max() - xs.min()) > 0.45 * w or (ys.max() - ys.min()) > 0.6 * h
@@ -138,8 +140,9 @@ def test_ten_laps_stay_readable_in_chromium(ten_laps, tmp_path):
             theirs.slider.value = 40
             theirs.refresh_replay()
             other.wait_for_function("() => document.body.innerText.includes('replay: t =')", timeout=30_000)
-            other.wait_for_function("n => !!window.__viserSceneTree?.getState()[n]", arg="/replay/nodes",
-                                    timeout=30_000)
+            other.wait_for_function(
+                "n => !!window.__viserSceneTree?.getState()[n]", arg="/replay/nodes", timeout=30_000
+            )
             other.wait_for_timeout(1500)
             replay = canvas(other, tmp_path / "viewer-ten-laps-replay.png")
             assert teal(replay) < 0.1 * gt_px  # hidden in that browser
@@ -154,8 +157,7 @@ def test_ten_laps_stay_readable_in_chromium(ten_laps, tmp_path):
             theirs.refresh_replay()
             assert theirs.replay.frame is None
             other.wait_for_function("() => document.body.innerText.includes('live map')", timeout=30_000)
-            other.wait_for_function("n => !window.__viserSceneTree?.getState()[n]", arg="/replay/nodes",
-                                    timeout=30_000)
+            other.wait_for_function("n => !window.__viserSceneTree?.getState()[n]", arg="/replay/nodes", timeout=30_000)
             other.wait_for_timeout(1500)
             live = canvas(other, tmp_path / "viewer-ten-laps-other-live.png")
             assert blue(live) > 0.5 * map_px and teal(live) < 0.1 * gt_px

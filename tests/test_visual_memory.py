@@ -25,8 +25,14 @@ from hippomap.visual_memory import (
 scene = shapes_scene
 
 
-def perturb(img: np.ndarray, seed: int, noise: float = 8.0, gain: float = 0.85, offset: float = 25.0,
-            shift: tuple[int, int] = (3, 5)) -> np.ndarray:
+def perturb(
+    img: np.ndarray,
+    seed: int,
+    noise: float = 8.0,
+    gain: float = 0.85,
+    offset: float = 25.0,
+    shift: tuple[int, int] = (3, 5),
+) -> np.ndarray:
     """Sensor noise, a brightness change (gain and offset, unsaturated: 255 * 0.85 + 25 < 255)
     and a shift of the view by a few pixels."""
     rng = np.random.default_rng(seed)
@@ -190,8 +196,12 @@ def test_index_path_recognises_and_rejects():
 
 @pytest.mark.parametrize(
     "override",
-    [{"decoder": "svc"}, {"anchor": "none", "tolerance_px": 6}, {"next_target": "stochastic"},
-     {"next_target": "most_active", "verify_saccades": 0}],
+    [
+        {"decoder": "svc"},
+        {"anchor": "none", "tolerance_px": 6},
+        {"next_target": "stochastic"},
+        {"next_target": "most_active", "verify_saccades": 0},
+    ],
 )
 def test_variants_still_recognise(override):
     mem = VisualMemory(VisualConfig(**override))
@@ -308,8 +318,8 @@ def test_shift_of_a_shifted_copy_is_reported_within_two_pixels(width, dx, dy):
     mem = VisualMemory(VisualConfig())
     for k in range(4):  # distractors
         mem.learn(shapes_scene(500 + k, width, height))
-    fid = mem.learn(big[margin:margin + height, margin:margin + width])
-    query = big[margin + dy:margin + dy + height, margin + dx:margin + dx + width]
+    fid = mem.learn(big[margin : margin + height, margin : margin + width])
+    query = big[margin + dy : margin + dy + height, margin + dx : margin + dx + width]
     rec = mem.recognise(query)
     assert rec.frame_id == fid
     assert rec.shift is not None and rec.shift["n"] >= 2
@@ -385,18 +395,28 @@ def test_later_attempts_must_verify_more():
         need = cfg.verify_saccades + int(rec.n_resets * cfg.verify_per_reset)
         th = [k for k, s in enumerate(last) if s.event == "threshold"]
         assert th, "an acceptance with verification saccades passes the threshold first"
-        after = last[th[0] + 1:]
+        after = last[th[0] + 1 :]
         assert len(after) == need
         assert all(s.outcome == "confirmed" and s.predicted_frame == rec.frame_id for s in after)
         seen_resets.add(rec.n_resets)
     assert max(seen_resets) >= 1  # the rule was exercised
 
 
-@pytest.mark.parametrize("image", [
-    np.zeros((240, 320), np.uint8), np.zeros((240, 320, 3), np.uint8), np.zeros((240, 320, 4), np.uint8),
-    np.zeros((240, 320, 1), np.uint8), np.zeros((240, 320), np.float32), np.zeros((0, 320), np.uint8),
-    np.zeros((8, 8), np.uint8), np.zeros((30, 2000), np.uint8), np.zeros((240, 320, 2), np.uint8), [[1, 2], [3, 4]],
-])
+@pytest.mark.parametrize(
+    "image",
+    [
+        np.zeros((240, 320), np.uint8),
+        np.zeros((240, 320, 3), np.uint8),
+        np.zeros((240, 320, 4), np.uint8),
+        np.zeros((240, 320, 1), np.uint8),
+        np.zeros((240, 320), np.float32),
+        np.zeros((0, 320), np.uint8),
+        np.zeros((8, 8), np.uint8),
+        np.zeros((30, 2000), np.uint8),
+        np.zeros((240, 320, 2), np.uint8),
+        [[1, 2], [3, 4]],
+    ],
+)
 def test_check_image_refuses_exactly_what_preparation_refuses(image):
     """The per-frame check skips the retina but must accept and refuse the same frames as the full
     preparation a key frame goes through."""
@@ -475,8 +495,11 @@ def test_microsaccade_search_widens_with_the_saccade_amplitude():
         work, _, _ = mem._views(img)
         feats = mem.frame_features(fid)
         # a feature far enough from the border for a 14-px miss and the widened search
-        k = next(int(f) for f, (x, y) in zip(feats["features"], feats["points"])
-                 if 50 <= x <= work.shape[1] - 50 and 50 <= y <= work.shape[0] - 50)
+        k = next(
+            int(f)
+            for f, (x, y) in zip(feats["features"], feats["points"])
+            if 50 <= x <= work.shape[1] - 50 and 50 <= y <= work.shape[0] - 50
+        )
         true = mem._pos[k].astype(np.int64)
         landed[gain] = mem._microsaccade(work, true + np.array([14, -3]), k, amplitude=100.0)
         if gain == 0.0:  # the fixed radius cannot reach: it stops >= 6 px short in x

@@ -86,8 +86,13 @@ def _same_state(a: vm.VisualMemory, b: vm.VisualMemory) -> None:
 
 @pytest.mark.parametrize(
     "override",
-    [{}, {"index_shortlist": 12, "stats_sample": 16}, {"decoder": "svc"}, {"anchor": "none"},
-     {"next_target": "stochastic"}],
+    [
+        {},
+        {"index_shortlist": 12, "stats_sample": 16},
+        {"decoder": "svc"},
+        {"anchor": "none"},
+        {"next_target": "stochastic"},
+    ],
     ids=["exact", "index", "svc", "no-anchor", "stochastic"],
 )
 def test_recognitions_equal_the_reference_bit_for_bit(override):
@@ -172,9 +177,19 @@ def test_table_gather_equals_numpy_take(monkeypatch, lut16):
 
 
 def test_trace_step_dict_equals_dataclasses_asdict():
-    step = vm.SaccadeStep(attempt=1, fixation=(3.0, 4.5), target=None, predicted_frame=2, predicted_feature=17,
-                          found_frame=None, found_feature=None, similarity=0.25, outcome="no_evidence",
-                          evidence=[(2, 0.5), (0, 0.125)], event="reset: x")
+    step = vm.SaccadeStep(
+        attempt=1,
+        fixation=(3.0, 4.5),
+        target=None,
+        predicted_frame=2,
+        predicted_feature=17,
+        found_frame=None,
+        found_feature=None,
+        similarity=0.25,
+        outcome="no_evidence",
+        evidence=[(2, 0.5), (0, 0.125)],
+        event="reset: x",
+    )
     ref = dataclasses.asdict(step)
     ref["fixation"], ref["target"] = [3.0, 4.5], None
     ref["evidence"] = [[2, 0.5], [0, 0.125]]

@@ -122,8 +122,22 @@ def test_command_line(vpr_bench_dir, tmp_path, capsys):
     sub = parser.add_subparsers(dest="command", required=True)
     add_parser(sub)
     out = tmp_path / "cli"
-    args = parser.parse_args(["eval-vpr", str(vpr_bench_dir), "--out", str(out), "--seeds", "1", "--examples", "1",
-                              "--set", "n_std=3.0", "--set", "visual.tolerance_px=6"])
+    args = parser.parse_args(
+        [
+            "eval-vpr",
+            str(vpr_bench_dir),
+            "--out",
+            str(out),
+            "--seeds",
+            "1",
+            "--examples",
+            "1",
+            "--set",
+            "n_std=3.0",
+            "--set",
+            "visual.tolerance_px=6",
+        ]
+    )
     assert args.func(args) == 0
     text = capsys.readouterr().out
     assert "precision" in text and "baseline" in text

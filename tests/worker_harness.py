@@ -19,8 +19,12 @@ from tests.support.synthetic import decoded
 
 def records(items: tuple) -> list[InputRecord]:
     """``synthetic_inputs`` items as the store's input records."""
-    return [InputRecord(seq, "odometry", it[1].t, odometry_bytes(it[1])) if it[0] == "odometry"
-            else InputRecord(seq, "frame", it[1], it[2]) for seq, it in enumerate(items)]
+    return [
+        InputRecord(seq, "odometry", it[1].t, odometry_bytes(it[1]))
+        if it[0] == "odometry"
+        else InputRecord(seq, "frame", it[1], it[2])
+        for seq, it in enumerate(items)
+    ]
 
 
 def run_worker(tmp_path, items: tuple, config: dict[str, Any], host_factory, kill_at=None, metrics=None):
@@ -32,15 +36,23 @@ def run_worker(tmp_path, items: tuple, config: dict[str, Any], host_factory, kil
     store.create_session(SessionRecord(id=sid, owner="t", config=config)).result()
     settings = ServerSettings(data_dir=tmp_path, snapshot_every_inputs=50, backend_max_restarts=3)
     processed: list[int] = []
-    w = SessionWorker(sid, model.effective_config(config), store, settings, replay_until=-1,
-                      on_processed=processed.append, host_factory=host_factory, metrics=metrics)
+    w = SessionWorker(
+        sid,
+        model.effective_config(config),
+        store,
+        settings,
+        replay_until=-1,
+        on_processed=processed.append,
+        host_factory=host_factory,
+        metrics=metrics,
+    )
     w.start()
     assert w.ready.wait(120) and w.error is None
     recs, values = records(items), decoded(items)
     half = len(items) // 2
     for k in range(0, len(items), 10):
-        work = [WorkItem(r.seq, v) for r, v in zip(recs[k:k + 10], values[k:k + 10])]
-        store.append_inputs(sid, recs[k:k + 10], on_durable=lambda work=work: w.put(work)).result()
+        work = [WorkItem(r.seq, v) for r, v in zip(recs[k : k + 10], values[k : k + 10])]
+        store.append_inputs(sid, recs[k : k + 10], on_durable=lambda work=work: w.put(work)).result()
         if kill_at is not None and k <= half < k + 10:
             kill_at(w)
     deadline = time.monotonic() + 120
@@ -76,8 +88,9 @@ def assert_host_matches_inprocess(remote, kind: str, items: tuple, config_overri
         (ta, pa), (tb, pb) = local.query(mq.Trajectory(source)), remote.query(mq.Trajectory(source))
         assert ta.tolist() == tb.tolist() and pa.tolist() == pb.tolist()
     assert local.query(mq.Recognitions()) == remote.query(mq.Recognitions())
-    assert [d.to_dict() for d in local.query(mq.LoopDecisions())] == \
-        [d.to_dict() for d in remote.query(mq.LoopDecisions())]
+    assert [d.to_dict() for d in local.query(mq.LoopDecisions())] == [
+        d.to_dict() for d in remote.query(mq.LoopDecisions())
+    ]
     again = InProcessHost()  # a snapshot taken remotely restores locally to the same mapper
     again.restore(remote.snapshot(), config)
     assert again.query(mq.Stats()) == local.query(mq.Stats())

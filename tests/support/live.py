@@ -26,8 +26,14 @@ class LiveServer:
     """``python -m server`` on 127.0.0.1 with its own data folder and admin token (``command``: another
     program that takes the serve command's arguments, e.g. a script that patches the server first)."""
 
-    def __init__(self, data_dir: str | Path, token: str = "hm_test_admin_token", env: dict[str, str] | None = None,
-                 args: list[str] | None = None, command: list[str] | None = None) -> None:
+    def __init__(
+        self,
+        data_dir: str | Path,
+        token: str = "hm_test_admin_token",
+        env: dict[str, str] | None = None,
+        args: list[str] | None = None,
+        command: list[str] | None = None,
+    ) -> None:
         self.command = command or [sys.executable, "-m", "server"]
         self.data_dir = Path(data_dir)
         self.token = token
@@ -41,7 +47,12 @@ class LiveServer:
     def start(self, timeout: float = 60.0) -> "LiveServer":
         self.proc = subprocess.Popen(
             [*self.command, "--host", "127.0.0.1", "--port", "0", "--data-dir", str(self.data_dir), *self.args],
-            cwd=ROOT, env=self.env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+            cwd=ROOT,
+            env=self.env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+        )
         found = threading.Event()
 
         def pump() -> None:

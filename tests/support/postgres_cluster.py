@@ -36,10 +36,11 @@ def postgres_bin_dir() -> Path:
     initdb = shutil.which("initdb")
     if initdb:
         return Path(initdb).parent
-    raise RuntimeError("PostgreSQL server programs (initdb, pg_ctl) not found: install Debian's PostgreSQL "
-                       "(`apt-get install -y postgresql`) or point " + POSTGRES_URL_ENV + " at a server "
-                       "(`eval \"$(bash .ci/postgres)\"` does both)")
-
+    raise RuntimeError(
+        "PostgreSQL server programs (initdb, pg_ctl) not found: install Debian's PostgreSQL "
+        "(`apt-get install -y postgresql`) or point " + POSTGRES_URL_ENV + " at a server "
+        '(`eval "$(bash .ci/postgres)"` does both)'
+    )
 
 
 def _pid_alive(pid: int) -> bool:
@@ -94,8 +95,11 @@ class PostgresCluster:
             try:
                 bindir = postgres_bin_dir()
                 prefix = ["runuser", "-u", "postgres", "--"] if os.geteuid() == 0 else []
-                subprocess.run([*prefix, str(bindir / "pg_ctl"), "-D", str(root / "data"), "-m", "immediate", "stop"],
-                               capture_output=True, timeout=60)
+                subprocess.run(
+                    [*prefix, str(bindir / "pg_ctl"), "-D", str(root / "data"), "-m", "immediate", "stop"],
+                    capture_output=True,
+                    timeout=60,
+                )
             except (RuntimeError, OSError, subprocess.TimeoutExpired):
                 pass
             shutil.rmtree(root, ignore_errors=True)
@@ -115,18 +119,45 @@ class PostgresCluster:
             shutil.chown(pwfile, "postgres", "postgres")
         pwfile.chmod(0o600)
         atexit.register(self.stop)
-        self._run(str(self.bin_dir / "initdb"), "-D", str(root / "data"), "-U", "postgres", "-E", "UTF8",
-                  "--auth-local=trust", "--auth-host=scram-sha-256", f"--pwfile={pwfile}", "--no-sync")
+        self._run(
+            str(self.bin_dir / "initdb"),
+            "-D",
+            str(root / "data"),
+            "-U",
+            "postgres",
+            "-E",
+            "UTF8",
+            "--auth-local=trust",
+            "--auth-host=scram-sha-256",
+            f"--pwfile={pwfile}",
+            "--no-sync",
+        )
         pwfile.unlink()
-        conf = ["listen_addresses = '127.0.0.1'", f"unix_socket_directories = '{root}'", "max_connections = 300",
-                f"fsync = {'on' if self.fsync else 'off'}", f"full_page_writes = {'on' if self.fsync else 'off'}"]
+        conf = [
+            "listen_addresses = '127.0.0.1'",
+            f"unix_socket_directories = '{root}'",
+            "max_connections = 300",
+            f"fsync = {'on' if self.fsync else 'off'}",
+            f"full_page_writes = {'on' if self.fsync else 'off'}",
+        ]
         with open(root / "data" / "postgresql.conf", "a") as f:
             f.write("\n".join(conf) + "\n")
         for attempt in range(5):
             self.port = free_port()
             try:
-                self._run(str(self.bin_dir / "pg_ctl"), "-D", str(root / "data"), "-l", str(root / "server.log"),
-                          "-o", f"-p {self.port}", "-w", "-t", "60", "start")
+                self._run(
+                    str(self.bin_dir / "pg_ctl"),
+                    "-D",
+                    str(root / "data"),
+                    "-l",
+                    str(root / "server.log"),
+                    "-o",
+                    f"-p {self.port}",
+                    "-w",
+                    "-t",
+                    "60",
+                    "start",
+                )
                 return self
             except RuntimeError:  # the port was taken in between: try another
                 if attempt == 4:

@@ -24,16 +24,21 @@ def offline_reference(items: tuple, overrides: dict[str, Any] | None = None) -> 
     for value in decoded(items):
         (m.step if isinstance(value, _Odo) else m.observe)(value)
     q = model.queries
-    out = {"map": model.graph(m.answer(q.GraphArrays())), "stats": m.answer(q.Stats()),
-           "loop_closures": [r["decision"] for r in model.loop_closures(m.answer(q.LoopDecisions()))],
-           "recognitions": m.answer(q.Recognitions(-1, 10**9))}
+    out = {
+        "map": model.graph(m.answer(q.GraphArrays())),
+        "stats": m.answer(q.Stats()),
+        "loop_closures": [r["decision"] for r in model.loop_closures(m.answer(q.LoopDecisions()))],
+        "recognitions": m.answer(q.Recognitions(-1, 10**9)),
+    }
     return json.loads(json.dumps(model.json_safe(out)))
 
 
 def session_state(client: Any, session_id: str) -> dict[str, Any]:
     """The same four things, as the server reports them (after it has processed everything)."""
     client.wait_processed(session_id)
-    return {"map": client.map(session_id), "stats": client.stats(session_id)["mapper"],
-            "loop_closures": [r["decision"] for r in client.loop_closures(session_id, limit=10_000)],
-            "recognitions": [client.saccades(session_id, r["id"])
-                             for r in client.recognitions(session_id, limit=10_000)]}
+    return {
+        "map": client.map(session_id),
+        "stats": client.stats(session_id)["mapper"],
+        "loop_closures": [r["decision"] for r in client.loop_closures(session_id, limit=10_000)],
+        "recognitions": [client.saccades(session_id, r["id"]) for r in client.recognitions(session_id, limit=10_000)],
+    }

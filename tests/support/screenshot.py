@@ -14,12 +14,26 @@ import argparse
 import sys
 
 CHROMIUM = "/usr/bin/chromium"
-ARGS = ["--no-sandbox", "--enable-unsafe-swiftshader", "--use-angle=swiftshader", "--disable-background-networking",
-        "--disable-component-update", "--disable-sync", "--no-first-run"]
+ARGS = [
+    "--no-sandbox",
+    "--enable-unsafe-swiftshader",
+    "--use-angle=swiftshader",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--no-first-run",
+]
 
 
-def screenshot(url: str, out: str, wait_s: float = 3.0, width: int = 1400, height: int = 900,
-               node: str = "/map/nodes/0", timeout_s: float = 120.0) -> None:
+def screenshot(
+    url: str,
+    out: str,
+    wait_s: float = 3.0,
+    width: int = 1400,
+    height: int = 900,
+    node: str = "/map/nodes/0",
+    timeout_s: float = 120.0,
+) -> None:
     """Save a PNG of the viewer at ``url`` once ``node`` is in its scene."""
     from playwright.sync_api import sync_playwright
 
@@ -28,8 +42,7 @@ def screenshot(url: str, out: str, wait_s: float = 3.0, width: int = 1400, heigh
         try:
             page = browser.new_page(viewport={"width": width, "height": height})
             page.goto(url)
-            page.wait_for_function("() => !document.body.innerText.includes('Connecting...')",
-                                   timeout=timeout_s * 1000)
+            page.wait_for_function("() => !document.body.innerText.includes('Connecting...')", timeout=timeout_s * 1000)
             page.wait_for_function("n => !!window.__viserSceneTree?.getState()[n]", arg=node, timeout=timeout_s * 1000)
             page.wait_for_timeout(wait_s * 1000)
             notice = page.get_by_text("Software WebGL rendering detected")
@@ -44,8 +57,11 @@ def screenshot(url: str, out: str, wait_s: float = 3.0, width: int = 1400, heigh
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m tests.support.screenshot", description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        prog="python -m tests.support.screenshot",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     ap.add_argument("url")
     ap.add_argument("out")
     ap.add_argument("--wait-s", type=float, default=3.0, help="seconds to let the scene render (default 3)")

@@ -42,8 +42,15 @@ def view(heading: float, seed: int = 0, width: int = 320) -> np.ndarray:
 
 
 @lru_cache(maxsize=8)
-def synthetic_inputs(n_odometry: int = 400, rate_hz: float = 20.0, frame_every: int = 4, speed: float = 0.5,
-                     radius: float = 1.0, seed: int = 0, quality: int = 85) -> tuple[tuple, ...]:
+def synthetic_inputs(
+    n_odometry: int = 400,
+    rate_hz: float = 20.0,
+    frame_every: int = 4,
+    speed: float = 0.5,
+    radius: float = 1.0,
+    seed: int = 0,
+    quality: int = 85,
+) -> tuple[tuple, ...]:
     """Inputs of a robot circling (``speed`` m/s, ``radius`` m): ``("odometry", Odometry)`` and
     ``("frame", t, jpeg)`` items in strictly increasing time order; a frame follows every
     ``frame_every``-th reading by half a period."""

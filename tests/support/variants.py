@@ -33,8 +33,9 @@ class ServiceVariant:
     def env(self, data_dir: str | Path) -> dict[str, str]:
         return self.env_for(Path(data_dir)) if self.env_for is not None else {}
 
-    def server(self, data_dir: str | Path, env: dict[str, str] | None = None,
-               args: list[str] | None = None) -> LiveServer:
+    def server(
+        self, data_dir: str | Path, env: dict[str, str] | None = None, args: list[str] | None = None
+    ) -> LiveServer:
         """A (not yet started) :class:`LiveServer` of this variant on ``data_dir``."""
         return LiveServer(data_dir, env={**self.env(data_dir), **(env or {})}, args=[*self.args, *(args or [])])
 
@@ -52,6 +53,9 @@ SERVICE_VARIANTS: list[ServiceVariant] = [
     ServiceVariant("ray-sqlite", args=("--backend", "ray"), env_for=ray_test_env),
     ServiceVariant("inprocess-postgres", env_for=lambda d: {"HIPPOMAP_DATABASE": postgres_url_for(d)}),
     # the scale-out deployment (docker/compose.yml, profile "scale"): Ray actors + the shared store
-    ServiceVariant("ray-postgres", args=("--backend", "ray"),
-                   env_for=lambda d: {**ray_test_env(d), "HIPPOMAP_DATABASE": postgres_url_for(d)}),
+    ServiceVariant(
+        "ray-postgres",
+        args=("--backend", "ray"),
+        env_for=lambda d: {**ray_test_env(d), "HIPPOMAP_DATABASE": postgres_url_for(d)},
+    ),
 ]
