@@ -1,13 +1,18 @@
 """Every model parameter of hippomap, in one pydantic config.
 
 Each field carries its default and, in its description, the source of that default:
-``[S]`` the paper (``shared/paper``), ``[BBc]`` Bicanski & Burgess' code, ``[ORS]``
-OpenRatSLAM, or ``spec`` for a decision of ``shared/docs/MODEL_SPEC.md``; ``ours`` marks a
-choice made (and measured) by this project, explained in ``docs/MODEL.md``.
+``[S]`` the paper (*A Map Construction Method Based on the Cognitive Mechanism of Rat Brain
+Hippocampus*), ``[BBc]`` Bicanski & Burgess' code, ``[ORS]`` OpenRatSLAM, or ``spec`` for a
+decision of the project's model specification; ``ours`` marks a choice made (and measured) by
+this project, explained in ``docs/MODEL.md``.
 
 Units: metres and radians for space, pixels for images, seconds for time.
 The config is immutable (``frozen``); build a changed copy with ``model_copy(update=...)``
 or validate a nested override dict with :func:`HippomapConfig.with_overrides`.
+
+One module on purpose: a user or maintainer finds every parameter, its default and its source
+in one place, section by section (spatial, visual, map, mapper); splitting the sections apart
+would scatter exactly what this module exists to gather.
 """
 
 from __future__ import annotations

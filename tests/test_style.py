@@ -5,8 +5,9 @@ The size rule: no module of hippomap, server or web over ``MAX_MODULE_LINES`` li
 followed by the reason (``LiveSession.submit``: the checks, the wait and the sequence numbers are one
 critical section).
 
-``ruff check`` enforces the lint rules of ``[tool.ruff]``, ``lint-imports`` the import contracts of
-``[tool.importlinter]`` (the model never imports the service, the viewer or a web framework) and ``mypy``
+``ruff check`` enforces the lint rules of ``[tool.ruff]``, ``ruff format --check`` its layout,
+``lint-imports`` the import contracts of ``[tool.importlinter]`` (the model never imports the service, the
+viewer or a web framework) and ``mypy``
 the static types of ``[tool.mypy]`` (the packages hippomap, server and web), all configured in
 pyproject.toml. The tools come with the ``test`` extra; they are looked up beside the running
 interpreter first (``.venv/bin`` after ``pip install -e ".[test]"``), then on ``PATH``.
@@ -47,6 +48,12 @@ def _run(args: list[str]) -> subprocess.CompletedProcess:
 def test_ruff_check_is_clean():
     r = _run([_tool("ruff"), "check", "--no-cache", "."])
     assert r.returncode == 0, f"ruff check found problems (fix them or see [tool.ruff]):\n{r.stdout}\n{r.stderr}"
+
+
+def test_ruff_format_is_clean():
+    """The tree is laid out by ``ruff format`` ([tool.ruff.format]): run it before committing."""
+    r = _run([_tool("ruff"), "format", "--check", "--no-cache", "."])
+    assert r.returncode == 0, f"ruff format would change these files (run ruff format .):\n{r.stdout}\n{r.stderr}"
 
 
 def test_import_contracts_hold():
@@ -90,6 +97,7 @@ def test_tools_are_in_the_test_extra_and_the_pre_commit_hooks():
     config = yaml.safe_load((ROOT / ".pre-commit-config.yaml").read_text())
     hooks = {h["id"]: h for repo in config["repos"] for h in repo["hooks"]}
     assert hooks["ruff"]["entry"].split()[:2] == ["ruff", "check"]
+    assert hooks["ruff-format"]["entry"].split()[:2] == ["ruff", "format"]
     assert hooks["lint-imports"]["entry"].split()[0] == "lint-imports"
     assert hooks["mypy"]["entry"].split()[0] == "mypy" and hooks["mypy"]["pass_filenames"] is False
     assert all(h["language"] == "system" for h in hooks.values())  # nothing to download
@@ -140,12 +148,33 @@ def long_functions(source: str, module: str) -> dict[str, int]:
     return found
 
 
+#: the stated reason of a longer module, in its docstring: "One module on purpose: <why>"
+MODULE_REASON = re.compile(r"One module on purpose: *\S")
+
+
+def _module_reason(source: str) -> bool:
+    doc = ast.get_docstring(ast.parse(source)) or ""
+    return bool(MODULE_REASON.search(doc))
+
+
 def test_no_module_is_over_500_lines():
-    """Modules stay small enough to read whole: split a longer one by concept (see docs/ARCHITECTURE.md)."""
-    sizes = {str(p.relative_to(ROOT)): len(p.read_text().splitlines()) for p in _modules()}
-    assert len(sizes) > 50  # the three packages were found
-    over = {name: n for name, n in sizes.items() if n > MAX_MODULE_LINES}
+    """Modules stay small enough to read whole: split a longer one by concept (see docs/ARCHITECTURE.md),
+    unless its docstring says why it stays one ("One module on purpose: ...": hippomap/config.py, the one
+    config that holds every parameter with its default and source)."""
+    texts = {str(p.relative_to(ROOT)): p.read_text() for p in _modules()}
+    assert len(texts) > 50  # the three packages were found
+    over = {
+        name: len(text.splitlines())
+        for name, text in texts.items()
+        if len(text.splitlines()) > MAX_MODULE_LINES and not _module_reason(text)
+    }
     assert not over, f"modules over {MAX_MODULE_LINES} lines (split them by concept): {over}"
+
+
+def test_a_module_reason_is_read_from_the_module_docstring_only():
+    assert _module_reason('"""Settings.\n\nOne module on purpose: every parameter in one place."""\nx = 1\n')
+    assert not _module_reason('"""Settings."""\n# One module on purpose: a comment is not the docstring\n')
+    assert not _module_reason('"""One module on purpose:"""\n')  # a reason must follow
 
 
 def test_no_function_is_over_60_lines_without_a_stated_reason():
