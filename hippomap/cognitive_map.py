@@ -38,7 +38,8 @@ import numpy as np
 
 from .config import MapConfig
 from .errors import InputError, finite
-from .loop_closure import LoopBook, LoopDecision, LoopHypothesis, se2_between, se2_compose, se2_inverse, vec3
+from .geometry import se2_between, se2_compose, se2_inverse
+from .loop_closure import LoopBook, LoopDecision, LoopHypothesis, vec3
 from .map_events import (
     LoopAccepted,
     LoopPending,

@@ -8,7 +8,7 @@ relaxation's fixed point because relaxation (like [ORS]) has no heading–positi
 
 * :func:`solve_lsq` — weighted Gauss–Newton (Levenberg–Marquardt on failure), optionally with
   the odometry's heading bias estimated with the poses.
-* :func:`rotation_first_init` — headings-first re-initialisation (LAGO) before the solve.
+* The headings-first re-initialisation (LAGO) before the solve is :mod:`hippomap.headings_first`.
 * :func:`graph_cost` — the objective :func:`solve_lsq` minimises.
 * :func:`bias_sigma` — the estimated heading bias's posterior standard deviation.
 * :func:`group_order`, :func:`_spd_factor`, :func:`_normal_pattern` — the sparse linear algebra:
@@ -73,7 +73,7 @@ def _group_order(n_groups: int, a: np.ndarray, b: np.ndarray, keep: np.ndarray) 
     unknowns, a ninth of the entries) orders them with about the fill of an order of the unknowns
     (measured: the same on a 407-node simulated loop map). The order is computed once per solve and
     reused by every factorisation of the solve (the Gauss–Newton iterations and their damped
-    retries, the two Laplacian solves of :func:`rotation_first_init`) instead of once per
+    retries, the two Laplacian solves of :func:`~hippomap.headings_first.rotation_first_init`) instead of once per
     factorisation, where SuperLU's ordering cost more than the factorisation itself.
     Returns the ids of the kept groups in elimination order."""
     kept = np.flatnonzero(keep)
@@ -438,130 +438,3 @@ def bias_sigma(
     except RuntimeError:  # singular: some unknown is not determined by the graph
         return float("inf")
     return float(np.sqrt(var)) if var > 0 and np.isfinite(var) else float("inf")
-
-
-def _laplacian_solve(
-    n: int,
-    src: np.ndarray,
-    dst: np.ndarray,
-    w: np.ndarray,
-    rhs_links: np.ndarray,
-    keep: np.ndarray,
-    extra: np.ndarray | None = None,
-    extra_prior: float = 0.0,
-    extra_start: float = 0.0,
-    order: np.ndarray | None = None,
-):
-    """Weighted least squares ``min Σ_k w_k (u_dst − u_src + extra_k β − b_k)²`` over the nodes in
-    ``keep`` (the others held at 0), for one or more right-hand sides ``b`` (M, C). With ``extra``
-    (M,), one more unknown β shared by all links: the change of a parameter now at ``extra_start``
-    with a zero-mean prior of information ``extra_prior`` (one right-hand side only). ``order``:
-    the kept unknowns (β is unknown ``n``) in a fill-reducing elimination order, as
-    :func:`group_order` returns it (computed here when None). Returns (N, C), and β (0 without
-    ``extra``)."""
-    m = len(src)
-    rows = np.concatenate([np.arange(m)] * 2)
-    cols = np.concatenate([src, dst])
-    vals = np.concatenate([-np.ones(m), np.ones(m)])
-    nv = n
-    keep = np.asarray(keep, dtype=bool)
-    if extra is not None:
-        rows, cols, vals = np.concatenate([rows, np.arange(m)]), np.append(cols, np.full(m, n)), np.append(vals, extra)
-        nv = n + 1
-        keep = np.append(keep, True)
-    if order is None:
-        ga, gb = src, dst
-        if extra is not None:
-            on = np.flatnonzero(extra != 0)
-            ga, gb = np.concatenate([src, src[on], dst[on]]), np.concatenate([dst, np.full(2 * len(on), n)])
-        order = group_order(nv, ga, gb, keep)
-    col = np.full(nv, -1, dtype=np.int64)
-    col[order] = np.arange(len(order))
-    # the held unknowns are 0: their columns drop out; the others are placed in elimination order
-    ok = col[cols] >= 0
-    A = sp.csr_matrix((vals[ok], (rows[ok], col[cols[ok]])), shape=(m, len(order)))
-    AW = A.T.multiply(w[None, :]).tocsr()
-    deg = np.bincount(src, minlength=nv) + np.bincount(dst, minlength=nv)
-    diag = np.where(deg > 0, 0.0, 1.0)
-    if extra is not None:
-        diag[n] = extra_prior if extra_prior > 0 else 1e-9
-    L = (AW @ A + sp.diags(diag[order])).tocsc()
-    rhs = AW @ rhs_links
-    if extra is not None:
-        rhs[col[n]] -= extra_prior * extra_start
-    out = np.zeros((nv, rhs_links.shape[1]))
-    try:
-        out[order] = _spd_factor(L).solve(rhs)
-    except RuntimeError:  # an exactly zero pivot without pivoting (the dense bias row): pivot, a hair damped
-        reg = sp.diags(np.full(L.shape[0], 1e-9 * max(float(abs(L).max()), 1.0)))
-        out[order] = spla.splu((L + reg).tocsc()).solve(rhs)
-    return out[:n], (float(out[n, 0]) if extra is not None else 0.0)
-
-
-def rotation_first_init(
-    poses: np.ndarray,
-    src,
-    dst,
-    transforms,
-    information=None,
-    anchor: int | None = 0,
-    fixed=None,
-    bias_dt=None,
-    bias: float = 0.0,
-    bias_information: float = 0.0,
-) -> tuple[float, float]:
-    """Re-initialise the poses of a pose graph **in place**, headings first (the LAGO idea of
-    Carlone et al., 2014), and return the largest position change.
-
-    Gauss–Newton linearises the rotations; after a long loop the closing link can carry a heading
-    error of a radian or more, and from the odometric poses the solve can settle with that error
-    spread wrongly (links a metre off, which a robust kernel then fades). Here the headings are
-    solved alone first — linear in the heading *changes*, each link's wrapped residual taken on
-    the current poses — and then the positions, which are linear once the headings are known:
-    ``min Σ w |p_j − p_i − R(θ_i) t_xy|²``. Both are sparse Laplacian solves (a few ms at 10⁴
-    nodes); the result is the starting point for :func:`solve_lsq`. The anchor and ``fixed``
-    nodes keep their poses; nodes without links keep theirs. Weights: ``information`` (M, 3)
-    diagonals (x/y mean for positions), unit when None. With ``bias_dt`` the odometry's heading
-    bias is solved with the headings (as in :func:`solve_lsq`, from ``bias``). Returns the largest
-    position change and the bias.
-    """
-    P, src, dst, T = _as_graph(poses, src, dst, transforms, inplace=True)
-    n, m = len(P), len(src)
-    if m == 0:
-        return 0.0, float(bias)
-    info = np.ones((m, 3)) if information is None else np.asarray(information, dtype=float)
-    _sqrt_information(info, m)  # checked
-    keep = np.ones(n, dtype=bool)
-    if anchor is not None:
-        keep[anchor] = False
-    if fixed is not None:
-        keep[np.asarray(fixed, dtype=np.int64).reshape(-1)] = False
-    if keep.all():  # no gauge: hold the first linked node
-        keep[int(src[0])] = False
-    bdt = None if bias_dt is None else np.asarray(bias_dt, dtype=float).reshape(m)
-    T_th = T[:, 2] if bdt is None else T[:, 2] - bias * bdt
-    e_th = _wrap_inplace(P[dst, 2] - P[src, 2] - T_th)
-    order = group_order(n, src, dst, keep)  # the node graph's order, for both solves
-    sol, dbias = _laplacian_solve(
-        n,
-        src,
-        dst,
-        info[:, 2],
-        -e_th[:, None],
-        keep,
-        extra=bdt,
-        extra_prior=bias_information,
-        extra_start=float(bias),
-        order=None if bdt is not None else order,
-    )
-    th = P[:, 2] + sol[:, 0]
-    new_bias = float(bias) + dbias
-    c, s = np.cos(th[src]), np.sin(th[src])
-    b = np.column_stack([c * T[:, 0] - s * T[:, 1], s * T[:, 0] + c * T[:, 1]])
-    # positions relative to the held nodes: solve for the change that makes every link agree
-    r = P[dst, :2] - P[src, :2] - b
-    dxy = _laplacian_solve(n, src, dst, 0.5 * (info[:, 0] + info[:, 1]), -r, keep, order=order)[0]
-    P[:, :2] += dxy
-    P[:, 2] = th
-    _wrap_inplace(P[:, 2])
-    return float(np.sqrt(np.max(np.sum(dxy * dxy, axis=1)))), new_bias

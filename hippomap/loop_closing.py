@@ -20,22 +20,19 @@ from typing import Any
 import numpy as np
 
 from .errors import InputError
-from .geometry import compose, wrap_angle
+from .geometry import compose, se2_between, se2_compose, se2_inverse, wrap_angle
 from .loop_closure import (
     USED_WEIGHT,
     Candidate,
     LoopDecision,
     LoopHypothesis,
-    align_group,
     consistent,
     drift_path,
     gate_limit,
     link_info3,
     place_of,
-    se2_between,
-    se2_compose,
-    se2_inverse,
 )
+from .loop_pose import align_group
 from .map_correction import MapCorrection
 from .map_events import LoopAccepted, LoopPending, LoopRejected, MapEvent
 from .map_graph import LOOP, PRUNE
@@ -94,7 +91,7 @@ class LoopClosing(MapCorrection):
           contradicts every loop accepted in the window it is rejected; else it waits.
 
         Accepting a group of visual hypotheses first fits their relative pose together
-        (:func:`~hippomap.loop_closure.align_group`), then adds a ``loop`` link per hypothesis
+        (:func:`~hippomap.loop_pose.align_group`), then adds a ``loop`` link per hypothesis
         from the node that was current at the proposal to ``node``; the newest relocalises the
         robot (current = its node, the robot's offset kept); then the map is corrected.
         Rejected hypotheses never touch node poses.
@@ -312,63 +309,67 @@ class LoopClosing(MapCorrection):
         support: tuple[int, ...] = (),
         anchors: list[Candidate] | None = None,
     ) -> None:
+        """Accept a verified ``group`` (``loop_accept = 'verify'``): its relative pose fitted to
+        the ``anchors`` too, a loop link per member, the robot relocalised at ``reloc`` when
+        configured, the pending hypotheses settled by the group; then the map is corrected."""
         book = self._loops
         ids = {c.id for c in group}
         group = sorted(self._fit_group(group, anchors or []) or group, key=lambda c: c.id)
         reloc = next(c for c in group if c.id == reloc.id)
+        arrival = self._link_group(group, reloc, set(support) | ids, t)
+        book.pending = [c for c in book.pending if c.id not in ids]
+        book.last_verified_path = self._path
+        if self.cfg.loop_relocalise:
+            self._set_current(reloc.node, _inv3(reloc.M), t, arrival)
+        self._settle_pending(group, ids, t)
+        self._events.extend(self._optimise(t))
+
+    def _link_group(self, group: list[Candidate], reloc: Candidate, support: set[int], t: float) -> int:
+        """A trusted loop link per member of an accepted group, each supported by the others and
+        ``support``; returns the link the robot arrives by at ``reloc``'s node (-1: none)."""
         arrival = -1
+        reason = "gate" if self.cfg.loop_min_support <= 1 else "gate and cycle consistency"
         for c in group:
             link = self._add_loop_link(c)
             if link >= 0:
                 self._trust(link)
             if c is reloc:
                 arrival = link
-            sup = tuple(sorted((set(support) | ids) - {c.id}))
-            reason = "gate" if self.cfg.loop_min_support <= 1 else "gate and cycle consistency"
-            if link < 0:
-                reason += "; names the node it was proposed from: robot offset corrected, no link"
-            book.decisions[c.id] = replace(
-                book.decisions[c.id],
-                status="accepted",
-                reason=reason,
-                link=link,
-                support=sup,
-                decided_step=self._step,
-                transform=c.link_tr,
-            )
-            self._events.append(LoopAccepted(c.id, c.node, c.from_node, link, sup, c is reloc, t))
-            book.accepted.append(c)
-        book.pending = [c for c in book.pending if c.id not in ids]
-        book.last_verified_path = self._path
-        if self.cfg.loop_relocalise:
-            self._set_current(reloc.node, _inv3(reloc.M), t, arrival)
-        # the remaining pending hypotheses: supported by the accepted group, or contradicted by it
+            note = "" if link >= 0 else "; names the node it was proposed from: robot offset corrected, no link"
+            self._record_accepted(c, reason + note, link, tuple(sorted(support - {c.id})), c is reloc, t)
+        return arrival
+
+    def _settle_pending(self, group: list[Candidate], ids: set[int], t: float) -> None:
+        """The pending hypotheses once ``group`` is accepted: accepted if consistent with a member made at
+        another step, else rejected; kept pending if every member was made at its step."""
+        contradicted = "contradicted by the accepted loop closure(s) " + ", ".join(map(str, sorted(ids)))
         still = []
-        for c in book.pending:
+        for c in self._loops.pending:
             others = [g for g in group if g.step != c.step]
             if not others:
                 still.append(c)
-                continue
-            if np.any(consistent(self.cfg, others, c, self._P, self._S)):  # the cycle test is symmetric in the pair
+            elif np.any(consistent(self.cfg, others, c, self._P, self._S)):  # the cycle test is symmetric in the pair
                 link = self._add_loop_link(c)
-                sup = tuple(sorted(ids))
-                book.decisions[c.id] = replace(
-                    book.decisions[c.id],
-                    status="accepted",
-                    reason="supported by an accepted loop closure",
-                    link=link,
-                    support=sup,
-                    decided_step=self._step,
-                    transform=c.link_tr,
-                )
-                self._events.append(LoopAccepted(c.id, c.node, c.from_node, link, sup, False, t))
-                book.accepted.append(c)
+                self._record_accepted(c, "supported by an accepted loop closure", link, tuple(sorted(ids)), False, t)
             else:
-                self._reject(
-                    c.id, "contradicted by the accepted loop closure(s) " + ", ".join(map(str, sorted(ids))), t
-                )
-        book.pending = still
-        self._events.extend(self._optimise(t))
+                self._reject(c.id, contradicted, t)
+        self._loops.pending = still
+
+    def _record_accepted(
+        self, c: Candidate, reason: str, link: int, support: tuple[int, ...], relocalised: bool, t: float
+    ) -> None:
+        """The decision, the event and the book entry of an accepted hypothesis."""
+        self._loops.decisions[c.id] = replace(
+            self._loops.decisions[c.id],
+            status="accepted",
+            reason=reason,
+            link=link,
+            support=support,
+            decided_step=self._step,
+            transform=c.link_tr,
+        )
+        self._events.append(LoopAccepted(c.id, c.node, c.from_node, link, support, relocalised, t))
+        self._loops.accepted.append(c)
 
     def _accept_robust(self, cand: Candidate, t: float) -> LoopDecision:
         """``loop_accept = 'robust'``: a hypothesis that passed the gate becomes a loop link at

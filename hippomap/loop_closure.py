@@ -1,14 +1,15 @@
-"""Loop-closure data and maths: hypotheses, their relative pose, verification and robust weighting.
+"""Loop-closure data and maths: hypotheses, verification and robust weighting.
 
 The cognitive map (:mod:`hippomap.cognitive_map`) keeps nodes, links, relaxation and pruning, and
 decides on loop hypotheses in :mod:`hippomap.loop_closing`; this module holds the data and the
-maths those decisions use, free of the map's state:
+maths those decisions use, free of the map's state (a hypothesis' relative pose, fitted or from
+an image's looming, is :mod:`hippomap.loop_pose`):
 
 * :class:`LoopHypothesis` — a proposal "the robot is back near node ``node``", with a measured
   transform (a data set's loop edge) or, for a visual recognition, the robot's estimated
   offset from the node (where the matched key frame was learned, moved along its view by the
   image's scale change and turned by its shift, from the saccade correspondences:
-  :func:`looming_offset`).
+  :func:`~hippomap.loop_pose.looming_offset`).
 * :class:`Candidate` — what verification needs of a gated hypothesis: the robot's
   dead-reckoned pose and path at the proposal, the node's pose in the robot's frame.
 * :func:`gate_limit` — the radius a hypothesis must fall within: a base radius plus an
@@ -17,11 +18,6 @@ maths those decisions use, free of the map's state:
 * :func:`cycle_errors` / :func:`consistent` — geometric verification: two hypotheses made at
   different times and the odometry between them form a cycle through the map, which must
   compose to identity.
-* :func:`align_group` — the relative pose of a group of consistent visual hypotheses: one SE(2)
-  transform that puts the robot's recent dead-reckoned path onto the matched nodes (a 2-D
-  Procrustes fit); each hypothesis' offset is then where the fit puts the robot relative to
-  its node. Single matches are off along the track by up to the key-frame spacing; the fit
-  averages that out, and the heading comes from the shape of the path.
 * :func:`robust_weight` / :func:`kernel_weights` — the Cauchy weight of a loop link from its whitened residual, which
   the map revises as the map converges (iteratively reweighted relaxation), so a true closure
   is applied fully and a false one fades.
@@ -39,7 +35,7 @@ import numpy as np
 
 from .config import MapConfig
 from .errors import InputError, finite
-from .geometry import between, compose, wrap_angle
+from .geometry import between, compose, se2_compose, se2_inverse
 
 _Pose = tuple[float, float, float]  # (x, y, theta): the fixed length the type checker needs
 
@@ -52,14 +48,9 @@ __all__ = [
     "gate_limit",
     "cycle_errors",
     "consistent",
-    "align_group",
-    "looming_offset",
     "robust_weight",
     "kernel_weights",
     "link_info3",
-    "se2_compose",
-    "se2_inverse",
-    "se2_between",
     "vec3",
     "node_id",
     "jsonable",
@@ -68,27 +59,6 @@ __all__ = [
 
 #: a loop link whose robust weight is at least this counts as used (applied); below, it has faded
 USED_WEIGHT = 0.5
-
-
-# --------------------------------------------------------------------------- small SE(2) scalars
-def _wrap(a: float) -> float:
-    return (a + math.pi) % (2.0 * math.pi) - math.pi
-
-
-def se2_compose(a, b) -> tuple[float, float, float]:
-    """a (+) b for single poses (plain floats: cheaper than numpy for one pose)."""
-    c, s = math.cos(a[2]), math.sin(a[2])
-    return (a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1], _wrap(a[2] + b[2]))
-
-
-def se2_inverse(a) -> tuple[float, float, float]:
-    c, s = math.cos(a[2]), math.sin(a[2])
-    return (-c * a[0] - s * a[1], s * a[0] - c * a[1], _wrap(-a[2]))
-
-
-def se2_between(a, b) -> tuple[float, float, float]:
-    """Pose of b in the frame of a."""
-    return se2_compose(se2_inverse(a), b)
 
 
 def jsonable(x: Any) -> Any:
@@ -374,7 +344,7 @@ def consistent(cfg: MapConfig, older: list[Candidate], b: Candidate, P: np.ndarr
     distance the robot drove between the two proposals (dead reckoning) must equal the distance
     between the two places they name on the map, within ``loop_consistency_m``. This test needs
     no heading, so the robot's unknown heading relative to the key frame cannot fail a true pair;
-    the group's rotation is fitted when it is accepted (:func:`align_group`).
+    the group's rotation is fitted when it is accepted (:func:`~hippomap.loop_pose.align_group`).
     """
     if not older:
         return np.zeros(0, dtype=bool)
@@ -396,66 +366,6 @@ def consistent(cfg: MapConfig, older: list[Candidate], b: Candidate, P: np.ndarr
         d_map = np.hypot(places[:, 0] - pb[0], places[:, 1] - pb[1])
         ok[~both_measured] = np.abs(d_odom - d_map) < cfg.loop_consistency_m
     return ok
-
-
-# --------------------------------------------------------------------------- relative pose
-def align_group(odom: np.ndarray, targets: np.ndarray, min_spread_m: float) -> np.ndarray:
-    """The SE(2) pose ``T`` of the odometry frame in the map that best puts the robot's
-    dead-reckoned poses ``odom`` (K, 3) onto ``targets`` (K, 3), the places the hypotheses name.
-
-    Translation and rotation by least squares on the positions (2-D Procrustes) when the
-    positions spread over at least ``min_spread_m``; otherwise the rotation is the circular mean
-    of the heading differences (a short or bunched path says little about direction).
-    """
-    odom = np.asarray(odom, dtype=float).reshape(-1, 3)
-    targets = np.asarray(targets, dtype=float).reshape(-1, 3)
-    a, b = odom[:, :2], targets[:, :2]
-    ca, cb = a.mean(axis=0), b.mean(axis=0)
-    A, B = a - ca, b - cb
-    spread = float(np.sqrt((A**2).sum(axis=1).max())) * 2 if len(a) > 1 else 0.0
-    if spread >= min_spread_m:
-        num = float(np.sum(A[:, 0] * B[:, 1] - A[:, 1] * B[:, 0]))
-        den = float(np.sum(A[:, 0] * B[:, 0] + A[:, 1] * B[:, 1]))
-        phi = math.atan2(num, den)
-    else:
-        d = wrap_angle(targets[:, 2] - odom[:, 2])
-        phi = math.atan2(float(np.sin(d).sum()), float(np.cos(d).sum()))
-    c, s = math.cos(phi), math.sin(phi)
-    t = cb - np.array([c * ca[0] - s * ca[1], s * ca[0] + c * ca[1]])
-    return np.array([t[0], t[1], phi])
-
-
-def looming_offset(query: Any, memory: Any, view_distance_m: float, min_separation_px: float = 10.0) -> float | None:
-    """How far the camera stands ahead of where a key frame was taken, along the key frame's
-    view (m; negative: behind it), from the scale change of the scene between the two images.
-
-    ``query``, ``memory`` (K, 2): the same K scene points in the query and in the key frame
-    (a recognition's saccade correspondences, px). A camera that moves ``d`` towards a surface
-    ``D`` away sees it magnified by ``s = D / (D - d)`` (looming), so ``d = D (1 - 1 / s)``.
-    ``s`` is the median ratio of the distances between pairs of points in the query and in
-    memory (pairs closer than ``min_separation_px`` in memory are left out: their ratio is
-    pixel noise); a pairwise ratio ignores the image shift that a turn causes. The scene's
-    depth is not measured: ``view_distance_m`` stands for it (one typical distance, a model
-    parameter). The result is bounded by ±``view_distance_m`` / 2 (a scale change beyond
-    2 : 3 is no plausible recognition). ``None`` with fewer than three points or no usable
-    pair: then the recognition says nothing about the along-view offset."""
-    if not (math.isfinite(view_distance_m) and view_distance_m > 0):
-        raise InputError(f"view_distance_m must be a positive number, got {view_distance_m!r}")
-    q = np.asarray(query, dtype=float).reshape(-1, 2)
-    m = np.asarray(memory, dtype=float).reshape(-1, 2)
-    if q.shape != m.shape:
-        raise InputError(f"looming_offset: {len(q)} query points but {len(m)} memory points")
-    if len(q) < 3:
-        return None
-    i, j = np.triu_indices(len(q), 1)
-    dm = np.hypot(m[i, 0] - m[j, 0], m[i, 1] - m[j, 1])
-    dq = np.hypot(q[i, 0] - q[j, 0], q[i, 1] - q[j, 1])
-    ok = (dm >= min_separation_px) & (dq > 0)
-    if not ok.any():
-        return None
-    scale = math.exp(float(np.median(np.log(dq[ok] / dm[ok]))))
-    d = view_distance_m * (1.0 - 1.0 / scale)
-    return float(min(max(d, -0.5 * view_distance_m), 0.5 * view_distance_m))
 
 
 # --------------------------------------------------------------------------- robust weighting

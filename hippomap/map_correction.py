@@ -16,7 +16,8 @@ from typing import Any
 
 import numpy as np
 
-from .least_squares import bias_sigma, graph_cost, rotation_first_init, solve_lsq
+from .headings_first import rotation_first_init
+from .least_squares import bias_sigma, graph_cost, solve_lsq
 from .loop_closure import kernel_weights
 from .map_events import MapEvent, MapRelaxed
 from .map_graph import LOOP, ODOMETRY, MapGraph

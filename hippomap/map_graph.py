@@ -27,7 +27,8 @@ import numpy as np
 
 from .config import MapConfig
 from .errors import InputError, finite
-from .loop_closure import LoopBook, kernel_weights, link_info3, node_id, se2_between, se2_compose, se2_inverse, vec3
+from .geometry import se2_between, se2_compose, se2_inverse
+from .loop_closure import LoopBook, kernel_weights, link_info3, node_id, vec3
 from .map_events import FrameAssigned, MapEvent
 from .relaxation import ColourGroups, colour_link, edge_colouring, link_residuals
 

@@ -14,8 +14,8 @@ from typing import Any, cast
 import numpy as np
 
 from .cognitive_map import CognitiveMap
-from .geometry import compose, wrap_angle
-from .loop_closure import LoopBook, LoopDecision, LoopHypothesis, se2_between, se2_compose, se2_inverse
+from .geometry import compose, se2_between, se2_compose, se2_inverse, wrap_angle
+from .loop_closure import LoopBook, LoopDecision, LoopHypothesis
 
 __all__ = ["ReuseMap"]
 

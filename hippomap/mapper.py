@@ -43,9 +43,10 @@ import numpy as np
 
 from .config import HippomapConfig
 from .errors import InputError
-from .geometry import compose
+from .geometry import compose, se2_compose
 from .inputs import Frame, Odometry, follows
-from .loop_closure import LoopHypothesis, looming_offset, se2_compose
+from .loop_closure import LoopHypothesis
+from .loop_pose import looming_offset
 from .map_events import KeyframeLearned, LoopDecided, MapEvent, RecognitionMade
 from .map_reuse import ReuseMap
 from .spatial_pathway import PlaceCode, SpatialPathway
@@ -337,7 +338,7 @@ class Mapper:
     def _visual_offset(self, rec: Any, width: int) -> tuple[float, float, float]:
         """The robot's pose in the matched node's frame as recognition tells it: where the
         matched key frame was taken, moved along the key frame's view by the looming of the
-        saccade correspondences (:func:`~hippomap.loop_closure.looming_offset`: the scene
+        saccade correspondences (:func:`~hippomap.loop_pose.looming_offset`: the scene
         appears larger when the robot stands ahead of the key frame) when
         ``mapper.view_distance_m`` is set, and turned by the heading the horizontal image shift
         of the correspondences implies (a feature further right in the query than in memory

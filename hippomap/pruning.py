@@ -14,9 +14,9 @@ from dataclasses import replace
 
 import numpy as np
 
-from .geometry import between, compose
+from .geometry import between, compose, se2_between, se2_compose, se2_inverse
 from .loop_closing import LoopClosing
-from .loop_closure import USED_WEIGHT, Candidate, se2_between, se2_compose, se2_inverse
+from .loop_closure import USED_WEIGHT, Candidate
 from .map_events import NodesPruned
 from .map_graph import LOOP
 

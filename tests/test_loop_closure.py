@@ -1,4 +1,4 @@
-"""Loop closing (hippomap.loop_closure and the map's robust acceptance): the relative pose of a
+"""Loop closing (hippomap.loop_closure, hippomap.loop_pose and the map's robust acceptance): the relative pose of a
 group of visual hypotheses, heading-free consistency, robust weights that let a false closure
 fade while true ones are applied, and key frames that mean the same at any frame rate."""
 
@@ -19,13 +19,12 @@ from hippomap.loop_closure import (
     USED_WEIGHT,
     Candidate,
     LoopHypothesis,
-    align_group,
     consistent,
     kernel_weights,
     link_info3,
-    looming_offset,
     robust_weight,
 )
+from hippomap.loop_pose import align_group, looming_offset
 from hippomap.mapper import Mapper
 from hippomap.visual_memory import VisualMemory
 from tests.test_cognitive_map import back_and_forth, corrected, drive, rms_xy, square_increments, true_loops

@@ -7,7 +7,8 @@ from hypothesis import strategies as st
 
 from hippomap.errors import InputError
 from hippomap.geometry import between, compose, integrate
-from hippomap.least_squares import graph_cost, rotation_first_init, solve_lsq
+from hippomap.headings_first import rotation_first_init
+from hippomap.least_squares import graph_cost, solve_lsq
 from hippomap.relaxation import (
     MAX_COLOURS,
     colour_link,

@@ -13,6 +13,7 @@ from hypothesis import strategies as st
 from hippomap import least_squares as ls
 from hippomap.cognitive_map import CognitiveMap
 from hippomap.config import MapConfig
+from hippomap.headings_first import rotation_first_init
 from hippomap.mapper import Mapper
 
 from .test_cognitive_map import drive, square_increments, true_loops
@@ -83,7 +84,7 @@ def test_solves_give_the_same_poses_with_the_remembered_layouts():
     out = []
     for _ in range(2):
         P = P0.copy()
-        ls.rotation_first_init(P, src, dst, tr)
+        rotation_first_init(P, src, dst, tr)
         ls.solve_lsq(P, src, dst, tr)
         out.append(P)
     assert ls._lsq_layout_memo.cache_info().hits >= 1 and ls._group_order_memo.cache_info().hits >= 1

@@ -1,0 +1,196 @@
+"""Headings-first initialisation of a pose graph before a whole Gauss–Newton solve (MODEL item 33).
+
+The idea of LAGO (Carlone et al., 2014): a pose graph's objective is linear in the positions
+once the headings are known, and nearly linear in the heading *changes*. So the headings are
+solved alone first, then the positions, each by one sparse weighted Laplacian solve, and the
+result is the starting point of :func:`~hippomap.least_squares.solve_lsq`. From the odometric
+poses a closing link that carries a radian of heading error or more can leave Gauss–Newton
+settled with that error spread wrongly; from these poses it converges in a few iterations.
+
+* :func:`rotation_first_init` — the re-initialisation, in place, in three named steps: the held
+  nodes (:func:`_held_nodes`), the headings with the odometry's heading bias
+  (:func:`_solve_headings`), the positions (:func:`_solve_positions`).
+* :func:`_laplacian_solve` — the weighted least squares both steps are: ``min Σ_k w_k
+  (u_dst − u_src + extra_k β − b_k)²``, on the fill-reducing orders and the symmetric sparse LU
+  of :mod:`hippomap.least_squares`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from .least_squares import _spd_factor, _sqrt_information, group_order
+from .relaxation import _as_graph, _wrap_inplace
+
+
+def _laplacian_solve(
+    n: int,
+    src: np.ndarray,
+    dst: np.ndarray,
+    w: np.ndarray,
+    rhs_links: np.ndarray,
+    keep: np.ndarray,
+    extra: np.ndarray | None = None,
+    extra_prior: float = 0.0,
+    extra_start: float = 0.0,
+    order: np.ndarray | None = None,
+):
+    """Weighted least squares ``min Σ_k w_k (u_dst − u_src + extra_k β − b_k)²`` over the nodes in
+    ``keep`` (the others held at 0), for one or more right-hand sides ``b`` (M, C). With ``extra``
+    (M,), one more unknown β shared by all links: the change of a parameter now at ``extra_start``
+    with a zero-mean prior of information ``extra_prior`` (one right-hand side only). ``order``:
+    the kept unknowns (β is unknown ``n``) in a fill-reducing elimination order, as
+    :func:`~hippomap.least_squares.group_order` returns it (computed here when None). Returns
+    (N, C), and β (0 without ``extra``)."""
+    m = len(src)
+    rows = np.concatenate([np.arange(m)] * 2)
+    cols = np.concatenate([src, dst])
+    vals = np.concatenate([-np.ones(m), np.ones(m)])
+    nv = n
+    keep = np.asarray(keep, dtype=bool)
+    if extra is not None:
+        rows, cols, vals = np.concatenate([rows, np.arange(m)]), np.append(cols, np.full(m, n)), np.append(vals, extra)
+        nv = n + 1
+        keep = np.append(keep, True)
+    if order is None:
+        ga, gb = src, dst
+        if extra is not None:
+            on = np.flatnonzero(extra != 0)
+            ga, gb = np.concatenate([src, src[on], dst[on]]), np.concatenate([dst, np.full(2 * len(on), n)])
+        order = group_order(nv, ga, gb, keep)
+    col = np.full(nv, -1, dtype=np.int64)
+    col[order] = np.arange(len(order))
+    # the held unknowns are 0: their columns drop out; the others are placed in elimination order
+    ok = col[cols] >= 0
+    A = sp.csr_matrix((vals[ok], (rows[ok], col[cols[ok]])), shape=(m, len(order)))
+    AW = A.T.multiply(w[None, :]).tocsr()
+    deg = np.bincount(src, minlength=nv) + np.bincount(dst, minlength=nv)
+    diag = np.where(deg > 0, 0.0, 1.0)
+    if extra is not None:
+        diag[n] = extra_prior if extra_prior > 0 else 1e-9
+    L = (AW @ A + sp.diags(diag[order])).tocsc()
+    rhs = AW @ rhs_links
+    if extra is not None:
+        rhs[col[n]] -= extra_prior * extra_start
+    out = np.zeros((nv, rhs_links.shape[1]))
+    try:
+        out[order] = _spd_factor(L).solve(rhs)
+    except RuntimeError:  # an exactly zero pivot without pivoting (the dense bias row): pivot, a hair damped
+        reg = sp.diags(np.full(L.shape[0], 1e-9 * max(float(abs(L).max()), 1.0)))
+        out[order] = spla.splu((L + reg).tocsc()).solve(rhs)
+    return out[:n], (float(out[n, 0]) if extra is not None else 0.0)
+
+
+def rotation_first_init(
+    poses: np.ndarray,
+    src,
+    dst,
+    transforms,
+    information=None,
+    anchor: int | None = 0,
+    fixed=None,
+    bias_dt=None,
+    bias: float = 0.0,
+    bias_information: float = 0.0,
+) -> tuple[float, float]:
+    """Re-initialise the poses of a pose graph **in place**, headings first (the LAGO idea of
+    Carlone et al., 2014), and return the largest position change.
+
+    Gauss–Newton linearises the rotations; after a long loop the closing link can carry a heading
+    error of a radian or more, and from the odometric poses the solve can settle with that error
+    spread wrongly (links a metre off, which a robust kernel then fades). Here the headings are
+    solved alone first — linear in the heading *changes*, each link's wrapped residual taken on
+    the current poses — and then the positions, which are linear once the headings are known:
+    ``min Σ w |p_j − p_i − R(θ_i) t_xy|²``. Both are sparse Laplacian solves (a few ms at 10⁴
+    nodes); the result is the starting point for :func:`~hippomap.least_squares.solve_lsq`. The
+    anchor and ``fixed`` nodes keep their poses; nodes without links keep theirs. Weights:
+    ``information`` (M, 3) diagonals (x/y mean for positions), unit when None. With ``bias_dt``
+    the odometry's heading bias is solved with the headings (as in
+    :func:`~hippomap.least_squares.solve_lsq`, from ``bias``). Returns the largest position
+    change and the bias.
+    """
+    P, src, dst, T = _as_graph(poses, src, dst, transforms, inplace=True)
+    n, m = len(P), len(src)
+    if m == 0:
+        return 0.0, float(bias)
+    info = np.ones((m, 3)) if information is None else np.asarray(information, dtype=float)
+    _sqrt_information(info, m)  # checked
+    keep = _free_nodes(n, src, anchor, fixed)
+    bdt = None if bias_dt is None else np.asarray(bias_dt, dtype=float).reshape(m)
+    order = group_order(n, src, dst, keep)  # the node graph's order, for both solves
+    th, new_bias = _solve_headings(P, src, dst, T, info[:, 2], keep, order, bdt, float(bias), bias_information)
+    dxy = _solve_positions(P, src, dst, T, th, 0.5 * (info[:, 0] + info[:, 1]), keep, order)
+    P[:, :2] += dxy
+    P[:, 2] = th
+    _wrap_inplace(P[:, 2])
+    return float(np.sqrt(np.max(np.sum(dxy * dxy, axis=1)))), new_bias
+
+
+def _free_nodes(n: int, src: np.ndarray, anchor: int | None, fixed) -> np.ndarray:
+    """(N,) True for the nodes the initialisation moves: all but the anchor and the ``fixed``
+    nodes; when none is held, all but the first linked node (the gauge: a pose graph says where
+    its nodes are relative to each other only)."""
+    keep = np.ones(n, dtype=bool)
+    if anchor is not None:
+        keep[anchor] = False
+    if fixed is not None:
+        keep[np.asarray(fixed, dtype=np.int64).reshape(-1)] = False
+    if keep.all():
+        keep[int(src[0])] = False
+    return keep
+
+
+def _solve_headings(
+    P: np.ndarray,
+    src: np.ndarray,
+    dst: np.ndarray,
+    T: np.ndarray,
+    w: np.ndarray,
+    keep: np.ndarray,
+    order: np.ndarray,
+    bdt: np.ndarray | None,
+    bias: float,
+    bias_information: float,
+) -> tuple[np.ndarray, float]:
+    """The headings alone: the heading changes that make every link's wrapped heading residual,
+    taken on the current poses ``P``, agree in the least squares with weights ``w`` (M,). With
+    ``bdt`` (M,) the odometry's heading bias (now ``bias``, prior information
+    ``bias_information``) is solved with them; the bias couples every odometric link, so the
+    order is then computed with it rather than the node graph's ``order``. Returns the new
+    headings (N,, unwrapped) and the new bias."""
+    T_th = T[:, 2] if bdt is None else T[:, 2] - bias * bdt
+    e_th = _wrap_inplace(P[dst, 2] - P[src, 2] - T_th)
+    sol, dbias = _laplacian_solve(
+        len(P),
+        src,
+        dst,
+        w,
+        -e_th[:, None],
+        keep,
+        extra=bdt,
+        extra_prior=bias_information,
+        extra_start=bias,
+        order=None if bdt is not None else order,
+    )
+    return P[:, 2] + sol[:, 0], bias + dbias
+
+
+def _solve_positions(
+    P: np.ndarray,
+    src: np.ndarray,
+    dst: np.ndarray,
+    T: np.ndarray,
+    th: np.ndarray,
+    w: np.ndarray,
+    keep: np.ndarray,
+    order: np.ndarray,
+) -> np.ndarray:
+    """The positions once the headings ``th`` are known, linear: the change (N, 2) of the
+    positions ``P[:, :2]`` that minimises ``Σ w |p_j − p_i − R(θ_i) t_xy|²`` with the held nodes
+    where they are."""
+    c, s = np.cos(th[src]), np.sin(th[src])
+    b = np.column_stack([c * T[:, 0] - s * T[:, 1], s * T[:, 0] + c * T[:, 1]])
+    r = P[dst, :2] - P[src, :2] - b
+    return _laplacian_solve(len(P), src, dst, w, -r, keep, order=order)[0]

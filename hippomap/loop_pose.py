@@ -1,0 +1,87 @@
+"""The relative pose of a loop hypothesis: where the robot stands relative to the node it is
+taken back to (MODEL items 25 and 37).
+
+A visual recognition names a node; how far the robot is from it comes from two places:
+
+* :func:`looming_offset` — one recognition: how far the camera stands ahead of where the matched
+  key frame was taken, along its view, from the scale change of the scene between the two
+  images (the saccade correspondences).
+* :func:`align_group` — a group of consistent hypotheses (:func:`~hippomap.loop_closure.consistent`):
+  one SE(2) transform that puts the robot's recent dead-reckoned path onto the matched nodes (a
+  2-D Procrustes fit); each hypothesis' offset is then where the fit puts the robot relative to
+  its node. Single matches are off along the track by up to the key-frame spacing; the fit
+  averages that out, and the heading comes from the shape of the path.
+
+The map's decisions that use them are in :mod:`hippomap.loop_closing` and :mod:`hippomap.mapper`.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from .errors import InputError
+from .geometry import wrap_angle
+
+__all__ = ["align_group", "looming_offset"]
+
+
+def align_group(odom: np.ndarray, targets: np.ndarray, min_spread_m: float) -> np.ndarray:
+    """The SE(2) pose ``T`` of the odometry frame in the map that best puts the robot's
+    dead-reckoned poses ``odom`` (K, 3) onto ``targets`` (K, 3), the places the hypotheses name.
+
+    Translation and rotation by least squares on the positions (2-D Procrustes) when the
+    positions spread over at least ``min_spread_m``; otherwise the rotation is the circular mean
+    of the heading differences (a short or bunched path says little about direction).
+    """
+    odom = np.asarray(odom, dtype=float).reshape(-1, 3)
+    targets = np.asarray(targets, dtype=float).reshape(-1, 3)
+    a, b = odom[:, :2], targets[:, :2]
+    ca, cb = a.mean(axis=0), b.mean(axis=0)
+    A, B = a - ca, b - cb
+    spread = float(np.sqrt((A**2).sum(axis=1).max())) * 2 if len(a) > 1 else 0.0
+    if spread >= min_spread_m:
+        num = float(np.sum(A[:, 0] * B[:, 1] - A[:, 1] * B[:, 0]))
+        den = float(np.sum(A[:, 0] * B[:, 0] + A[:, 1] * B[:, 1]))
+        phi = math.atan2(num, den)
+    else:
+        d = wrap_angle(targets[:, 2] - odom[:, 2])
+        phi = math.atan2(float(np.sin(d).sum()), float(np.cos(d).sum()))
+    c, s = math.cos(phi), math.sin(phi)
+    t = cb - np.array([c * ca[0] - s * ca[1], s * ca[0] + c * ca[1]])
+    return np.array([t[0], t[1], phi])
+
+
+def looming_offset(query: Any, memory: Any, view_distance_m: float, min_separation_px: float = 10.0) -> float | None:
+    """How far the camera stands ahead of where a key frame was taken, along the key frame's
+    view (m; negative: behind it), from the scale change of the scene between the two images.
+
+    ``query``, ``memory`` (K, 2): the same K scene points in the query and in the key frame
+    (a recognition's saccade correspondences, px). A camera that moves ``d`` towards a surface
+    ``D`` away sees it magnified by ``s = D / (D - d)`` (looming), so ``d = D (1 - 1 / s)``.
+    ``s`` is the median ratio of the distances between pairs of points in the query and in
+    memory (pairs closer than ``min_separation_px`` in memory are left out: their ratio is
+    pixel noise); a pairwise ratio ignores the image shift that a turn causes. The scene's
+    depth is not measured: ``view_distance_m`` stands for it (one typical distance, a model
+    parameter). The result is bounded by ±``view_distance_m`` / 2 (a scale change beyond
+    2 : 3 is no plausible recognition). ``None`` with fewer than three points or no usable
+    pair: then the recognition says nothing about the along-view offset."""
+    if not (math.isfinite(view_distance_m) and view_distance_m > 0):
+        raise InputError(f"view_distance_m must be a positive number, got {view_distance_m!r}")
+    q = np.asarray(query, dtype=float).reshape(-1, 2)
+    m = np.asarray(memory, dtype=float).reshape(-1, 2)
+    if q.shape != m.shape:
+        raise InputError(f"looming_offset: {len(q)} query points but {len(m)} memory points")
+    if len(q) < 3:
+        return None
+    i, j = np.triu_indices(len(q), 1)
+    dm = np.hypot(m[i, 0] - m[j, 0], m[i, 1] - m[j, 1])
+    dq = np.hypot(q[i, 0] - q[j, 0], q[i, 1] - q[j, 1])
+    ok = (dm >= min_separation_px) & (dq > 0)
+    if not ok.any():
+        return None
+    scale = math.exp(float(np.median(np.log(dq[ok] / dm[ok]))))
+    d = view_distance_m * (1.0 - 1.0 / scale)
+    return float(min(max(d, -0.5 * view_distance_m), 0.5 * view_distance_m))
