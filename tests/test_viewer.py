@@ -17,9 +17,8 @@ from starlette.websockets import WebSocketDisconnect
 from hippomap import sim
 from hippomap.config import HippomapConfig
 from hippomap.spatial_pathway import SpatialPathway
-from hippomap.visual_memory import VisualMemory
 from tests.support.simfeed import sim_inputs
-from web.images import recognition_from_dict, trace_panel
+from web.images import trace_panel
 from web.panels.evidence import evidence_curves
 from web.routes import SUBPROTOCOL, SessionEntry, make_router
 from web.scene.chunks import ChunkTracker, chunk_layout
@@ -268,16 +267,6 @@ def test_trace_panel_draws_query_and_thumbnail():
     assert (np.abs(left - 128).sum(axis=2) > 60).sum() > 200  # fixations, numbers and saccade lines drawn
     rejected = trace_panel(None, {**rec, "frame_id": None, "accepted": False}, None, 320, 160)
     assert rejected.shape == (240, 484, 3)
-
-
-def test_recognition_dict_round_trip_with_the_real_memory():
-    run = _small_run()
-    mem = VisualMemory()
-    for i in range(0, 12, 3):
-        mem.learn(run.frame(i))
-    rec = mem.recognise(run.frame(4))
-    d = rec.to_dict()
-    assert recognition_from_dict(d).to_dict() == d
 
 
 # ----------------------------------------------------------- a SessionViewer over a real Mapper

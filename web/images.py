@@ -3,8 +3,8 @@
 All functions take and return plain uint8 numpy images (RGB out, as viser expects) and run in
 the viewer's update thread, never on the FastAPI event loop. The saccade trace itself is drawn
 by :func:`hippomap.visual_memory.draw_trace` (the model's own drawing, shared with the
-evaluation's example images); the Mapper keeps recognitions as JSON-ready dicts, so
-:func:`recognition_from_dict` rebuilds the typed :class:`~hippomap.visual_memory.Recognition`.
+evaluation's example images); the Mapper keeps recognitions as JSON-ready dicts, which
+:meth:`hippomap.visual_memory.Recognition.from_dict` turns back into the typed record.
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from typing import Any, Mapping
 import cv2
 import numpy as np
 
-from hippomap.visual_memory import Recognition, SaccadeStep, draw_trace
+from hippomap.visual_memory import Recognition, draw_trace
 
 
 def to_rgb(image: np.ndarray) -> np.ndarray:
@@ -36,52 +36,6 @@ def fit_width(image: np.ndarray, width: int) -> np.ndarray:
     height = max(1, round(h * width / w))
     interp = cv2.INTER_AREA if width < w else cv2.INTER_LINEAR
     return cv2.resize(image, (width, height), interpolation=interp)
-
-
-def recognition_from_dict(d: Mapping[str, Any]) -> Recognition:
-    """Rebuild a :class:`Recognition` from its ``to_dict()`` form (as the Mapper stores it)."""
-    steps = []
-    for s in d.get("steps", ()):
-        steps.append(
-            SaccadeStep(
-                attempt=int(s["attempt"]),
-                fixation=tuple(s["fixation"]),
-                target=None if s.get("target") is None else tuple(s["target"]),
-                predicted_frame=s.get("predicted_frame"),
-                predicted_feature=s.get("predicted_feature"),
-                found_frame=s.get("found_frame"),
-                found_feature=s.get("found_feature"),
-                similarity=float(s.get("similarity", 0.0)),
-                outcome=str(s.get("outcome", "")),
-                evidence=[(int(f), float(a)) for f, a in s.get("evidence", ())],
-                event=s.get("event"),
-            )
-        )
-    size = d.get("image_size") or (0, 0)
-    return Recognition(
-        frame_id=d.get("frame_id"),
-        evidence=float(d.get("evidence", 0.0)),
-        steps=steps,
-        n_resets=int(d.get("n_resets", 0)),
-        confidence=float(d.get("confidence", 0.0)),
-        image_size=(int(size[0]), int(size[1])),
-        reason=str(d.get("reason", "")),
-        **_optional(d),
-    )
-
-
-def _optional(d: Mapping[str, Any]) -> dict[str, Any]:
-    """Fields newer recognitions carry (image correspondences and their shift), when present and
-    known to this version's :class:`Recognition`."""
-    import dataclasses
-
-    known = {f.name for f in dataclasses.fields(Recognition)}
-    out: dict[str, Any] = {}
-    if "correspondences" in known and d.get("correspondences") is not None:
-        out["correspondences"] = [dict(c) for c in d["correspondences"]]
-    if "shift" in known and d.get("shift") is not None:
-        out["shift"] = dict(d["shift"])
-    return out
 
 
 def _label(img: np.ndarray, text: str, y: int = 14) -> None:
@@ -116,7 +70,7 @@ def trace_panel(
     marks the predicted landing point where it differs). Missing images become placeholders, so
     the panel always shows the recognition's outcome.
     """
-    rec = recognition_from_dict(recognition)
+    rec = Recognition.from_dict(dict(recognition))
     if query is None:
         w, h = rec.image_size if rec.image_size[0] > 0 else (320, 240)
         query = np.full((h, w), 90, np.uint8)
