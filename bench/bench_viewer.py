@@ -43,21 +43,11 @@ import zstandard  # noqa: E402
 
 from hippomap.cognitive_map import CognitiveMap  # noqa: E402
 from hippomap.inputs import Odometry  # noqa: E402
+from tests.support.chromium import launch  # noqa: E402
 from web.scene.chunks import chunk_layout  # noqa: E402
 from web.session_viewer import SessionViewer  # noqa: E402
 from web.settings import ViewerSettings  # noqa: E402
 from web.source import LocalSession  # noqa: E402
-
-CHROMIUM = "/usr/bin/chromium"
-ARGS = [
-    "--no-sandbox",
-    "--enable-unsafe-swiftshader",
-    "--use-angle=swiftshader",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-    "--no-first-run",
-]
 
 
 # ------------------------------------------------------------------------------ the large map
@@ -290,7 +280,7 @@ def main() -> int:
 
     results = []
     with sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+        browser = launch(p)
         for n in args.sizes:
             page = browser.new_page(viewport={"width": 1280, "height": 800})
             results.append(run_size(n, args.repeat, page))

@@ -1,6 +1,7 @@
-"""Shared by the real-browser viewer tests: Debian's Chromium under Playwright, and reading the page.
+"""Shared by the real-browser viewer tests: reading a viewer page (Chromium is started by
+:mod:`tests.support.chromium`).
 
-Chromium is ``/usr/bin/chromium`` with software WebGL (SwiftShader). A viewer page is read the
+A viewer page is read the
 way a person's browser holds it: viser's scene tree (``window.__viserSceneTree``, the messages
 the browser received) and the canvas's pixels, matched by hue because the renderer shades thin
 lines.
@@ -13,16 +14,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-CHROMIUM = "/usr/bin/chromium"
-ARGS = [
-    "--no-sandbox",
-    "--enable-unsafe-swiftshader",
-    "--use-angle=swiftshader",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-    "--no-first-run",
-]
 #: the scene nodes every viewer page of a session with ground truth and loop closures holds
 SCENE_NODES = ("/map/nodes/0", "/loops/accepted/0", "/ground_truth/0", "/trajectories/map/0")
 LEGEND_LABELS = (
@@ -33,11 +24,6 @@ LEGEND_LABELS = (
     "loop closures (accepted)",
     "place field",
 )
-
-
-def launch(playwright):
-    """Debian's Chromium, headless, software WebGL."""
-    return playwright.chromium.launch(executable_path=CHROMIUM, args=ARGS)
 
 
 def open_viewer(browser, url: str, sid: str, token: str, nodes: tuple[str, ...] = SCENE_NODES):

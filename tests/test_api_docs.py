@@ -20,19 +20,12 @@ from server.api.docs import ASSETS_URL
 from server.app import create_app
 from server.formats.protocol import pack_frame
 from server.settings import ServerSettings
+from tests.support.chromium import launch
 from tests.support.live import LiveServer
 from tests.support.synthetic import view
 
 ADMIN = "hm_api_docs_admin_token_0123456789"
 AUTH = {"Authorization": f"Bearer {ADMIN}"}
-CHROMIUM = "/usr/bin/chromium"
-ARGS = [
-    "--no-sandbox",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-    "--no-first-run",
-]
 #: every URL a page may name: src=, href=, spec-url= attributes and Swagger UI's `url: '...'`
 URL_IN_HTML = re.compile(r"""(?:src|href|spec-url)\s*=\s*["']([^"']+)["']|\burl:\s*["']([^"']+)["']""")
 CONTENT_TYPES = {".js": "javascript", ".css": "text/css", ".png": "image/png", ".json": "application/json"}
@@ -113,7 +106,7 @@ def test_mount_docs_refuses_a_broken_install_or_an_app_with_cdn_pages(tmp_path):
 
 def _offline_page(p, url: str):
     """A Chromium page that may reach loopback only; returns (page, browser, outside requests seen)."""
-    browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+    browser = launch(p)
     outside: list[str] = []
     page = browser.new_page()
     violations: list[str] = []

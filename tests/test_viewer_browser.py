@@ -21,19 +21,10 @@ from playwright.sync_api import sync_playwright
 from hippomap import sim
 from hippomap.client import encode_image
 from hippomap.inputs import Odometry
+from tests.support.chromium import launch
 from tests.support.live import ROOT, LiveServer
 from tests.support.simfeed import sim_inputs
 
-CHROMIUM = "/usr/bin/chromium"
-ARGS = [
-    "--no-sandbox",
-    "--enable-unsafe-swiftshader",
-    "--use-angle=swiftshader",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-    "--no-first-run",
-]
 ARTIFACTS = ROOT / "test-artifacts"
 
 
@@ -75,7 +66,7 @@ def test_viewer_shows_the_live_map_and_saccades_in_chromium(streamed):
     assert stats["mapper"]["nodes"] > 10 and stats["mapper"]["recognitions"] > 0
     ARTIFACTS.mkdir(exist_ok=True)
     with sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+        browser = launch(p)
         try:
             page = browser.new_page(viewport={"width": 1400, "height": 1000})
             # the landing page lists the session for this read-only token and links to its viewer

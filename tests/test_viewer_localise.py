@@ -25,7 +25,8 @@ from playwright.sync_api import sync_playwright
 from hippomap import sim
 from hippomap.client import encode_image
 from hippomap.inputs import Odometry
-from tests.browser_viewer import LEGEND_LABELS, blue, canvas, launch, legend_text, message_types, open_viewer, teal
+from tests.browser_viewer import LEGEND_LABELS, blue, canvas, legend_text, message_types, open_viewer, teal
+from tests.support.chromium import launch
 from tests.support.live import ROOT, LiveServer, stream_items
 from tests.support.simfeed import sim_inputs
 

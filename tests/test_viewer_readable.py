@@ -25,7 +25,8 @@ from playwright.sync_api import sync_playwright
 
 from hippomap import sim
 from hippomap.config import HippomapConfig
-from tests.browser_viewer import LEGEND_LABELS, blue, canvas, launch, legend_text, message_types, open_viewer, tan, teal
+from tests.browser_viewer import LEGEND_LABELS, blue, canvas, legend_text, message_types, open_viewer, tan, teal
+from tests.support.chromium import launch
 from tests.support.simfeed import sim_inputs
 from web.routes import SessionEntry, make_router
 from web.settings import ViewerSettings
