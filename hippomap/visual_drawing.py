@@ -82,21 +82,26 @@ def draw_trace(
             hf = int(round(fovea * scale)) // 2
             cv2.rectangle(canvas, (p[0] - hf, p[1] - hf), (p[0] + hf, p[1] + hf), col, 1)
         cv2.circle(canvas, p, int(5 * s), col, max(1, int(s)), cv2.LINE_AA)
-        cv2.putText(
-            canvas,
-            str(i),
-            (p[0] + int(6 * s), p[1] - int(4 * s)),
-            cv2.FONT_HERSHEY_SIMPLEX,
-            0.4 * s,
-            (255, 255, 255),
-            max(1, int(s)),
-            cv2.LINE_AA,
-        )
+        _number(canvas, str(i), p, s)
         prev, prev_attempt = p, st.attempt
     label = f"frame {recognition.frame_id}" if recognition.accepted else "rejected"
     label += f"  a={recognition.evidence:.2f}  resets={recognition.n_resets}"
     _label(canvas, label, s)
     return canvas
+
+
+def _number(canvas: np.ndarray, text: str, p: tuple[int, int], s: float) -> None:
+    """A fixation's number (or label) written up and to the right of its circle at ``p``."""
+    cv2.putText(
+        canvas,
+        text,
+        (p[0] + int(6 * s), p[1] - int(4 * s)),
+        cv2.FONT_HERSHEY_SIMPLEX,
+        0.4 * s,
+        (255, 255, 255),
+        max(1, int(s)),
+        cv2.LINE_AA,
+    )
 
 
 def _label(canvas: np.ndarray, text: str, s: float) -> None:
@@ -148,15 +153,6 @@ def draw_frame_features(
             text = labels.get(int(k), "")
         else:
             text = str(i)
-        cv2.putText(
-            canvas,
-            text,
-            (p[0] + int(6 * s), p[1] - int(4 * s)),
-            cv2.FONT_HERSHEY_SIMPLEX,
-            0.4 * s,
-            (255, 255, 255),
-            max(1, int(s)),
-            cv2.LINE_AA,
-        )
+        _number(canvas, text, p, s)
     _label(canvas, f"learned frame {frame_id}", s)
     return canvas
