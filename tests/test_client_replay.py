@@ -98,33 +98,16 @@ def test_interrupted_replay_resumes_without_duplicates(server, tmp_path):
     full = write_folder(tmp_path / "full", ITEMS)
     with server.client() as c:
         sid = c.create_session("resume", CONFIG)["id"]
-    rc, _ = run_replay(
-        str(half),
-        "--server",
-        server.url,
-        "--token",
-        server.token,
-        "--session",
-        sid,
-        "--no-progress",
-        "--no-wait",
-        "--speed",
-        "50",
-    )
+    into = ("--server", server.url, "--token", server.token, "--session", sid, "--no-progress")
+    rc, _ = run_replay(str(half), *into, "--no-wait", "--speed", "50")
     assert rc == 0
     with pytest.raises(InputError, match="--resume"):  # replaying from the start again is refused before sending
-        run_replay(str(full), "--server", server.url, "--token", server.token, "--session", sid, "--no-progress")
+        run_replay(str(full), *into)
     with server.client() as c:
         assert len(c.all_inputs(sid)) == 70  # nothing of the refused replay was stored
     rc, out = run_replay(
         str(full),
-        "--server",
-        server.url,
-        "--token",
-        server.token,
-        "--session",
-        sid,
-        "--no-progress",
+        *into,
         "--resume",
         "--window",
         "8",
