@@ -153,10 +153,10 @@ class VisualMemory(FixationSensing):
         the frames of nodes near the current place code); ``None`` = all frames.
 
         Attempts follow each other until one accepts a frame or ``max_resets`` resets have been
-        used. Each attempt starts at a query corner (:meth:`_start_point`); at every fixation the
-        feature units are driven (:meth:`_sense`), the frame hypotheses updated (:meth:`_observe`),
-        the decision checked (:meth:`_decide`), and the most active frame chooses the next
-        saccade (:meth:`_next_saccade`).
+        used. Each attempt (:meth:`_attempt`) starts at a query corner (:meth:`_start_point`); at
+        every fixation (:meth:`_fixate`) the feature units are driven (:meth:`_sense`), the frame
+        hypotheses updated (:meth:`_observe`), the decision checked (:meth:`_decide`), and the most
+        active frame chooses the next saccade (:meth:`_next_saccade`).
         """
         q = self._query(image, candidates)
         if isinstance(q, Recognition):
