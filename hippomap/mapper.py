@@ -33,9 +33,7 @@ second session's inputs (docs/MODEL.md).
 
 from __future__ import annotations
 
-import io
 import itertools
-import json
 import math
 from typing import TYPE_CHECKING, Any, TypeVar, cast
 
@@ -49,13 +47,13 @@ from .loop_closure import LoopHypothesis
 from .loop_pose import looming_offset
 from .map_events import KeyframeLearned, LoopDecided, MapEvent, RecognitionMade
 from .map_reuse import ReuseMap
+from .mapper_state import config_over, join_arrays, pack, split_arrays, unpack
 from .spatial_pathway import PlaceCode, SpatialPathway
 from .visual_memory import VisualMemory
 
 if TYPE_CHECKING:
     from .mapper_queries import Query
 
-FORMAT_VERSION = 1
 T = TypeVar("T")
 
 
@@ -407,14 +405,14 @@ class Mapper:
 
     # ------------------------------------------------------------- persistence
     def to_bytes(self) -> bytes:
-        """The whole state as bytes (npz of arrays + a JSON header; no pickle)."""
+        """The whole state as bytes (npz of arrays + a JSON header; no pickle:
+        :func:`hippomap.mapper_state.pack`)."""
         arrays: dict[str, Any] = {}  # (np.ndarray values: Any for numpy's savez_compressed(**kwds) stub)
         meta = {
-            "format": FORMAT_VERSION,
             "config": self.config.model_dump(mode="json"),
-            "pathway": _split(self.pathway.state_dict(), "pathway", arrays),
-            "cmap": _split(self.cmap.state_dict(), "cmap", arrays),
-            "memory": _split(self.memory.state_dict(), "memory", arrays),
+            "pathway": split_arrays(self.pathway.state_dict(), "pathway", arrays),
+            "cmap": split_arrays(self.cmap.state_dict(), "cmap", arrays),
+            "memory": split_arrays(self.memory.state_dict(), "memory", arrays),
             "last_t": self.last_t,
             "last_odometry_t": self.last_odometry_t,
             "last_frame_t": self.last_frame_t,
@@ -439,29 +437,21 @@ class Mapper:
             },
         }
         arrays["traj"] = self._traj.view
-        buf = io.BytesIO()
-        np.savez_compressed(buf, __meta__=np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8), **arrays)
-        return buf.getvalue()
+        return pack(meta, arrays)
 
     @classmethod
     def from_bytes(cls, data: bytes) -> "Mapper":
-        try:
-            npz = np.load(io.BytesIO(data), allow_pickle=False)
-            arrays = {k: npz[k] for k in npz.files}
-            meta = json.loads(arrays.pop("__meta__").tobytes().decode())
-        except Exception as exc:
-            raise InputError(f"not a hippomap mapper snapshot: {exc}") from exc
-        if meta.get("format") != FORMAT_VERSION:
-            raise InputError(f"unsupported snapshot format {meta.get('format')!r}")
+        """The mapper a snapshot (:meth:`to_bytes`) holds; InputError for anything else."""
+        meta, arrays = unpack(data)
         self = cls.__new__(cls)
         self.config = HippomapConfig.model_validate(meta["config"])
-        self.pathway = SpatialPathway.from_state(self.config.spatial, _join(meta["pathway"], arrays))
-        self.cmap = ReuseMap.from_state(self.config.map, _join(meta["cmap"], arrays))
+        self.pathway = SpatialPathway.from_state(self.config.spatial, join_arrays(meta["pathway"], arrays))
+        self.cmap = ReuseMap.from_state(self.config.map, join_arrays(meta["cmap"], arrays))
         reuse = meta.get("reuse") or {}
         self.base_nodes = int(reuse.get("base_nodes", 0))
         self.cmap.configure(self.localise_only, bool(reuse.get("lost", False)), int(reuse.get("component_from", -1)))
         self.cmap._fresh_start = bool(reuse.get("fresh_start", False))
-        self.memory = VisualMemory.from_state(self.config.visual, _join(meta["memory"], arrays))
+        self.memory = VisualMemory.from_state(self.config.visual, join_arrays(meta["memory"], arrays))
         self.last_t = meta["last_t"]
         self.last_odometry_t = meta["last_odometry_t"]
         self.last_frame_t = meta["last_frame_t"]
@@ -486,46 +476,3 @@ class Mapper:
         self.place_field = None
         self._traj = _Grow.of(arrays["traj"])
         return self
-
-
-def config_over(config: HippomapConfig, overrides: dict[str, Any]) -> HippomapConfig:
-    """``config`` changed by nested ``overrides`` (``{"section": {"field": value}}``), validated;
-    InputError naming the problem."""
-    if not isinstance(overrides, dict):
-        raise InputError(f"config overrides must be a mapping of sections, got {type(overrides).__name__}")
-    base = config.model_dump()
-    for section, values in overrides.items():
-        if section not in base:
-            raise InputError(f"unknown config section {section!r}; known: {sorted(base)}")
-        if not isinstance(values, dict):
-            raise InputError(f"config section {section!r} must be a mapping")
-        base[section].update(values)
-    try:
-        return HippomapConfig.model_validate(base)
-    except ValueError as exc:
-        raise InputError(f"invalid config: {exc}") from None
-
-
-def _split(obj: Any, prefix: str, arrays: dict[str, np.ndarray]) -> Any:
-    """Move numpy arrays out of a nested state into ``arrays``; leave JSON behind."""
-    if isinstance(obj, np.ndarray):
-        key = f"{prefix}"
-        arrays[key] = obj
-        return {"__array__": key}
-    if isinstance(obj, dict):
-        return {str(k): _split(v, f"{prefix}.{k}", arrays) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_split(v, f"{prefix}.{i}", arrays) for i, v in enumerate(obj)]
-    if isinstance(obj, np.generic):
-        return obj.item()
-    return obj
-
-
-def _join(obj: Any, arrays: dict[str, np.ndarray]) -> Any:
-    if isinstance(obj, dict):
-        if set(obj) == {"__array__"}:
-            return arrays[obj["__array__"]]
-        return {k: _join(v, arrays) for k, v in obj.items()}
-    if isinstance(obj, list):
-        return [_join(v, arrays) for v in obj]
-    return obj

@@ -60,24 +60,23 @@ for scale.
 
 The module's parts: frames to working images (:mod:`hippomap.visual_images`), the feature store,
 its drive and index (:mod:`hippomap.feature_store`), the recognition records
-(:mod:`hippomap.visual_recognition`), their drawing (:mod:`hippomap.visual_drawing`); this module
-holds the saccade loop (:class:`VisualMemory`) and re-exports the public names of the others.
+(:mod:`hippomap.visual_recognition`), their drawing (:mod:`hippomap.visual_drawing`), what one
+fixation senses: the FLC drive and pruning, the decoded saccade vector, the microsaccade
+(:mod:`hippomap.visual_fixation`); this module holds the saccade loop (:class:`VisualMemory`) and
+re-exports the public names of the others.
 """
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from typing import Any, Iterable, cast
 
-import cv2
 import numpy as np
 
-from .config import VisualConfig
-from .feature_store import STATE_VERSION, FeatureStore, FlcSubset, _channel0
+from .feature_store import STATE_VERSION, FlcSubset
 from .retina import imadjust as _imadjust  # noqa: F401  (kept importable from here)
 from .visual_drawing import draw_frame_features, draw_trace
-from .visual_grid_cells import SpatialViewCells, VisualGridCells
+from .visual_fixation import FixationSensing, Sense
 from .visual_images import prepare_image, prepare_views
 from .visual_recognition import Recognition, SaccadeStep, shift_summary
 
@@ -92,21 +91,6 @@ __all__ = [
     "draw_frame_features",
     "STATE_VERSION",
 ]
-
-_DECODE_CACHE = 1 << 15  # decoded saccade vectors remembered per memory (a few MB at most)
-
-
-@dataclass
-class _Sense:
-    """What the FLC population reports at one fixation (local indices into the subset)."""
-
-    evidence: bool
-    winner: int  # local index of argmax u (valid even without evidence)
-    umax: float
-    survivors: np.ndarray | None = None  # local indices
-    weights: np.ndarray | None = None  # softmax weights of the survivors
-    top: int = -1  # argmax of the biased, pruned vector (local)
-    upred: float = 0.0  # drive of the predicted unit
 
 
 @dataclass
@@ -127,6 +111,18 @@ class _Attempt:
     visited: list[int] = field(default_factory=list)
 
 
+@dataclass
+class _Query:
+    """A query ready for the saccade loop: the competing feature units, the image the fovea
+    senses (working px), the start corners, the working-to-input scale and the input size."""
+
+    sub: FlcSubset
+    sense_img: np.ndarray
+    starts: np.ndarray
+    scale: float
+    size: tuple[int, int]
+
+
 def _to_img(p: np.ndarray | None, scale: float) -> tuple[float, float] | None:
     return None if p is None else (float(p[0]) * scale, float(p[1]) * scale)
 
@@ -140,7 +136,7 @@ def _leading(a: np.ndarray, k: int) -> list[tuple[int, float]]:
     return [(int(f), float(a[f])) for f in top]
 
 
-class VisualMemory(FeatureStore):
+class VisualMemory(FixationSensing):
     """Library of key frames learned one-shot, recognised by saccade sequences (paper §2.2).
 
     >>> mem = VisualMemory()                      # doctest: +SKIP
@@ -148,132 +144,6 @@ class VisualMemory(FeatureStore):
     >>> rec = mem.recognise(other_frame)          # Recognition; rec.frame_id is None if rejected
     >>> rec = mem.recognise(other_frame, candidates=[3, 4, 9])
     """
-
-    def __init__(self, config: VisualConfig | None = None):
-        super().__init__(config)
-        self.grid = VisualGridCells(self.config)
-        self._svc: SpatialViewCells | None = None
-        self._decoded: dict[bytes, np.ndarray] = {}  # see _decode
-
-    # -- saccade vectors -----------------------------------------------------------------
-    @property
-    def spatial_view_cells(self) -> SpatialViewCells:
-        """Spatial view cells over the working view plane (built on first use)."""
-        if self._svc is None:
-            cfg = self.config
-            self._svc = SpatialViewCells(self.grid, cfg.working_width, cfg.working_width, cfg.svc_stride)
-        return self._svc
-
-    def _decode(self, m: np.ndarray, target: np.ndarray) -> np.ndarray:
-        """Saccade vector from gaze ``m`` to ``target`` decoded from their grid codes (a fresh array).
-
-        Both points are whole pixels during a recognition (learned positions, fovea positions), and
-        the decoded vector is a fixed function of the two points, so it is remembered per pair: the
-        same candidate frames come back recognition after recognition with the same feature pairs."""
-        m, target = np.asarray(m, dtype=float), np.asarray(target, dtype=float)
-        key = m.tobytes() + target.tobytes()  # bytes, so that even -0.0 and 0.0 stay apart
-        d = self._decoded.get(key)
-        if d is None:
-            if len(self._decoded) >= _DECODE_CACHE:
-                self._decoded.clear()
-            d = self._decode_uncached(m, target)
-            d.flags.writeable = False
-            self._decoded[key] = d
-        return d.copy()
-
-    def _decode_uncached(self, m: np.ndarray, target: np.ndarray) -> np.ndarray:
-        g_cur = self.grid.encode(m)
-        g_tgt = self.grid.encode(target)  # = W_FLC->GC e_k*
-        if self.config.decoder == "svc":
-            return self.spatial_view_cells.decode(g_cur, g_tgt)
-        return self.grid.decode(g_cur, g_tgt)
-
-    # -- sensing -----------------------------------------------------------------------
-    def _sense(self, img: np.ndarray, pos: np.ndarray, sub: FlcSubset, predicted: int) -> _Sense:
-        """Drive of the FLC population at fixation ``pos`` and the [BBc] pruning: evidence test
-        ``max u > mean + N_std sd``, ``u / max u``, bias on the predicted unit, prune, softmax."""
-        cfg = self.config
-        x, y = int(pos[0]), int(pos[1])
-        patch = self._patch_at(img, x, y)
-        T, uT, uR = self._shortlist_drive(patch, x, y, sub, predicted)
-        mean, var, N = self._drive_stats(sub, T, uT, uR)
-        j = int(np.argmax(uT))
-        umax = float(uT[j])
-        winner = int(T[j])
-        upred = 0.0
-        if predicted >= 0:
-            pk = np.flatnonzero(T == predicted)
-            upred = float(uT[pk[0]]) if pk.size else 0.0
-        if not umax > mean + cfg.n_std * math.sqrt(var) or umax <= 0:
-            return _Sense(False, winner, umax, upred=upred)
-        # normalise, bias the predicted unit, prune at mean + N_std sd, softmax ([BBc])
-        ut = uT / umax
-        mean_t, var_t = mean / umax, var / umax**2
-        if predicted >= 0:
-            pk = np.flatnonzero(T == predicted)
-            if pk.size:
-                p = int(pk[0])
-                old = float(ut[p])
-                ut = ut.copy()
-                ut[p] = old * cfg.prediction_bias
-                m2_t = var_t + mean_t**2 + (ut[p] ** 2 - old**2) / N
-                mean_t = mean_t + (ut[p] - old) / N
-                var_t = max(0.0, m2_t - mean_t**2)
-        keep = ut >= mean_t + cfg.n_std * math.sqrt(var_t)
-        if not np.any(keep):
-            keep[int(np.argmax(ut))] = True
-        if cfg.max_survivors and int(keep.sum()) > cfg.max_survivors:
-            # spec §6.4: N_std must grow with the library so that 1-5 FLCs survive; a top-K cap
-            # does that for every library size
-            idx = np.flatnonzero(keep)
-            top = idx[np.argsort(-ut[idx], kind="stable")[: cfg.max_survivors]]
-            keep = np.zeros_like(keep)
-            keep[top] = True
-        surv = T[keep]
-        vals = ut[keep].astype(np.float64) * cfg.softmax_gain
-        e = np.exp(vals - vals.max())
-        wts = e / e.sum()
-        best = int(surv[int(np.argmax(vals))])
-        return _Sense(True, winner, umax, surv, wts, best, upred)
-
-    def _microsaccade(self, img: np.ndarray, target: np.ndarray, flc: int, amplitude: float = 0.0) -> np.ndarray | None:
-        """Snap the landing point to the best match of the predicted feature within ``tolerance_px``
-        plus ``microsaccade_gain`` x the saccade's ``amplitude`` (the [BBc] microsaccade; the search
-        widens with the amplitude as saccadic endpoint scatter does); ``None`` if the fovea cannot be
-        placed inside the image."""
-        h = self.h
-        r = self.config.tolerance_px + int(round(self.config.microsaccade_gain * amplitude))
-        img = _channel0(img)  # the microsaccade matches the ganglion fovea
-        H, W = img.shape
-        lo_x, hi_x = h, W - h - 1
-        lo_y, hi_y = h, H - h - 1
-        tx, ty = int(target[0]), int(target[1])
-        x0, x1 = max(lo_x, tx - r), min(hi_x, tx + r)
-        y0, y1 = max(lo_y, ty - r), min(hi_y, ty + r)
-        if x0 > x1 or y0 > y1:
-            return None
-        if r == 0:
-            return np.array([x0, y0])
-        tmpl = self._patch[flc, : self.P0].reshape(self.config.fovea, self.config.fovea)
-        if r > self.config.tolerance_px and min(x1 - x0, y1 - y0) > 4:
-            # a wide search runs coarse to fine: on the half-resolution fovea first (a quarter of the
-            # pixels per match and a quarter of the positions), then +-2 px around it at full resolution
-            region = img[y0 - h : y1 + h + 1, x0 - h : x1 + h + 1]
-            half = (region.shape[1] // 2, region.shape[0] // 2)
-            th = (tmpl.shape[1] // 2, tmpl.shape[0] // 2)
-            res = cv2.matchTemplate(
-                cv2.resize(region, half, interpolation=cv2.INTER_AREA),
-                cv2.resize(tmpl, th, interpolation=cv2.INTER_AREA),
-                cv2.TM_SQDIFF,
-            )
-            _, _, loc, _ = cv2.minMaxLoc(res)
-            cx, cy = x0 + 2 * loc[0], y0 + 2 * loc[1]
-            x0, x1 = max(x0, cx - 2), min(x1, cx + 2)
-            y0, y1 = max(y0, cy - 2), min(y1, cy + 2)
-        region = img[y0 - h : y1 + h + 1, x0 - h : x1 + h + 1]
-        res = cv2.matchTemplate(region, tmpl, cv2.TM_SQDIFF)
-        _, _, loc, _ = cv2.minMaxLoc(res)
-        return np.array([x0 + loc[0], y0 + loc[1]])
 
     # -- recognition -------------------------------------------------------------------
     def recognise(self, image: Any, candidates: Iterable[int] | None = None) -> Recognition:
@@ -283,11 +153,32 @@ class VisualMemory(FeatureStore):
         the frames of nodes near the current place code); ``None`` = all frames.
 
         Attempts follow each other until one accepts a frame or ``max_resets`` resets have been
-        used. Each attempt starts at a query corner (:meth:`_start_point`); at every fixation the
-        feature units are driven (:meth:`_sense`), the frame hypotheses updated (:meth:`_observe`),
-        the decision checked (:meth:`_decide`), and the most active frame chooses the next
-        saccade (:meth:`_next_saccade`).
+        used. Each attempt (:meth:`_attempt`) starts at a query corner (:meth:`_start_point`); at
+        every fixation (:meth:`_fixate`) the feature units are driven (:meth:`_sense`), the frame
+        hypotheses updated (:meth:`_observe`), the decision checked (:meth:`_decide`), and the most
+        active frame chooses the next saccade (:meth:`_next_saccade`).
         """
+        q = self._query(image, candidates)
+        if isinstance(q, Recognition):
+            return q
+        a = np.zeros(self._nframes, np.float64)
+        steps: list[SaccadeStep] = []
+        used_starts: set[int] = set()
+        for resets in range(self.config.max_resets + 1):
+            a[:] = 0.0
+            e = self._start_point(q.starts, used_starts)
+            st = _Attempt(e=e, m=e.copy())
+            accepted = self._attempt(q, st, a, steps, resets)
+            if accepted is not None:
+                return accepted
+            steps[-1].event = f"reset: {st.reset_reason}"
+        best = float(a.max()) if a.size else 0.0
+        why = f"no match after {self.config.max_resets} resets"
+        return Recognition(None, best, steps, self.config.max_resets, 0.0, q.size, why)
+
+    def _query(self, image: Any, candidates: Iterable[int] | None) -> _Query | Recognition:
+        """The query's views and the competing feature units, or the rejection when there is
+        nothing to recognise (no stored frame among the candidates, no corner in the query)."""
         cfg = self.config
         work, scale, cimg = self._views(image)
         H, W = work.shape[:2]
@@ -303,52 +194,44 @@ class VisualMemory(FeatureStore):
         starts = self._corners(cimg, cfg.query_keypoints, self.h)
         if len(starts) == 0:
             return Recognition(None, 0.0, [], 0, 0.0, size, "no keypoints in the query")
-        a = np.zeros(self._nframes, np.float64)
-        steps: list[SaccadeStep] = []
-        used_starts: set[int] = set()
-        resets = 0
+        return _Query(sub, sense_img, starts, scale, size)
+
+    def _attempt(
+        self, q: _Query, st: _Attempt, a: np.ndarray, steps: list[SaccadeStep], resets: int
+    ) -> Recognition | None:
+        """One attempt, fixation after fixation, from its start point: the recognition when it
+        accepts a frame, None when it resets (its reason in ``st.reset_reason``)."""
         while True:
-            a[:] = 0.0
-            e = self._start_point(starts, used_starts)
-            st = _Attempt(e=e, m=e.copy())
-            while True:
-                s = self._sense(sense_img, st.e, sub, sub.local(st.predicted) if st.predicted >= 0 else -1)
-                pf = int(self._frame[st.predicted]) if st.predicted >= 0 else None
-                outcome, found = self._observe(st, s, sub, a)
-                steps.append(
-                    SaccadeStep(
-                        attempt=resets,
-                        fixation=cast("tuple[float, float]", _to_img(st.e, scale)),
-                        target=_to_img(st.target, scale),
-                        predicted_frame=pf,
-                        predicted_feature=None if st.predicted < 0 else int(st.predicted),
-                        found_frame=None if found is None else int(self._frame[found]),
-                        found_feature=found,
-                        similarity=float(s.umax),
-                        outcome=outcome,
-                        evidence=_leading(a, cfg.trace_hypotheses),
-                    )
-                )
-                st.first = False
-                self._decide(st, outcome, steps, a, resets)
-                if st.reset_reason is None and st.verify_left == 0:
-                    return self._accepted(st, steps, a, resets, size)
-                if self._next_saccade(st, s, sub, a, sense_img):
-                    continue
-                # ---- reset ------------------------------------------------------------------
-                steps[-1].event = f"reset: {st.reset_reason}"
-                resets += 1
-                if resets > cfg.max_resets:
-                    return Recognition(
-                        None,
-                        float(a.max()) if a.size else 0.0,
-                        steps,
-                        resets - 1,
-                        0.0,
-                        size,
-                        f"no match after {cfg.max_resets} resets",
-                    )
-                break
+            s, outcome = self._fixate(q, st, a, steps, resets)
+            self._decide(st, outcome, steps, a, resets)
+            if st.reset_reason is None and st.verify_left == 0:
+                return self._accepted(st, steps, a, resets, q.size)
+            if not self._next_saccade(st, s, q.sub, a, q.sense_img):
+                return None
+
+    def _fixate(
+        self, q: _Query, st: _Attempt, a: np.ndarray, steps: list[SaccadeStep], resets: int
+    ) -> tuple[Sense, str]:
+        """One fixation: the feature units are driven at the eye position, the frame hypotheses
+        updated, and the step recorded in the trace; returns what was sensed and the outcome."""
+        s = self._sense(q.sense_img, st.e, q.sub, q.sub.local(st.predicted) if st.predicted >= 0 else -1)
+        outcome, found = self._observe(st, s, q.sub, a)
+        steps.append(
+            SaccadeStep(
+                attempt=resets,
+                fixation=cast("tuple[float, float]", _to_img(st.e, q.scale)),
+                target=_to_img(st.target, q.scale),
+                predicted_frame=int(self._frame[st.predicted]) if st.predicted >= 0 else None,
+                predicted_feature=None if st.predicted < 0 else int(st.predicted),
+                found_frame=None if found is None else int(self._frame[found]),
+                found_feature=found,
+                similarity=float(s.umax),
+                outcome=outcome,
+                evidence=_leading(a, self.config.trace_hypotheses),
+            )
+        )
+        st.first = False
+        return s, outcome
 
     def _accepted(
         self, st: _Attempt, steps: list[SaccadeStep], a: np.ndarray, resets: int, size: tuple[int, int]
@@ -373,7 +256,7 @@ class VisualMemory(FeatureStore):
         used_starts.add(si)
         return starts[si].astype(np.int64)
 
-    def _observe(self, st: _Attempt, s: _Sense, sub: FlcSubset, a: np.ndarray) -> tuple[str, int | None]:
+    def _observe(self, st: _Attempt, s: Sense, sub: FlcSubset, a: np.ndarray) -> tuple[str, int | None]:
         """``(outcome, found feature)`` of a fixation, and its effect on the attempt: the frame
         hypotheses ``a`` gain the survivors' weights ([BBc]), a wrong prediction counts towards
         a reset, the first feature found re-anchors the grid code (``anchor = 'start'``)."""
@@ -421,7 +304,7 @@ class VisualMemory(FeatureStore):
             if st.verify_left > 0:
                 steps[-1].event = "threshold"
 
-    def _next_saccade(self, st: _Attempt, s: _Sense, sub: FlcSubset, a: np.ndarray, img: np.ndarray) -> bool:
+    def _next_saccade(self, st: _Attempt, s: Sense, sub: FlcSubset, a: np.ndarray, img: np.ndarray) -> bool:
         """Choose the next target (the most active frame chooses, :meth:`_choose_target`) and move
         the eye and the grid code there; False (with the attempt's reset reason) when none is left."""
         cfg = self.config

@@ -13,7 +13,7 @@ import time
 from collections import defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, cast
+from typing import Any, Iterable, cast
 
 import numpy as np
 
@@ -73,6 +73,32 @@ def _loops_by_pose(dataset: OdometryDataset) -> dict[int, list[_Proposal]]:
     return out
 
 
+def _offer_loops(
+    cmap: CognitiveMap,
+    k: int,
+    t: float,
+    proposals: Iterable[_Proposal],
+    node_at_pose: np.ndarray,
+    offset_at_pose: np.ndarray,
+) -> None:
+    """Offer the map the loop proposals whose later pose is ``k`` (time ``t``), each as a
+    hypothesis from the current node to the node of its earlier pose."""
+    for j, t_kj, line, info in proposals:
+        # pose of node_at_pose[j] in the frame of the current node, through the two
+        # short odometric offsets of the robot from its node at k and at j
+        rel = compose(compose(cmap.robot_offset, t_kj), between(offset_at_pose[j], np.zeros(3)))
+        hyp = LoopHypothesis(
+            node=int(node_at_pose[j]),
+            transform=cast("tuple[float, float, float]", tuple(float(v) for v in rel)),
+            evidence=1.0,
+            source="dataset",
+            time=t,
+            meta={"poses": [k, j], "line": line},
+            information=info,
+        )
+        cmap.propose_loop(hyp)
+
+
 def run_odometry(
     dataset: OdometryDataset, config: HippomapConfig | None = None, progress: bool = False, checkpoints: int = 8
 ) -> OdometryRun:
@@ -106,20 +132,7 @@ def run_odometry(
             if code is None:
                 no_field += 1
             cmap.update(None if code is None else (code.x, code.y, code.theta), inc[k - 1], float(times[k]))
-        for j, t_kj, line, info in loops.get(k, ()):
-            # pose of node_at_pose[j] in the frame of the current node, through the two
-            # short odometric offsets of the robot from its node at k and at j
-            rel = compose(compose(cmap.robot_offset, t_kj), between(offset_at_pose[j], np.zeros(3)))
-            hyp = LoopHypothesis(
-                node=int(node_at_pose[j]),
-                transform=cast("tuple[float, float, float]", tuple(float(v) for v in rel)),
-                evidence=1.0,
-                source="dataset",
-                time=float(times[k]),
-                meta={"poses": [k, j], "line": line},
-                information=info,
-            )
-            cmap.propose_loop(hyp)
+        _offer_loops(cmap, k, float(times[k]), loops.get(k, ()), node_at_pose, offset_at_pose)
         node_at_pose[k] = cmap.current
         offset_at_pose[k] = cmap.robot_offset
         if k in marks:

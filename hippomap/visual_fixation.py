@@ -1,0 +1,168 @@
+"""What the visual memory senses at one fixation (paper §2.2; spec §2 steps 3-7; [BBc]).
+
+At a fixation the fovea drives the feature label cells (FLCs): their drive, the [BBc]
+evidence test ``max u > mean + N_std sd`` and the pruning to a few survivors with softmax
+weights (:meth:`FixationSensing._sense`). A saccade to a predicted feature is the vector
+decoded from the visual grid cells' codes of the gaze and the feature's learned position
+(Eqs. 4-5, :mod:`hippomap.visual_grid_cells`), and the microsaccade snaps the landing point
+to the best match of the predicted patch (:meth:`FixationSensing._microsaccade`). The saccade
+loop that strings fixations into a recognition is :class:`hippomap.visual_memory.VisualMemory`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from .config import VisualConfig
+from .feature_store import FeatureStore, FlcSubset, _channel0
+from .visual_grid_cells import SpatialViewCells, VisualGridCells
+
+_DECODE_CACHE = 1 << 15  # decoded saccade vectors remembered per memory (a few MB at most)
+
+
+@dataclass
+class Sense:
+    """What the FLC population reports at one fixation (local indices into the subset)."""
+
+    evidence: bool
+    winner: int  # local index of argmax u (valid even without evidence)
+    umax: float
+    survivors: np.ndarray | None = None  # local indices
+    weights: np.ndarray | None = None  # softmax weights of the survivors
+    top: int = -1  # argmax of the biased, pruned vector (local)
+    upred: float = 0.0  # drive of the predicted unit
+
+
+class FixationSensing(FeatureStore):
+    """The feature store with the senses of a fixation: the FLC drive and pruning, the decoded
+    saccade vector and the microsaccade (the saccade loop is :class:`~hippomap.visual_memory.VisualMemory`)."""
+
+    def __init__(self, config: VisualConfig | None = None):
+        super().__init__(config)
+        self.grid = VisualGridCells(self.config)
+        self._svc: SpatialViewCells | None = None
+        self._decoded: dict[bytes, np.ndarray] = {}  # see _decode
+
+    # -- saccade vectors -----------------------------------------------------------------
+    @property
+    def spatial_view_cells(self) -> SpatialViewCells:
+        """Spatial view cells over the working view plane (built on first use)."""
+        if self._svc is None:
+            cfg = self.config
+            self._svc = SpatialViewCells(self.grid, cfg.working_width, cfg.working_width, cfg.svc_stride)
+        return self._svc
+
+    def _decode(self, m: np.ndarray, target: np.ndarray) -> np.ndarray:
+        """Saccade vector from gaze ``m`` to ``target`` decoded from their grid codes (a fresh array).
+
+        Both points are whole pixels during a recognition (learned positions, fovea positions), and
+        the decoded vector is a fixed function of the two points, so it is remembered per pair: the
+        same candidate frames come back recognition after recognition with the same feature pairs."""
+        m, target = np.asarray(m, dtype=float), np.asarray(target, dtype=float)
+        key = m.tobytes() + target.tobytes()  # bytes, so that even -0.0 and 0.0 stay apart
+        d = self._decoded.get(key)
+        if d is None:
+            if len(self._decoded) >= _DECODE_CACHE:
+                self._decoded.clear()
+            d = self._decode_uncached(m, target)
+            d.flags.writeable = False
+            self._decoded[key] = d
+        return d.copy()
+
+    def _decode_uncached(self, m: np.ndarray, target: np.ndarray) -> np.ndarray:
+        g_cur = self.grid.encode(m)
+        g_tgt = self.grid.encode(target)  # = W_FLC->GC e_k*
+        if self.config.decoder == "svc":
+            return self.spatial_view_cells.decode(g_cur, g_tgt)
+        return self.grid.decode(g_cur, g_tgt)
+
+    # -- sensing -----------------------------------------------------------------------
+    def _sense(self, img: np.ndarray, pos: np.ndarray, sub: FlcSubset, predicted: int) -> Sense:
+        """Drive of the FLC population at fixation ``pos`` and the [BBc] pruning: evidence test
+        ``max u > mean + N_std sd``, ``u / max u``, bias on the predicted unit, prune, softmax."""
+        cfg = self.config
+        x, y = int(pos[0]), int(pos[1])
+        patch = self._patch_at(img, x, y)
+        T, uT, uR = self._shortlist_drive(patch, x, y, sub, predicted)
+        mean, var, N = self._drive_stats(sub, T, uT, uR)
+        j = int(np.argmax(uT))
+        umax = float(uT[j])
+        winner = int(T[j])
+        upred = 0.0
+        if predicted >= 0:
+            pk = np.flatnonzero(T == predicted)
+            upred = float(uT[pk[0]]) if pk.size else 0.0
+        if not umax > mean + cfg.n_std * math.sqrt(var) or umax <= 0:
+            return Sense(False, winner, umax, upred=upred)
+        # normalise, bias the predicted unit, prune at mean + N_std sd, softmax ([BBc])
+        ut = uT / umax
+        mean_t, var_t = mean / umax, var / umax**2
+        if predicted >= 0:
+            pk = np.flatnonzero(T == predicted)
+            if pk.size:
+                p = int(pk[0])
+                old = float(ut[p])
+                ut = ut.copy()
+                ut[p] = old * cfg.prediction_bias
+                m2_t = var_t + mean_t**2 + (ut[p] ** 2 - old**2) / N
+                mean_t = mean_t + (ut[p] - old) / N
+                var_t = max(0.0, m2_t - mean_t**2)
+        keep = ut >= mean_t + cfg.n_std * math.sqrt(var_t)
+        if not np.any(keep):
+            keep[int(np.argmax(ut))] = True
+        if cfg.max_survivors and int(keep.sum()) > cfg.max_survivors:
+            # spec §6.4: N_std must grow with the library so that 1-5 FLCs survive; a top-K cap
+            # does that for every library size
+            idx = np.flatnonzero(keep)
+            top = idx[np.argsort(-ut[idx], kind="stable")[: cfg.max_survivors]]
+            keep = np.zeros_like(keep)
+            keep[top] = True
+        surv = T[keep]
+        vals = ut[keep].astype(np.float64) * cfg.softmax_gain
+        e = np.exp(vals - vals.max())
+        wts = e / e.sum()
+        best = int(surv[int(np.argmax(vals))])
+        return Sense(True, winner, umax, surv, wts, best, upred)
+
+    def _microsaccade(self, img: np.ndarray, target: np.ndarray, flc: int, amplitude: float = 0.0) -> np.ndarray | None:
+        """Snap the landing point to the best match of the predicted feature within ``tolerance_px``
+        plus ``microsaccade_gain`` x the saccade's ``amplitude`` (the [BBc] microsaccade; the search
+        widens with the amplitude as saccadic endpoint scatter does); ``None`` if the fovea cannot be
+        placed inside the image."""
+        h = self.h
+        r = self.config.tolerance_px + int(round(self.config.microsaccade_gain * amplitude))
+        img = _channel0(img)  # the microsaccade matches the ganglion fovea
+        H, W = img.shape
+        lo_x, hi_x = h, W - h - 1
+        lo_y, hi_y = h, H - h - 1
+        tx, ty = int(target[0]), int(target[1])
+        x0, x1 = max(lo_x, tx - r), min(hi_x, tx + r)
+        y0, y1 = max(lo_y, ty - r), min(hi_y, ty + r)
+        if x0 > x1 or y0 > y1:
+            return None
+        if r == 0:
+            return np.array([x0, y0])
+        tmpl = self._patch[flc, : self.P0].reshape(self.config.fovea, self.config.fovea)
+        if r > self.config.tolerance_px and min(x1 - x0, y1 - y0) > 4:
+            # a wide search runs coarse to fine: on the half-resolution fovea first (a quarter of the
+            # pixels per match and a quarter of the positions), then +-2 px around it at full resolution
+            region = img[y0 - h : y1 + h + 1, x0 - h : x1 + h + 1]
+            half = (region.shape[1] // 2, region.shape[0] // 2)
+            th = (tmpl.shape[1] // 2, tmpl.shape[0] // 2)
+            res = cv2.matchTemplate(
+                cv2.resize(region, half, interpolation=cv2.INTER_AREA),
+                cv2.resize(tmpl, th, interpolation=cv2.INTER_AREA),
+                cv2.TM_SQDIFF,
+            )
+            _, _, loc, _ = cv2.minMaxLoc(res)
+            cx, cy = x0 + 2 * loc[0], y0 + 2 * loc[1]
+            x0, x1 = max(x0, cx - 2), min(x1, cx + 2)
+            y0, y1 = max(y0, cy - 2), min(y1, cy + 2)
+        region = img[y0 - h : y1 + h + 1, x0 - h : x1 + h + 1]
+        res = cv2.matchTemplate(region, tmpl, cv2.TM_SQDIFF)
+        _, _, loc, _ = cv2.minMaxLoc(res)
+        return np.array([x0 + loc[0], y0 + loc[1]])
