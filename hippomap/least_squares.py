@@ -328,7 +328,7 @@ def solve_lsq(
     prior on it (needed while no loop determines it); ``estimate_bias=False`` holds it fixed.
     The result's ``bias`` is the final value.
 
-    One function past 60 lines on purpose: the damped step-and-retry loop shares the iterate, its
+    One function on purpose: the damped step-and-retry loop shares the iterate, its
     cost, the damping and the factorisation; split, each step would pass all of them around.
     """
     P, src, dst, T = _as_graph(poses, src, dst, transforms, inplace=True)
