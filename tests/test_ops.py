@@ -250,21 +250,24 @@ def test_restart_readiness_metrics_and_json_logs(tmp_path):
 
     again = LiveServer(tmp_path / "data", token=TOKEN, env=SERVER_ENV, args=SERVER_ARGS).start()
     try:
-        seen_restoring, health_while_restoring, ready = None, None, None
+        seen_restoring, health_while_restoring, metrics_while_restoring, ready = None, None, None, None
         deadline = time.monotonic() + 120
         with httpx.Client(base_url=again.url, timeout=10) as http:
             while time.monotonic() < deadline:
                 r = http.get("/ready")
                 if r.status_code == 503:
                     seen_restoring = r.json()
-                    health_while_restoring = http.get("/health").status_code
-                    metrics_while_restoring = samples(http.get("/metrics", headers=AUTH).text)
+                    health = http.get("/health").status_code
+                    metrics = samples(http.get("/metrics", headers=AUTH).text)
+                    if http.get("/ready").status_code == 503:  # still restoring after both reads: they are of then
+                        health_while_restoring, metrics_while_restoring = health, metrics
                 elif r.status_code == 200:
                     ready = r.json()
                     break
                 time.sleep(0.01)
             assert seen_restoring is not None, "the restart never reported a session being restored"
             assert seen_restoring["ready"] is False and seen_restoring["restoring"] == [sid]
+            assert metrics_while_restoring is not None, "never read /health and /metrics within the restore"
             assert health_while_restoring == 200  # alive, not ready
             assert value(metrics_while_restoring, "hippomap_ready") == 0
             assert ready == {"ready": True, "restoring": [], "sessions": 1}
