@@ -259,6 +259,9 @@ class LiveSession:
     # ---------------------------------------------------------------- state
     def stats(self) -> dict[str, Any]:
         w = self.worker
+        # read before the mapper is asked: queries are answered between inputs, so the mapper's figures are at
+        # least as new as this; read after, an input processed meanwhile would be counted but not in the figures
+        processed_seq = w.processed_seq
         mapper_stats = model.json_safe(w.query(model.queries.Stats()) or {})
         return {
             "session": self.id,
@@ -267,7 +270,7 @@ class LiveSession:
             "last_t": self.last_t,
             "last_odometry_t": self.last_times.get("odometry"),
             "last_frame_t": self.last_times.get("frame"),
-            "processed_seq": w.processed_seq,
+            "processed_seq": processed_seq,
             "pending": self.queue_depth,
             "snapshot_seq": w.snapshot_seq,
             "replaying": w.replaying,
