@@ -151,7 +151,10 @@ class MapCorrection(MapGraph):
                 bias_sigma(Q, src, dst, tr, bias["bias_dt"], res.bias, bias["bias_information"], info) if k > 0 else 0.0
             )
             self._bias_sigma = sigma
-            if abs(res.bias) > k * sigma:
+            observed = (
+                cfg.odometry_bias_observed is None or sigma <= cfg.odometry_bias_observed * cfg.odometry_bias_sigma
+            )
+            if abs(res.bias) > k * sigma and observed:
                 P[:] = Q
                 self._bias = res.bias
                 return res

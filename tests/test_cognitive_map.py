@@ -726,7 +726,7 @@ def test_the_first_link_lasts_from_the_first_step_not_from_time_zero():
     assert dt.sum() <= times[-1] - times[0] and dt[0] < 1.0
 
 
-def _bias_run(beta, sigma_omega, significance, seed=0):
+def _bias_run(beta, sigma_omega, significance, seed=0, observed=None):
     """Two laps of the square at 5 Hz on a real clock, odometry turning at ``beta`` rad/s too
     much plus white heading noise, closed by true loops; returns the map's error and bias."""
     inc = square_increments()
@@ -744,11 +744,28 @@ def _bias_run(beta, sigma_omega, significance, seed=0):
         loop_consistency_rad_per_m=0.0,
         odometry_bias_sigma=0.02 if significance is not None else 0.0,
         odometry_bias_significance=significance or 0.0,
+        odometry_bias_observed=observed,
     )
     cmap = CognitiveMap(cfg)
     node_at, off, _ = drive(cmap, noisy, times=times, hypotheses=true_loops(gt, len(inc) // 2))
     cmap.finish()
     return rms_xy(corrected(cmap, node_at, off), gt), cmap._bias, cmap.poses.copy()
+
+
+def test_a_bias_is_kept_only_when_the_loops_observe_it():
+    """``odometry_bias_observed``: the estimate is kept only when its posterior sigma is a small
+    fraction of the prior's (the closures carry it, not the prior). Two laps of closures observe a
+    0.01 rad/s drift far better than a quarter of the 0.02 prior: kept, as without the test. A bound
+    no estimate can meet keeps none: the map is exactly the map without the option."""
+    plain, bias_plain, poses_plain = _bias_run(0.01, 0.002, 3.0)
+    kept, bias_kept, poses_kept = _bias_run(0.01, 0.002, 3.0, observed=0.25)
+    assert bias_kept == pytest.approx(0.01, rel=0.1) and bias_kept == bias_plain
+    np.testing.assert_array_equal(poses_kept, poses_plain)
+    off, _, poses_off = _bias_run(0.01, 0.002, None)
+    never, bias_never, poses_never = _bias_run(0.01, 0.002, 3.0, observed=1e-9)
+    assert bias_never == 0.0
+    np.testing.assert_array_equal(poses_never, poses_off)
+    assert never == off and kept < off / 2
 
 
 def test_a_significant_heading_bias_is_estimated_and_closes_the_map():
