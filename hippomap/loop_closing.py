@@ -359,6 +359,13 @@ class LoopClosing(MapCorrection):
         self, c: Candidate, reason: str, link: int, support: tuple[int, ...], relocalised: bool, t: float
     ) -> None:
         """The decision, the event and the book entry of an accepted hypothesis."""
+        self._decide_accepted(c, reason, link, support, relocalised, t)
+        self._loops.accepted.append(c)
+
+    def _decide_accepted(
+        self, c: Candidate, reason: str, link: int, support: tuple[int, ...], relocalised: bool, t: float
+    ) -> None:
+        """The decision and the event of an accepted hypothesis (its book entry is the caller's)."""
         self._loops.decisions[c.id] = replace(
             self._loops.decisions[c.id],
             status="accepted",
@@ -369,7 +376,6 @@ class LoopClosing(MapCorrection):
             transform=c.link_tr,
         )
         self._events.append(LoopAccepted(c.id, c.node, c.from_node, link, support, relocalised, t))
-        self._loops.accepted.append(c)
 
     def _accept_robust(self, cand: Candidate, t: float) -> LoopDecision:
         """``loop_accept = 'robust'``: a hypothesis that passed the gate becomes a loop link at
@@ -389,17 +395,8 @@ class LoopClosing(MapCorrection):
         verified = group is not None
         support = tuple(c.id for c in ok_pend + ok_acc)
         reason = "gate; weighted by the robust kernel" + ("; verified by cycle consistency" if verified else "")
-        book.decisions[cand.id] = replace(
-            book.decisions[cand.id],
-            status="accepted",
-            reason=reason,
-            link=link,
-            support=support,
-            decided_step=self._step,
-            transform=cand.link_tr,
-        )
         reloc = verified and cfg.loop_relocalise
-        self._events.append(LoopAccepted(cand.id, cand.node, cand.from_node, link, support, reloc, t))
+        self._decide_accepted(cand, reason, link, support, reloc, t)
         if not verified:
             book.pending.append(cand)
         else:
