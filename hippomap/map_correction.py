@@ -29,8 +29,6 @@ __all__ = ["MapCorrection"]
 class MapCorrection(MapGraph):
     """The map's correction and robust reweighting, over :class:`~hippomap.map_graph.MapGraph`."""
 
-    _bias_sigma: float = float("inf")  # the last whole solve's posterior sigma of the bias (rad/s)
-
     def _optimise(self, t: float, force: bool = False, sweeps: int | None = None) -> list[MapEvent]:
         """Correct node poses while the graph disagrees with itself (``MapConfig.solver``).
 
@@ -135,7 +133,9 @@ class MapCorrection(MapGraph):
         With the bias estimated (``bias`` not empty), the poses and the bias are solved together on
         a copy, and the result is kept only when the bias is significant: ``|b| >
         odometry_bias_significance × σ_b``, σ_b its posterior standard deviation at the solution
-        (:func:`~hippomap.least_squares.bias_sigma`, a Wald test). Otherwise the bias is taken as 0
+        (:func:`~hippomap.least_squares.bias_sigma`, a Wald test), and observed by the loops: ``σ_b ≤
+        odometry_bias_observed × odometry_bias_sigma`` (the closures, not the prior, carry it). Otherwise
+        the bias is taken as 0
         and the map is solved without it, exactly as with the option off: a bias that the loops
         cannot tell from the odometry's own noise is not applied, so that loop links' errors
         cannot pose as one."""
@@ -146,14 +146,14 @@ class MapCorrection(MapGraph):
             res = solve_lsq(
                 Q, src, dst, tr, iterations=cfg.lsq_iterations, anchor=0, information=info, **{**bias, "bias": b}
             )
-            k = cfg.odometry_bias_significance
+            k, bound = cfg.odometry_bias_significance, cfg.odometry_bias_observed
+            tested = k > 0 or bound is not None
             sigma = (
-                bias_sigma(Q, src, dst, tr, bias["bias_dt"], res.bias, bias["bias_information"], info) if k > 0 else 0.0
+                bias_sigma(Q, src, dst, tr, bias["bias_dt"], res.bias, bias["bias_information"], info)
+                if tested
+                else 0.0
             )
-            self._bias_sigma = sigma
-            observed = (
-                cfg.odometry_bias_observed is None or sigma <= cfg.odometry_bias_observed * cfg.odometry_bias_sigma
-            )
+            observed = bound is None or sigma <= bound * cfg.odometry_bias_sigma
             if abs(res.bias) > k * sigma and observed:
                 P[:] = Q
                 self._bias = res.bias
