@@ -185,6 +185,7 @@ class CognitiveMap(Pruning):
                 "dirty": self._dirty,
                 "touched": list(self._touched),
                 "local_solves": self._local_solves,
+                "solved_path": None if math.isinf(self._solved_path) else self._solved_path,
                 "odometry_bias": self._bias,
             },
             "loop": self._loops.state_dict(),
@@ -241,6 +242,8 @@ class CognitiveMap(Pruning):
             cmap._dirty = bool(robot["dirty"])
             cmap._touched = [int(k) for k in robot.get("touched", [-1] if cmap._dirty else [])]
             cmap._local_solves = int(robot.get("local_solves", 0))
+            sp = robot.get("solved_path")
+            cmap._solved_path = -math.inf if sp is None else float(sp)
             cmap._bias = float(robot.get("odometry_bias", 0.0))
             cmap._loops = LoopBook.from_state(loop)
             cmap._events = [MapEvent.from_dict(e) for e in state.get("events", [])]

@@ -346,6 +346,14 @@ class MapConfig(_Frozen):
         "key frames it recognised (a recognised view is seen from roughly the same direction; half of a 60-70 "
         "degree field of view) [ours]",
     )
+    loop_fit_window_m: float | None = Field(
+        2.5,
+        gt=0,
+        description="metres of path over which accepted visual hypotheses back a group's relative-pose fit: one "
+        "rigid transform of the dead-reckoned path cannot follow the odometry's heading drift over a longer stretch; "
+        "None = the whole loop_support_window_m. 2.5 chosen among 1.5 / 2 / 2.5 / 3.5 / None on the simulated "
+        "tuning runs [ours, docs/MODEL.md]",
+    )
     loop_fit_min_spread_m: float = Field(
         0.5,
         gt=0,
@@ -440,6 +448,13 @@ class MapConfig(_Frozen):
         "spacing), holding the nodes around; 0 = always the whole map. Keeps the cost of re-localising along a "
         "mapped path independent of the map's size [ours, docs/MODEL.md]",
     )
+    lsq_defer_m: float = Field(
+        1.0,
+        ge=0,
+        description="a correction whose changed links all agree with the map within lsq_window_residual_m waits "
+        "until the robot has gone this far (m of path) since the last solve, and is then solved with the ones "
+        "after it; a change that disagrees is solved at once; 0 = solve every change at once [ours, docs/MODEL.md]",
+    )
     lsq_window_every: int = Field(
         10,
         ge=1,
@@ -530,6 +545,14 @@ class MapperConfig(_Frozen):
         gt=0,
         description="learn a key frame after this many metres of odometric path [ours: chosen on simulated "
         "worlds, docs/MODEL.md]",
+    )
+    keyframe_familiar_distance_m: float | None = Field(
+        None,
+        gt=0,
+        description="on a familiar path (the last key frame's recognition verified a loop), the next key frame "
+        "comes after this many metres instead of keyframe_distance_m: fewer recognitions while the robot "
+        "retraces its map. None = keyframe_distance_m always; 1.0 cost a quarter of the mapper's time on the "
+        "simulated loops but made the Bicocca world worse (docs/MODEL.md) [ours]",
     )
     keyframe_turn_rad: float = Field(
         0.35, gt=0, description="... or after turning this much (a robot turning on the spot sees new views) [ours]"

@@ -278,7 +278,15 @@ class LoopClosing(MapCorrection):
         window that back the fit but keep their links). ``None`` when the fit does not hold:
         a member lies more than ``loop_consistency_m`` from where the fit puts it, or the fit
         turns the robot more than ``loop_view_rad`` away from the way a member's key frame
-        looked (recognising a view means facing roughly as it was learned)."""
+        looked (recognising a view means facing roughly as it was learned).
+
+        Only anchors within ``loop_fit_window_m`` of path of the group's newest member back the
+        fit: one rigid transform cannot follow the odometry's own heading drift over a longer
+        stretch, which then bends the fit (docs/MODEL.md)."""
+        fit_m = self.cfg.loop_fit_window_m
+        if fit_m is not None and group:
+            newest = max(c.path for c in group)
+            anchors = [c for c in anchors if newest - c.path <= fit_m]
         vis = [c for c in group + anchors if not c.measured]
         if len(vis) < 2:
             return group

@@ -48,6 +48,9 @@ class MapCorrection(MapGraph):
         sweeps = cfg.relax_loops if sweeps is None else int(sweeps)
         w = self._w[:m]
         window = None
+        if not force and self._deferred():
+            return []
+        self._solved_path = self._path
         if cfg.solver == "lsq" and not force and self._local_solves < cfg.lsq_window_every:
             window = self._local_window()
         # a whole solve of changes that all agree with the map: no headings-first init (see _solve_lsq)
@@ -70,6 +73,22 @@ class MapCorrection(MapGraph):
         # fixed, and the strain at its edge would fade true links
         self._dirty = not converged or (self._local_solves == 0 and self._reweight())
         return [MapRelaxed(res.solver, res.iterations, res.max_shift, t)]
+
+    def _deferred(self) -> bool:
+        """Whether this correction waits (``lsq_defer_m``): the 'lsq' solver has solved within the
+        last ``lsq_defer_m`` of path and every link changed since agrees with the map within
+        ``lsq_window_residual_m`` (:meth:`_small_change`). On a revisit every key frame closes
+        another small loop; solving the map for each made the solves a third of the mapper's cost,
+        while the changes they carry are each a few centimetres. They are kept and solved together
+        once the robot has gone ``lsq_defer_m`` further (or at once when a change that disagrees with
+        the map arrives: a new loop is never kept waiting)."""
+        cfg = self.cfg
+        return (
+            cfg.solver == "lsq"
+            and cfg.lsq_defer_m > 0
+            and self._path - self._solved_path < cfg.lsq_defer_m
+            and self._small_change()
+        )
 
     def _solve_lsq(
         self, window: tuple[np.ndarray, np.ndarray, np.ndarray] | None, rotation_init: bool = True

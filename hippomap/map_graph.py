@@ -21,6 +21,7 @@ beneath it.
 
 from __future__ import annotations
 
+import math
 from typing import cast
 
 import numpy as np
@@ -80,6 +81,7 @@ class MapGraph:
         self._dirty = False  # lsq: a link with a non-zero residual was added since the last solve
         self._touched: list[int] = []  # links added or changed since the last solve; -1: the whole map
         self._local_solves = 0  # local solves since the last solve of the whole map
+        self._solved_path = -math.inf  # odometric path (m) at the last correction (see MapCorrection._deferred)
         self._bias = 0.0  # the odometry's heading bias (rad/s), estimated by the whole solves (see _bias_args)
         # robot state
         self._cur = 0

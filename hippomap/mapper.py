@@ -101,6 +101,7 @@ class Mapper:
         self.global_search_path = -math.inf  # odometric path at the last global search
         self.turn = 0.0  # odometric turn, |radians| summed
         self.turn_at_keyframe = 0.0
+        self.familiar = False  # the last key frame's recognition verified a loop (keyframe_familiar_distance_m)
         self._frame_distance = self._frame_turn = 0.0  # distance and turn at the previous frame
         self.frame_offset: dict[int, tuple[float, float, float]] = {}  # key frame -> its pose in its node's frame
         self.frame_node: dict[int, int] = {}  # key-frame id -> node id
@@ -157,6 +158,7 @@ class Mapper:
         m.distance += cfg.mapper.recognition_min_path_m
         m.distance_at_keyframe = m.global_search_path = -math.inf
         m.turn_at_keyframe = m.turn
+        m.familiar = False
         m._frame_distance, m._frame_turn = m.distance, m.turn
         m.recognitions = []
         m.place = None
@@ -230,6 +232,8 @@ class Mapper:
                     recognised = self._recognise(gray, frame.t, others, events, search="global")
         self.distance_at_keyframe = self.distance
         self.turn_at_keyframe = self.turn
+        # a place is familiar when this key frame's recognition verified a loop (keyframe_familiar_distance_m)
+        self.familiar = recognised and self.cmap.path_since_verified <= 0.0
         if self.localise_only or (recognised and not self.config.mapper.learn_recognised):
             return events
         fid = self.memory.learn(gray)
@@ -328,8 +332,10 @@ class Mapper:
         # previous frame, so that the spacing does not depend on the frame rate
         moved, turned = self.distance - self._frame_distance, self.turn - self._frame_turn
         self._frame_distance, self._frame_turn = self.distance, self.turn
+        familiar = m.keyframe_familiar_distance_m if self.familiar else None
+        dist = m.keyframe_distance_m if familiar is None else familiar
         return (
-            self.distance - self.distance_at_keyframe >= m.keyframe_distance_m - moved / 2
+            self.distance - self.distance_at_keyframe >= dist - moved / 2
             or self.turn - self.turn_at_keyframe >= m.keyframe_turn_rad - turned / 2
         )
 
@@ -425,6 +431,7 @@ class Mapper:
             "frame_path": [[k, v] for k, v in self.frame_path.items()],
             "turn": self.turn,
             "turn_at_keyframe": self.turn_at_keyframe,
+            "familiar": self.familiar,
             "frame_distance": self._frame_distance,
             "frame_turn": self._frame_turn,
             "recognitions": self.recognitions,
@@ -469,6 +476,7 @@ class Mapper:
         self.frame_path = {int(k): float(v) for k, v in meta.get("frame_path", [])}
         self.turn = float(meta.get("turn", 0.0))
         self.turn_at_keyframe = float(meta.get("turn_at_keyframe", 0.0))
+        self.familiar = bool(meta.get("familiar", False))
         self._frame_distance = float(meta.get("frame_distance", self.distance))
         self._frame_turn = float(meta.get("frame_turn", self.turn))
         self.recognitions = meta["recognitions"]

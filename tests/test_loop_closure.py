@@ -416,3 +416,36 @@ def test_a_state_with_pair_loop_information_loads_as_isotropic():
     old = CognitiveMap.from_state(cmap.cfg, state)
     info = old.link_information()[loop]
     assert np.array_equal(info, cmap.link_information()[loop]) and np.all(info[:, 0] == info[:, 1])
+
+
+def test_a_group_fit_over_a_short_window_follows_a_drifting_odometry():
+    """The group fit moves the dead-reckoned path rigidly onto the places the hypotheses name. Out
+    and back along a 10 m corridor whose odometry turns 0.03 rad per metre on the way back (a gyro's
+    drift), with every hypothesis exact: over the whole 5 m support window the bent path pulls the
+    fitted links off; over the last ``loop_fit_window_m`` of path they stay near the truth."""
+    inc = back_and_forth(passes=2, length=10.0, step=0.05)
+    gt = integrate(inc)
+    n = len(inc)
+    noisy = inc.copy()
+    noisy[n // 2 :, 2] += 0.03 * 0.05
+
+    def hyps(k, cmap, node_at, off):
+        j = n - k - 10  # the outbound pose at the same place
+        if k <= n // 2 + 40 or k % 5 or not 0 <= j < n // 2:
+            return []
+        return [_visual(gt, node_at, off, k, j, search=None)]
+
+    errors = {}
+    for window in (None, 2.5):
+        cmap = CognitiveMap(MapConfig(loop_fit_window_m=window, odometry_bias_sigma=0.0))
+        drive(cmap, noisy, hypotheses=hyps)
+        times = cmap.times
+        e = []
+        for d in cmap.loop_decisions:
+            if d.status != "accepted" or d.transform is None:
+                continue
+            truth = between(gt[int(round(times[d.from_node]))], gt[int(round(times[d.hypothesis.node]))])
+            e.append(float(np.hypot(*between(np.asarray(d.transform), truth)[:2])))
+        assert len(e) > 20
+        errors[window] = float(np.median(e))
+    assert errors[2.5] < 0.6 * errors[None], errors  # measured 0.032 vs 0.076 m

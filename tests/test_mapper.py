@@ -210,3 +210,45 @@ def test_events_come_out_of_the_call_that_caused_them(inputs):
             assert isinstance(d["t"], float) and "time" not in d and d["type"] in EVENT_TYPES
             assert type(e).from_dict(json.loads(json.dumps(d))).to_dict() == d  # one schema, both ways
     assert "accepted" in statuses and m.stats()["loop_closures_accepted"] > 0
+
+
+def test_familiar_paths_take_key_frames_further_apart():
+    """``keyframe_familiar_distance_m``: after a key frame whose recognition verified a loop, the
+    next key frame comes that far on (unless the robot turns); elsewhere every keyframe_distance_m.
+    The first lap is the same either way; the revisits take fewer key frames; the state is kept in a
+    snapshot."""
+    world = sim.loop_world(seed=3, size=(8.0, 5.0), laps=2)
+    run = sim.simulate(
+        world, None, rate_hz=5.0, seed=1, odometry_noise=sim.OdometryNoise(sigma_v=0.02, sigma_omega=0.01)
+    )
+    items = []
+    for i in range(len(run)):
+        t, v, w = run.odometry[i]
+        items += [Odometry(float(t), v=float(v), omega=float(w)), Frame(float(t), run.frame(i))]
+    spacing = {}
+    for familiar in (None, 1.0):
+        m = Mapper(HippomapConfig.with_overrides({"mapper": {"keyframe_familiar_distance_m": familiar}}))
+        gaps, was_familiar, last = [], [], None
+        for k, item in enumerate(items):
+            if isinstance(item, Odometry):
+                m.step(item)
+                continue
+            before = m.familiar
+            turn_before = m.turn_at_keyframe
+            m.observe(item)
+            if m.distance_at_keyframe == m.distance:  # a key frame (the robot always moves here)
+                if last is not None and m.turn - turn_before < 0.9 * m.config.mapper.keyframe_turn_rad:
+                    gaps.append(m.distance - last)  # made by distance, not by turning
+                    was_familiar.append(before)
+                last = m.distance
+            if k == len(items) // 2 and familiar:
+                restored = Mapper.from_bytes(m.to_bytes())
+                assert restored.familiar == m.familiar
+        gaps_a, fam_a = np.array(gaps), np.array(was_familiar)
+        spacing[familiar] = (gaps_a, fam_a, m.stats()["keyframes"] + m.stats()["recognitions"])
+    gaps, fam, _ = spacing[None]
+    assert not fam.any() or np.all(gaps < 0.7)  # without the option the spacing stays keyframe_distance_m
+    gaps, fam, _ = spacing[1.0]
+    assert fam.sum() >= 5, "no verified loop on the second lap"
+    assert np.all(gaps[fam] > 0.85) and np.all(gaps[~fam] < 0.7)
+    assert spacing[1.0][2] < spacing[None][2]

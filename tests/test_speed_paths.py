@@ -13,10 +13,11 @@ from hypothesis import strategies as st
 from hippomap import least_squares as ls
 from hippomap.cognitive_map import CognitiveMap
 from hippomap.config import MapConfig
+from hippomap.geometry import integrate
 from hippomap.headings_first import rotation_first_init
 from hippomap.mapper import Mapper
 
-from .test_cognitive_map import drive, square_increments, true_loops
+from .test_cognitive_map import corrected, drive, rms_xy, square_increments, true_loops
 from .test_mapper import CONFIG, feed, inputs  # noqa: F401  (module fixture)
 
 
@@ -148,3 +149,45 @@ def test_whole_solves_of_small_changes_skip_the_headings_first_init():
     assert all(init == (not small) for _, init, small in whole[:-1])
     assert whole[-1][1]  # the final solve (finish) always re-initialises
     assert len(inits) == sum(init for _, init, _ in whole)
+
+
+def test_small_corrections_wait_for_lsq_defer_m_of_path_and_new_loops_do_not():
+    """A correction whose changed links all agree with the map waits until the robot has gone
+    ``lsq_defer_m`` since the last solve, and is then solved with the ones after it; a change that
+    disagrees with the map (a new loop) is solved at once. Far fewer solves, the same final map."""
+    inc = square_increments(side=6.0, laps=3)
+    gt = integrate(inc)
+    noisy = inc.copy()
+    noisy[:, 2] += 0.002 * (inc[:, 0] > 0)
+    first_lap = len(inc) // 3
+    out = {}
+    for defer in (0.0, 1.0):
+        cmap = CognitiveMap(MapConfig(prune_online=False, loop_transform_radius_m=3.0, lsq_defer_m=defer))
+        solves, waits = [], []
+        original_deferred, original_solve = cmap._deferred, cmap._solve_lsq
+
+        def deferred(cmap=cmap, original=original_deferred, waits=waits, solves=solves):
+            small = cmap._small_change()
+            d = original()
+            if d:
+                waits.append((cmap._path, small, solves[-1] if solves else -math.inf))
+            return d
+
+        def solve(window, rotation_init=True, cmap=cmap, original=original_solve, solves=solves):
+            solves.append(cmap._path)
+            return original(window, rotation_init)
+
+        cmap._deferred, cmap._solve_lsq = deferred, solve
+        node_at, off, _ = drive(cmap, noisy, hypotheses=true_loops(gt, first_lap))
+        cmap.finish()
+        assert not cmap._dirty
+        out[defer] = (corrected(cmap, node_at, off), solves, waits)
+    now, now_solves, now_waits = out[0.0]
+    later, later_solves, later_waits = out[1.0]
+    assert not now_waits  # 0: every change is solved at once
+    assert later_waits, "no correction waited"
+    # only small changes wait, and never beyond lsq_defer_m of path since the last solve
+    assert all(small and path - last < 1.0 for path, small, last in later_waits)
+    assert len(later_solves) < 0.5 * len(now_solves)
+    assert rms_xy(later, gt) < rms_xy(now, gt) + 0.02
+    assert rms_xy(later, now) < 0.05
