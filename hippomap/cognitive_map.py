@@ -186,6 +186,7 @@ class CognitiveMap(Pruning):
                 "touched": list(self._touched),
                 "local_solves": self._local_solves,
                 "solved_path": None if math.isinf(self._solved_path) else self._solved_path,
+                "solved_t": None if math.isinf(self._solved_t) else self._solved_t,
                 "odometry_bias": self._bias,
             },
             "loop": self._loops.state_dict(),
@@ -244,6 +245,8 @@ class CognitiveMap(Pruning):
             cmap._local_solves = int(robot.get("local_solves", 0))
             sp = robot.get("solved_path")
             cmap._solved_path = -math.inf if sp is None else float(sp)
+            st = robot.get("solved_t")
+            cmap._solved_t = -math.inf if st is None else float(st)
             cmap._bias = float(robot.get("odometry_bias", 0.0))
             cmap._loops = LoopBook.from_state(loop)
             cmap._events = [MapEvent.from_dict(e) for e in state.get("events", [])]

@@ -452,8 +452,15 @@ class MapConfig(_Frozen):
         1.0,
         ge=0,
         description="a correction whose changed links all agree with the map within lsq_window_residual_m waits "
-        "until the robot has gone this far (m of path) since the last solve, and is then solved with the ones "
-        "after it; a change that disagrees is solved at once; 0 = solve every change at once [ours, docs/MODEL.md]",
+        "until the robot has gone this far (m of path) since the last solve, or lsq_defer_s has passed, and is "
+        "then solved with the ones after it; a change that disagrees is solved at once; 0 = solve every change at "
+        "once [ours, docs/MODEL.md]",
+    )
+    lsq_defer_s: float = Field(
+        5.0,
+        gt=0,
+        description="... and no longer than this many seconds since the last solve: a robot that stops or turns "
+        "on the spot still gets its map settled [ours, docs/MODEL.md]",
     )
     lsq_window_every: int = Field(
         10,

@@ -48,9 +48,9 @@ class MapCorrection(MapGraph):
         sweeps = cfg.relax_loops if sweeps is None else int(sweeps)
         w = self._w[:m]
         window = None
-        if not force and self._deferred():
+        if not force and self._deferred(t):
             return []
-        self._solved_path = self._path
+        self._solved_path, self._solved_t = self._path, t
         if cfg.solver == "lsq" and not force and self._local_solves < cfg.lsq_window_every:
             window = self._local_window()
         # a whole solve of changes that all agree with the map: no headings-first init (see _solve_lsq)
@@ -74,19 +74,22 @@ class MapCorrection(MapGraph):
         self._dirty = not converged or (self._local_solves == 0 and self._reweight())
         return [MapRelaxed(res.solver, res.iterations, res.max_shift, t)]
 
-    def _deferred(self) -> bool:
-        """Whether this correction waits (``lsq_defer_m``): the 'lsq' solver has solved within the
-        last ``lsq_defer_m`` of path and every link changed since agrees with the map within
-        ``lsq_window_residual_m`` (:meth:`_small_change`). On a revisit every key frame closes
-        another small loop; solving the map for each made the solves a third of the mapper's cost,
-        while the changes they carry are each a few centimetres. They are kept and solved together
-        once the robot has gone ``lsq_defer_m`` further (or at once when a change that disagrees with
-        the map arrives: a new loop is never kept waiting)."""
+    def _deferred(self, t: float) -> bool:
+        """Whether the correction at time ``t`` waits (``lsq_defer_m``, ``lsq_defer_s``): the 'lsq'
+        solver has solved within the last ``lsq_defer_m`` of path and ``lsq_defer_s`` seconds, and
+        every link changed since agrees with the map within ``lsq_window_residual_m``
+        (:meth:`_small_change`). On a revisit every key frame closes another small loop; solving the
+        map for each made the solves a third of the mapper's cost, while the changes they carry are
+        each a few centimetres. They are kept and solved together once the robot has gone
+        ``lsq_defer_m`` further or ``lsq_defer_s`` has passed (a robot that stops or turns on the
+        spot still gets its map settled), or at once when a change that disagrees with the map
+        arrives: a new loop is never kept waiting."""
         cfg = self.cfg
         return (
             cfg.solver == "lsq"
             and cfg.lsq_defer_m > 0
             and self._path - self._solved_path < cfg.lsq_defer_m
+            and t - self._solved_t < cfg.lsq_defer_s
             and self._small_change()
         )
 

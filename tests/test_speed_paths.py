@@ -162,13 +162,14 @@ def test_small_corrections_wait_for_lsq_defer_m_of_path_and_new_loops_do_not():
     first_lap = len(inc) // 3
     out = {}
     for defer in (0.0, 1.0):
-        cmap = CognitiveMap(MapConfig(prune_online=False, loop_transform_radius_m=3.0, lsq_defer_m=defer))
+        cfg = MapConfig(prune_online=False, loop_transform_radius_m=3.0, lsq_defer_m=defer, lsq_defer_s=1e9)
+        cmap = CognitiveMap(cfg)
         solves, waits = [], []
         original_deferred, original_solve = cmap._deferred, cmap._solve_lsq
 
-        def deferred(cmap=cmap, original=original_deferred, waits=waits, solves=solves):
+        def deferred(t, cmap=cmap, original=original_deferred, waits=waits, solves=solves):
             small = cmap._small_change()
-            d = original()
+            d = original(t)
             if d:
                 waits.append((cmap._path, small, solves[-1] if solves else -math.inf))
             return d
@@ -191,3 +192,36 @@ def test_small_corrections_wait_for_lsq_defer_m_of_path_and_new_loops_do_not():
     assert len(later_solves) < 0.5 * len(now_solves)
     assert rms_xy(later, gt) < rms_xy(now, gt) + 0.02
     assert rms_xy(later, now) < 0.05
+
+
+def test_a_robot_that_stops_still_gets_its_small_corrections_solved():
+    """Deferred corrections wait for ``lsq_defer_m`` of path *or* ``lsq_defer_s`` seconds: a robot
+    that stops right after a small closure gets it solved once the time has passed."""
+    inc = square_increments(side=6.0, laps=2)
+    gt = integrate(inc)
+    noisy = inc.copy()
+    noisy[:, 2] += 0.002 * (inc[:, 0] > 0)
+    first_lap = len(inc) // 2
+    cmap = CognitiveMap(MapConfig(prune_online=False, loop_transform_radius_m=3.0, lsq_defer_m=1.0, lsq_defer_s=3.0))
+    hyps = true_loops(gt, first_lap)
+    odo = integrate(noisy)
+    node_at, off = [cmap.current], [cmap.robot_offset]
+    for k in range(1, len(noisy) + 1):
+        t = k / 10.0  # 1 m/s: the path bound comes first while the robot moves
+        cmap.update(odo[k], noisy[k - 1], t)
+        for h in hyps(k, cmap, node_at, off):
+            cmap.propose_loop(h)
+        node_at.append(cmap.current)
+        off.append(cmap.robot_offset)
+        if k > first_lap + 40 and cmap._dirty and cmap._deferred(t):
+            break
+    else:
+        raise AssertionError("no correction was deferred")
+    waiting_since = cmap._solved_t
+    # the robot stands still: no path, only time passes
+    still = t
+    while cmap._dirty:
+        still += 0.1
+        cmap.update(odo[k], (0.0, 0.0, 0.0), still)
+        assert still - waiting_since < 3.0 + 0.15, "the deferred correction was never solved"
+    assert still - waiting_since >= 3.0 - 1e-9
