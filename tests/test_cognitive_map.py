@@ -30,6 +30,15 @@ def square_increments(side=8.0, step=0.1, laps=2, turn_steps=5):
     return np.array(inc)
 
 
+def biased_square(side=8.0, laps=2):
+    """Laps of a square, and the same increments with a heading bias of 0.002 rad on every forward
+    step (0.02 rad per metre): ``(true increments, true poses, biased increments, steps per lap)``."""
+    inc = square_increments(side=side, laps=laps)
+    noisy = inc.copy()
+    noisy[:, 2] += 0.002 * (inc[:, 0] > 0)
+    return inc, integrate(inc), noisy, len(inc) // laps
+
+
 def drive(cmap, increments, times=None, hypotheses=None, extra=None):
     """Feed increments (place code = dead-reckoned pose, spec §6.7). ``hypotheses(k, cmap, node_at,
     off)`` may return LoopHypothesis objects to propose after step k. Returns per-pose node ids and
@@ -416,11 +425,7 @@ def test_default_map_keeps_its_nodes_on_revisits():
 def test_graph_gated_pruning_avoids_merging_across_a_drifted_loop():
     """Literal online pruning merges the drifted end of lap 1 into the wrong start nodes (an
     unverified loop closure); gated by graph distance it waits for the verified one instead."""
-    inc = square_increments()
-    gt = integrate(inc)
-    noisy = inc.copy()
-    noisy[:, 2] += 0.002 * (inc[:, 0] > 0)
-    first_lap = len(inc) // 2
+    inc, gt, noisy, first_lap = biased_square()
     errors, nodes = {}, {}
     common = dict(VERIFIED, solver="lsq", loop_transform_radius_m=3.0, loop_min_support=2, loop_relocalise=True)
     for name, over in {
@@ -513,11 +518,7 @@ def test_nodes_near_is_sorted_and_excludes_recent_nodes():
 
 # ----------------------------------------------------------------------------- state
 def test_state_round_trip_gives_identical_future_outputs():
-    inc = square_increments()
-    gt = integrate(inc)
-    noisy = inc.copy()
-    noisy[:, 2] += 0.002 * (inc[:, 0] > 0)
-    first_lap = len(inc) // 2
+    inc, gt, noisy, first_lap = biased_square()
     odo = integrate(noisy)
     cfg = MapConfig()
     hyps = true_loops(gt, first_lap)
@@ -625,11 +626,7 @@ def test_local_solves_match_the_whole_map_and_stay_bounded():
     """After the first closure of a lap, later closures are small corrections: they are solved on a
     window of nodes around the changed links (the nodes just outside held), which must give nearly
     the map a whole-map solve gives, and must not move nodes far from the window."""
-    inc = square_increments(side=8.0, laps=3)
-    gt = integrate(inc)
-    noisy = inc.copy()
-    noisy[:, 2] += 0.002 * (inc[:, 0] > 0)
-    first_lap = len(inc) // 3
+    inc, gt, noisy, first_lap = biased_square(side=8.0, laps=3)
     maps = {}
     for hops in (0, 20):
         cmap = CognitiveMap(MapConfig(prune_online=False, loop_transform_radius_m=3.0, lsq_window_hops=hops))

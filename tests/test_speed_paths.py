@@ -17,7 +17,7 @@ from hippomap.geometry import integrate
 from hippomap.headings_first import rotation_first_init
 from hippomap.mapper import Mapper
 
-from .test_cognitive_map import corrected, drive, rms_xy, square_increments, true_loops
+from .test_cognitive_map import biased_square, corrected, drive, rms_xy, true_loops
 from .test_mapper import CONFIG, feed, inputs  # noqa: F401  (module fixture)
 
 
@@ -119,10 +119,7 @@ def test_recognisable_matches_the_dict_reading(inputs):  # noqa: F811
 def test_whole_solves_of_small_changes_skip_the_headings_first_init():
     """Corrections whose changed links all agree with the map, solved whole because their window
     held most of the map, skip the headings-first init; new loops and the final solve keep it."""
-    inc = square_increments(side=6.0, laps=3)
-    first_lap = len(inc) // 3
-    noisy = inc.copy()
-    noisy[:, 2] += 0.002 * (inc[:, 0] > 0)
+    inc, gt, noisy, first_lap = biased_square(side=6.0, laps=3)
     cmap = CognitiveMap(  # bias off: a whole solve with an insignificant bias initialises twice (item 34)
         MapConfig(prune_online=False, loop_transform_radius_m=3.0, lsq_window_hops=400, odometry_bias_sigma=0.0)
     )
@@ -140,9 +137,7 @@ def test_whole_solves_of_small_changes_skip_the_headings_first_init():
     cmap._solve_lsq = solve
     inits = []
     cmap._rotation_init = lambda *a: (inits.append(1), original_init(*a))[1]
-    from hippomap.geometry import integrate
-
-    drive(cmap, noisy, hypotheses=true_loops(integrate(inc), first_lap))
+    drive(cmap, noisy, hypotheses=true_loops(gt, first_lap))
     cmap.finish()
     whole = [c for c in calls if c[0]]
     assert any(not init for _, init, _ in whole), "no whole solve of a small change"
@@ -155,11 +150,7 @@ def test_small_corrections_wait_for_lsq_defer_m_of_path_and_new_loops_do_not():
     """A correction whose changed links all agree with the map waits until the robot has gone
     ``lsq_defer_m`` since the last solve, and is then solved with the ones after it; a change that
     disagrees with the map (a new loop) is solved at once. Far fewer solves, the same final map."""
-    inc = square_increments(side=6.0, laps=3)
-    gt = integrate(inc)
-    noisy = inc.copy()
-    noisy[:, 2] += 0.002 * (inc[:, 0] > 0)
-    first_lap = len(inc) // 3
+    inc, gt, noisy, first_lap = biased_square(side=6.0, laps=3)
     out = {}
     for defer in (0.0, 1.0):
         cfg = MapConfig(prune_online=False, loop_transform_radius_m=3.0, lsq_defer_m=defer, lsq_defer_s=1e9)
@@ -197,11 +188,7 @@ def test_small_corrections_wait_for_lsq_defer_m_of_path_and_new_loops_do_not():
 def test_a_robot_that_stops_still_gets_its_small_corrections_solved():
     """Deferred corrections wait for ``lsq_defer_m`` of path *or* ``lsq_defer_s`` seconds: a robot
     that stops right after a small closure gets it solved once the time has passed."""
-    inc = square_increments(side=6.0, laps=2)
-    gt = integrate(inc)
-    noisy = inc.copy()
-    noisy[:, 2] += 0.002 * (inc[:, 0] > 0)
-    first_lap = len(inc) // 2
+    inc, gt, noisy, first_lap = biased_square(side=6.0, laps=2)
     cmap = CognitiveMap(MapConfig(prune_online=False, loop_transform_radius_m=3.0, lsq_defer_m=1.0, lsq_defer_s=3.0))
     hyps = true_loops(gt, first_lap)
     odo = integrate(noisy)
