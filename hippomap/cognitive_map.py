@@ -227,27 +227,7 @@ class CognitiveMap(Pruning):
             if m and (ends.max() >= n or ends.min() < 0):
                 raise InputError("cognitive-map state: a link names a node that does not exist")
             cmap._rebuild_link_index(links.get("colour"))
-            cmap._cur = int(robot["current"])
-            if not 0 <= cmap._cur < n:
-                raise InputError(f"cognitive-map state: current node {cmap._cur} does not exist")
-            cmap._delta = _vec3(robot["delta"], "state robot.delta")
-            cmap._odom = _vec3(robot["odom"], "state robot.odom")
-            cmap._path = float(robot["path"])
-            cmap._step = int(robot["step"])
-            cmap._t = None if robot["t"] is None else float(robot["t"])
-            cmap._t_arrive = float(robot["t_arrive"])
-            cmap._arrival = int(robot.get("arrival", -1))
-            cmap._code = None if robot["code"] is None else _vec3(robot["code"], "state robot.code")
-            cmap._code_odom = _vec3(robot["code_odom"], "state robot.code_odom")
-            cmap._anchor = None if robot["anchor"] is None else _vec3(robot["anchor"], "state robot.anchor")
-            cmap._dirty = bool(robot["dirty"])
-            cmap._touched = [int(k) for k in robot.get("touched", [-1] if cmap._dirty else [])]
-            cmap._local_solves = int(robot.get("local_solves", 0))
-            sp = robot.get("solved_path")
-            cmap._solved_path = -math.inf if sp is None else float(sp)
-            st = robot.get("solved_t")
-            cmap._solved_t = -math.inf if st is None else float(st)
-            cmap._bias = float(robot.get("odometry_bias", 0.0))
+            cmap._restore_robot(robot)
             cmap._loops = LoopBook.from_state(loop)
             cmap._events = [MapEvent.from_dict(e) for e in state.get("events", [])]
             cmap._version += 1
@@ -256,3 +236,27 @@ class CognitiveMap(Pruning):
             if isinstance(exc, InputError):
                 raise
             raise InputError(f"malformed cognitive-map state: {exc!r}") from exc
+
+    def _restore_robot(self, robot: dict[str, Any]) -> None:
+        """The robot's part of :meth:`from_state`: its node, offset, clocks and the correction's state."""
+        self._cur = int(robot["current"])
+        if not 0 <= self._cur < self._n:
+            raise InputError(f"cognitive-map state: current node {self._cur} does not exist")
+        self._delta = _vec3(robot["delta"], "state robot.delta")
+        self._odom = _vec3(robot["odom"], "state robot.odom")
+        self._path = float(robot["path"])
+        self._step = int(robot["step"])
+        self._t = None if robot["t"] is None else float(robot["t"])
+        self._t_arrive = float(robot["t_arrive"])
+        self._arrival = int(robot.get("arrival", -1))
+        self._code = None if robot["code"] is None else _vec3(robot["code"], "state robot.code")
+        self._code_odom = _vec3(robot["code_odom"], "state robot.code_odom")
+        self._anchor = None if robot["anchor"] is None else _vec3(robot["anchor"], "state robot.anchor")
+        self._dirty = bool(robot["dirty"])
+        self._touched = [int(k) for k in robot.get("touched", [-1] if self._dirty else [])]
+        self._local_solves = int(robot.get("local_solves", 0))
+        sp = robot.get("solved_path")
+        self._solved_path = -math.inf if sp is None else float(sp)
+        st = robot.get("solved_t")
+        self._solved_t = -math.inf if st is None else float(st)
+        self._bias = float(robot.get("odometry_bias", 0.0))

@@ -274,19 +274,15 @@ class LoopClosing(MapCorrection):
 
     def _fit_group(self, group: list[Candidate], anchors: list[Candidate]) -> list[Candidate] | None:
         """The group's visual candidates with the offsets of one SE(2) fit of the robot's
-        dead-reckoned poses onto the places they name (``anchors``: accepted candidates of the
-        window that back the fit but keep their links). ``None`` when the fit does not hold:
-        a member lies more than ``loop_consistency_m`` from where the fit puts it, or the fit
-        turns the robot more than ``loop_view_rad`` away from the way a member's key frame
-        looked (recognising a view means facing roughly as it was learned).
-
-        Only anchors within ``loop_fit_window_m`` of path of the group's newest member back the
-        fit: one rigid transform cannot follow the odometry's own heading drift over a longer
-        stretch, which then bends the fit (docs/MODEL.md)."""
+        dead-reckoned poses onto the places they name (``anchors``: accepted candidates of the last
+        ``loop_fit_window_m`` of path, which back the fit but keep their links: a rigid transform
+        cannot follow the odometry's heading drift over a longer stretch). ``None`` when the fit
+        does not hold: a member lies more than ``loop_consistency_m`` from where the fit puts it,
+        or the fit turns the robot more than ``loop_view_rad`` away from the way a member's key
+        frame looked (recognising a view means facing roughly as it was learned)."""
         fit_m = self.cfg.loop_fit_window_m
         if fit_m is not None and group:
-            newest = max(c.path for c in group)
-            anchors = [c for c in anchors if newest - c.path <= fit_m]
+            anchors = [c for c in anchors if max(g.path for g in group) - c.path <= fit_m]
         vis = [c for c in group + anchors if not c.measured]
         if len(vis) < 2:
             return group
