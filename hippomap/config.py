@@ -17,6 +17,7 @@ would scatter exactly what this module exists to gather.
 
 from __future__ import annotations
 
+import math
 from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
@@ -560,6 +561,20 @@ class MapperConfig(_Frozen):
         "comes after this many metres instead of keyframe_distance_m: fewer recognitions while the robot "
         "retraces its map. None = keyframe_distance_m always; 1.0 cost a quarter of the mapper's time on the "
         "simulated loops but made the Bicocca world worse (docs/MODEL.md) [ours]",
+    )
+    recognition_view_rad: float | None = Field(
+        2 * math.pi / 3,
+        gt=0,
+        description="a key frame is a recognition candidate only if its heading on the map is within this of the "
+        "robot's (plus recognition_view_rad_per_m of drift): a camera turned further away sees none of what it saw. "
+        "2 pi / 3 keeps every recognition the simulated tuning runs accepted (map headings up to 1.7 rad apart, the "
+        "map's own heading error included); None = every gated key frame [ours, docs/MODEL.md item 45]",
+    )
+    recognition_view_rad_per_m: float = Field(
+        0.05,
+        ge=0,
+        description="... plus this per metre of drift path (since the last verified closure or the key frame, "
+        "whichever is shorter): the map's headings drift as its positions do (loop_radius_per_m) [ours]",
     )
     keyframe_turn_rad: float = Field(
         0.35, gt=0, description="... or after turning this much (a robot turning on the spot sees new views) [ours]"

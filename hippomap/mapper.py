@@ -33,7 +33,6 @@ second session's inputs (docs/MODEL.md).
 
 from __future__ import annotations
 
-import itertools
 import math
 from typing import TYPE_CHECKING, Any, TypeVar, cast
 
@@ -43,6 +42,7 @@ from .config import HippomapConfig
 from .errors import InputError
 from .geometry import compose, se2_compose
 from .inputs import Frame, Odometry, follows
+from .keyframes import KeyFrames
 from .loop_closure import LoopHypothesis
 from .loop_pose import looming_offset
 from .map_events import KeyframeLearned, LoopDecided, MapEvent, RecognitionMade
@@ -82,7 +82,7 @@ class _Grow:
         return g
 
 
-class Mapper:
+class Mapper(KeyFrames):
     """One mapping session: ``step(odometry)`` and ``observe(frame)`` in time order."""
 
     def __init__(self, config: HippomapConfig | None = None) -> None:
@@ -222,6 +222,8 @@ class Mapper:
             else:
                 frames = self.cmap.frames[self.cmap.loop_candidates()]
             candidates = self._recognisable(frames[frames >= 0])
+            if not self.cmap.lost:  # while lost the robot's heading on the map is unknown
+                candidates = self._facing(candidates)
             if candidates:
                 recognised = self._recognise(gray, frame.t, candidates, events)
             if not recognised and self._global_search_due():
@@ -290,53 +292,6 @@ class Mapper:
             and not self.cmap.lost
             and self.cmap.path_since_verified >= m.global_search_after_m
             and self.distance - self.global_search_path >= m.global_search_every_m
-        )
-
-    def _recognisable(self, frames: np.ndarray) -> list[int]:
-        """The key frames a recognition may name, sorted: those learned at least
-        ``recognition_min_path_m`` of path ago. A camera still sees the scene of a key frame it
-        took a few metres back, so recognising it is not a return to a place: measured on the
-        simulated worlds, such matches named frames 1.5-2.5 m back along the robot's own track
-        and pulled the map short when they were verified."""
-        f = np.asarray(frames, dtype=np.int64).reshape(-1)
-        paths = self._frame_path_array()
-        p = np.full(f.shape, -math.inf)
-        known = (f >= 0) & (f < len(paths))
-        p[known] = paths[f[known]]
-        return np.unique(f[self.distance - p >= self.config.mapper.recognition_min_path_m]).tolist()
-
-    def _frame_path_array(self) -> np.ndarray:
-        """``frame_path`` as an array indexed by frame id (-inf: unknown), for :meth:`_recognisable`
-        without a Python loop over the key frames (the global search passes all of them). Kept in
-        step with the dict: its newest entries (insertion order) are added when it has grown, and
-        it is rebuilt when the dict was replaced (a restored snapshot)."""
-        fp = self.frame_path
-        cache = self.__dict__.get("_fpath")
-        if cache is None or cache[0] is not fp or cache[2] > len(fp):
-            cache = (fp, np.zeros(0), 0)
-        _, arr, n = cache
-        if len(fp) > n:
-            new = list(itertools.islice(reversed(fp.items()), len(fp) - n))
-            keys = np.array([k for k, _ in new], dtype=np.int64)
-            if int(keys.max()) >= len(arr):
-                arr = np.concatenate([arr, np.full(max(int(keys.max()) + 1 - len(arr), len(arr)), -math.inf)])
-            arr[keys] = [v for _, v in new]
-        self._fpath = (fp, arr, len(fp))
-        return arr
-
-    def _is_keyframe(self) -> bool:
-        m = self.config.mapper
-        if m.keyframe_interval is not None:
-            return (self.frames_seen - 1) % m.keyframe_interval == 0
-        # the frame nearest to the threshold: it may fall short by half the motion since the
-        # previous frame, so that the spacing does not depend on the frame rate
-        moved, turned = self.distance - self._frame_distance, self.turn - self._frame_turn
-        self._frame_distance, self._frame_turn = self.distance, self.turn
-        familiar = m.keyframe_familiar_distance_m if self.familiar else None
-        dist = m.keyframe_distance_m if familiar is None else familiar
-        return (
-            self.distance - self.distance_at_keyframe >= dist - moved / 2
-            or self.turn - self.turn_at_keyframe >= m.keyframe_turn_rad - turned / 2
         )
 
     def _visual_offset(self, rec: Any, width: int) -> tuple[float, float, float]:

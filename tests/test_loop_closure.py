@@ -148,6 +148,44 @@ def test_keyframes_mean_the_same_at_any_frame_rate():
     assert max(counts.values()) - min(counts.values()) <= 2, counts
 
 
+def test_key_frames_facing_away_from_the_robot_are_no_recognition_candidates():
+    """recognition_view_rad: a key frame whose heading on the map is more than that (plus the drift
+    allowance) from the robot's cannot show what the camera sees, so it is not offered to
+    recognition; the allowance grows with the drift path, and None offers every key frame."""
+    seconds = 6.0
+    for per_m, gate in ((0.05, 2 * math.pi / 3), (0.5, 2 * math.pi / 3), (0.05, None)):
+        m = Mapper(
+            HippomapConfig.with_overrides(
+                {"mapper": {"recognition_view_rad": gate, "recognition_view_rad_per_m": per_m}}
+            )
+        )
+        for _t, odo, frame in _frames_at(10.0, seconds=seconds):
+            m.step(odo)
+            m.observe(frame)
+        frames = sorted(m.frame_node)
+        assert len(frames) > 3
+        assert m._facing(frames) == frames  # the robot faces the way it learned them (0.05 rad/s of turn)
+        t = seconds
+        for k in range(1, 21):  # turn on the spot by pi: odometry only
+            m.step(Odometry(t + 0.1 * k, v=0.0, omega=math.pi / 2))
+        facing = m._facing(frames)
+        if gate is None:
+            assert facing == frames
+            continue
+        robot = compose(m.cmap.poses[m.cmap.current], np.asarray(m.cmap.robot_offset))[2]
+        expected = []
+        for f in frames:  # the rule, key frame by key frame
+            heading = m.cmap.poses[m.frame_node[f], 2] + m.frame_offset[f][2]
+            drift = min(m.cmap.path_since_verified, m.distance - m.frame_path[f])
+            if abs(wrap_angle(heading - robot)) <= gate + per_m * drift:
+                expected.append(f)
+        assert facing == expected
+        if per_m == 0.05:
+            assert facing == []  # 3 m of path: at most 0.15 rad of allowance, the view turned by pi
+        else:
+            assert 0 < len(facing) < len(frames)  # the oldest key frames' allowance (0.5 rad/m) lets them in
+
+
 def test_a_visual_hypothesis_carries_where_its_key_frame_was_taken():
     """The offset a visual hypothesis carries is the key frame's pose in its node's frame, so a
     closure links the robot to where the view was learned, not to the node's own pose."""

@@ -1,0 +1,121 @@
+"""The mapper's key frames: when a frame becomes one, where each was taken, and which of them a
+recognition may name from where the robot stands (paper §2.2 key frames; docs/MODEL.md items 24,
+27, 44, 45).
+
+:class:`KeyFrames` is the part of :class:`~hippomap.mapper.Mapper` that holds, per key frame, its
+node, its pose in that node's frame (``frame_offset``) and the odometric path length when it was
+learned (``frame_path``), and answers three questions: is this frame a key frame (distance, turn,
+or further apart on a familiar path), was a key frame learned long enough ago to be recognised as
+a return, and could its view face the robot's way at all.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from typing import TYPE_CHECKING, Any, Callable
+
+import numpy as np
+
+from .geometry import se2_compose, wrap_angle
+
+if TYPE_CHECKING:
+    from .config import HippomapConfig
+    from .map_reuse import ReuseMap
+
+
+class KeyFrames:
+    """Key-frame bookkeeping and selection of :class:`~hippomap.mapper.Mapper` (a mixin: the mapper
+    owns the clocks, the path and the map it reads)."""
+
+    config: HippomapConfig
+    cmap: ReuseMap
+    distance: float
+    distance_at_keyframe: float
+    turn: float
+    turn_at_keyframe: float
+    frames_seen: int
+    familiar: bool
+    _frame_distance: float
+    _frame_turn: float
+    frame_offset: dict[int, tuple[float, float, float]]
+    frame_node: dict[int, int]
+    frame_path: dict[int, float]
+
+    def _is_keyframe(self) -> bool:
+        m = self.config.mapper
+        if m.keyframe_interval is not None:
+            return (self.frames_seen - 1) % m.keyframe_interval == 0
+        # the frame nearest to the threshold: it may fall short by half the motion since the
+        # previous frame, so that the spacing does not depend on the frame rate
+        moved, turned = self.distance - self._frame_distance, self.turn - self._frame_turn
+        self._frame_distance, self._frame_turn = self.distance, self.turn
+        familiar = m.keyframe_familiar_distance_m if self.familiar else None
+        dist = m.keyframe_distance_m if familiar is None else familiar
+        return (
+            self.distance - self.distance_at_keyframe >= dist - moved / 2
+            or self.turn - self.turn_at_keyframe >= m.keyframe_turn_rad - turned / 2
+        )
+
+    def _recognisable(self, frames: np.ndarray) -> list[int]:
+        """The key frames a recognition may name, sorted: those learned at least
+        ``recognition_min_path_m`` of path ago. A camera still sees the scene of a key frame it
+        took a few metres back, so recognising it is not a return to a place: measured on the
+        simulated worlds, such matches named frames 1.5-2.5 m back along the robot's own track
+        and pulled the map short when they were verified."""
+        f = np.asarray(frames, dtype=np.int64).reshape(-1)
+        p = self._lookup(self._frame_array("frame_path", float), f, -math.inf)
+        return np.unique(f[self.distance - p >= self.config.mapper.recognition_min_path_m]).tolist()
+
+    def _facing(self, frames: list[int]) -> list[int]:
+        """Of ``frames``, those whose view could face the robot's way (``recognition_view_rad``): the
+        key frame's heading on the map, within ``recognition_view_rad`` of the robot's, plus
+        ``recognition_view_rad_per_m`` per metre of drift path (the path since the last verified
+        closure, or since the key frame was learned if shorter: the map's headings drift as its
+        positions do). A camera turned further than that sees none of what the key frame saw, so
+        no saccade is spent on it."""
+        m = self.config.mapper
+        if m.recognition_view_rad is None or not frames:
+            return frames
+        cm = self.cmap
+        f = np.asarray(frames, dtype=np.int64)
+        nodes = self._lookup(self._frame_array("frame_node", int, -1), f, -1).astype(np.int64)
+        turn = self._lookup(self._frame_array("frame_offset", lambda v: v[2], 0.0), f, 0.0)
+        heading = cm.poses[np.maximum(nodes, 0), 2] + turn
+        robot = se2_compose(tuple(cm.poses[cm.current]), tuple(cm.robot_offset))[2]
+        drift = np.minimum(
+            cm.path_since_verified, self.distance - self._lookup(self._frame_array("frame_path", float), f, 0.0)
+        )
+        keep = (nodes >= 0) & (
+            np.abs(wrap_angle(heading - robot)) <= m.recognition_view_rad + m.recognition_view_rad_per_m * drift
+        )
+        return f[keep].tolist()
+
+    @staticmethod
+    def _lookup(arr: np.ndarray, f: np.ndarray, missing: float) -> np.ndarray:
+        """``arr[f]``, with ``missing`` for ids outside it."""
+        out = np.full(f.shape, missing, dtype=float)
+        known = (f >= 0) & (f < len(arr))
+        out[known] = arr[f[known]]
+        return out
+
+    def _frame_array(self, name: str, pick: Callable[[Any], float], missing: float = -math.inf) -> np.ndarray:
+        """The dict attribute ``name`` (key frame -> value) as an array indexed by frame id
+        (``missing`` where unknown; ``pick`` turns a value into a number), so that the key frames
+        are read without a Python loop over them (the global search passes all of them). Kept in
+        step with the dict: its newest entries (insertion order) are added when it has grown, and
+        it is rebuilt when the dict was replaced (a restored snapshot)."""
+        d = getattr(self, name)
+        key = "_arr_" + name
+        cache = self.__dict__.get(key)
+        if cache is None or cache[0] is not d or cache[2] > len(d):
+            cache = (d, np.zeros(0), 0)
+        _, arr, n = cache
+        if len(d) > n:
+            new = list(itertools.islice(reversed(d.items()), len(d) - n))
+            keys = np.array([k for k, _ in new], dtype=np.int64)
+            if int(keys.max()) >= len(arr):
+                arr = np.concatenate([arr, np.full(max(int(keys.max()) + 1 - len(arr), len(arr)), missing)])
+            arr[keys] = [pick(v) for _, v in new]
+        self.__dict__[key] = (d, arr, len(d))
+        return arr
