@@ -25,7 +25,8 @@ After Bicanski & Burgess (2019, [BBc]), adapted to robot key frames:
   ``verify_saccades`` further features correctly (optionally more after resets,
   ``verify_per_reset``; [S] §3.2: "it will continue to scan");
   an attempt resets after ``max_prediction_errors`` wrong predictions and the query is
-  rejected after ``max_resets`` resets.
+  rejected after ``max_resets`` resets, or earlier when no frame's activity has reached
+  ``give_up_evidence`` in the first ``give_up_attempts`` attempts.
 
   The grid code is re-anchored onto the first recognised feature (BB's "global
   remapping" for displaced stimuli) and onto every predicted feature, so saccades are the
@@ -153,7 +154,8 @@ class VisualMemory(FixationSensing):
         the frames of nodes near the current place code); ``None`` = all frames.
 
         Attempts follow each other until one accepts a frame or ``max_resets`` resets have been
-        used. Each attempt (:meth:`_attempt`) starts at a query corner (:meth:`_start_point`); at
+        used (or, after ``give_up_attempts`` attempts, while no frame has reached
+        ``give_up_evidence``). Each attempt (:meth:`_attempt`) starts at a query corner (:meth:`_start_point`); at
         every fixation (:meth:`_fixate`) the feature units are driven (:meth:`_sense`), the frame
         hypotheses updated (:meth:`_observe`), the decision checked (:meth:`_decide`), and the most
         active frame chooses the next saccade (:meth:`_next_saccade`).
@@ -161,10 +163,12 @@ class VisualMemory(FixationSensing):
         q = self._query(image, candidates)
         if isinstance(q, Recognition):
             return q
+        cfg = self.config
         a = np.zeros(self._nframes, np.float64)
         steps: list[SaccadeStep] = []
         used_starts: set[int] = set()
-        for resets in range(self.config.max_resets + 1):
+        peak = 0.0  # the highest frame activity of any attempt so far (activity only grows within one)
+        for resets in range(cfg.max_resets + 1):
             a[:] = 0.0
             e = self._start_point(q.starts, used_starts)
             st = _Attempt(e=e, m=e.copy())
@@ -172,9 +176,13 @@ class VisualMemory(FixationSensing):
             if accepted is not None:
                 return accepted
             steps[-1].event = f"reset: {st.reset_reason}"
+            peak = max(peak, float(a.max()) if a.size else 0.0)
+            if cfg.give_up_attempts is not None and resets + 1 >= cfg.give_up_attempts and peak < cfg.give_up_evidence:
+                why = f"no frame reached {cfg.give_up_evidence:g} in {resets + 1} attempts"
+                return Recognition(None, float(a.max()) if a.size else 0.0, steps, resets, 0.0, q.size, why)
         best = float(a.max()) if a.size else 0.0
-        why = f"no match after {self.config.max_resets} resets"
-        return Recognition(None, best, steps, self.config.max_resets, 0.0, q.size, why)
+        why = f"no match after {cfg.max_resets} resets"
+        return Recognition(None, best, steps, cfg.max_resets, 0.0, q.size, why)
 
     def _query(self, image: Any, candidates: Iterable[int] | None) -> _Query | Recognition:
         """The query's views and the competing feature units, or the rejection when there is

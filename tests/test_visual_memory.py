@@ -103,6 +103,30 @@ def test_never_learned_frame_is_rejected(memory):
         assert rec.confidence == 0.0
 
 
+def test_a_recognition_gives_up_early_when_no_frame_builds_up_evidence(memory):
+    cfg = VisualConfig(give_up_attempts=3, give_up_evidence=0.5)
+    quick = VisualMemory(cfg)
+    assert [quick.learn(img) for img in SCENES] == list(range(N_FRAMES))
+    early_stops = 0
+    for s in (1000, 1001, 1002, 1003, 1004):
+        rec, full = quick.recognise(scene(s)), memory.recognise(scene(s))
+        assert rec.frame_id is None and full.frame_id is None
+        peak = max((a for st in rec.steps for _, a in st.evidence), default=0.0)
+        if rec.n_resets < cfg.max_resets:  # gave up: after give_up_attempts, and only below the evidence bound
+            early_stops += 1
+            assert rec.n_resets == cfg.give_up_attempts - 1
+            assert peak < cfg.give_up_evidence
+            assert rec.reason == "no frame reached 0.5 in 3 attempts"
+            assert len(rec.steps) < len(full.steps)
+        else:  # some attempt built evidence up: every reset is used, as without the bound
+            assert peak >= cfg.give_up_evidence
+            assert len(rec.steps) == len(full.steps)
+    assert early_stops > 0
+    # a frame it has seen is recognised as without the bound
+    query = perturb(SCENES[4], seed=104)
+    assert quick.recognise(query).frame_id == memory.recognise(query).frame_id == 4
+
+
 def test_query_at_another_resolution_is_recognised_and_traced_in_its_own_pixels(memory):
     big = cv2.resize(perturb(SCENES[6], seed=3, shift=(0, 0)), (640, 480), interpolation=cv2.INTER_LINEAR)
     big = cv2.cvtColor(big, cv2.COLOR_GRAY2BGR)
