@@ -27,7 +27,6 @@ from .loop_closure import (
     LoopDecision,
     LoopHypothesis,
     consistent,
-    drift_path,
     gate_limit,
     link_info3,
     place_of,
@@ -66,7 +65,7 @@ class LoopClosing(MapCorrection):
         n = self._n
         r = self.robot_map_pose()
         d = np.hypot(self._P[:n, 0] - r[0], self._P[:n, 1] - r[1])
-        lim = gate_limit(self.cfg, False, drift_path(self._path, self._S[:n], self._loops.last_verified_path))
+        lim = gate_limit(self.cfg, False, self._drift(np.arange(n), False))
         mask = d < lim
         mask[max(0, n - self.cfg.exclude_recent) :] = False
         mask[self._cur] = False
@@ -254,7 +253,7 @@ class LoopClosing(MapCorrection):
     def _gate(self, c: Candidate) -> tuple[float | None, float, str]:
         """(distance, limit, what) of the gate for candidate ``c``; distance None: cannot gate."""
         cfg = self.cfg
-        drift = float(drift_path(self._path, self._S[c.node], None if c.measured else self._loops.last_verified_path))
+        drift = float(self._drift(np.array([c.node]), c.measured)[0])
         limit = float(gate_limit(cfg, c.measured, drift))
         if cfg.loop_gate == "map":
             pred = _compose3(self.robot_map_pose(), c.M)

@@ -25,11 +25,13 @@ import math
 from typing import cast
 
 import numpy as np
+from scipy.sparse import csr_matrix
+from scipy.sparse.csgraph import dijkstra
 
 from .config import MapConfig
 from .errors import InputError, finite
 from .geometry import se2_between, se2_compose, se2_inverse
-from .loop_closure import LoopBook, kernel_weights, link_info3, node_id, vec3
+from .loop_closure import USED_WEIGHT, LoopBook, drift_path, kernel_weights, link_info3, node_id, vec3
 from .map_events import FrameAssigned, MapEvent
 from .relaxation import ColourGroups, colour_link, edge_colouring, link_residuals
 
@@ -297,6 +299,24 @@ class MapGraph:
             raise InputError(f"frame_id must be >= -1, got {frame_id}")
         self._F[node] = frame_id
         self._events.append(FrameAssigned(node, frame_id, self._t if self._t is not None else 0.0))
+
+    def graph_path(self, nodes: np.ndarray) -> np.ndarray:
+        """Shortest path (m) from the current node to each of ``nodes`` through the odometric links
+        and the used loop links (robust weight >= ``USED_WEIGHT``), each as long as its translation
+        (a loop link joins two places a few decimetres apart: it shortens the path by the loop)."""
+        m, n = self._m, self._n
+        keep = (self._kind[:m] != LOOP) | (self._w[:m] >= USED_WEIGHT)
+        length = np.hypot(self._tr[:m, 0], self._tr[:m, 1])[keep] + 1e-9  # 0 would be no edge
+        g = csr_matrix((length, (self._src[:m][keep], self._dst[:m][keep])), shape=(n, n))
+        return dijkstra(g, directed=False, indices=int(self._cur))[np.asarray(nodes, dtype=np.int64)]
+
+    def _drift(self, nodes: np.ndarray, measured: bool) -> np.ndarray:
+        """Path (m) over which odometric drift may separate ``nodes`` from the robot, for the gate of a
+        hypothesis (``MapConfig.loop_drift``; a measured transform's gate always counts the path since
+        the node was made, :func:`~hippomap.loop_closure.drift_path`)."""
+        if not measured and self.cfg.loop_drift == "graph":
+            return self.graph_path(nodes)
+        return drift_path(self._path, self._S[nodes], None if measured else self._loops.last_verified_path)
 
     def take_events(self) -> list[MapEvent]:
         """The events queued since the last call that returned events (by :meth:`propose_loop`,

@@ -25,9 +25,18 @@ from hippomap.loop_closure import (
     robust_weight,
 )
 from hippomap.loop_pose import align_group, looming_offset
+from hippomap.map_graph import LOOP
 from hippomap.mapper import Mapper
 from hippomap.visual_memory import VisualMemory
-from tests.test_cognitive_map import back_and_forth, corrected, drive, rms_xy, square_increments, true_loops
+from tests.test_cognitive_map import (
+    back_and_forth,
+    biased_square,
+    corrected,
+    drive,
+    rms_xy,
+    square_increments,
+    true_loops,
+)
 
 poses = st.tuples(st.floats(-20, 20), st.floats(-20, 20), st.floats(-math.pi, math.pi))
 
@@ -284,6 +293,36 @@ def test_visual_offset_moves_the_robot_along_the_key_frames_view():
     off = Mapper(HippomapConfig.with_overrides({"mapper": {"view_distance_m": None}}))
     off.frame_offset[4] = (0.3, -0.1, 0.5)
     assert off._visual_offset(Rec(), 320) == (0.3, -0.1, 0.5)
+
+
+# ------------------------------------------------------------------ the gate's drift path
+def test_graph_path_is_shortened_by_a_used_loop_link_and_not_by_a_faded_one():
+    cmap = CognitiveMap(MapConfig())
+    drive(cmap, square_increments(side=8.0, laps=1))  # one lap: the robot is back beside node 0
+    cur, lap = cmap.current, cmap.graph_path(np.array([0]))[0]
+    assert lap == pytest.approx(32.0, abs=1.0)  # around the lap, by the odometric links
+    k = cmap._add_link(cur, 0, between(cmap.poses[cur], cmap.poses[0]), LOOP, 0.0)
+    cmap._w[k] = 0.3  # faded: not a way through the map
+    assert cmap.graph_path(np.array([0]))[0] == pytest.approx(lap)
+    cmap._w[k] = 1.0
+    assert cmap.graph_path(np.array([0]))[0] < 0.5  # the loop link's own length
+    # the other nodes are reached through it too: half a lap is at most half a lap away
+    assert cmap.graph_path(np.arange(cmap.node_count)).max() <= lap / 2 + 1.0
+
+
+@pytest.mark.parametrize("drift", ["verified", "graph"])
+def test_a_closure_elsewhere_keeps_the_gate_open_towards_places_it_did_not_join(drift):
+    """A closure verified somewhere else resets 'verified' drift to nothing, so the first lap's place
+    beside the robot, 3.3 m away on the drifting map, falls outside the 3 m gate; 'graph' drift still
+    counts the lap between them (3 + 0.05 x 32 m) and keeps it a candidate."""
+    _, _, noisy, lap = biased_square(side=8.0, laps=2)
+    cmap = CognitiveMap(MapConfig(loop_drift=drift))
+    node_at, _, _ = drive(cmap, noisy[: lap + 79])
+    cmap._loops.last_verified_path = cmap._path  # a closure verified just now, not joining the first lap
+    j = int(node_at[79])  # the first lap's node at the robot's true place
+    distance = float(np.hypot(*(cmap.poses[j, :2] - cmap.robot_map_pose()[:2])))
+    assert 3.0 < distance < 4.0
+    assert (j in cmap.loop_candidates()) == (drift == "graph")
 
 
 # ------------------------------------------------------------------ outside the gate (global searches)
