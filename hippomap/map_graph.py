@@ -313,10 +313,14 @@ class MapGraph:
     def _drift(self, nodes: np.ndarray, measured: bool) -> np.ndarray:
         """Path (m) over which odometric drift may separate ``nodes`` from the robot, for the gate of a
         hypothesis (``MapConfig.loop_drift``; a measured transform's gate always counts the path since
-        the node was made, :func:`~hippomap.loop_closure.drift_path`)."""
+        the node was made, :func:`~hippomap.loop_closure.drift_path`). A node the graph does not reach
+        (a saved map's, before a used closure joins this run to it) gets the 'verified' path: no
+        infinite gate."""
+        path = drift_path(self._path, self._S[nodes], None if measured else self._loops.last_verified_path)
         if not measured and self.cfg.loop_drift == "graph":
-            return self.graph_path(nodes)
-        return drift_path(self._path, self._S[nodes], None if measured else self._loops.last_verified_path)
+            graph = self.graph_path(nodes)
+            return np.where(np.isfinite(graph), graph, path)
+        return path
 
     def take_events(self) -> list[MapEvent]:
         """The events queued since the last call that returned events (by :meth:`propose_loop`,

@@ -26,6 +26,7 @@ from hippomap.loop_closure import (
 )
 from hippomap.loop_pose import align_group, looming_offset
 from hippomap.map_graph import LOOP
+from hippomap.map_reuse import ReuseMap
 from hippomap.mapper import Mapper
 from hippomap.visual_memory import VisualMemory
 from tests.test_cognitive_map import (
@@ -297,7 +298,7 @@ def test_visual_offset_moves_the_robot_along_the_key_frames_view():
 
 # ------------------------------------------------------------------ the gate's drift path
 def test_graph_path_is_shortened_by_a_used_loop_link_and_not_by_a_faded_one():
-    cmap = CognitiveMap(MapConfig())
+    cmap = ReuseMap(MapConfig())
     drive(cmap, square_increments(side=8.0, laps=1))  # one lap: the robot is back beside node 0
     cur, lap = cmap.current, cmap.graph_path(np.array([0]))[0]
     assert lap == pytest.approx(32.0, abs=1.0)  # around the lap, by the odometric links
@@ -308,6 +309,11 @@ def test_graph_path_is_shortened_by_a_used_loop_link_and_not_by_a_faded_one():
     assert cmap.graph_path(np.array([0]))[0] < 0.5  # the loop link's own length
     # the other nodes are reached through it too: half a lap is at most half a lap away
     assert cmap.graph_path(np.arange(cmap.node_count)).max() <= lap / 2 + 1.0
+    # a node the graph does not reach (a saved map's, before a closure joins it) gets a finite gate
+    cmap._w[k] = 0.3
+    cmap.start_run((0.0, 0.0, 0.0))  # a new run: its own start node, linked to nothing
+    assert np.isinf(cmap.graph_path(np.array([0]))[0])
+    assert np.isfinite(cmap._drift(np.array([0]), False)[0])
 
 
 @pytest.mark.parametrize("drift", ["verified", "graph"])
