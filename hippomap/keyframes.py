@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 
-from .geometry import se2_compose, wrap_angle
+from .geometry import wrap_angle
 
 if TYPE_CHECKING:
     from .config import HippomapConfig
@@ -82,7 +82,7 @@ class KeyFrames:
         nodes = self._lookup(self._frame_array("frame_node", int, -1), f, -1).astype(np.int64)
         turn = self._lookup(self._frame_array("frame_offset", lambda v: v[2], 0.0), f, 0.0)
         heading = cm.poses[np.maximum(nodes, 0), 2] + turn
-        robot = se2_compose(tuple(cm.poses[cm.current]), tuple(cm.robot_offset))[2]
+        robot = cm.robot_map_pose()[2]
         drift = np.minimum(
             cm.path_since_verified, self.distance - self._lookup(self._frame_array("frame_path", float), f, 0.0)
         )

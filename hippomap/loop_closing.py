@@ -281,7 +281,8 @@ class LoopClosing(MapCorrection):
         frame looked (recognising a view means facing roughly as it was learned)."""
         fit_m = self.cfg.loop_fit_window_m
         if fit_m is not None and group:
-            anchors = [c for c in anchors if max(g.path for g in group) - c.path <= fit_m]
+            newest = max(g.path for g in group)
+            anchors = [c for c in anchors if newest - c.path <= fit_m]
         vis = [c for c in group + anchors if not c.measured]
         if len(vis) < 2:
             return group

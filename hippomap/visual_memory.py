@@ -176,11 +176,11 @@ class VisualMemory(FixationSensing):
             if accepted is not None:
                 return accepted
             steps[-1].event = f"reset: {st.reset_reason}"
-            peak = max(peak, float(a.max()) if a.size else 0.0)
+            best = float(a.max()) if a.size else 0.0
+            peak = max(peak, best)
             if cfg.give_up_attempts is not None and resets + 1 >= cfg.give_up_attempts and peak < cfg.give_up_evidence:
                 why = f"no frame reached {cfg.give_up_evidence:g} in {resets + 1} attempts"
-                return Recognition(None, float(a.max()) if a.size else 0.0, steps, resets, 0.0, q.size, why)
-        best = float(a.max()) if a.size else 0.0
+                return Recognition(None, best, steps, resets, 0.0, q.size, why)
         why = f"no match after {cfg.max_resets} resets"
         return Recognition(None, best, steps, cfg.max_resets, 0.0, q.size, why)
 
