@@ -61,6 +61,16 @@ def _gather_k(table: np.ndarray, idx: np.ndarray) -> np.ndarray:
     return np.take(table, idx)
 
 
+def _mean_var(u: np.ndarray) -> tuple[float, float]:
+    """``(u.mean(), u.var())`` of a non-empty float64 vector, as floats, by the operations numpy runs for
+    them (the pairwise sum divided by the count; the sum of the squared deviations from that mean divided
+    by the count), without their wrappers' overhead: the same numbers bit for bit."""
+    n = u.size
+    mean = np.add.reduce(u) / n
+    d = u - mean
+    return float(mean), float(np.add.reduce(np.multiply(d, d, out=d)) / n)
+
+
 class FlcSubset:
     """The FLCs a recognition may use (all, or those of the candidate frames)."""
 
@@ -70,12 +80,13 @@ class FlcSubset:
             self.idx = np.arange(n, dtype=np.int64)
             self.desc = mem._desc[:n]
         else:
+            # the frames' index ranges concatenated in frame order, without a Python loop over the frames:
+            # element j of frame i (ranges laid end to end from offset o_i) is start_i + (j - o_i)
             starts = mem._fstart[frames]
             counts = mem._fcount[frames]
-            self.idx = (
-                np.concatenate([np.arange(s, s + c) for s, c in zip(starts, counts)]).astype(np.int64)
-                if len(frames)
-                else np.zeros(0, np.int64)
+            ends = np.cumsum(counts)
+            self.idx = (np.repeat(starts - ends + counts, counts) + np.arange(int(ends[-1]) if len(ends) else 0)).astype(
+                np.int64
             )
             self.desc = mem._desc[self.idx]
         self.n = int(self.idx.size)
@@ -104,11 +115,27 @@ class FlcSubset:
         # drives of the rows per fixation point, for this recognition: a saccade lands on a point
         # fixated before (a microsaccade snaps onto the same feature) about one time in eight
         self.drives: dict[tuple[int, int], np.ndarray] = {}
+        #: local indices of the units scored exactly when no index is used (all of the subset, read only)
+        self.all_local = np.arange(self.n)
+        self.all_local.flags.writeable = False
         if self.exact_all:
             self.rows = self.idx if self.is_all else np.concatenate([self.idx, self.sample])
-            self.rows_hi = mem._patch[self.rows].astype(np.uint16) << 8
-            self.rows_z = mem._z[self.rows]
+            # a unit both candidate and in the statistics sample (all of them while the library is small)
+            # is gathered once: a row's drive does not depend on the other rows of the gather
+            uniq, inv = np.unique(self.rows, return_inverse=True)
+            self.rows_inv: np.ndarray | None = inv if uniq.size < self.rows.size else None
+            gathered = uniq if self.rows_inv is not None else self.rows
+            self.rows_hi = mem._patch[gathered].astype(np.uint16) << 8
+            self.rows_z = mem._z[gathered]
             self.rows_buf = np.empty_like(self.rows_hi)
+        elif not self.is_all:
+            # index with candidates: the statistics sample is the same at every fixation, its patches
+            # (high byte of the table index) and normalisers are gathered once; the buffer holds the
+            # shortlist (plus the predicted unit) and the sample
+            assert self.sample is not None
+            self.sample_hi = mem._patch[self.sample].astype(np.uint16) << 8
+            self.sample_z = mem._z[self.sample]
+            self.index_buf = np.empty((cfg.index_shortlist + 1 + self.sample.size, mem.P), np.uint16)
 
     def local(self, global_index: int) -> int:
         """Index of a global FLC in this subset, or -1 (``idx`` is sorted: frames ascending)."""
@@ -346,11 +373,29 @@ class FeatureStore:
         return _gather_k(self._K, idx).sum(axis=1) / self._z[flc]
 
     def _drive_rows(self, patch: np.ndarray, sub: FlcSubset) -> np.ndarray:
-        """:meth:`_drive` of ``sub.rows`` from the subset's gathered patches (same numbers, no row gather)."""
+        """:meth:`_drive` of ``sub.rows`` from the subset's gathered patches (same numbers, no row gather).
+
+        Each row's drive is its own gather and its own pairwise sum along the row (``np.add.reduce`` over
+        axis 1 is what ``sum(axis=1)`` calls), so a row gathered once for a candidate that is also in the
+        statistics sample has the same value in both places."""
         if sub.rows is None or sub.rows.size == 0:
             return np.zeros(0, np.float32)
         idx = np.bitwise_or(sub.rows_hi, patch[None, :], out=sub.rows_buf)
-        return _gather_k(self._K, idx).sum(axis=1) / sub.rows_z
+        u = np.add.reduce(_gather_k(self._K, idx), axis=1) / sub.rows_z
+        return u if sub.rows_inv is None else u[sub.rows_inv]
+
+    def _drive_index(self, patch: np.ndarray, sub: FlcSubset, flc: np.ndarray) -> np.ndarray:
+        """:meth:`_drive` of the global units ``flc`` followed by the subset's statistics sample (index
+        with candidates): the sample's patches were gathered once for the subset, the others are gathered
+        here into the subset's buffer; every row's drive is its own gather and sum, as in :meth:`_drive`."""
+        k = flc.size
+        n = k + sub.sample_hi.shape[0]
+        buf = sub.index_buf[:n]
+        np.left_shift(np.take(self._patch, flc, axis=0), 8, out=buf[:k], dtype=np.uint16)
+        buf[k:] = sub.sample_hi
+        idx = np.bitwise_or(buf, patch[None, :], out=buf)
+        z = np.concatenate([self._z[flc], sub.sample_z])
+        return np.add.reduce(_gather_k(self._K, idx), axis=1) / z
 
     def _shortlist_drive(
         self, patch: np.ndarray, x: int, y: int, sub: FlcSubset, predicted: int
@@ -362,7 +407,7 @@ class FeatureStore:
         cfg = self.config
         uR = None
         if sub.exact_all:
-            T = np.arange(sub.n)
+            T = sub.all_local
             # the drive of the same rows at the same point of the same image: remembered (read only)
             u = sub.drives.get((x, y))
             if u is None:
@@ -384,8 +429,10 @@ class FeatureStore:
                 T = np.append(T, predicted)
             # shortlist and statistics sample in one gather
             assert sub.sample is not None  # set unless exact_all
-            extra = np.setdiff1d(sub.sample, T) if sub.is_all else sub.sample
-            u = self._drive(patch, np.concatenate([sub.idx[T], extra]))
+            if sub.is_all:
+                u = self._drive(patch, np.concatenate([sub.idx[T], np.setdiff1d(sub.sample, T)]))
+            else:
+                u = self._drive_index(patch, sub, sub.idx[T])
             uT, uR = u[: T.size], u[T.size :]
         return T, uT, uR
 
@@ -410,9 +457,8 @@ class FeatureStore:
                 var = max(0.0, m2 - mean * mean)
         else:  # candidates: the sensory layer is global, statistics over the library sample
             assert uR is not None  # gathered with the candidates
-            uL = uR.astype(np.float64)
             N = max(self.n_features, 1)
-            mean, var = float(uL.mean()), float(uL.var())
+            mean, var = _mean_var(uR.astype(np.float64))
         return mean, var, N
 
     # -- persistence -------------------------------------------------------------------

@@ -45,7 +45,8 @@ class FixationSensing(FeatureStore):
         super().__init__(config)
         self.grid = VisualGridCells(self.config)
         self._svc: SpatialViewCells | None = None
-        self._decoded: dict[bytes, np.ndarray] = {}  # see _decode
+        self._decoded: dict[bytes, np.ndarray] = {}  # see _decode_shared
+        self._phase_codes: dict[bytes, np.ndarray] = {}  # see _phase_code
 
     # -- saccade vectors -----------------------------------------------------------------
     @property
@@ -57,28 +58,44 @@ class FixationSensing(FeatureStore):
         return self._svc
 
     def _decode(self, m: np.ndarray, target: np.ndarray) -> np.ndarray:
-        """Saccade vector from gaze ``m`` to ``target`` decoded from their grid codes (a fresh array).
+        """Saccade vector from gaze ``m`` to ``target`` decoded from their grid codes (a fresh array)."""
+        return self._decode_shared(np.asarray(m, dtype=float), np.asarray(target, dtype=float)).copy()
+
+    def _decode_shared(self, m: np.ndarray, target: np.ndarray) -> np.ndarray:
+        """:meth:`_decode` of two float points, the remembered array itself (read only).
 
         Both points are whole pixels during a recognition (learned positions, fovea positions), and
         the decoded vector is a fixed function of the two points, so it is remembered per pair: the
         same candidate frames come back recognition after recognition with the same feature pairs."""
-        m, target = np.asarray(m, dtype=float), np.asarray(target, dtype=float)
         key = m.tobytes() + target.tobytes()  # bytes, so that even -0.0 and 0.0 stay apart
         d = self._decoded.get(key)
         if d is None:
             if len(self._decoded) >= _DECODE_CACHE:
                 self._decoded.clear()
+                self._phase_codes.clear()
             d = self._decode_uncached(m, target)
             d.flags.writeable = False
             self._decoded[key] = d
-        return d.copy()
+        return d
 
     def _decode_uncached(self, m: np.ndarray, target: np.ndarray) -> np.ndarray:
-        g_cur = self.grid.encode(m)
-        g_tgt = self.grid.encode(target)  # = W_FLC->GC e_k*
         if self.config.decoder == "svc":
-            return self.spatial_view_cells.decode(g_cur, g_tgt)
-        return self.grid.decode(g_cur, g_tgt)
+            return self.spatial_view_cells.decode(self.grid.encode(m), self.grid.encode(target))
+        # VisualGridCells.decode(encode(m), encode(target)), step by step: each point's module phasors
+        # (its grid code's Fourier projection) are remembered, since a point comes back in many pairs
+        zf, zt = self._phase_code(m), self._phase_code(target)
+        return self.grid.decode_phase_difference(np.angle(zt * np.conj(zf)))
+
+    def _phase_code(self, p: np.ndarray) -> np.ndarray:
+        """The module phasors of point ``p``'s grid code (``grid._project(grid.encode(p))``, read only):
+        a fixed function of the point, remembered per point (cleared with the decoded pairs)."""
+        key = p.tobytes()
+        z = self._phase_codes.get(key)
+        if z is None:
+            z = self.grid._project(self.grid.encode(p))
+            z.flags.writeable = False
+            self._phase_codes[key] = z
+        return z
 
     # -- sensing -----------------------------------------------------------------------
     def _sense(self, img: np.ndarray, pos: np.ndarray, sub: FlcSubset, predicted: int) -> Sense:
@@ -89,32 +106,33 @@ class FixationSensing(FeatureStore):
         patch = self._patch_at(img, x, y)
         T, uT, uR = self._shortlist_drive(patch, x, y, sub, predicted)
         mean, var, N = self._drive_stats(sub, T, uT, uR)
-        j = int(np.argmax(uT))
+        j = int(uT.argmax())
         umax = float(uT[j])
         winner = int(T[j])
-        upred = 0.0
+        # position of the predicted unit among the scored ones (T is 0..n-1 without the index)
+        p = -1
         if predicted >= 0:
-            pk = np.flatnonzero(T == predicted)
-            upred = float(uT[pk[0]]) if pk.size else 0.0
+            if T is sub.all_local:
+                p = predicted
+            else:
+                pk = np.flatnonzero(T == predicted)
+                p = int(pk[0]) if pk.size else -1
+        upred = float(uT[p]) if p >= 0 else 0.0
         if not umax > mean + cfg.n_std * math.sqrt(var) or umax <= 0:
             return Sense(False, winner, umax, upred=upred)
         # normalise, bias the predicted unit, prune at mean + N_std sd, softmax ([BBc])
-        ut = uT / umax
+        ut = uT / umax  # a new array: the bias below never touches the (remembered) drive
         mean_t, var_t = mean / umax, var / umax**2
-        if predicted >= 0:
-            pk = np.flatnonzero(T == predicted)
-            if pk.size:
-                p = int(pk[0])
-                old = float(ut[p])
-                ut = ut.copy()
-                ut[p] = old * cfg.prediction_bias
-                m2_t = var_t + mean_t**2 + (ut[p] ** 2 - old**2) / N
-                mean_t = mean_t + (ut[p] - old) / N
-                var_t = max(0.0, m2_t - mean_t**2)
+        if p >= 0:
+            old = float(ut[p])
+            ut[p] = old * cfg.prediction_bias
+            m2_t = var_t + mean_t**2 + (ut[p] ** 2 - old**2) / N
+            mean_t = mean_t + (ut[p] - old) / N
+            var_t = max(0.0, m2_t - mean_t**2)
         keep = ut >= mean_t + cfg.n_std * math.sqrt(var_t)
-        if not np.any(keep):
-            keep[int(np.argmax(ut))] = True
-        if cfg.max_survivors and int(keep.sum()) > cfg.max_survivors:
+        if not keep.any():
+            keep[int(ut.argmax())] = True
+        if cfg.max_survivors and np.count_nonzero(keep) > cfg.max_survivors:
             # spec §6.4: N_std must grow with the library so that 1-5 FLCs survive; a top-K cap
             # does that for every library size
             idx = np.flatnonzero(keep)
@@ -125,7 +143,7 @@ class FixationSensing(FeatureStore):
         vals = ut[keep].astype(np.float64) * cfg.softmax_gain
         e = np.exp(vals - vals.max())
         wts = e / e.sum()
-        best = int(surv[int(np.argmax(vals))])
+        best = int(surv[int(vals.argmax())])
         return Sense(True, winner, umax, surv, wts, best, upred)
 
     def _microsaccade(self, img: np.ndarray, target: np.ndarray, flc: int, amplitude: float = 0.0) -> np.ndarray | None:

@@ -95,6 +95,13 @@ class VisualGridCells:
         self._lattice_shifts = np.array([i * v1 + j * v2 for i in (0, -1, 1) for j in (0, -1, 1)])  # (9, 2)
         nb = np.array([(i, j) for i in (-1, 0, 1) for j in (-1, 0, 1)], dtype=float)
         self._polish = nb  # (9, 2) integer neighbourhood of the rounded estimate
+        # the constant operands of one pair's decode (_decode_one), taken once: the same values the
+        # batched expressions index out of F and b at every call
+        self._c0 = int(self._order[0])
+        self._bT = self.b.T
+        self._F_co = self.F[self._coarse, None]  # (4, 1)
+        self._F_col = self.F[:, None]  # (M, 1)
+        self._steps = ((self._coarse, self._F_co, self._w_coarse), (slice(None), self._F_col, self._w_all))
 
     # -- encoding ---------------------------------------------------------------------
     def encode(self, x: Any) -> np.ndarray:
@@ -144,6 +151,8 @@ class VisualGridCells:
         ``|d| < lambda_max / 2``).
         """
         delta = np.asarray(delta, dtype=float)
+        if delta.ndim == 2:
+            return self._decode_one(delta)
         c = self._order[0]
         z = _wrap(delta[..., c, :])
         # make the three phases consistent (b_2 = b_1 - b_0) before the least-squares solve,
@@ -171,6 +180,30 @@ class VisualGridCells:
         best = np.argmin(cost, axis=-1)
         out = np.take_along_axis(cand, best[..., None, None], axis=-2)[..., 0, :]
         return out.astype(np.int64)
+
+    def _decode_one(self, delta: np.ndarray) -> np.ndarray:
+        """:meth:`decode_phase_difference` of one pair (``delta`` (M, 3)): the same operations on the same
+        operands in the same order (each product, matrix product and reduction has the shapes it has
+        in the batched expressions with no leading axis), without the batch indexing: the winning
+        alternative and candidate are read by their index rather than ``take_along_axis``, and the
+        constant slices of ``F`` are taken once (:meth:`__init__`). The same result bit for bit."""
+        c = self._c0
+        z = _wrap(delta[c])
+        z2 = z[1] - z[0] + _wrap(z[2] - (z[1] - z[0]))
+        z = np.array([z[0], z[1], z2])
+        d0 = (2.0 / 3.0) * (z @ self.b) / self.F[c]
+        alt = d0 + self._lattice_shifts  # (9, 2)
+        proj = alt @ self._bT  # (9, 3)
+        co = self._coarse
+        cost = np.add.reduce(1.0 - np.cos(self._F_co * proj[:, None, :] - delta[co]), axis=(-1, -2))
+        d = alt[int(cost.argmin())]
+        for mods, Fm, wsum in self._steps:
+            pred = Fm * (d @ self._bT)
+            r = _wrap(delta[mods] - pred)
+            d = d + (np.add.reduce(Fm * r, axis=-2) @ self.b) / wsum
+        cand = np.rint(d) + self._polish  # (9, 2)
+        cost = np.add.reduce(1.0 - np.cos(self._F_col * (cand @ self._bT)[:, None, :] - delta), axis=(-1, -2))
+        return cand[int(cost.argmin())].astype(np.int64)
 
     def _cost(self, cand: np.ndarray, delta: np.ndarray) -> np.ndarray:
         """Eq. 5 mismatch sum_{m,j} 1 - cos(F_m b_j . d - Delta_{m,j}) for candidates (..., K, 2)."""

@@ -396,7 +396,11 @@ class VisualMemory(FixationSensing):
             active = np.array([frame])
         elif cfg.next_target != "stochastic":
             active = active[[int(np.argmax(a[active]))]]
-        ks = np.concatenate([np.arange(self._fstart[f], self._fstart[f] + self._fcount[f]) for f in active])
+        if active.size == 1:  # one frame chooses (always unless stochastic): its features are one range
+            f0 = int(self._fstart[active[0]])
+            ks = np.arange(f0, f0 + int(self._fcount[active[0]]))
+        else:
+            ks = np.concatenate([np.arange(self._fstart[f], self._fstart[f] + self._fcount[f]) for f in active])
         if cfg.next_target == "stochastic":
             v = self._w[ks] * a[self._frame[ks]] * (1.0 - rng.random(ks.size))  # (1 - U) W_ID->FLC a ([BBc])
         elif cfg.next_target == "most_active":
@@ -404,21 +408,26 @@ class VisualMemory(FixationSensing):
         else:  # "nearest": the leading frame's unvisited feature closest to the gaze (short saccades)
             v = 1.0 / (1.0 + np.abs(self._pos[ks] - m[None, :]).sum(axis=1))
         if visited:
-            vis = set(visited)
-            v[[i for i, k in enumerate(ks.tolist()) if k in vis]] = 0.0
+            if active.size == 1:  # ks is the range f0, f0 + 1, ...: a visited feature k sits at k - f0
+                hit = [k - f0 for k in visited if f0 <= k < f0 + ks.size]
+            else:
+                vis = set(visited)
+                hit = [i for i, k in enumerate(ks.tolist()) if k in vis]
+            v[hit] = 0.0
         order = np.argsort(-v, kind="stable")
         order = order[v[order] > 0][: cfg.target_candidates]
         if order.size == 0:
             return -1, None, None, "no feature left to predict"
         tol = cfg.tolerance_px
         mf = m.astype(float)
-        for j in order:  # best first; usually the first candidate is taken
+        for j in order.tolist():  # best first; usually the first candidate is taken
             k = int(ks[j])
-            d = self._decode(mf, self._pos[k].astype(float)).astype(np.int64)  # decode(g(m), W_FLC->GC e_k)
-            if abs(int(d[0])) <= tol and abs(int(d[1])) <= tol:
+            d = self._decode_shared(mf, self._pos[k].astype(float))  # decode(g(m), W_FLC->GC e_k), int64
+            dx, dy = int(d[0]), int(d[1])
+            if abs(dx) <= tol and abs(dy) <= tol:
                 continue  # [BBc]: choose again while the vector is within tolerance
             tgt = e + d
-            land = self._microsaccade(img, tgt, k, float(np.hypot(d[0], d[1])))
+            land = self._microsaccade(img, tgt, k, float(np.hypot(dx, dy)))
             if land is None:
                 if cfg.out_of_view == "skip":
                     continue  # the predicted feature lies outside this view: look at another one

@@ -36,7 +36,10 @@ class ReferenceMemory(vm.VisualMemory):
         rows = sub.idx if sub.is_all else np.concatenate([sub.idx, sub.sample])
         return self._drive(patch, rows)
 
-    def _decode(self, m: np.ndarray, target: np.ndarray) -> np.ndarray:
+    def _drive_index(self, patch: np.ndarray, sub, flc: np.ndarray) -> np.ndarray:
+        return self._drive(patch, np.concatenate([flc, sub.sample]))
+
+    def _decode_shared(self, m: np.ndarray, target: np.ndarray) -> np.ndarray:
         g_cur, g_tgt = self.grid.encode(m), self.grid.encode(target)
         if self.config.decoder == "svc":
             return self.spatial_view_cells.decode(g_cur, g_tgt)
@@ -64,6 +67,7 @@ QUERIES = [(perturb(SCENES[f], seed=f), None) for f in (0, 4, 9)] + [
     (perturb(SCENES[6], seed=11), [5, 6, 7]),
     (perturb(SCENES[2], seed=12), [7, 8]),  # the right frame is not a candidate
     (SCENES[3], None),  # the learned image itself
+    (perturb(SCENES[5], seed=13), [1, 2, 3, 4, 5, 6, 7, 8]),  # with the index: more candidates than it scores
 ]
 
 
@@ -98,7 +102,9 @@ def _same_state(a: vm.VisualMemory, b: vm.VisualMemory) -> None:
 def test_recognitions_equal_the_reference_bit_for_bit(override):
     fast, ref = _pair(VisualConfig(**override))
     if "index_shortlist" in override:
-        assert fast.n_features > fast.config.index_shortlist + fast.config.stats_sample  # the index is used
+        n_index = fast.config.index_shortlist + fast.config.stats_sample
+        assert fast.n_features > n_index  # the index is used
+        assert sum(fast._fcount[QUERIES[-1][1]]) > n_index  # also with candidates
     outcomes = set()
     for _ in range(2):  # twice: the second pass meets remembered decodes
         for img, cands in QUERIES:
