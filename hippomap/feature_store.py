@@ -85,9 +85,9 @@ class FlcSubset:
             starts = mem._fstart[frames]
             counts = mem._fcount[frames]
             ends = np.cumsum(counts)
-            self.idx = (np.repeat(starts - ends + counts, counts) + np.arange(int(ends[-1]) if len(ends) else 0)).astype(
-                np.int64
-            )
+            self.idx = (
+                np.repeat(starts - ends + counts, counts) + np.arange(int(ends[-1]) if len(ends) else 0)
+            ).astype(np.int64)
             self.desc = mem._desc[self.idx]
         self.n = int(self.idx.size)
         self.is_all = frames is None
@@ -168,6 +168,7 @@ class FeatureStore:
         self._n = S.sum(axis=1).astype(np.float32)  # sum_v s_a(v)
         self._rng = np.random.default_rng(cfg.seed)
         self._last_views: tuple[np.ndarray, np.ndarray, float, np.ndarray] | None = None  # see _views
+        self._last_corners: tuple[np.ndarray, float, int, np.ndarray] | None = None  # see _corners
         cap = 64
         self._patch = np.zeros((cap, self.P), np.uint8)
         self._desc = np.zeros((cap, self.D), np.float32)
@@ -266,6 +267,17 @@ class FeatureStore:
         return self.h + 1
 
     def _corners(self, img: np.ndarray, k: int, min_dist: float) -> np.ndarray:
+        """The ``k`` strongest Shi-Tomasi corners of ``img`` at least ``min_dist`` apart (int32 (n, 2)).
+
+        A key frame is recognised (``query_keypoints`` corners, sometimes twice) and then learned
+        (``n_fixations`` corners) from the same kept corner image (:meth:`_views`, read only): the
+        corners of the last such image are remembered, and a request for as many or fewer of them
+        gets their leading rows. That is exact: OpenCV sorts the candidate corners once (by response,
+        ties by position) and accepts them greedily in that order until it has ``maxCorners``, so the
+        first ``k`` of a longer run are the corners of a run asked for ``k``."""
+        last = self._last_corners
+        if last is not None and last[0] is img and last[1] == min_dist and (k <= last[2] or len(last[3]) < last[2]):
+            return last[3][:k].copy()
         m = self._margin()
         H, W = img.shape
         mask = np.zeros_like(img)
@@ -279,8 +291,12 @@ class FeatureStore:
             blockSize=self.config.corner_block,
         )
         if pts is None:
-            return np.zeros((0, 2), np.int32)
-        return np.rint(pts.reshape(-1, 2)).astype(np.int32)
+            out = np.zeros((0, 2), np.int32)
+        else:
+            out = np.rint(pts.reshape(-1, 2)).astype(np.int32)
+        if not img.flags.writeable:  # a kept view (nobody changes it in place): remember its corners
+            self._last_corners = (img, float(min_dist), int(k), out.copy())
+        return out
 
     def _random_points(self, shape: tuple[int, int], k: int) -> np.ndarray:
         m = self._margin()
@@ -389,11 +405,10 @@ class FeatureStore:
         with candidates): the sample's patches were gathered once for the subset, the others are gathered
         here into the subset's buffer; every row's drive is its own gather and sum, as in :meth:`_drive`."""
         k = flc.size
-        n = k + sub.sample_hi.shape[0]
-        buf = sub.index_buf[:n]
-        np.left_shift(np.take(self._patch, flc, axis=0), 8, out=buf[:k], dtype=np.uint16)
-        buf[k:] = sub.sample_hi
-        idx = np.bitwise_or(buf, patch[None, :], out=buf)
+        idx = sub.index_buf[: k + sub.sample_hi.shape[0]]
+        head = np.left_shift(np.take(self._patch, flc, axis=0), 8, out=idx[:k], dtype=np.uint16)
+        np.bitwise_or(head, patch[None, :], out=head)
+        np.bitwise_or(sub.sample_hi, patch[None, :], out=idx[k:])
         z = np.concatenate([self._z[flc], sub.sample_z])
         return np.add.reduce(_gather_k(self._K, idx), axis=1) / z
 

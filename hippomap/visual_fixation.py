@@ -92,6 +92,8 @@ class FixationSensing(FeatureStore):
         key = p.tobytes()
         z = self._phase_codes.get(key)
         if z is None:
+            if len(self._phase_codes) >= _DECODE_CACHE:
+                self._phase_codes.clear()
             z = self.grid._project(self.grid.encode(p))
             z.flags.writeable = False
             self._phase_codes[key] = z

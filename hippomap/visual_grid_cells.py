@@ -101,7 +101,11 @@ class VisualGridCells:
         self._bT = self.b.T
         self._F_co = self.F[self._coarse, None]  # (4, 1)
         self._F_col = self.F[:, None]  # (M, 1)
-        self._steps = ((self._coarse, self._F_co, self._w_coarse), (slice(None), self._F_col, self._w_all))
+        co = self._coarse
+        # the coarse modules' rows of a phase difference: a slice (a view, no gather) when they are the
+        # first ones, as with frequencies in increasing order; the same values either way
+        self._co_rows: slice | np.ndarray = slice(0, co.size) if np.array_equal(co, np.arange(co.size)) else co
+        self._steps = ((self._co_rows, self._F_co, self._w_coarse), (slice(None), self._F_col, self._w_all))
 
     # -- encoding ---------------------------------------------------------------------
     def encode(self, x: Any) -> np.ndarray:
@@ -194,8 +198,7 @@ class VisualGridCells:
         d0 = (2.0 / 3.0) * (z @ self.b) / self.F[c]
         alt = d0 + self._lattice_shifts  # (9, 2)
         proj = alt @ self._bT  # (9, 3)
-        co = self._coarse
-        cost = np.add.reduce(1.0 - np.cos(self._F_co * proj[:, None, :] - delta[co]), axis=(-1, -2))
+        cost = np.add.reduce(1.0 - np.cos(self._F_co * proj[:, None, :] - delta[self._co_rows]), axis=(-1, -2))
         d = alt[int(cost.argmin())]
         for mods, Fm, wsum in self._steps:
             pred = Fm * (d @ self._bT)

@@ -21,6 +21,39 @@ from hippomap import visual_memory as vm
 from hippomap.config import VisualConfig
 from hippomap.retina import imadjust
 from hippomap.sim.scenes import shapes_scene
+from hippomap.visual_grid_cells import VisualGridCells
+
+
+def _wrap(a):
+    return (a + np.pi) % (2.0 * np.pi) - np.pi
+
+
+def reference_decode_phase_difference(grid: VisualGridCells, delta: np.ndarray) -> np.ndarray:
+    """VisualGridCells.decode_phase_difference as written for any batch shape (the fast code has a
+    path of its own for one pair)."""
+    self = grid
+    delta = np.asarray(delta, dtype=float)
+    c = self._order[0]
+    z = _wrap(delta[..., c, :])
+    z2 = z[..., 1] - z[..., 0] + _wrap(z[..., 2] - (z[..., 1] - z[..., 0]))
+    z = np.stack([z[..., 0], z[..., 1], z2], axis=-1)
+    d0 = (2.0 / 3.0) * (z @ self.b) / self.F[c]
+    alt = d0[..., None, :] + self._lattice_shifts
+    co = self._coarse
+    proj = alt @ self.b.T
+    cost = (1.0 - np.cos(self.F[co, None] * proj[..., :, None, :] - delta[..., None, co, :])).sum(axis=(-1, -2))
+    best = np.argmin(cost, axis=-1)
+    d = np.take_along_axis(alt, best[..., None, None], axis=-2)[..., 0, :]
+    for mods, wsum in ((co, self._w_coarse), (slice(None), self._w_all)):
+        pred = self.F[mods, None] * (d @ self.b.T)[..., None, :]
+        r = _wrap(delta[..., mods, :] - pred)
+        d = d + ((self.F[mods, None] * r).sum(axis=-2) @ self.b) / wsum
+    d0 = np.rint(d)
+    cand = d0[..., None, :] + self._polish
+    proj = cand @ self.b.T
+    cost = (1.0 - np.cos(self.F[:, None] * proj[..., :, None, :] - delta[..., None, :, :])).sum(axis=(-1, -2))
+    best = np.argmin(cost, axis=-1)
+    return np.take_along_axis(cand, best[..., None, None], axis=-2)[..., 0, :].astype(np.int64)
 
 
 class ReferenceMemory(vm.VisualMemory):
@@ -43,7 +76,8 @@ class ReferenceMemory(vm.VisualMemory):
         g_cur, g_tgt = self.grid.encode(m), self.grid.encode(target)
         if self.config.decoder == "svc":
             return self.spatial_view_cells.decode(g_cur, g_tgt)
-        return self.grid.decode(g_cur, g_tgt)
+        zf, zt = self.grid._project(g_cur), self.grid._project(g_tgt)
+        return reference_decode_phase_difference(self.grid, np.angle(zt * np.conj(zf)))
 
     def _sense(self, img, pos, sub, predicted):
         sub.drives.clear()  # nothing remembered: every fixation computes its drive
@@ -201,3 +235,47 @@ def test_trace_step_dict_equals_dataclasses_asdict():
     ref["evidence"] = [[2, 0.5], [0, 0.125]]
     got = step.to_dict()
     assert got == ref and list(got) == list(ref)
+
+
+@pytest.mark.parametrize(
+    "freqs", [None, (0.0211, 0.0151, 0.0108, 0.0077, 0.0055, 0.004, 0.0028, 0.002, 0.0014)], ids=["default", "reversed"]
+)
+def test_one_pair_decode_equals_the_batched_expressions(freqs):
+    """The one-pair decode (its own path) gives what the batched expressions give for that pair, for
+    points on and off the working view, and with the coarse modules not first (a gather, not a slice)."""
+    grid = VisualGridCells(VisualConfig() if freqs is None else VisualConfig(vgc_frequencies=freqs))
+    rng = np.random.default_rng(7)
+    a = np.concatenate([rng.integers(16, 304, (3000, 2)), rng.integers(-60, 420, (1000, 2))]).astype(float)
+    b = np.concatenate([rng.integers(16, 304, (3000, 2)), rng.integers(-60, 420, (1000, 2))]).astype(float)
+    za, zb = grid._project(grid.encode(a)), grid._project(grid.encode(b))
+    deltas = np.angle(zb * np.conj(za))
+    for d in deltas:
+        assert np.array_equal(grid.decode_phase_difference(d), reference_decode_phase_difference(grid, d))
+
+
+def test_mean_var_equals_numpy():
+    rng = np.random.default_rng(3)
+    for n in (1, 2, 7, 128, 1000):
+        u = (rng.random(n) * 10.0 ** rng.integers(-3, 4)).astype(np.float32).astype(np.float64)
+        assert feature_store._mean_var(u) == (float(u.mean()), float(u.var()))
+
+
+def test_learning_after_recognition_reuses_the_query_corners(monkeypatch):
+    """Learning a frame just recognised takes the leading corners of the query's (one corner search)."""
+    fast, ref = _pair(VisualConfig())
+    img = QUERIES[0][0]
+    ref.recognise(img)
+    fid = ref.learn(img)
+    calls = {"n": 0}
+    gftt = feature_store.cv2.goodFeaturesToTrack
+
+    def count(*a, **k):
+        calls["n"] += 1
+        return gftt(*a, **k)
+
+    monkeypatch.setattr(feature_store.cv2, "goodFeaturesToTrack", count)
+    fast.recognise(img)
+    assert calls["n"] == 1
+    assert fast.learn(img) == fid
+    assert calls["n"] == 1
+    _same_state(fast, ref)
