@@ -33,9 +33,9 @@ from .errors import InputError, finite
 from .geometry import se2_between, se2_compose, se2_inverse
 from .loop_closure import USED_WEIGHT, LoopBook, drift_path, kernel_weights, link_info3, node_id, vec3
 from .map_events import FrameAssigned, MapEvent
-from .relaxation import ColourGroups, colour_link, edge_colouring, link_residuals
+from .relaxation import ColourGroups, _link_residuals, colour_link, edge_colouring
 
-__all__ = ["LINK_KINDS", "ODOMETRY", "LOOP", "PRUNE", "MapGraph"]
+__all__ = ["LINK_KINDS", "ODOMETRY", "LOOP", "PRUNE", "MapGraph", "within_hops"]
 
 #: link kinds, stored as small integer codes
 LINK_KINDS = ("odometry", "loop", "prune")
@@ -236,7 +236,8 @@ class MapGraph:
         self._pairs.add(key)
         self._m += 1
         self._version += 1
-        r = link_residuals(self._P[: self._n], [a], [b], np.asarray(tr, dtype=float).reshape(1, 3))
+        ends = np.array([a, b], dtype=np.int64)
+        r = _link_residuals(self._P[: self._n], ends[:1], ends[1:], np.asarray(tr, dtype=float).reshape(1, 3))
         if np.max(np.abs(r)) > 1e-9:
             self._dirty = True
             self._touched.append(k)
@@ -335,6 +336,32 @@ class MapGraph:
         return events
 
 
+def _both_ways(n: int, src: np.ndarray, dst: np.ndarray, weight: np.ndarray) -> csr_matrix:
+    """The (n, n) CSR graph with every link ``src → dst`` stored in both directions with its
+    ``weight`` (parallel links kept apart), built directly: for a directed Dijkstra that reaches
+    what an undirected one on the links reaches."""
+    rows = np.concatenate([src, dst])
+    by_row = np.argsort(rows, kind="stable")  # two nearly sorted runs: cheap
+    indptr = np.zeros(n + 1, dtype=np.int32)
+    np.cumsum(np.bincount(rows, minlength=n), out=indptr[1:])
+    cols = np.concatenate([dst, src])[by_row].astype(np.int32)
+    return csr_matrix((np.concatenate([weight, weight])[by_row], cols, indptr), shape=(n, n), copy=False)
+
+
+def within_hops(n: int, src: np.ndarray, dst: np.ndarray, seeds: np.ndarray, hops: int) -> np.ndarray:
+    """(n,) mask of the nodes within ``hops`` links (either direction) of any of ``seeds``: the
+    seeds grown ``hops`` times by every link with an end already inside. One breadth-first search
+    from all seeds at once (an unweighted multi-source Dijkstra counts links: whole numbers,
+    compared exactly) instead of ``hops`` passes over every link."""
+    if hops <= 0 or not len(src):
+        out = np.zeros(n, dtype=bool)
+        out[seeds] = True
+        return out
+    g = _both_ways(n, src, dst, np.ones(len(src)))
+    d = dijkstra(g, directed=True, indices=np.unique(seeds), unweighted=True, min_only=True, limit=hops + 0.5)
+    return cast(np.ndarray, d <= hops)
+
+
 def _undirected_paths_reference(
     n: int, src: np.ndarray, dst: np.ndarray, length: np.ndarray, source: int
 ) -> np.ndarray:
@@ -365,13 +392,7 @@ def _undirected_paths(n: int, src: np.ndarray, dst: np.ndarray, length: np.ndarr
         order = np.argsort(src * n + dst, kind="stable")
         length = np.add.reduceat(length[order], start)  # runs of 1 or 2 links: exact in any order
         src, dst = key[start] // n, key[start] % n
-    rows = np.concatenate([src, dst])
-    by_row = np.argsort(rows, kind="stable")  # two nearly sorted runs: cheap
-    indptr = np.zeros(n + 1, dtype=np.int32)
-    np.cumsum(np.bincount(rows, minlength=n), out=indptr[1:])
-    cols = np.concatenate([dst, src])[by_row].astype(np.int32)
-    g = csr_matrix((np.concatenate([length, length])[by_row], cols, indptr), shape=(n, n), copy=False)
-    return cast(np.ndarray, dijkstra(g, directed=True, indices=source))
+    return cast(np.ndarray, dijkstra(_both_ways(n, src, dst, length), directed=True, indices=source))
 
 
 class _GraphPaths:

@@ -25,7 +25,7 @@ from hippomap.loop_closure import (
     robust_weight,
 )
 from hippomap.loop_pose import align_group, looming_offset
-from hippomap.map_graph import LOOP, _undirected_paths, _undirected_paths_reference
+from hippomap.map_graph import LOOP, _undirected_paths, _undirected_paths_reference, within_hops
 from hippomap.map_reuse import ReuseMap
 from hippomap.mapper import Mapper
 from hippomap.visual_memory import VisualMemory
@@ -380,6 +380,28 @@ def test_undirected_paths_equal_scipys_undirected_dijkstra_bit_for_bit():
         s = int(rng.integers(0, n))
         want = _undirected_paths_reference(n, src, dst, length, s)
         assert _undirected_paths(n, src, dst, length, s).tobytes() == want.tobytes()
+
+
+def test_within_hops_equals_growing_the_window_link_by_link():
+    """The local solve's window (nodes within lsq_window_hops links of the changed links' ends)
+    from one breadth-first search equals growing it one pass over the links per hop."""
+    rng = np.random.default_rng(7)
+    for _ in range(300):
+        n = int(rng.integers(2, 60))
+        src = np.concatenate([np.arange(n - 1), rng.integers(0, n, 30)])
+        dst = np.concatenate([np.arange(1, n), rng.integers(0, n, 30)])
+        keep = (src != dst) & (rng.random(len(src)) > 0.2)  # some gaps: several components
+        src, dst = src[keep], dst[keep]
+        if not len(src):
+            continue
+        k = rng.integers(0, len(src), int(rng.integers(1, 4)))
+        hops = int(rng.integers(1, 45))
+        want = np.zeros(n, dtype=bool)
+        want[src[k]] = want[dst[k]] = True
+        for _ in range(hops):
+            grow = want[src] | want[dst]
+            want[src[grow]] = want[dst[grow]] = True
+        assert np.array_equal(within_hops(n, src, dst, np.concatenate([src[k], dst[k]]), hops), want)
 
 
 @pytest.mark.parametrize("drift", ["verified", "graph"])
