@@ -20,8 +20,8 @@ from .headings_first import rotation_first_init
 from .least_squares import bias_sigma, graph_cost, solve_lsq
 from .loop_closure import kernel_weights
 from .map_events import MapEvent, MapRelaxed
-from .map_graph import LOOP, ODOMETRY, MapGraph
-from .relaxation import ColourGroups, RelaxResult, link_residuals, relax, relax_jacobi
+from .map_graph import LOOP, ODOMETRY, MapGraph, within_hops
+from .relaxation import ColourGroups, RelaxResult, _link_residuals, relax, relax_jacobi
 
 __all__ = ["MapCorrection"]
 
@@ -226,7 +226,7 @@ class MapCorrection(MapGraph):
         if not len(loop):
             return False
         new = kernel_weights(
-            link_residuals(self._P[: self._n], self._src[loop], self._dst[loop], self._tr[loop]),
+            _link_residuals(self._P[: self._n], self._src[loop], self._dst[loop], self._tr[loop]),
             self._linfo[loop],
             self._lkw[loop],
             cfg.loop_kernel,
@@ -254,15 +254,7 @@ class MapCorrection(MapGraph):
         k = np.unique(np.asarray(self._touched, dtype=np.int64))
         k = k[k < m]
         src, dst = self._src[:m], self._dst[:m]
-        active = np.zeros(n, dtype=bool)
-        active[src[k]] = active[dst[k]] = True
-        for _ in range(cfg.lsq_window_hops):
-            grow = active[src] | active[dst]
-            nxt = active.copy()
-            nxt[src[grow]] = nxt[dst[grow]] = True
-            if nxt.sum() == active.sum():
-                break
-            active = nxt
+        active = within_hops(n, src, dst, np.concatenate([src[k], dst[k]]), cfg.lsq_window_hops)
         active[0] = False  # the anchor never moves
         links = np.flatnonzero(active[src] | active[dst])
         if not len(links) or 2 * active.sum() > n:
@@ -283,7 +275,7 @@ class MapCorrection(MapGraph):
         k = k[k < m]
         if not len(k):
             return False
-        r = link_residuals(self._P[: self._n], self._src[k], self._dst[k], self._tr[k])
+        r = _link_residuals(self._P[: self._n], self._src[k], self._dst[k], self._tr[k])
         return float(np.max(np.hypot(r[:, 0], r[:, 1]))) <= self.cfg.lsq_window_residual_m
 
     def link_information(self) -> np.ndarray:

@@ -25,7 +25,7 @@ from hippomap.loop_closure import (
     robust_weight,
 )
 from hippomap.loop_pose import align_group, looming_offset
-from hippomap.map_graph import LOOP
+from hippomap.map_graph import LOOP, _undirected_paths, _undirected_paths_reference, within_hops
 from hippomap.map_reuse import ReuseMap
 from hippomap.mapper import Mapper
 from hippomap.visual_memory import VisualMemory
@@ -314,6 +314,94 @@ def test_graph_path_is_shortened_by_a_used_loop_link_and_not_by_a_faded_one():
     cmap.start_run((0.0, 0.0, 0.0))  # a new run: its own start node, linked to nothing
     assert np.isinf(cmap.graph_path(np.array([0]))[0])
     assert np.isfinite(cmap._drift(np.array([0]), False)[0])
+
+
+def _uncached_graph_path(cmap, nodes):
+    """graph_path computed from scratch with scipy's own graph construction (no memo)."""
+    m = cmap.link_count
+    links = cmap.links
+    keep = (links["kind_code"] != LOOP) | (cmap.link_weights() >= USED_WEIGHT)
+    length = links["d"][keep] + 1e-9
+    d = _undirected_paths_reference(cmap.node_count, links["source"][keep], links["target"][keep], length, cmap.current)
+    assert len(keep) == m
+    return d[np.asarray(nodes)]
+
+
+def test_graph_path_memo_follows_every_change_of_the_graph():
+    """graph_path remembers its distances for the graph they were computed on; a link added,
+    faded, used again, moved, or a new current node, gives new distances, always those of an
+    uncached computation."""
+    cmap = ReuseMap(MapConfig())
+    drive(cmap, square_increments(side=8.0, laps=1))
+    every = np.arange(cmap.node_count)
+
+    def check():
+        got = cmap.graph_path(every)
+        assert np.array_equal(got, _uncached_graph_path(cmap, every))
+        assert np.array_equal(cmap.graph_path(every), got)  # asked again: the memo, same numbers
+        return got
+
+    lap = check()
+    cur = cmap.current
+    k = cmap._add_link(cur, 0, between(cmap.poses[cur], cmap.poses[0]), LOOP, 0.0)  # added: used
+    joined = check()
+    assert joined[0] < 0.5 < lap[0]
+    cmap._w[k] = 0.3  # faded (written directly, as the reweighting does): no longer a path
+    assert np.array_equal(check(), lap)
+    cmap._w[k] = 1.0  # used again
+    assert np.array_equal(check(), joined)
+    cmap._tr[k, 0] += 2.0  # the link's transform revised (a group fit): its length changes
+    longer = check()
+    assert longer[0] > joined[0]
+    cmap._set_current(3, (0.0, 0.0, 0.0), cmap._t)  # another source
+    assert check()[3] == 0.0
+    cmap._set_current(cur, (0.0, 0.0, 0.0), cmap._t)
+    assert np.array_equal(check(), longer)
+    cmap.start_run((0.0, 0.0, 0.0))  # a node linked to nothing: the graph grows without a link
+    assert np.isinf(cmap.graph_path(np.array([0]))[0])
+    assert cmap.graph_path(np.arange(cmap.node_count)).shape == (cmap.node_count,)
+
+
+def test_undirected_paths_equal_scipys_undirected_dijkstra_bit_for_bit():
+    """The graph_path construction (each link stored both ways, directed Dijkstra) gives exactly
+    scipy's undirected distances, also with parallel and opposite links (summed as csr_matrix sums
+    duplicate entries) and with three parallel links (the reference path)."""
+    rng = np.random.default_rng(3)
+    for _ in range(400):
+        n = int(rng.integers(1, 40))
+        src, dst = rng.integers(0, n, 80), rng.integers(0, n, 80)
+        ok = src != dst
+        src, dst = src[ok], dst[ok]
+        if len(src):
+            j = rng.integers(0, len(src), int(rng.integers(0, 6)))
+            src = np.concatenate([src, src[j], dst[j[:2]], src[j[:1]]])
+            dst = np.concatenate([dst, dst[j], src[j[:2]], dst[j[:1]]])
+        length = rng.uniform(0.0, 3.0, len(src)) ** 3 + 1e-9
+        s = int(rng.integers(0, n))
+        want = _undirected_paths_reference(n, src, dst, length, s)
+        assert _undirected_paths(n, src, dst, length, s).tobytes() == want.tobytes()
+
+
+def test_within_hops_equals_growing_the_window_link_by_link():
+    """The local solve's window (nodes within lsq_window_hops links of the changed links' ends)
+    from one breadth-first search equals growing it one pass over the links per hop."""
+    rng = np.random.default_rng(7)
+    for _ in range(300):
+        n = int(rng.integers(2, 60))
+        src = np.concatenate([np.arange(n - 1), rng.integers(0, n, 30)])
+        dst = np.concatenate([np.arange(1, n), rng.integers(0, n, 30)])
+        keep = (src != dst) & (rng.random(len(src)) > 0.2)  # some gaps: several components
+        src, dst = src[keep], dst[keep]
+        if not len(src):
+            continue
+        k = rng.integers(0, len(src), int(rng.integers(1, 4)))
+        hops = int(rng.integers(1, 45))
+        want = np.zeros(n, dtype=bool)
+        want[src[k]] = want[dst[k]] = True
+        for _ in range(hops):
+            grow = want[src] | want[dst]
+            want[src[grow]] = want[dst[grow]] = True
+        assert np.array_equal(within_hops(n, src, dst, np.concatenate([src[k], dst[k]]), hops), want)
 
 
 @pytest.mark.parametrize("drift", ["verified", "graph"])

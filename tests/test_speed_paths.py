@@ -71,6 +71,40 @@ def test_remembered_lsq_layout_equals_a_fresh_one(seed, n, extra, bias, anchor, 
     np.testing.assert_array_equal(g1, g2)
 
 
+@settings(max_examples=60, deadline=None)
+@given(
+    seed=st.integers(0, 10_000),
+    n=st.integers(2, 30),
+    extra=st.integers(0, 40),
+    bias=st.booleans(),
+    n_held=st.integers(0, 3),
+    isolated=st.integers(0, 3),
+)
+def test_block_pattern_equals_the_entry_pattern(seed, n, extra, bias, n_held, isolated):
+    """The normal equations' pattern found per node block gives the integers of the pattern found
+    entry by entry (parallel links, held nodes, nodes without links, the bias), for any order of
+    the nodes with each node's unknowns consecutive (as the solver places them)."""
+    src, dst, rng = _graph(seed, n, extra)
+    n_all = n + isolated  # the last nodes have no link: only their diagonal
+    nv = 3 * n_all + (1 if bias else 0)
+    keep = np.ones(nv, dtype=bool)
+    for f in rng.choice(n_all, size=min(n_held, n_all - 1), replace=False):
+        keep[3 * f : 3 * f + 3] = False
+    rank = rng.permutation(n_all + 1)  # any order of the groups (the bias is group n_all)
+    kv = np.flatnonzero(keep)
+    idx = kv[np.argsort(rank[np.arange(nv)[kv] // 3], kind="stable")]
+    col = np.full(nv, -1, dtype=np.int64)
+    col[idx] = np.arange(len(idx))
+    bias_col = 3 * n_all if bias else -1
+    loc = np.column_stack([3 * src, 3 * src + 1, 3 * src + 2, 3 * dst, 3 * dst + 1, 3 * dst + 2])
+    if bias:
+        loc = np.column_stack([loc, np.full(len(src), bias_col)])
+    gk = col[loc]
+    for want, got in zip(ls._entry_pattern(gk, len(idx)), ls._block_pattern(col, gk, bias_col, len(idx))):
+        assert want.dtype == got.dtype
+        np.testing.assert_array_equal(got, want)
+
+
 def test_solves_give_the_same_poses_with_the_remembered_layouts():
     """Two solves of one graph (as the robust reweighting does): the second, on remembered orders
     and layouts, gives the poses the first gave, bit for bit."""
