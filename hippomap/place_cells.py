@@ -30,6 +30,7 @@ both the fast and the literal implementations honour the same order.
 from __future__ import annotations
 
 import math
+from collections import OrderedDict
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -40,6 +41,7 @@ from .errors import InputError
 from .grid_cells import LEVELS, GridCells, RateTables
 
 _FP_SLACK = 1e-9  # levels; absorbs rounding of T * LEVELS / g_max (1.5e-14 g_max)
+_RECENT_RESULTS = 16  # results of PlaceCells.localise remembered per instance (see localise)
 _BOUND_MIN = np.array([[0.0], [-1.0]])  # clip bounds of [lo; hi] (see _window_bounds)
 _BOUND_MAX = np.array([[LEVELS + 1.0], [float(LEVELS)]])
 
@@ -226,6 +228,7 @@ class PlaceCells:
         self.cfg = cfg
         self._source = source
         self._prepared: _Prepared | None = None
+        self._recent: OrderedDict[bytes, PlaceField | None] = OrderedDict()  # T bytes -> result, LRU
 
     @property
     def tables(self) -> RateTables:
@@ -239,9 +242,26 @@ class PlaceCells:
         return p
 
     def localise(self, T) -> PlaceField | None:
-        """Run the iteration for current discharges T (n_cells,) in rate units; None if no single field forms."""
+        """Run the iteration for current discharges T (n_cells,) in rate units; None if no single field forms.
+
+        The result is a pure function of T (tables and config are fixed), and fields are immutable, so the
+        last :data:`_RECENT_RESULTS` distinct T are remembered by their bytes and a repeated T returns the
+        same result without iterating. T repeats whenever the robot comes back to the same grid point;
+        without rate noise every phase reset does (it puts the robot at the centre of the coding area:
+        about a third of the steps on a typical run).
+        """
         p = self._prepare(self.tables)
-        return self._iterate(p, check_rates(T, p.n_cells))
+        t = check_rates(T, p.n_cells)
+        key = t.tobytes()
+        recent = self._recent
+        if key in recent:  # (one instance serves one pathway: no concurrent use)
+            recent.move_to_end(key)
+            return recent[key]
+        field = self._iterate(p, t)
+        recent[key] = field
+        if len(recent) > _RECENT_RESULTS:
+            recent.popitem(last=False)
+        return field
 
     def _iterate(self, p: "_Prepared", T: np.ndarray) -> PlaceField | None:
         """The iteration proper, for checked discharges T.
