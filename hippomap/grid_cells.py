@@ -198,8 +198,13 @@ class GridCells:
             b = ky[:, None] * (axis[None, :] - self._phase[n, 1])  # (3, N) over y
             left = np.concatenate([np.cos(b), -np.sin(b)]).T  # (N_y, 6)
             right = np.concatenate([np.cos(a), np.sin(a)])  # (6, N_x)
-            g = (2.0 / 3.0) * ((left @ right) / 3.0 + 0.5)  # rate / g_max, [iy, ix]
-            np.rint(np.clip(g, 0.0, 1.0) * LEVELS, out=g)
+            g = left @ right  # then (2/3) (g / 3 + 0.5) = rate / g_max, [iy, ix], in place (same operations)
+            g /= 3.0
+            g += 0.5
+            g *= 2.0 / 3.0
+            np.clip(g, 0.0, 1.0, out=g)
+            g *= LEVELS
+            np.rint(g, out=g)
             out[n] = g
         return out
 

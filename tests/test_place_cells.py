@@ -14,10 +14,19 @@ from hypothesis import strategies as st
 
 from hippomap.config import SpatialConfig
 from hippomap.errors import InputError
-from hippomap.geometry import between
+from hippomap.geometry import between, compose
 from hippomap.grid_cells import LEVELS, GridCells, RateTables
-from hippomap.place_cells import PlaceCells, localise_literal, max_single_field_count
-from hippomap.spatial_pathway import PlaceCode, SpatialPathway
+from hippomap.place_cells import (
+    PlaceCells,
+    _moments,
+    _spread_fails,
+    is_single_field,
+    localise_literal,
+    max_single_field_count,
+    noise_free_discharges,
+    window_levels,
+)
+from hippomap.spatial_pathway import PlaceCode, SpatialPathway, _compose
 
 DEFAULT = SpatialConfig()
 DELTA = DEFAULT.resolution_m
@@ -347,3 +356,98 @@ def test_place_code_is_frozen(grid):
     assert isinstance(code, PlaceCode)
     with pytest.raises(dataclasses.FrozenInstanceError):
         code.x = 1.0  # type: ignore[misc]
+
+
+# -- exactness of the fast paths ------------------------------------------------------------------------
+
+
+def test_window_levels_equal_the_written_formula():
+    """The one-pass bounds equal clip(ceil(x - h - s)) / clip(floor(x + h + s)) computed as written."""
+    rng = np.random.default_rng(11)
+    for cfg in (DEFAULT, SpatialConfig(g_max=3.7, window=0.013), SpatialConfig(g_max=0.3, window=2.5)):
+        step = cfg.g_max / LEVELS
+        T = np.concatenate(
+            [
+                rng.uniform(-0.3, 1.3, 4000) * cfg.g_max,
+                rng.integers(0, LEVELS + 1, 4000) * step,  # on the level grid: exercises the slack
+                (rng.integers(0, LEVELS + 1, 4000) + 0.5) * step,
+                [0.0, -0.0, cfg.g_max, 1e300, -1e300, 5e-324, np.nextafter(cfg.g_max, 0)],
+            ]
+        )
+        x = T * (LEVELS / cfg.g_max)
+        h = 0.5 * cfg.window * LEVELS
+        lo = np.clip(np.ceil(x - h - 1e-9), 0, LEVELS + 1).astype(np.int64)
+        hi = np.clip(np.floor(x + h + 1e-9), -1, LEVELS).astype(np.int64)
+        got = window_levels(T, cfg)
+        assert got[0].dtype == np.int64 and got[1].dtype == np.int64
+        np.testing.assert_array_equal(got[0], lo)
+        np.testing.assert_array_equal(got[1], hi)
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    pts=st.lists(st.tuples(st.integers(0, 800), st.integers(0, 800)), min_size=2, max_size=75, unique=True),
+    tau=st.sampled_from([0.25, 1.0, 4.0, 4.000000001, 24.0]),
+    shrink=st.integers(1, 200),
+)
+def test_spread_prefilter_never_rejects_a_passing_set(pts, tau, shrink):
+    """The y-range shortcut only skips sets that the exact stop test rejects."""
+    size = 801
+    flat = np.array(sorted({(iy // shrink) * size + ix // shrink for ix, iy in pts}), dtype=np.int32)
+    if flat.size < 2:
+        return
+    iy, ix = np.divmod(flat.astype(np.int64), size)
+    exact = is_single_field(
+        int(flat.size), int(ix.sum()), int((ix * ix).sum()), int(iy.sum()), int((iy * iy).sum()), tau
+    )
+    if _spread_fails(flat, int(flat.size), size, tau):
+        assert not exact
+    assert _moments(flat, size) == (int(ix.sum()), int((ix * ix).sum()), int(iy.sum()), int((iy * iy).sum()))
+
+
+def test_repeated_discharges_return_the_remembered_result(grid):
+    """localise remembers recent results by T: a repeat gives the same field, other T are unaffected."""
+    pc = PlaceCells(grid)
+    rng = np.random.default_rng(8)
+    Ts = [_true_rates(grid, ix, iy) for ix, iy in rng.integers(0, 801, (40, 2))]
+    Ts += [Ts[k] for k in rng.integers(0, len(Ts), 60)]  # repeats, some long evicted
+    Ts.append(np.full(grid.n_cells, 5.0))  # no field: None is remembered too
+    Ts.append(Ts[-1].copy())
+    for T in Ts:
+        first = pc.localise(T)
+        assert _same(first, PlaceCells(grid).localise(T))
+        assert _same(pc.localise(T.copy()), first)
+    assert len(pc._recent) <= 16
+    with pytest.raises(InputError, match="shape"):  # the same bytes in another shape are still rejected
+        pc.localise(Ts[0].reshape(4, -1))
+
+
+def test_noise_free_discharges_round_half_to_even_and_clip(grid):
+    t = grid.tables
+    rng = np.random.default_rng(4)
+    locs = np.concatenate(
+        [
+            rng.uniform(-0.05, 0.45, (300, 2)),
+            (rng.integers(-4, 1610, (300, 2)) + 0.0) * (DELTA / 2),  # half-way between grid points
+            [[0.0, -0.0], [0.4, 0.4], [1e300, -1e300]],
+        ]
+    )
+    for loc in locs:
+        ix, iy = np.clip(np.rint(loc / DELTA), 0, t.size - 1).astype(np.int64)
+        expected = t.levels[:, iy * t.size + ix] * (DEFAULT.g_max / LEVELS)
+        got = noise_free_discharges(grid, DEFAULT, loc)
+        assert got.dtype == expected.dtype and np.array_equal(got, expected)
+    with pytest.raises(InputError):
+        noise_free_discharges(grid, DEFAULT, (0.1, float("inf")))
+
+
+def test_scalar_compose_equals_geometry_compose():
+    rng = np.random.default_rng(6)
+    n = 20000
+    poses = np.column_stack([rng.normal(0, 50, n), rng.normal(0, 50, n), rng.uniform(-np.pi, np.pi, n)])
+    poses[:500, 2] = rng.uniform(-1e4, 1e4, 500)
+    poses[500:1000, 2] = np.pi * rng.integers(-5, 5, 500) / 2
+    incs = np.column_stack([rng.normal(0, 0.1, n), rng.normal(0, 0.01, n), rng.normal(0, 0.1, n)])
+    incs[1000:1500, 2] = np.pi
+    for p, inc in zip(poses, incs.tolist()):
+        assert _compose(p, tuple(inc)).tobytes() == compose(p, inc).tobytes()
