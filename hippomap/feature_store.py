@@ -71,14 +71,56 @@ def _mean_var(u: np.ndarray) -> tuple[float, float]:
     return float(mean), float(np.add.reduce(np.multiply(d, d, out=d)) / n)
 
 
+class _Library:
+    """What every subset of one library state shares (remembered per library size, read only): the
+    statistics sample of the ``N_std`` rule over the whole library (all units while it is small, else a
+    fixed stratified sample), and lazily the sample's patches shifted into the high byte of the drive
+    table's index and its normalisers. The library only grows (a learned frame appends units, stored rows
+    never change), so its size names its state."""
+
+    def __init__(self, mem: FeatureStore):
+        cfg = mem.config
+        n = mem.n_features
+        self.n = n
+        self.mem = mem
+        #: whether the sample is the whole library (then its rows are those of every unit, in order)
+        self.small = n <= cfg.index_shortlist + cfg.stats_sample
+        self.sample = (
+            np.arange(n, dtype=np.int64)
+            if self.small
+            else np.unique(np.linspace(0, n - 1, cfg.stats_sample).round().astype(np.int64))
+        )
+        self.sample.flags.writeable = False
+        self._hi: np.ndarray | None = None
+        self._z: np.ndarray | None = None
+
+    @property
+    def sample_hi(self) -> np.ndarray:
+        """``_patch[sample].astype(uint16) << 8``, gathered on first use (read only)."""
+        if self._hi is None:
+            self._hi = self.mem._patch[self.sample].astype(np.uint16) << 8
+            self._hi.flags.writeable = False
+        return self._hi
+
+    @property
+    def sample_z(self) -> np.ndarray:
+        """``_z[sample]`` (read only)."""
+        if self._z is None:
+            self._z = self.mem._z[self.sample]
+            self._z.flags.writeable = False
+        return self._z
+
+
 class FlcSubset:
     """The FLCs a recognition may use (all, or those of the candidate frames)."""
 
     def __init__(self, mem: FeatureStore, frames: np.ndarray | None):
         n = mem.n_features
+        lib = mem._library()
+        self._mem = mem
+        self._desc: np.ndarray | None = None  # see desc
         if frames is None:
             self.idx = np.arange(n, dtype=np.int64)
-            self.desc = mem._desc[:n]
         else:
             # the frames' index ranges concatenated in frame order, without a Python loop over the frames:
             # element j of frame i (ranges laid end to end from offset o_i) is start_i + (j - o_i)
@@ -88,26 +130,14 @@ class FlcSubset:
             self.idx = (
                 np.repeat(starts - ends + counts, counts) + np.arange(int(ends[-1]) if len(ends) else 0)
             ).astype(np.int64)
-            self.desc = mem._desc[self.idx]
         self.n = int(self.idx.size)
         self.is_all = frames is None
         cfg = mem.config
         self.exact_all = self.n <= cfg.index_shortlist + cfg.stats_sample
-        if self.is_all:
-            # stratified sample of the units outside the shortlist (local = global indices)
-            self.sample = (
-                None
-                if self.exact_all
-                else np.unique(np.linspace(0, self.n - 1, cfg.stats_sample).round().astype(np.int64))
-            )
-        else:
-            # the sensory layer is global: N_std statistics over the whole library, not the candidates
-            n_all = mem.n_features
-            self.sample = (
-                np.arange(n_all, dtype=np.int64)
-                if n_all <= cfg.index_shortlist + cfg.stats_sample
-                else np.unique(np.linspace(0, n_all - 1, cfg.stats_sample).round().astype(np.int64))
-            )
+        # the statistics sample: of the units outside the shortlist (local = global indices) for the whole
+        # library, of the whole library for candidates (the sensory layer is global: N_std statistics over
+        # the library, not the candidates); the same stratified sample either way, remembered per library
+        self.sample = None if self.is_all and self.exact_all else lib.sample
         # the FLCs whose drive is computed exactly at every fixation are fixed for the whole recognition when
         # no index is used: their learned patches (shifted into the high byte of the drive table's index)
         # and normalisers are gathered once here, not once per fixation
@@ -119,29 +149,50 @@ class FlcSubset:
         self.all_local = np.arange(self.n)
         self.all_local.flags.writeable = False
         if self.exact_all:
-            self.rows = self.idx if self.is_all else np.concatenate([self.idx, self.sample])
+            self.rows = self.idx if self.is_all else np.concatenate([self.idx, lib.sample])
             # a unit both candidate and in the statistics sample (all of them while the library is small)
-            # is gathered once: a row's drive does not depend on the other rows of the gather
-            uniq, inv = np.unique(self.rows, return_inverse=True)
-            self.rows_inv: np.ndarray | None = inv if uniq.size < self.rows.size else None
-            gathered = uniq if self.rows_inv is not None else self.rows
-            self.rows_hi = mem._patch[gathered].astype(np.uint16) << 8
-            self.rows_z = mem._z[gathered]
-            self.rows_buf = np.empty_like(self.rows_hi)
+            # is gathered once: a row's drive does not depend on the other rows of the gather. The gathered
+            # rows are np.unique(rows) and rows_inv its inverse (None when no unit is repeated)
+            if lib.small:
+                # every row is a unit of the library, and all of them are in it (the whole library, or the
+                # candidates followed by the sample = the whole library): the unique rows are 0..n-1, each
+                # row's position among them is the row itself, and their patches are the library's sample's
+                self.rows_inv: np.ndarray | None = self.rows if self.n and not self.is_all else None
+                self.rows_hi = lib.sample_hi
+                self.rows_z = lib.sample_z
+            else:
+                # sorted unique rows and each row's position among them, by marking the library's units
+                mark = np.zeros(n, np.bool_)
+                mark[self.rows] = True
+                uniq = mark.nonzero()[0]
+                self.rows_inv = (np.cumsum(mark) - 1)[self.rows] if uniq.size < self.rows.size else None
+                gathered = uniq if self.rows_inv is not None else self.rows
+                # = _patch[gathered].astype(uint16) << 8: the cast is left_shift's own (one pass less)
+                self.rows_hi = np.left_shift(np.take(mem._patch, gathered, axis=0), 8, dtype=np.uint16)
+                self.rows_z = mem._z[gathered]
+            self.rows_buf = mem._scratch(self.rows_hi.shape[0])
         elif not self.is_all:
             # index with candidates: the statistics sample is the same at every fixation, its patches
-            # (high byte of the table index) and normalisers are gathered once; the buffer holds the
-            # shortlist (plus the predicted unit) and the sample
-            assert self.sample is not None
-            self.sample_hi = mem._patch[self.sample].astype(np.uint16) << 8
-            self.sample_z = mem._z[self.sample]
-            self.index_buf = np.empty((cfg.index_shortlist + 1 + self.sample.size, mem.P), np.uint16)
+            # (high byte of the table index) and normalisers are gathered once per library; the buffer holds
+            # the shortlist (plus the predicted unit) and the sample
+            self.sample_hi = lib.sample_hi
+            self.sample_z = lib.sample_z
+            self.index_buf = mem._scratch(cfg.index_shortlist + 1 + lib.sample.size)
+
+    @property
+    def desc(self) -> np.ndarray:
+        """The index descriptors of the subset's units (row ``i`` = local unit ``i``), gathered on first use:
+        only the index reads them."""
+        if self._desc is None:
+            mem = self._mem
+            self._desc = mem._desc[: self.n] if self.is_all else mem._desc[self.idx]
+        return self._desc
 
     def local(self, global_index: int) -> int:
         """Index of a global FLC in this subset, or -1 (``idx`` is sorted: frames ascending)."""
         if self.is_all:
             return int(global_index)
-        i = int(np.searchsorted(self.idx, global_index))
+        i = int(self.idx.searchsorted(global_index))
         return i if i < self.n and int(self.idx[i]) == int(global_index) else -1
 
 
@@ -169,6 +220,8 @@ class FeatureStore:
         self._rng = np.random.default_rng(cfg.seed)
         self._last_views: tuple[np.ndarray, np.ndarray, float, np.ndarray] | None = None  # see _views
         self._last_corners: tuple[np.ndarray, float, int, np.ndarray] | None = None  # see _corners
+        self._lib: _Library | None = None  # see _library
+        self._scratch_buf = np.empty((0, self.P), np.uint16)  # see _scratch
         cap = 64
         self._patch = np.zeros((cap, self.P), np.uint8)
         self._desc = np.zeros((cap, self.D), np.float32)
@@ -226,6 +279,22 @@ class FeatureStore:
         if fid != frame_id or not 0 <= fid < self._nframes:
             raise InputError(f"unknown frame id {frame_id!r}; the memory holds frames 0..{self._nframes - 1}")
         return fid
+
+    def _library(self) -> _Library:
+        """What the subsets of the current library share (:class:`_Library`), remembered per library size."""
+        lib = self._lib
+        if lib is None or lib.n != self._nf:
+            lib = self._lib = _Library(self)
+        return lib
+
+    def _scratch(self, rows: int) -> np.ndarray:
+        """A ``(rows, P)`` uint16 buffer for the drive table's indices, shared by the subsets of this memory
+        (grown by doubling, never shrunk): every drive writes the rows it reads within the same call, so no
+        content outlives a call, and reusing the pages spares a fresh allocation per recognition."""
+        buf = self._scratch_buf
+        if buf.shape[0] < rows:
+            buf = self._scratch_buf = np.empty((max(rows, 2 * buf.shape[0]), self.P), np.uint16)
+        return buf[:rows]
 
     # -- views and patches -------------------------------------------------------------
     def _views(self, image: Any) -> tuple[np.ndarray, float, np.ndarray]:

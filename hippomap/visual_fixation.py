@@ -131,20 +131,18 @@ class FixationSensing(FeatureStore):
             m2_t = var_t + mean_t**2 + (ut[p] ** 2 - old**2) / N
             mean_t = mean_t + (ut[p] - old) / N
             var_t = max(0.0, m2_t - mean_t**2)
-        keep = ut >= mean_t + cfg.n_std * math.sqrt(var_t)
-        if not keep.any():
-            keep[int(ut.argmax())] = True
-        if cfg.max_survivors and np.count_nonzero(keep) > cfg.max_survivors:
+        # the survivors as ascending positions in T (what the boolean mask T[keep] selects, in its order)
+        sel = (ut >= mean_t + cfg.n_std * math.sqrt(var_t)).nonzero()[0]
+        if sel.size == 0:
+            sel = np.array([int(ut.argmax())])
+        if cfg.max_survivors and sel.size > cfg.max_survivors:
             # spec §6.4: N_std must grow with the library so that 1-5 FLCs survive; a top-K cap
-            # does that for every library size
-            idx = np.flatnonzero(keep)
-            top = idx[np.argsort(-ut[idx], kind="stable")[: cfg.max_survivors]]
-            keep = np.zeros_like(keep)
-            keep[top] = True
-        surv = T[keep]
-        vals = ut[keep].astype(np.float64) * cfg.softmax_gain
-        e = np.exp(vals - vals.max())
-        wts = e / e.sum()
+            # does that for every library size (the K strongest, stable among ties, back in ascending order)
+            sel = np.sort(sel[(-ut[sel]).argsort(kind="stable")[: cfg.max_survivors]])
+        surv = sel if T is sub.all_local else T[sel]  # T[sel] = sel when T is 0..n-1
+        vals = ut[sel].astype(np.float64) * cfg.softmax_gain
+        e = np.exp(vals - np.maximum.reduce(vals))
+        wts = e / np.add.reduce(e)  # e.sum(): the same reduction
         best = int(surv[int(vals.argmax())])
         return Sense(True, winner, umax, surv, wts, best, upred)
 

@@ -70,7 +70,7 @@ re-exports the public names of the others.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Iterable, cast
+from typing import Any, Iterable
 
 import numpy as np
 
@@ -124,17 +124,16 @@ class _Query:
     size: tuple[int, int]
 
 
-def _to_img(p: np.ndarray | None, scale: float) -> tuple[float, float] | None:
-    return None if p is None else (float(p[0]) * scale, float(p[1]) * scale)
-
-
 def _leading(a: np.ndarray, k: int) -> list[tuple[int, float]]:
     """The ``k`` most active frame hypotheses (frame, activity), strongest first."""
-    nz = np.flatnonzero(a > 0)
+    # the same selection as ``nz[np.argsort(-a[nz], kind="stable")[:k]]`` over ``nz = np.flatnonzero(a > 0)``,
+    # read through the nonzero values once; ``tolist`` gives the same Python ints and floats as int() and float()
+    nz = (a > 0).nonzero()[0]
     if nz.size == 0:
         return []
-    top = nz[np.argsort(-a[nz], kind="stable")[:k]]
-    return [(int(f), float(a[f])) for f in top]
+    v = a[nz]
+    top = (-v).argsort(kind="stable")[:k]
+    return list(zip(nz[top].tolist(), v[top].tolist()))
 
 
 class VisualMemory(FixationSensing):
@@ -191,10 +190,7 @@ class VisualMemory(FixationSensing):
         work, scale, cimg = self._views(image)
         H, W = work.shape[:2]
         size = (int(round(W * scale)), int(round(H * scale)))
-        if candidates is None:
-            frames = None
-        else:
-            frames = np.unique(np.array([self._check_frame(c) for c in candidates], dtype=np.int64))
+        frames = None if candidates is None else self._candidate_frames(candidates)
         sub = FlcSubset(self, frames)
         if sub.n == 0:
             return Recognition(None, 0.0, [], 0, 0.0, size, "no stored frames")
@@ -203,6 +199,26 @@ class VisualMemory(FixationSensing):
         if len(starts) == 0:
             return Recognition(None, 0.0, [], 0, 0.0, size, "no keypoints in the query")
         return _Query(sub, sense_img, starts, scale, size)
+
+    def _candidate_frames(self, candidates: Iterable[int]) -> np.ndarray:
+        """The distinct candidate frame ids, sorted: ``np.unique`` of every candidate checked by
+        :meth:`_check_frame`. A list of integers all in range (what the mapper passes) is checked as one
+        array, with the same ids; anything else goes through :meth:`_check_frame` one by one, which
+        converts what it accepts and names what it rejects."""
+        if isinstance(candidates, list) and candidates:
+            try:
+                arr = np.array(candidates)
+            except (TypeError, ValueError, OverflowError):
+                arr = None
+            if (
+                arr is not None
+                and arr.ndim == 1
+                and arr.dtype.kind in "iu"
+                and int(arr.min()) >= 0
+                and int(arr.max()) < self._nframes
+            ):
+                return np.unique(arr.astype(np.int64))
+        return np.unique(np.array([self._check_frame(c) for c in candidates], dtype=np.int64))
 
     def _attempt(
         self, q: _Query, st: _Attempt, a: np.ndarray, steps: list[SaccadeStep], resets: int
@@ -222,20 +238,27 @@ class VisualMemory(FixationSensing):
     ) -> tuple[Sense, str]:
         """One fixation: the feature units are driven at the eye position, the frame hypotheses
         updated, and the step recorded in the trace; returns what was sensed and the outcome."""
-        s = self._sense(q.sense_img, st.e, q.sub, q.sub.local(st.predicted) if st.predicted >= 0 else -1)
-        outcome, found = self._observe(st, s, q.sub, a)
+        sub, pred, scale = q.sub, st.predicted, q.scale
+        s = self._sense(q.sense_img, st.e, sub, sub.local(pred) if pred >= 0 else -1)
+        outcome, found = self._observe(st, s, sub, a)
+        # points in input px: the float of each integer coordinate times the scale (the eye and the target are
+        # integer arrays: tolist gives the integers indexing them gives)
+        ex, ey = st.e.tolist()
+        tgt = st.target
+        if tgt is not None:
+            tx, ty = tgt.tolist()
         steps.append(
             SaccadeStep(
-                attempt=resets,
-                fixation=cast("tuple[float, float]", _to_img(st.e, q.scale)),
-                target=_to_img(st.target, q.scale),
-                predicted_frame=int(self._frame[st.predicted]) if st.predicted >= 0 else None,
-                predicted_feature=None if st.predicted < 0 else int(st.predicted),
-                found_frame=None if found is None else int(self._frame[found]),
-                found_feature=found,
-                similarity=float(s.umax),
-                outcome=outcome,
-                evidence=_leading(a, self.config.trace_hypotheses),
+                resets,
+                (float(ex) * scale, float(ey) * scale),
+                None if tgt is None else (float(tx) * scale, float(ty) * scale),
+                int(self._frame[pred]) if pred >= 0 else None,
+                None if pred < 0 else int(pred),
+                None if found is None else int(self._frame[found]),
+                found,
+                float(s.umax),
+                outcome,
+                _leading(a, self.config.trace_hypotheses),
             )
         )
         st.first = False
@@ -288,8 +311,9 @@ class VisualMemory(FixationSensing):
             assert s.weights is not None  # a fixation with evidence has its survivors' weights
             g = sub.idx[s.survivors]
             np.add.at(a, self._frame[g], cfg.kappa * self._w[g] * s.weights)
-            np.clip(a, 0.0, 1.0, out=a)
-            if a.sum() > cfg.max_total_activity:
+            # the ufunc calls np.clip and a.sum() make, without their wrappers (the same operations)
+            a.clip(0.0, 1.0, out=a)
+            if np.add.reduce(a) > cfg.max_total_activity:
                 st.reset_reason = "total frame activity too high"
             if st.first and cfg.anchor == "start":
                 st.m = self._pos[found].astype(np.int64)  # global remapping onto the feature
@@ -389,6 +413,13 @@ class VisualMemory(FixationSensing):
         Returns ``(k*, target, landing, "")`` or ``(-1, None, None, reason)`` for a reset.
         """
         cfg = self.config
+        if cfg.next_target == "nearest" and a.size:
+            # one frame chooses: the verifying one, or the most active. a.argmax() is the first index of the
+            # maximum, the argmax over the positive entries whenever that maximum is positive; otherwise (no
+            # positive entry, or a NaN) the general path below decides
+            lead = int(a.argmax())
+            if a[lead] > 0:
+                return self._nearest_target(frame if frame >= 0 else lead, e, m, visited, img)
         active = np.flatnonzero(a > 0)
         if active.size == 0:
             return -1, None, None, "no frame hypothesis"
@@ -433,4 +464,37 @@ class VisualMemory(FixationSensing):
                     continue  # the predicted feature lies outside this view: look at another one
                 return -1, None, None, "saccade out of the image"
             return k, tgt, land, ""
+        return -1, None, None, "no feature left to predict"
+
+    def _nearest_target(
+        self, f: int, e: np.ndarray, m: np.ndarray, visited: list[int], img: np.ndarray
+    ) -> tuple[int, Any, Any, str]:
+        """:meth:`_choose_target` with ``next_target = 'nearest'`` once frame ``f`` chooses: the same
+        preference values, order and loop over the frame's features, read as the slice of its feature range
+        (``ks`` is ``f0, f0 + 1, ...``: feature ``f0 + j`` is row ``j``) rather than gathered by index."""
+        cfg = self.config
+        f0 = int(self._fstart[f])
+        pos = self._pos[f0 : f0 + int(self._fcount[f])]
+        v = 1.0 / (1.0 + np.abs(pos - m[None, :]).sum(axis=1))
+        if visited:
+            n = pos.shape[0]
+            v[[k - f0 for k in visited if f0 <= k < f0 + n]] = 0.0
+        order = (-v).argsort(kind="stable")
+        order = order[v[order] > 0][: cfg.target_candidates]
+        if order.size == 0:
+            return -1, None, None, "no feature left to predict"
+        tol = cfg.tolerance_px
+        mf = m.astype(float)
+        for j in order.tolist():  # best first; usually the first candidate is taken
+            d = self._decode_shared(mf, pos[j].astype(float))  # decode(g(m), W_FLC->GC e_k), int64
+            dx, dy = d.tolist()
+            if abs(dx) <= tol and abs(dy) <= tol:
+                continue  # [BBc]: choose again while the vector is within tolerance
+            tgt = e + d
+            land = self._microsaccade(img, tgt, f0 + j, float(np.hypot(dx, dy)))
+            if land is None:
+                if cfg.out_of_view == "skip":
+                    continue  # the predicted feature lies outside this view: look at another one
+                return -1, None, None, "saccade out of the image"
+            return f0 + j, tgt, land, ""
         return -1, None, None, "no feature left to predict"
