@@ -53,7 +53,12 @@ __all__ = ["Retina", "imadjust"]
 
 def imadjust(gray: np.ndarray, clip: float) -> np.ndarray:
     """MATLAB ``imadjust``: saturate ``clip`` of each tail, map linearly to 0..255."""
-    hist = np.bincount(gray.ravel(), minlength=256).astype(np.float64)
+    if gray.dtype == np.uint8 and gray.ndim == 2 and gray.size < 1 << 24:
+        # the same counts as np.bincount, from OpenCV's histogram (about twice as fast): integer counts, held
+        # exactly by its float32 bins below 2^24 pixels
+        hist = cv2.calcHist([gray], [0], None, [256], [0, 256]).reshape(256).astype(np.float64)
+    else:
+        hist = np.bincount(gray.ravel(), minlength=256).astype(np.float64)
     cdf = np.cumsum(hist) / hist.sum()
     lo = int(np.searchsorted(cdf, clip, side="left"))
     hi = int(np.searchsorted(cdf, 1.0 - clip, side="left"))
@@ -109,11 +114,16 @@ class Retina:
         if not isinstance(gray, np.ndarray) or gray.dtype != np.uint8 or gray.ndim != 2 or gray.size == 0:
             raise InputError("the retina needs a non-empty 2-D uint8 gray image")
         L = cv2.LUT(gray, _LOG_LUT)  # light adaptation: gain changes become offsets (= _LOG_LUT[gray])
-        c = _gauss(L, cfg.retina_center_sigma) - _gauss(L, cfg.retina_surround_sigma)  # centre - surround
+        centre = _gauss(L, cfg.retina_center_sigma)
+        surround = _gauss(L, cfg.retina_surround_sigma)
+        # centre - surround; the float32 operations below run in place into arrays of this call's own (the
+        # same ufunc loops on the same operands as their out-of-place forms), sparing fresh image buffers
+        c = np.subtract(centre, surround, out=centre if centre is not surround else None)
         energy = _gauss(c * c, cfg.retina_norm_sigma)  # local contrast energy of the neighbourhood
         C = float(np.sqrt(np.median(energy[::4, ::4])))  # the scene's typical local contrast (sampled)
         k = cfg.retina_semisaturation * C + 1e-3
-        return c / cv2.sqrt(energy + k * k)
+        den = np.add(energy, k * k, out=energy if energy is not c else None)
+        return np.divide(c, cv2.sqrt(den, den), out=c)
 
     def orientation_channels(self, gray: np.ndarray) -> np.ndarray:
         """V1 complex-cell responses: ``(H, W, v1_orientations)`` uint8 (firing rate 0..255).

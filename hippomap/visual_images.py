@@ -85,4 +85,20 @@ def prepare_views(
     h0, w0 = gray.shape
     interp = cv2.INTER_AREA if width < w0 else cv2.INTER_LINEAR
     work = cv2.resize(gray, (width, height), interpolation=interp) if (width, height) != (w0, h0) else gray.copy()
-    return work, Retina(cfg).sensory_image(work), w0 / float(width)
+    return work, _retina(cfg).sensory_image(work), w0 / float(width)
+
+
+_last_retina: tuple[VisualConfig, Retina] | None = None
+
+
+def _retina(cfg: VisualConfig) -> Retina:
+    """The retina of ``cfg``: the one built for the previous call when the config is the same object. A
+    config is frozen and a retina reads it at every call, holding nothing else but the rate table built
+    from it, so the same retina gives the same images; building one costs a 4,097-entry tanh table."""
+    global _last_retina
+    last = _last_retina
+    if last is not None and last[0] is cfg:
+        return last[1]
+    retina = Retina(cfg)
+    _last_retina = (cfg, retina)
+    return retina
