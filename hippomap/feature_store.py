@@ -503,14 +503,17 @@ class FeatureStore:
             else:  # candidates and the library sample of the statistics in one gather
                 uT, uR = u[: sub.n], u[sub.n :]
         else:
-            q = self._descriptor(patch[None, :])
+            # the patch's descriptor (:meth:`_descriptor` of the one patch: the same area average, cast)
+            f, s = cfg.fovea, cfg.index_side
+            q = cv2.resize(patch[: self.P0].reshape(f, f), (s, s), interpolation=cv2.INTER_AREA)
+            q = q.astype(np.float32).reshape(1, self.D)
             M = cfg.index_shortlist
             # index: the M nearest descriptors (L2) in one vectorised OpenCV call (no BLAS threads)
             _, nidx = cv2.batchDistance(q, sub.desc, cv2.CV_32F, normType=cv2.NORM_L2SQR, K=M)
             T = nidx.ravel().astype(np.int64)
             T = T[T >= 0]
-            if predicted >= 0 and not np.any(T == predicted):
-                T = np.append(T, predicted)
+            if predicted >= 0 and not (T == predicted).any():
+                T = np.concatenate((T, np.array([predicted], np.int64)))  # np.append(T, predicted)
             # shortlist and statistics sample in one gather
             assert sub.sample is not None  # set unless exact_all
             if sub.is_all:

@@ -310,10 +310,21 @@ class VisualMemory(FixationSensing):
         if st.reset_reason is None and (outcome != "mismatch" or cfg.update_on_mismatch):
             assert s.weights is not None  # a fixation with evidence has its survivors' weights
             g = sub.idx[s.survivors]
-            np.add.at(a, self._frame[g], cfg.kappa * self._w[g] * s.weights)
-            # the ufunc calls np.clip and a.sum() make, without their wrappers (the same operations)
-            a.clip(0.0, 1.0, out=a)
-            if np.add.reduce(a) > cfg.max_total_activity:
+            # np.add.at(a, frames, gains) then np.clip(a, 0, 1, out=a), on the few survivors' frames: the same
+            # double additions in the same order (a frame met twice adds twice, in survivor order), and the
+            # clip of the changed entries only, which is np.clip's own rule (below 0 -> 0, above 1 -> 1, else
+            # the value: -0.0 and NaN kept): every other entry was clipped before and a clip changes no
+            # clipped value
+            frames = self._frame[g].tolist()
+            for f, v in zip(frames, (cfg.kappa * self._w[g] * s.weights).tolist()):
+                a[f] += v
+            for f in frames:
+                x = a[f]
+                if x < 0.0:
+                    a[f] = 0.0
+                elif x > 1.0:
+                    a[f] = 1.0
+            if np.add.reduce(a) > cfg.max_total_activity:  # a.sum(): the same reduction
                 st.reset_reason = "total frame activity too high"
             if st.first and cfg.anchor == "start":
                 st.m = self._pos[found].astype(np.int64)  # global remapping onto the feature
@@ -470,22 +481,28 @@ class VisualMemory(FixationSensing):
         self, f: int, e: np.ndarray, m: np.ndarray, visited: list[int], img: np.ndarray
     ) -> tuple[int, Any, Any, str]:
         """:meth:`_choose_target` with ``next_target = 'nearest'`` once frame ``f`` chooses: the same
-        preference values, order and loop over the frame's features, read as the slice of its feature range
-        (``ks`` is ``f0, f0 + 1, ...``: feature ``f0 + j`` is row ``j``) rather than gathered by index."""
+        preference values, order and loop over the frame's features, on Python scalars for its few features.
+
+        Why the same: feature ``f0 + j`` is row ``j`` of the frame's slice of the positions (``ks`` is
+        ``f0, f0 + 1, ...``); a preference ``1 / (1 + |dx| + |dy|)`` of whole pixels is the same integer
+        sum and the same two double operations as numpy's; the candidates are the unvisited features of
+        positive preference, strongest first, ties in feature order (what the stable ``argsort`` of ``-v``
+        filtered by ``v > 0`` gives: filtering before a stable sort keeps the same order)."""
         cfg = self.config
         f0 = int(self._fstart[f])
         pos = self._pos[f0 : f0 + int(self._fcount[f])]
-        v = 1.0 / (1.0 + np.abs(pos - m[None, :]).sum(axis=1))
-        if visited:
-            n = pos.shape[0]
-            v[[k - f0 for k in visited if f0 <= k < f0 + n]] = 0.0
-        order = (-v).argsort(kind="stable")
-        order = order[v[order] > 0][: cfg.target_candidates]
-        if order.size == 0:
+        mx, my = m.tolist()
+        v = [1.0 / (1.0 + (abs(px - mx) + abs(py - my))) for px, py in pos.tolist()]
+        n = len(v)
+        for k in visited:
+            if f0 <= k < f0 + n:
+                v[k - f0] = 0.0
+        order = sorted([j for j in range(n) if v[j] > 0], key=lambda j: -v[j])[: cfg.target_candidates]
+        if not order:
             return -1, None, None, "no feature left to predict"
         tol = cfg.tolerance_px
         mf = m.astype(float)
-        for j in order.tolist():  # best first; usually the first candidate is taken
+        for j in order:  # best first; usually the first candidate is taken
             d = self._decode_shared(mf, pos[j].astype(float))  # decode(g(m), W_FLC->GC e_k), int64
             dx, dy = d.tolist()
             if abs(dx) <= tol and abs(dy) <= tol:

@@ -3,6 +3,7 @@ control — and what they buy the visual memory: recognition under lighting chan
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -156,3 +157,52 @@ def test_sensory_image_stacks_the_channels_and_bad_inputs_raise():
         Retina(VisualConfig(v1_orientations=0)).orientation_channels(img)
     with pytest.raises(InputError, match="gray image"):
         Retina(cfg).orientation_channels(img.astype(np.float32))
+
+
+def _reference_ganglion(cfg: VisualConfig, gray: np.ndarray) -> np.ndarray:
+    """Retina.ganglion_response as first written: every step into a fresh array."""
+    from hippomap.retina import _LOG_LUT, _gauss
+
+    L = _LOG_LUT[gray]
+    c = _gauss(L, cfg.retina_center_sigma) - _gauss(L, cfg.retina_surround_sigma)
+    energy = _gauss(c * c, cfg.retina_norm_sigma)
+    C = float(np.sqrt(np.median(energy[::4, ::4])))
+    k = cfg.retina_semisaturation * C + 1e-3
+    return c / cv2.sqrt(energy + k * k)
+
+
+def _reference_imadjust(gray: np.ndarray, clip: float) -> np.ndarray:
+    hist = np.bincount(gray.ravel(), minlength=256).astype(np.float64)
+    cdf = np.cumsum(hist) / hist.sum()
+    lo = int(np.searchsorted(cdf, clip, side="left"))
+    hi = int(np.searchsorted(cdf, 1.0 - clip, side="left"))
+    if hi <= lo:
+        return gray.copy()
+    lut = np.clip((np.arange(256) - lo) * (255.0 / (hi - lo)), 0, 255).round().astype(np.uint8)
+    return lut[gray]
+
+
+@pytest.mark.parametrize(
+    "override",
+    [{}, {"retina_center_sigma": 4.5, "retina_surround_sigma": 9.0, "retina_norm_sigma": 3.0}],
+    ids=["default", "wide-fields"],
+)
+def test_fast_retina_equals_the_reference_bit_for_bit(override):
+    """In-place ganglion response, OpenCV histogram of imadjust and the retina kept per config give the
+    same numbers as the plain computations."""
+    cfg = VisualConfig(**override)
+    rng = np.random.default_rng(4)
+    imgs = [shapes_scene(s) for s in range(6)] + [
+        rng.integers(0, 256, (int(rng.integers(120, 300)), int(rng.integers(100, 400))), dtype=np.uint8)
+        for _ in range(6)
+    ]
+    imgs.append(np.full((90, 120), 7, np.uint8))  # one grey level: imadjust keeps the image
+    for img in imgs:
+        r = Retina(cfg).ganglion_response(img)
+        assert r.dtype == np.float32 and np.array_equal(r, _reference_ganglion(cfg, img))
+        for clip in (0.0, 0.01, 0.2):
+            assert np.array_equal(imadjust(img, clip), _reference_imadjust(img, clip))
+        first, again = prepare_image(img, cfg), prepare_image(img, cfg)  # the second reuses the retina
+        assert np.array_equal(first[0], again[0]) and first[1] == again[1]
+        other = prepare_image(img, VisualConfig(**override))  # an equal config, another object
+        assert np.array_equal(first[0], other[0])

@@ -3,15 +3,19 @@
 :class:`ReferenceMemory` keeps, in this file, the plain implementation of every part the fast code
 replaces: the FLC drive as one ``np.take`` over freshly gathered patches for every fixation, the
 saccade vector decoded from the two grid codes every time, the retina run on every call, no drive
-remembered per fixation point, and ``dataclasses.asdict`` for a trace step. Recognitions (winning
-frame, evidence, every step of the saccade trace, correspondences) and the learned state must be
-identical, bit for bit, for the exact path, the index path, candidate subsets, a decoder variant
-and rejected queries.
+remembered per fixation point, ``dataclasses.asdict`` for a trace step, the candidate subset built
+from ``np.unique`` with nothing shared between recognitions, and the fixation bookkeeping (trace
+step, leading frames, survivors, frame activity, next target) as first written. Recognitions
+(winning frame, evidence, every step of the saccade trace, correspondences) and the learned state
+must be identical, bit for bit, for the exact path, the index path, candidate subsets, a decoder
+variant and rejected queries.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
+from typing import Any, cast
 
 import numpy as np
 import pytest
@@ -19,6 +23,7 @@ import pytest
 from hippomap import feature_store
 from hippomap import visual_memory as vm
 from hippomap.config import VisualConfig
+from hippomap.errors import InputError
 from hippomap.retina import imadjust
 from hippomap.sim.scenes import shapes_scene
 from hippomap.visual_grid_cells import VisualGridCells
@@ -56,6 +61,69 @@ def reference_decode_phase_difference(grid: VisualGridCells, delta: np.ndarray) 
     return np.take_along_axis(cand, best[..., None, None], axis=-2)[..., 0, :].astype(np.int64)
 
 
+class ReferenceSubset:
+    """:class:`~hippomap.feature_store.FlcSubset` as first written: every array gathered for the subset
+    alone, the statistics sample recomputed, the units' rows de-duplicated by ``np.unique``."""
+
+    def __init__(self, mem, frames):
+        n = mem.n_features
+        if frames is None:
+            self.idx = np.arange(n, dtype=np.int64)
+            self.desc = mem._desc[:n]
+        else:
+            self.idx = (
+                np.concatenate([np.arange(mem._fstart[f], mem._fstart[f] + mem._fcount[f]) for f in frames])
+                if len(frames)
+                else np.zeros(0, np.int64)
+            ).astype(np.int64)
+            self.desc = mem._desc[self.idx]
+        self.n = int(self.idx.size)
+        self.is_all = frames is None
+        cfg = mem.config
+        self.exact_all = self.n <= cfg.index_shortlist + cfg.stats_sample
+        n_all = mem.n_features
+        if self.is_all:
+            self.sample = (
+                None
+                if self.exact_all
+                else np.unique(np.linspace(0, self.n - 1, cfg.stats_sample).round().astype(np.int64))
+            )
+        else:
+            self.sample = (
+                np.arange(n_all, dtype=np.int64)
+                if n_all <= cfg.index_shortlist + cfg.stats_sample
+                else np.unique(np.linspace(0, n_all - 1, cfg.stats_sample).round().astype(np.int64))
+            )
+        self.rows = None
+        self.drives = {}
+        self.all_local = np.arange(self.n)
+        if self.exact_all:
+            self.rows = self.idx if self.is_all else np.concatenate([self.idx, self.sample])
+            uniq, inv = np.unique(self.rows, return_inverse=True)
+            self.rows_inv = inv if uniq.size < self.rows.size else None
+            gathered = uniq if self.rows_inv is not None else self.rows
+            self.rows_hi = mem._patch[gathered].astype(np.uint16) << 8
+            self.rows_z = mem._z[gathered]
+
+    def local(self, global_index: int) -> int:
+        if self.is_all:
+            return int(global_index)
+        i = int(np.searchsorted(self.idx, global_index))
+        return i if i < self.n and int(self.idx[i]) == int(global_index) else -1
+
+
+def reference_leading(a: np.ndarray, k: int) -> list[tuple[int, float]]:
+    nz = np.flatnonzero(a > 0)
+    if nz.size == 0:
+        return []
+    top = nz[np.argsort(-a[nz], kind="stable")[:k]]
+    return [(int(f), float(a[f])) for f in top]
+
+
+def _to_img(p, scale):
+    return None if p is None else (float(p[0]) * scale, float(p[1]) * scale)
+
+
 class ReferenceMemory(vm.VisualMemory):
     """The memory with its fast paths replaced by the plain computation they must equal."""
 
@@ -81,7 +149,151 @@ class ReferenceMemory(vm.VisualMemory):
 
     def _sense(self, img, pos, sub, predicted):
         sub.drives.clear()  # nothing remembered: every fixation computes its drive
-        return super()._sense(img, pos, sub, predicted)
+        cfg = self.config
+        x, y = int(pos[0]), int(pos[1])
+        patch = self._patch_at(img, x, y)
+        T, uT, uR = self._shortlist_drive(patch, x, y, sub, predicted)
+        mean, var, N = self._drive_stats(sub, T, uT, uR)
+        j = int(uT.argmax())
+        umax = float(uT[j])
+        winner = int(T[j])
+        p = -1
+        if predicted >= 0:
+            if T is sub.all_local:
+                p = predicted
+            else:
+                pk = np.flatnonzero(T == predicted)
+                p = int(pk[0]) if pk.size else -1
+        upred = float(uT[p]) if p >= 0 else 0.0
+        if not umax > mean + cfg.n_std * math.sqrt(var) or umax <= 0:
+            return vm.Sense(False, winner, umax, upred=upred)
+        ut = uT / umax
+        mean_t, var_t = mean / umax, var / umax**2
+        if p >= 0:
+            old = float(ut[p])
+            ut[p] = old * cfg.prediction_bias
+            m2_t = var_t + mean_t**2 + (ut[p] ** 2 - old**2) / N
+            mean_t = mean_t + (ut[p] - old) / N
+            var_t = max(0.0, m2_t - mean_t**2)
+        keep = ut >= mean_t + cfg.n_std * math.sqrt(var_t)
+        if not keep.any():
+            keep[int(ut.argmax())] = True
+        if cfg.max_survivors and np.count_nonzero(keep) > cfg.max_survivors:
+            idx = np.flatnonzero(keep)
+            top = idx[np.argsort(-ut[idx], kind="stable")[: cfg.max_survivors]]
+            keep = np.zeros_like(keep)
+            keep[top] = True
+        surv = T[keep]
+        vals = ut[keep].astype(np.float64) * cfg.softmax_gain
+        e = np.exp(vals - vals.max())
+        wts = e / e.sum()
+        best = int(surv[int(vals.argmax())])
+        return vm.Sense(True, winner, umax, surv, wts, best, upred)
+
+    def _query(self, image, candidates):
+        cfg = self.config
+        work, scale, cimg = self._views(image)
+        H, W = work.shape[:2]
+        size = (int(round(W * scale)), int(round(H * scale)))
+        if candidates is None:
+            frames = None
+        else:
+            frames = np.unique(np.array([self._check_frame(c) for c in candidates], dtype=np.int64))
+        sub = ReferenceSubset(self, frames)
+        if sub.n == 0:
+            return vm.Recognition(None, 0.0, [], 0, 0.0, size, "no stored frames")
+        sense_img = self._blur(work) if cfg.query_blur else work
+        starts = self._corners(cimg, cfg.query_keypoints, self.h)
+        if len(starts) == 0:
+            return vm.Recognition(None, 0.0, [], 0, 0.0, size, "no keypoints in the query")
+        return vm._Query(cast(Any, sub), sense_img, starts, scale, size)
+
+    def _fixate(self, q, st, a, steps, resets):
+        s = self._sense(q.sense_img, st.e, q.sub, q.sub.local(st.predicted) if st.predicted >= 0 else -1)
+        outcome, found = self._observe(st, s, q.sub, a)
+        steps.append(
+            vm.SaccadeStep(
+                attempt=resets,
+                fixation=cast("tuple[float, float]", _to_img(st.e, q.scale)),
+                target=_to_img(st.target, q.scale),
+                predicted_frame=int(self._frame[st.predicted]) if st.predicted >= 0 else None,
+                predicted_feature=None if st.predicted < 0 else int(st.predicted),
+                found_frame=None if found is None else int(self._frame[found]),
+                found_feature=found,
+                similarity=float(s.umax),
+                outcome=outcome,
+                evidence=reference_leading(a, self.config.trace_hypotheses),
+            )
+        )
+        st.first = False
+        return s, outcome
+
+    def _observe(self, st, s, sub, a):
+        cfg = self.config
+        if not s.evidence:
+            if st.first:
+                st.reset_reason = "first fixation not informative"
+            return "no_evidence", None
+        found = int(sub.idx[s.winner])
+        if st.first:
+            outcome = "start"
+        elif found == st.predicted or (st.predicted >= 0 and s.upred >= cfg.prediction_tolerance * s.umax):
+            outcome = "confirmed"
+            st.confirmed += 1
+        else:
+            outcome = "mismatch"
+            st.pred_err += 1
+            if st.pred_err > cfg.max_prediction_errors:
+                st.reset_reason = "too many wrong predictions"
+        if st.reset_reason is None and (outcome != "mismatch" or cfg.update_on_mismatch):
+            g = sub.idx[s.survivors]
+            np.add.at(a, self._frame[g], cfg.kappa * self._w[g] * s.weights)
+            np.clip(a, 0.0, 1.0, out=a)
+            if a.sum() > cfg.max_total_activity:
+                st.reset_reason = "total frame activity too high"
+            if st.first and cfg.anchor == "start":
+                st.m = self._pos[found].astype(np.int64)
+        return outcome, found
+
+    def _choose_target(self, a, e, m, visited, rng, img, frame=-1):
+        cfg = self.config
+        active = np.flatnonzero(a > 0)
+        if active.size == 0:
+            return -1, None, None, "no frame hypothesis"
+        if frame >= 0:
+            active = np.array([frame])
+        elif cfg.next_target != "stochastic":
+            active = active[[int(np.argmax(a[active]))]]
+        ks = np.concatenate([np.arange(self._fstart[f], self._fstart[f] + self._fcount[f]) for f in active])
+        if cfg.next_target == "stochastic":
+            v = self._w[ks] * a[self._frame[ks]] * (1.0 - rng.random(ks.size))
+        elif cfg.next_target == "most_active":
+            v = 0.5 + 0.5 * rng.random(ks.size)
+        else:
+            v = 1.0 / (1.0 + np.abs(self._pos[ks] - m[None, :]).sum(axis=1))
+        if visited:
+            vis = set(visited)
+            v[[i for i, k in enumerate(ks.tolist()) if k in vis]] = 0.0
+        order = np.argsort(-v, kind="stable")
+        order = order[v[order] > 0][: cfg.target_candidates]
+        if order.size == 0:
+            return -1, None, None, "no feature left to predict"
+        tol = cfg.tolerance_px
+        mf = m.astype(float)
+        for j in order.tolist():
+            k = int(ks[j])
+            d = self._decode_shared(mf, self._pos[k].astype(float))
+            dx, dy = int(d[0]), int(d[1])
+            if abs(dx) <= tol and abs(dy) <= tol:
+                continue
+            tgt = e + d
+            land = self._microsaccade(img, tgt, k, float(np.hypot(dx, dy)))
+            if land is None:
+                if cfg.out_of_view == "skip":
+                    continue
+                return -1, None, None, "saccade out of the image"
+            return k, tgt, land, ""
+        return -1, None, None, "no feature left to predict"
 
     def _views(self, image):
         gray, work, scale = vm.prepare_views(image, self.config)
@@ -130,8 +342,10 @@ def _same_state(a: vm.VisualMemory, b: vm.VisualMemory) -> None:
         {"decoder": "svc"},
         {"anchor": "none"},
         {"next_target": "stochastic"},
+        {"next_target": "most_active"},
+        {"out_of_view": "skip", "n_std": 1.0, "max_survivors": 3},
     ],
-    ids=["exact", "index", "svc", "no-anchor", "stochastic"],
+    ids=["exact", "index", "svc", "no-anchor", "stochastic", "most-active", "skip-many-survivors"],
 )
 def test_recognitions_equal_the_reference_bit_for_bit(override):
     fast, ref = _pair(VisualConfig(**override))
@@ -279,3 +493,86 @@ def test_learning_after_recognition_reuses_the_query_corners(monkeypatch):
     assert fast.learn(img) == fid
     assert calls["n"] == 1
     _same_state(fast, ref)
+
+
+def test_leading_frames_equal_the_reference():
+    rng = np.random.default_rng(5)
+    for n in (1, 3, 40, 300):
+        for _ in range(200):
+            a = rng.random(n) * (rng.random(n) < 0.3)
+            a[rng.integers(0, n, 2)] = a.max()  # ties
+            for k in (1, 5):
+                got, ref = vm._leading(a, k), reference_leading(a, k)
+                assert got == ref and [type(x) for t in got for x in t] == [type(x) for t in ref for x in t]
+
+
+def reference_shift_summary(correspondences):
+    if not correspondences:
+        return None
+    d = np.array([[c["query"][0] - c["memory"][0], c["query"][1] - c["memory"][1]] for c in correspondences], float)
+    med = np.median(d, axis=0)
+    mad = np.median(np.abs(d - med), axis=0)
+    return {"x": float(med[0]), "y": float(med[1]), "mad_x": float(mad[0]), "mad_y": float(mad[1]), "n": int(len(d))}
+
+
+@pytest.mark.filterwarnings("ignore::RuntimeWarning")
+def test_shift_summary_equals_numpy_median():
+    """The median on Python floats gives np.median's values, bit for bit (signed zeros, NaN and infinities
+    take numpy's own path)."""
+    rng = np.random.default_rng(9)
+    special = [0.0, -0.0, 1.0, 2.5, np.nan, np.inf, -np.inf]
+    for it in range(3000):
+        n = int(rng.integers(1, 12))
+        if it % 3 == 0:
+            q, m = rng.integers(0, 320, (n, 2)) * 1.0, rng.integers(0, 320, (n, 2)) * 1.0
+        elif it % 3 == 1:
+            q, m = rng.normal(size=(n, 2)) * 50, rng.integers(0, 3, (n, 2)) * 0.5
+        else:
+            q, m = rng.choice(special, (n, 2)), rng.choice(special[:4], (n, 2))
+        corr = [{"query": [float(a[0]), float(a[1])], "memory": [float(b[0]), float(b[1])]} for a, b in zip(q, m)]
+        assert repr(vm.shift_summary(corr)) == repr(reference_shift_summary(corr))
+    assert vm.shift_summary([]) is None
+
+
+@pytest.mark.parametrize("n_frames", [3, 10, 40])
+def test_subsets_equal_the_reference(n_frames):
+    """A subset's rows, their de-duplication and gathered patches equal those built by np.unique for the
+    subset alone, whether the library is small (its sample is every unit), large, or indexed."""
+    mem = vm.VisualMemory(VisualConfig())
+    for i in range(n_frames):
+        mem.learn(shapes_scene(100 + i))
+    rng = np.random.default_rng(n_frames)
+    choices = [None, np.arange(mem.n_frames)] + [
+        np.unique(rng.integers(0, mem.n_frames, int(rng.integers(1, mem.n_frames + 1)))) for _ in range(20)
+    ]
+    for frames in choices:
+        for _ in range(2):  # the second subset of the same library reads what the first remembered
+            got, ref = feature_store.FlcSubset(mem, frames), ReferenceSubset(mem, frames)
+            assert np.array_equal(got.idx, ref.idx) and got.n == ref.n and got.exact_all == ref.exact_all
+            assert np.array_equal(got.desc, ref.desc)
+            assert (got.sample is None) == (ref.sample is None)
+            if ref.sample is not None:
+                assert np.array_equal(got.sample, ref.sample)
+            if ref.exact_all:
+                assert np.array_equal(got.rows, ref.rows)
+                assert (got.rows_inv is None) == (ref.rows_inv is None)
+                if ref.rows_inv is not None:
+                    assert np.array_equal(got.rows_inv, ref.rows_inv)
+                assert np.array_equal(got.rows_hi, ref.rows_hi) and got.rows_hi.dtype == np.uint16
+                assert np.array_equal(got.rows_z, ref.rows_z)
+            elif not ref.is_all:
+                assert np.array_equal(got.sample_hi, mem._patch[ref.sample].astype(np.uint16) << 8)
+                assert np.array_equal(got.sample_z, mem._z[ref.sample])
+            for g in (0, mem.n_features - 1, int(got.idx[-1]), int(rng.integers(0, mem.n_features))):
+                assert got.local(g) == ref.local(g)
+
+
+def test_candidate_ids_are_checked_like_one_by_one():
+    mem = vm.VisualMemory(VisualConfig())
+    for i in range(4):
+        mem.learn(shapes_scene(200 + i))
+    for cands in ([3, 1, 1, 0], [np.int64(2), 0], [True, 2], [2.0, 1], (1, 3), range(4)):
+        assert np.array_equal(mem._candidate_frames(cands), np.unique([mem._check_frame(c) for c in cands]))
+    for bad in ([4], [-1, 2], [1, 2.5], [2**70], ["1"]):
+        with pytest.raises(InputError):
+            mem._candidate_frames(bad)
