@@ -500,7 +500,7 @@ class VisualMemory(FixationSensing):
         order = sorted([j for j in range(n) if v[j] > 0], key=lambda j: -v[j])[: cfg.target_candidates]
         if not order:
             return -1, None, None, "no feature left to predict"
-        tol = cfg.tolerance_px
+        tol, gain = cfg.tolerance_px, cfg.microsaccade_gain
         mf = m.astype(float)
         for j in order:  # best first; usually the first candidate is taken
             d = self._decode_shared(mf, pos[j].astype(float))  # decode(g(m), W_FLC->GC e_k), int64
@@ -508,7 +508,10 @@ class VisualMemory(FixationSensing):
             if abs(dx) <= tol and abs(dy) <= tol:
                 continue  # [BBc]: choose again while the vector is within tolerance
             tgt = e + d
-            land = self._microsaccade(img, tgt, f0 + j, float(np.hypot(dx, dy)))
+            # the amplitude only widens the search by microsaccade_gain x amplitude: without a gain that is
+            # round(0.0 x a finite amplitude) = 0 whatever the amplitude, so it is not computed
+            amp = float(np.hypot(dx, dy)) if gain else 0.0
+            land = self._microsaccade(img, tgt, f0 + j, amp)
             if land is None:
                 if cfg.out_of_view == "skip":
                     continue  # the predicted feature lies outside this view: look at another one

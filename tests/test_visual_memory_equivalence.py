@@ -344,8 +344,9 @@ def _same_state(a: vm.VisualMemory, b: vm.VisualMemory) -> None:
         {"next_target": "stochastic"},
         {"next_target": "most_active"},
         {"out_of_view": "skip", "n_std": 1.0, "max_survivors": 3},
+        {"microsaccade_gain": 0.2},
     ],
-    ids=["exact", "index", "svc", "no-anchor", "stochastic", "most-active", "skip-many-survivors"],
+    ids=["exact", "index", "svc", "no-anchor", "stochastic", "most-active", "skip-many-survivors", "wide-microsaccade"],
 )
 def test_recognitions_equal_the_reference_bit_for_bit(override):
     fast, ref = _pair(VisualConfig(**override))
