@@ -170,14 +170,14 @@ class FlcSubset:
                 # = _patch[gathered].astype(uint16) << 8: the cast is left_shift's own (one pass less)
                 self.rows_hi = np.left_shift(np.take(mem._patch, gathered, axis=0), 8, dtype=np.uint16)
                 self.rows_z = mem._z[gathered]
-            self.rows_buf = mem._scratch(self.rows_hi.shape[0])
+            self.rows_buf = np.empty(self.rows_hi.shape, np.uint16)
         elif not self.is_all:
             # index with candidates: the statistics sample is the same at every fixation, its patches
             # (high byte of the table index) and normalisers are gathered once per library; the buffer holds
             # the shortlist (plus the predicted unit) and the sample
             self.sample_hi = lib.sample_hi
             self.sample_z = lib.sample_z
-            self.index_buf = mem._scratch(cfg.index_shortlist + 1 + lib.sample.size)
+            self.index_buf = np.empty((cfg.index_shortlist + 1 + lib.sample.size, mem.P), np.uint16)
 
     @property
     def desc(self) -> np.ndarray:
@@ -221,7 +221,6 @@ class FeatureStore:
         self._last_views: tuple[np.ndarray, np.ndarray, float, np.ndarray] | None = None  # see _views
         self._last_corners: tuple[np.ndarray, float, int, np.ndarray] | None = None  # see _corners
         self._lib: _Library | None = None  # see _library
-        self._scratch_buf = np.empty((0, self.P), np.uint16)  # see _scratch
         cap = 64
         self._patch = np.zeros((cap, self.P), np.uint8)
         self._desc = np.zeros((cap, self.D), np.float32)
@@ -286,15 +285,6 @@ class FeatureStore:
         if lib is None or lib.n != self._nf:
             lib = self._lib = _Library(self)
         return lib
-
-    def _scratch(self, rows: int) -> np.ndarray:
-        """A ``(rows, P)`` uint16 buffer for the drive table's indices, shared by the subsets of this memory
-        (grown by doubling, never shrunk): every drive writes the rows it reads within the same call, so no
-        content outlives a call, and reusing the pages spares a fresh allocation per recognition."""
-        buf = self._scratch_buf
-        if buf.shape[0] < rows:
-            buf = self._scratch_buf = np.empty((max(rows, 2 * buf.shape[0]), self.P), np.uint16)
-        return buf[:rows]
 
     # -- views and patches -------------------------------------------------------------
     def _views(self, image: Any) -> tuple[np.ndarray, float, np.ndarray]:

@@ -84,7 +84,10 @@ class FixationSensing(FeatureStore):
         # VisualGridCells.decode(encode(m), encode(target)), step by step: each point's module phasors
         # (its grid code's Fourier projection) are remembered, since a point comes back in many pairs
         zf, zt = self._phase_code(m), self._phase_code(target)
-        return self.grid.decode_phase_difference(np.angle(zt * np.conj(zf)))
+        w = zt * np.conj(zf)
+        # np.angle(w) is arctan2(w.imag, w.real) for a complex array, and decode_phase_difference of one
+        # (M, 3) float difference is _decode_one: the same calls without their wrappers
+        return self.grid._decode_one(np.arctan2(w.imag, w.real))
 
     def _phase_code(self, p: np.ndarray) -> np.ndarray:
         """The module phasors of point ``p``'s grid code (``grid._project(grid.encode(p))``, read only):
@@ -117,7 +120,7 @@ class FixationSensing(FeatureStore):
             if T is sub.all_local:
                 p = predicted
             else:
-                pk = np.flatnonzero(T == predicted)
+                pk = (T == predicted).nonzero()[0]  # np.flatnonzero of a 1-D array
                 p = int(pk[0]) if pk.size else -1
         upred = float(uT[p]) if p >= 0 else 0.0
         if not umax > mean + cfg.n_std * math.sqrt(var) or umax <= 0:
