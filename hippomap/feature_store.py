@@ -11,8 +11,8 @@ cells are simulated exactly but never materialised. Above ``index_shortlist + st
 an index is used (:meth:`FeatureStore._population_drive`): OpenCV's ``batchDistance`` finds the
 ``index_shortlist`` nearest 8 x 8 area-averaged patch descriptors, whose drive is computed
 exactly, and the population's statistics (the ``N_std`` rule) are estimated from them plus a fixed
-stratified sample of ``stats_sample`` other units. :class:`FlcSubset` is the set of FLCs one
-recognition may use (all, or the candidate frames').
+stratified sample of ``stats_sample`` other units. :class:`~hippomap.flc_subset.FlcSubset` is the
+set of FLCs one recognition may use (all, or the candidate frames').
 
 The saccade loop that reads this store is :class:`~hippomap.visual_memory.VisualMemory`.
 """
@@ -26,6 +26,7 @@ import numpy as np
 
 from .config import VisualConfig
 from .errors import InputError
+from .flc_subset import FlcSubset, _Library
 from .retina import imadjust
 from .visual_images import prepare_views, working_size
 
@@ -69,131 +70,6 @@ def _mean_var(u: np.ndarray) -> tuple[float, float]:
     mean = np.add.reduce(u) / n
     d = u - mean
     return float(mean), float(np.add.reduce(np.multiply(d, d, out=d)) / n)
-
-
-class _Library:
-    """What every subset of one library state shares (remembered per library size, read only): the
-    statistics sample of the ``N_std`` rule over the whole library (all units while it is small, else a
-    fixed stratified sample), and lazily the sample's patches shifted into the high byte of the drive
-    table's index and its normalisers. The library only grows (a learned frame appends units, stored rows
-    never change), so its size names its state."""
-
-    def __init__(self, mem: FeatureStore):
-        cfg = mem.config
-        n = mem.n_features
-        self.n = n
-        self.mem = mem
-        #: whether the sample is the whole library (then its rows are those of every unit, in order)
-        self.small = n <= cfg.index_shortlist + cfg.stats_sample
-        self.sample = (
-            np.arange(n, dtype=np.int64)
-            if self.small
-            else np.unique(np.linspace(0, n - 1, cfg.stats_sample).round().astype(np.int64))
-        )
-        self.sample.flags.writeable = False
-        self._hi: np.ndarray | None = None
-        self._z: np.ndarray | None = None
-
-    @property
-    def sample_hi(self) -> np.ndarray:
-        """``_patch[sample].astype(uint16) << 8``, gathered on first use (read only)."""
-        if self._hi is None:
-            self._hi = self.mem._patch[self.sample].astype(np.uint16) << 8
-            self._hi.flags.writeable = False
-        return self._hi
-
-    @property
-    def sample_z(self) -> np.ndarray:
-        """``_z[sample]`` (read only)."""
-        if self._z is None:
-            self._z = self.mem._z[self.sample]
-            self._z.flags.writeable = False
-        return self._z
-
-
-class FlcSubset:
-    """The FLCs a recognition may use (all, or those of the candidate frames)."""
-
-    def __init__(self, mem: FeatureStore, frames: np.ndarray | None):
-        n = mem.n_features
-        lib = mem._library()
-        self._mem = mem
-        self._desc: np.ndarray | None = None  # see desc
-        if frames is None:
-            self.idx = np.arange(n, dtype=np.int64)
-        else:
-            # the frames' index ranges concatenated in frame order, without a Python loop over the frames:
-            # element j of frame i (ranges laid end to end from offset o_i) is start_i + (j - o_i)
-            starts = mem._fstart[frames]
-            counts = mem._fcount[frames]
-            ends = np.cumsum(counts)
-            self.idx = (
-                np.repeat(starts - ends + counts, counts) + np.arange(int(ends[-1]) if len(ends) else 0)
-            ).astype(np.int64)
-        self.n = int(self.idx.size)
-        self.is_all = frames is None
-        cfg = mem.config
-        self.exact_all = self.n <= cfg.index_shortlist + cfg.stats_sample
-        # the statistics sample: of the units outside the shortlist (local = global indices) for the whole
-        # library, of the whole library for candidates (the sensory layer is global: N_std statistics over
-        # the library, not the candidates); the same stratified sample either way, remembered per library
-        self.sample = None if self.is_all and self.exact_all else lib.sample
-        # the FLCs whose drive is computed exactly at every fixation are fixed for the whole recognition when
-        # no index is used: their learned patches (shifted into the high byte of the drive table's index)
-        # and normalisers are gathered once here, not once per fixation
-        self.rows: np.ndarray | None = None
-        # drives of the rows per fixation point, for this recognition: a saccade lands on a point
-        # fixated before (a microsaccade snaps onto the same feature) about one time in eight
-        self.drives: dict[tuple[int, int], np.ndarray] = {}
-        #: local indices of the units scored exactly when no index is used (all of the subset, read only)
-        self.all_local = np.arange(self.n)
-        self.all_local.flags.writeable = False
-        if self.exact_all:
-            self.rows = self.idx if self.is_all else np.concatenate([self.idx, lib.sample])
-            # a unit both candidate and in the statistics sample (all of them while the library is small)
-            # is gathered once: a row's drive does not depend on the other rows of the gather. The gathered
-            # rows are np.unique(rows) and rows_inv its inverse (None when no unit is repeated)
-            if lib.small:
-                # every row is a unit of the library, and all of them are in it (the whole library, or the
-                # candidates followed by the sample = the whole library): the unique rows are 0..n-1, each
-                # row's position among them is the row itself, and their patches are the library's sample's
-                self.rows_inv: np.ndarray | None = self.rows if self.n and not self.is_all else None
-                self.rows_hi = lib.sample_hi
-                self.rows_z = lib.sample_z
-            else:
-                # sorted unique rows and each row's position among them, by marking the library's units
-                mark = np.zeros(n, np.bool_)
-                mark[self.rows] = True
-                uniq = mark.nonzero()[0]
-                self.rows_inv = (np.cumsum(mark) - 1)[self.rows] if uniq.size < self.rows.size else None
-                gathered = uniq if self.rows_inv is not None else self.rows
-                # = _patch[gathered].astype(uint16) << 8: the cast is left_shift's own (one pass less)
-                self.rows_hi = np.left_shift(np.take(mem._patch, gathered, axis=0), 8, dtype=np.uint16)
-                self.rows_z = mem._z[gathered]
-            self.rows_buf = np.empty(self.rows_hi.shape, np.uint16)
-        elif not self.is_all:
-            # index with candidates: the statistics sample is the same at every fixation, its patches
-            # (high byte of the table index) and normalisers are gathered once per library; the buffer holds
-            # the shortlist (plus the predicted unit) and the sample
-            self.sample_hi = lib.sample_hi
-            self.sample_z = lib.sample_z
-            self.index_buf = np.empty((cfg.index_shortlist + 1 + lib.sample.size, mem.P), np.uint16)
-
-    @property
-    def desc(self) -> np.ndarray:
-        """The index descriptors of the subset's units (row ``i`` = local unit ``i``), gathered on first use:
-        only the index reads them."""
-        if self._desc is None:
-            mem = self._mem
-            self._desc = mem._desc[: self.n] if self.is_all else mem._desc[self.idx]
-        return self._desc
-
-    def local(self, global_index: int) -> int:
-        """Index of a global FLC in this subset, or -1 (``idx`` is sorted: frames ascending)."""
-        if self.is_all:
-            return int(global_index)
-        i = int(self.idx.searchsorted(global_index))
-        return i if i < self.n and int(self.idx[i]) == int(global_index) else -1
 
 
 class FeatureStore:

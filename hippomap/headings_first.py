@@ -21,7 +21,8 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from .least_squares import _spd_factor, _sqrt_information, group_order
+from .least_squares import _sqrt_information
+from .lsq_layout import _spd_factor, group_order
 from .relaxation import _as_graph, _wrap_inplace
 
 
@@ -42,7 +43,7 @@ def _laplacian_solve(
     (M,), one more unknown β shared by all links: the change of a parameter now at ``extra_start``
     with a zero-mean prior of information ``extra_prior`` (one right-hand side only). ``order``:
     the kept unknowns (β is unknown ``n``) in a fill-reducing elimination order, as
-    :func:`~hippomap.least_squares.group_order` returns it (computed here when None). Returns
+    :func:`~hippomap.lsq_layout.group_order` returns it (computed here when None). Returns
     (N, C), and β (0 without ``extra``)."""
     m = len(src)
     rows = np.concatenate([np.arange(m)] * 2)

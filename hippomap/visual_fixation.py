@@ -5,7 +5,8 @@ evidence test ``max u > mean + N_std sd`` and the pruning to a few survivors wit
 weights (:meth:`FixationSensing._sense`). A saccade to a predicted feature is the vector
 decoded from the visual grid cells' codes of the gaze and the feature's learned position
 (Eqs. 4-5, :mod:`hippomap.visual_grid_cells`), and the microsaccade snaps the landing point
-to the best match of the predicted patch (:meth:`FixationSensing._microsaccade`). The saccade
+to the best match of the predicted patch (:meth:`FixationSensing._microsaccade`); the most active
+frame chooses which of its features to look at next (:meth:`FixationSensing._choose_target`). The saccade
 loop that strings fixations into a recognition is :class:`hippomap.visual_memory.VisualMemory`.
 """
 
@@ -13,6 +14,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
@@ -187,3 +189,124 @@ class FixationSensing(FeatureStore):
         res = cv2.matchTemplate(region, tmpl, cv2.TM_SQDIFF)
         _, _, loc, _ = cv2.minMaxLoc(res)
         return np.array([x0 + loc[0], y0 + loc[1]])
+
+    # -- the next saccade's target --------------------------------------------------------
+    def _choose_target(
+        self,
+        a: np.ndarray,
+        e: np.ndarray,
+        m: np.ndarray,
+        visited: list[int],
+        rng: np.random.Generator,
+        img: np.ndarray,
+        frame: int = -1,
+    ) -> tuple[int, Any, Any, str]:
+        """Next feature k* chosen by the frame hypotheses, its saccade vector decoded from the
+        grid code, and the landing point after the microsaccade (spec §2 steps 5-7).
+
+        Returns ``(k*, target, landing, "")`` or ``(-1, None, None, reason)`` for a reset.
+        """
+        cfg = self.config
+        if cfg.next_target == "nearest" and a.size:
+            # one frame chooses: the verifying one, or the most active. a.argmax() is the first index of the
+            # maximum, the argmax over the positive entries whenever that maximum is positive; otherwise (no
+            # positive entry, or a NaN) the general path below decides
+            lead = int(a.argmax())
+            if a[lead] > 0:
+                return self._nearest_target(frame if frame >= 0 else lead, e, m, visited, img)
+        active = np.flatnonzero(a > 0)
+        if active.size == 0:
+            return -1, None, None, "no frame hypothesis"
+        if frame >= 0:  # verification: the accepted frame predicts
+            active = np.array([frame])
+        elif cfg.next_target != "stochastic":
+            active = active[[int(np.argmax(a[active]))]]
+        ks, v = self._target_preferences(a, active, m, visited, rng)
+        order = np.argsort(-v, kind="stable")
+        order = order[v[order] > 0][: cfg.target_candidates]
+        if order.size == 0:
+            return -1, None, None, "no feature left to predict"
+        tol = cfg.tolerance_px
+        mf = m.astype(float)
+        for j in order.tolist():  # best first; usually the first candidate is taken
+            k = int(ks[j])
+            d = self._decode_shared(mf, self._pos[k].astype(float))  # decode(g(m), W_FLC->GC e_k), int64
+            dx, dy = int(d[0]), int(d[1])
+            if abs(dx) <= tol and abs(dy) <= tol:
+                continue  # [BBc]: choose again while the vector is within tolerance
+            tgt = e + d
+            land = self._microsaccade(img, tgt, k, float(np.hypot(dx, dy)))
+            if land is None:
+                if cfg.out_of_view == "skip":
+                    continue  # the predicted feature lies outside this view: look at another one
+                return -1, None, None, "saccade out of the image"
+            return k, tgt, land, ""
+        return -1, None, None, "no feature left to predict"
+
+    def _nearest_target(
+        self, f: int, e: np.ndarray, m: np.ndarray, visited: list[int], img: np.ndarray
+    ) -> tuple[int, Any, Any, str]:
+        """:meth:`_choose_target` with ``next_target = 'nearest'`` once frame ``f`` chooses: the same
+        preference values, order and loop over the frame's features, on Python scalars for its few features.
+
+        Why the same: feature ``f0 + j`` is row ``j`` of the frame's slice of the positions (``ks`` is
+        ``f0, f0 + 1, ...``); a preference ``1 / (1 + |dx| + |dy|)`` of whole pixels is the same integer
+        sum and the same two double operations as numpy's; the candidates are the unvisited features of
+        positive preference, strongest first, ties in feature order (what the stable ``argsort`` of ``-v``
+        filtered by ``v > 0`` gives: filtering before a stable sort keeps the same order)."""
+        cfg = self.config
+        f0 = int(self._fstart[f])
+        pos = self._pos[f0 : f0 + int(self._fcount[f])]
+        mx, my = m.tolist()
+        v = [1.0 / (1.0 + (abs(px - mx) + abs(py - my))) for px, py in pos.tolist()]
+        n = len(v)
+        for k in visited:
+            if f0 <= k < f0 + n:
+                v[k - f0] = 0.0
+        order = sorted([j for j in range(n) if v[j] > 0], key=lambda j: -v[j])[: cfg.target_candidates]
+        if not order:
+            return -1, None, None, "no feature left to predict"
+        tol, gain = cfg.tolerance_px, cfg.microsaccade_gain
+        mf = m.astype(float)
+        for j in order:  # best first; usually the first candidate is taken
+            d = self._decode_shared(mf, pos[j].astype(float))  # decode(g(m), W_FLC->GC e_k), int64
+            dx, dy = d.tolist()
+            if abs(dx) <= tol and abs(dy) <= tol:
+                continue  # [BBc]: choose again while the vector is within tolerance
+            tgt = e + d
+            # the amplitude only widens the search by microsaccade_gain x amplitude: without a gain that is
+            # round(0.0 x a finite amplitude) = 0 whatever the amplitude, so it is not computed
+            amp = float(np.hypot(dx, dy)) if gain else 0.0
+            land = self._microsaccade(img, tgt, f0 + j, amp)
+            if land is None:
+                if cfg.out_of_view == "skip":
+                    continue  # the predicted feature lies outside this view: look at another one
+                return -1, None, None, "saccade out of the image"
+            return f0 + j, tgt, land, ""
+        return -1, None, None, "no feature left to predict"
+
+    def _target_preferences(
+        self, a: np.ndarray, active: np.ndarray, m: np.ndarray, visited: list[int], rng: np.random.Generator
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """``(ks, v)``: the features of the choosing frames ``active`` and each one's preference as the next
+        target (``next_target``), 0 for the features visited in this attempt."""
+        cfg = self.config
+        if active.size == 1:  # one frame chooses (always unless stochastic): its features are one range
+            f0 = int(self._fstart[active[0]])
+            ks = np.arange(f0, f0 + int(self._fcount[active[0]]))
+        else:
+            ks = np.concatenate([np.arange(self._fstart[f], self._fstart[f] + self._fcount[f]) for f in active])
+        if cfg.next_target == "stochastic":
+            v = self._w[ks] * a[self._frame[ks]] * (1.0 - rng.random(ks.size))  # (1 - U) W_ID->FLC a ([BBc])
+        elif cfg.next_target == "most_active":
+            v = 0.5 + 0.5 * rng.random(ks.size)  # a random unvisited feature of the leading frame ([S])
+        else:  # "nearest": the leading frame's unvisited feature closest to the gaze (short saccades)
+            v = 1.0 / (1.0 + np.abs(self._pos[ks] - m[None, :]).sum(axis=1))
+        if visited:
+            if active.size == 1:  # ks is the range f0, f0 + 1, ...: a visited feature k sits at k - f0
+                hit = [k - f0 for k in visited if f0 <= k < f0 + ks.size]
+            else:
+                vis = set(visited)
+                hit = [i for i, k in enumerate(ks.tolist()) if k in vis]
+            v[hit] = 0.0
+        return ks, v

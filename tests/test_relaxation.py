@@ -477,7 +477,7 @@ def test_normal_equations_on_the_fixed_pattern_equal_the_dense_jacobian_product(
     """``_normal_pattern`` assembles JᵀJ + damping and −Jᵀe per link block into a pattern in the
     nodes' elimination order; it must equal the dense product of the full Jacobian (held
     unknowns dropped), including parallel links and the bias column."""
-    from hippomap.least_squares import _normal_pattern
+    from hippomap.lsq_layout import _normal_pattern
 
     rng = np.random.default_rng(seed)
     n = int(rng.integers(3, 12))
@@ -517,7 +517,7 @@ def test_solves_in_the_node_order_equal_a_dense_solve(seed):
     kept group once and each group's unknowns together."""
     import scipy.sparse as sp
 
-    from hippomap.least_squares import _spd_factor, group_order
+    from hippomap.lsq_layout import _spd_factor, group_order
 
     rng = np.random.default_rng(seed)
     n = int(rng.integers(3, 30))

@@ -11,6 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from hippomap import least_squares as ls
+from hippomap import lsq_layout as lay
 from hippomap.cognitive_map import CognitiveMap
 from hippomap.config import MapConfig
 from hippomap.geometry import integrate
@@ -34,15 +35,15 @@ def _graph(draw_seed: int, n: int, extra: int):
 def test_remembered_group_order_equals_a_fresh_one(seed, n, extra):
     src, dst, rng = _graph(seed, n, extra)
     keep = rng.random(n) > 0.2
-    fresh = ls._group_order(n, src, dst, keep)
+    fresh = lay._group_order(n, src, dst, keep)
     for _ in range(2):  # computed, then remembered
-        got = ls.group_order(n, src, dst, keep)
+        got = lay.group_order(n, src, dst, keep)
         np.testing.assert_array_equal(got, fresh)
         assert not got.flags.writeable  # shared between solves: nobody may change it
     # another structure of the same size is not confused with it
     other = keep.copy()
     other[0] = not other[0]
-    np.testing.assert_array_equal(ls.group_order(n, src, dst, other), ls._group_order(n, src, dst, other))
+    np.testing.assert_array_equal(lay.group_order(n, src, dst, other), lay._group_order(n, src, dst, other))
 
 
 @settings(max_examples=30, deadline=None)
@@ -58,8 +59,8 @@ def test_remembered_lsq_layout_equals_a_fresh_one(seed, n, extra, bias, anchor, 
     src, dst, rng = _graph(seed, n, extra)
     fixed = rng.choice(np.arange(1, n), size=min(n_fixed, n - 1), replace=False) if n_fixed else None
     bdt = np.where(rng.random(len(src)) > 0.3, rng.random(len(src)), 0.0) if bias else None
-    fresh = ls._lsq_layout_of(n, src, dst, anchor, fixed, bdt, 4.0)
-    got = ls._lsq_layout(n, src, dst, anchor, fixed, bdt, 4.0)
+    fresh = lay._lsq_layout_of(n, src, dst, anchor, fixed, bdt, 4.0)
+    got = lay._lsq_layout(n, src, dst, anchor, fixed, bdt, 4.0)
     assert got[0] == fresh[0]
     np.testing.assert_array_equal(got[1], fresh[1])
     np.testing.assert_array_equal(got[2], fresh[2])
@@ -100,7 +101,7 @@ def test_block_pattern_equals_the_entry_pattern(seed, n, extra, bias, n_held, is
     if bias:
         loc = np.column_stack([loc, np.full(len(src), bias_col)])
     gk = col[loc]
-    for want, got in zip(ls._entry_pattern(gk, len(idx)), ls._block_pattern(col, gk, bias_col, len(idx))):
+    for want, got in zip(lay._entry_pattern(gk, len(idx)), lay._block_pattern(col, gk, bias_col, len(idx))):
         assert want.dtype == got.dtype
         np.testing.assert_array_equal(got, want)
 
@@ -114,15 +115,15 @@ def test_solves_give_the_same_poses_with_the_remembered_layouts():
     dst = np.concatenate([np.arange(1, n), [n - 1, 50, 40]])
     tr = np.column_stack([np.full(len(src), 0.5), np.zeros(len(src)), np.full(len(src), 2 * math.pi / n)])
     P0 = np.cumsum(rng.normal(0, 0.3, (n, 3)), axis=0)
-    ls._group_order_memo.cache_clear()
-    ls._lsq_layout_memo.cache_clear()
+    lay._group_order_memo.cache_clear()
+    lay._lsq_layout_memo.cache_clear()
     out = []
     for _ in range(2):
         P = P0.copy()
         rotation_first_init(P, src, dst, tr)
         ls.solve_lsq(P, src, dst, tr)
         out.append(P)
-    assert ls._lsq_layout_memo.cache_info().hits >= 1 and ls._group_order_memo.cache_info().hits >= 1
+    assert lay._lsq_layout_memo.cache_info().hits >= 1 and lay._group_order_memo.cache_info().hits >= 1
     np.testing.assert_array_equal(out[0], out[1])
 
 
