@@ -224,24 +224,7 @@ class FixationSensing(FeatureStore):
         ks, v = self._target_preferences(a, active, m, visited, rng)
         order = np.argsort(-v, kind="stable")
         order = order[v[order] > 0][: cfg.target_candidates]
-        if order.size == 0:
-            return -1, None, None, "no feature left to predict"
-        tol = cfg.tolerance_px
-        mf = m.astype(float)
-        for j in order.tolist():  # best first; usually the first candidate is taken
-            k = int(ks[j])
-            d = self._decode_shared(mf, self._pos[k].astype(float))  # decode(g(m), W_FLC->GC e_k), int64
-            dx, dy = int(d[0]), int(d[1])
-            if abs(dx) <= tol and abs(dy) <= tol:
-                continue  # [BBc]: choose again while the vector is within tolerance
-            tgt = e + d
-            land = self._microsaccade(img, tgt, k, float(np.hypot(dx, dy)))
-            if land is None:
-                if cfg.out_of_view == "skip":
-                    continue  # the predicted feature lies outside this view: look at another one
-                return -1, None, None, "saccade out of the image"
-            return k, tgt, land, ""
-        return -1, None, None, "no feature left to predict"
+        return self._land_first(ks[order].tolist(), e, m, img)
 
     def _nearest_target(
         self, f: int, e: np.ndarray, m: np.ndarray, visited: list[int], img: np.ndarray
@@ -264,12 +247,20 @@ class FixationSensing(FeatureStore):
             if f0 <= k < f0 + n:
                 v[k - f0] = 0.0
         order = sorted([j for j in range(n) if v[j] > 0], key=lambda j: -v[j])[: cfg.target_candidates]
-        if not order:
-            return -1, None, None, "no feature left to predict"
+        return self._land_first([f0 + j for j in order], e, m, img)
+
+    def _land_first(
+        self, features: list[int], e: np.ndarray, m: np.ndarray, img: np.ndarray
+    ) -> tuple[int, Any, Any, str]:
+        """The first of ``features`` (best first; usually the first is taken) whose saccade vector, decoded
+        from the grid codes of the gaze ``m`` and the feature's learned position, leaves the tolerance and
+        whose landing the microsaccade finds: ``(k*, target, landing, "")``, or ``(-1, None, None, reason)``
+        for a reset. Both decoders return whole pixels (int64)."""
+        cfg = self.config
         tol, gain = cfg.tolerance_px, cfg.microsaccade_gain
         mf = m.astype(float)
-        for j in order:  # best first; usually the first candidate is taken
-            d = self._decode_shared(mf, pos[j].astype(float))  # decode(g(m), W_FLC->GC e_k), int64
+        for k in features:
+            d = self._decode_shared(mf, self._pos[k].astype(float))  # decode(g(m), W_FLC->GC e_k), int64
             dx, dy = d.tolist()
             if abs(dx) <= tol and abs(dy) <= tol:
                 continue  # [BBc]: choose again while the vector is within tolerance
@@ -277,12 +268,12 @@ class FixationSensing(FeatureStore):
             # the amplitude only widens the search by microsaccade_gain x amplitude: without a gain that is
             # round(0.0 x a finite amplitude) = 0 whatever the amplitude, so it is not computed
             amp = float(np.hypot(dx, dy)) if gain else 0.0
-            land = self._microsaccade(img, tgt, f0 + j, amp)
+            land = self._microsaccade(img, tgt, k, amp)
             if land is None:
                 if cfg.out_of_view == "skip":
                     continue  # the predicted feature lies outside this view: look at another one
                 return -1, None, None, "saccade out of the image"
-            return f0 + j, tgt, land, ""
+            return k, tgt, land, ""
         return -1, None, None, "no feature left to predict"
 
     def _target_preferences(

@@ -9,7 +9,6 @@ to turn a recognition into a relative pose. Both records round-trip through plai
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -30,36 +29,10 @@ def shift_summary(correspondences: list[dict[str, Any]]) -> dict[str, Any] | Non
     deviation from it, ``n`` = count; ``None`` for no correspondences."""
     if not correspondences:
         return None
-    dx = [float(c["query"][0] - c["memory"][0]) for c in correspondences]
-    dy = [float(c["query"][1] - c["memory"][1]) for c in correspondences]
-    if all(map(_plain, dx)) and all(map(_plain, dy)):
-        mx, my = _median(dx), _median(dy)
-        return {
-            "x": mx,
-            "y": my,
-            "mad_x": _median([abs(v - mx) for v in dx]),
-            "mad_y": _median([abs(v - my) for v in dy]),
-            "n": len(dx),
-        }
-    d = np.array([dx, dy], float).T
+    d = np.array([[c["query"][0] - c["memory"][0], c["query"][1] - c["memory"][1]] for c in correspondences], float)
     med = np.median(d, axis=0)
     mad = np.median(np.abs(d - med), axis=0)
     return {"x": float(med[0]), "y": float(med[1]), "mad_x": float(mad[0]), "mad_y": float(mad[1]), "n": int(len(d))}
-
-
-def _plain(v: float) -> bool:
-    """A finite value that is not -0.0: among such values, equal ones have the same bits."""
-    return math.isfinite(v) and (v != 0.0 or math.copysign(1.0, v) > 0)
-
-
-def _median(v: list[float]) -> float:
-    """``float(np.median(v))`` of finite values without -0.0 (:func:`_plain`), on Python floats: the middle
-    value of the sorted values, or the mean ``(a + b) / 2`` of the two middle ones, which is what
-    ``np.median`` computes (its ``np.mean`` of the two is their sum divided by 2). Whichever of equal values
-    numpy's partition puts in the middle, they have the same bits."""
-    s = sorted(v)
-    h = len(s) // 2
-    return s[h] if len(s) % 2 else (s[h - 1] + s[h]) / 2
 
 
 @dataclass
