@@ -207,13 +207,6 @@ class FixationSensing(FeatureStore):
         Returns ``(k*, target, landing, "")`` or ``(-1, None, None, reason)`` for a reset.
         """
         cfg = self.config
-        if cfg.next_target == "nearest" and a.size:
-            # one frame chooses: the verifying one, or the most active. a.argmax() is the first index of the
-            # maximum, the argmax over the positive entries whenever that maximum is positive; otherwise (no
-            # positive entry, or a NaN) the general path below decides
-            lead = int(a.argmax())
-            if a[lead] > 0:
-                return self._nearest_target(frame if frame >= 0 else lead, e, m, visited, img)
         active = np.flatnonzero(a > 0)
         if active.size == 0:
             return -1, None, None, "no frame hypothesis"
@@ -221,7 +214,9 @@ class FixationSensing(FeatureStore):
             active = np.array([frame])
         elif cfg.next_target != "stochastic":
             active = active[[int(np.argmax(a[active]))]]
-        ks, v = self._target_preferences(a, active, m, visited, rng)
+        if cfg.next_target == "nearest":  # one frame chooses, among its few features
+            return self._nearest_target(int(active[0]), e, m, visited, img)
+        ks, v = self._target_preferences(a, active, visited, rng)
         order = np.argsort(-v, kind="stable")
         order = order[v[order] > 0][: cfg.target_candidates]
         return self._land_first(ks[order].tolist(), e, m, img)
@@ -229,14 +224,10 @@ class FixationSensing(FeatureStore):
     def _nearest_target(
         self, f: int, e: np.ndarray, m: np.ndarray, visited: list[int], img: np.ndarray
     ) -> tuple[int, Any, Any, str]:
-        """:meth:`_choose_target` with ``next_target = 'nearest'`` once frame ``f`` chooses: the same
-        preference values, order and loop over the frame's features, on Python scalars for its few features.
-
-        Why the same: feature ``f0 + j`` is row ``j`` of the frame's slice of the positions (``ks`` is
-        ``f0, f0 + 1, ...``); a preference ``1 / (1 + |dx| + |dy|)`` of whole pixels is the same integer
-        sum and the same two double operations as numpy's; the candidates are the unvisited features of
-        positive preference, strongest first, ties in feature order (what the stable ``argsort`` of ``-v``
-        filtered by ``v > 0`` gives: filtering before a stable sort keeps the same order)."""
+        """:meth:`_choose_target` with ``next_target = 'nearest'`` once frame ``f`` chooses: its unvisited
+        features by preference ``1 / (1 + |dx| + |dy|)`` to the gaze ``m`` (whole pixels), strongest first,
+        ties in feature order, on Python scalars for its few features (numpy's call overhead would cost more
+        than the arithmetic)."""
         cfg = self.config
         f0 = int(self._fstart[f])
         pos = self._pos[f0 : f0 + int(self._fcount[f])]
@@ -277,7 +268,7 @@ class FixationSensing(FeatureStore):
         return -1, None, None, "no feature left to predict"
 
     def _target_preferences(
-        self, a: np.ndarray, active: np.ndarray, m: np.ndarray, visited: list[int], rng: np.random.Generator
+        self, a: np.ndarray, active: np.ndarray, visited: list[int], rng: np.random.Generator
     ) -> tuple[np.ndarray, np.ndarray]:
         """``(ks, v)``: the features of the choosing frames ``active`` and each one's preference as the next
         target (``next_target``), 0 for the features visited in this attempt."""
@@ -289,10 +280,8 @@ class FixationSensing(FeatureStore):
             ks = np.concatenate([np.arange(self._fstart[f], self._fstart[f] + self._fcount[f]) for f in active])
         if cfg.next_target == "stochastic":
             v = self._w[ks] * a[self._frame[ks]] * (1.0 - rng.random(ks.size))  # (1 - U) W_ID->FLC a ([BBc])
-        elif cfg.next_target == "most_active":
+        else:  # "most_active" ("nearest" is :meth:`_nearest_target`)
             v = 0.5 + 0.5 * rng.random(ks.size)  # a random unvisited feature of the leading frame ([S])
-        else:  # "nearest": the leading frame's unvisited feature closest to the gaze (short saccades)
-            v = 1.0 / (1.0 + np.abs(self._pos[ks] - m[None, :]).sum(axis=1))
         if visited:
             if active.size == 1:  # ks is the range f0, f0 + 1, ...: a visited feature k sits at k - f0
                 hit = [k - f0 for k in visited if f0 <= k < f0 + ks.size]
