@@ -586,6 +586,12 @@ class MapperConfig(_Frozen):
         "retraces its map. None = keyframe_distance_m always; 1.0 cost a quarter of the mapper's time on the "
         "simulated loops but made the Bicocca world worse (docs/MODEL.md) [ours]",
     )
+    keyframe_familiar_after_m: float = Field(
+        0.0,
+        ge=0,
+        description="... but only once the key frames have verified loops over at least this much path in a row "
+        "(a long retraced stretch, not a brief revisit) [ours, docs/MODEL.md item 44]",
+    )
     recognition_view_rad: float | None = Field(
         2 * math.pi / 3,
         gt=0,

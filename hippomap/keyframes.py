@@ -36,6 +36,7 @@ class KeyFrames:
     turn_at_keyframe: float
     frames_seen: int
     familiar: bool
+    familiar_since: float
     _frame_distance: float
     _frame_turn: float
     frame_offset: dict[int, tuple[float, float, float]]
@@ -50,7 +51,9 @@ class KeyFrames:
         # previous frame, so that the spacing does not depend on the frame rate
         moved, turned = self.distance - self._frame_distance, self.turn - self._frame_turn
         self._frame_distance, self._frame_turn = self.distance, self.turn
-        familiar = m.keyframe_familiar_distance_m if self.familiar else None
+        # familiar: the last key frames verified loops over at least keyframe_familiar_after_m of path
+        long_familiar = self.familiar and self.distance - self.familiar_since >= m.keyframe_familiar_after_m
+        familiar = m.keyframe_familiar_distance_m if long_familiar else None
         dist = m.keyframe_distance_m if familiar is None else familiar
         return (
             self.distance - self.distance_at_keyframe >= dist - moved / 2

@@ -102,6 +102,7 @@ class Mapper(KeyFrames):
         self.turn = 0.0  # odometric turn, |radians| summed
         self.turn_at_keyframe = 0.0
         self.familiar = False  # the last key frame's recognition verified a loop (keyframe_familiar_distance_m)
+        self.familiar_since = 0.0  # odometric path at the first of the current run of verified key frames
         self._frame_distance = self._frame_turn = 0.0  # distance and turn at the previous frame
         self.frame_offset: dict[int, tuple[float, float, float]] = {}  # key frame -> its pose in its node's frame
         self.frame_node: dict[int, int] = {}  # key-frame id -> node id
@@ -234,8 +235,12 @@ class Mapper(KeyFrames):
                     recognised = self._recognise(gray, frame.t, others, events, search="global")
         self.distance_at_keyframe = self.distance
         self.turn_at_keyframe = self.turn
-        # a place is familiar when this key frame's recognition verified a loop (keyframe_familiar_distance_m)
-        self.familiar = recognised and self.cmap.path_since_verified <= 0.0
+        # a place is familiar when this key frame's recognition verified a loop (keyframe_familiar_distance_m);
+        # familiar_since: where the current run of such key frames began (keyframe_familiar_after_m)
+        verified = recognised and self.cmap.path_since_verified <= 0.0
+        if verified and not self.familiar:
+            self.familiar_since = self.distance
+        self.familiar = verified
         if self.localise_only or (recognised and not self.config.mapper.learn_recognised):
             return events
         fid = self.memory.learn(gray)
@@ -387,6 +392,7 @@ class Mapper(KeyFrames):
             "turn": self.turn,
             "turn_at_keyframe": self.turn_at_keyframe,
             "familiar": self.familiar,
+            "familiar_since": self.familiar_since,
             "frame_distance": self._frame_distance,
             "frame_turn": self._frame_turn,
             "recognitions": self.recognitions,
@@ -432,6 +438,7 @@ class Mapper(KeyFrames):
         self.turn = float(meta.get("turn", 0.0))
         self.turn_at_keyframe = float(meta.get("turn_at_keyframe", 0.0))
         self.familiar = bool(meta.get("familiar", False))
+        self.familiar_since = float(meta.get("familiar_since", self.distance))
         self._frame_distance = float(meta.get("frame_distance", self.distance))
         self._frame_turn = float(meta.get("frame_turn", self.turn))
         self.recognitions = meta["recognitions"]

@@ -226,29 +226,37 @@ def test_familiar_paths_take_key_frames_further_apart():
         t, v, w = run.odometry[i]
         items += [Odometry(float(t), v=float(v), omega=float(w)), Frame(float(t), run.frame(i))]
     spacing = {}
-    for familiar in (None, 1.0):
-        m = Mapper(HippomapConfig.with_overrides({"mapper": {"keyframe_familiar_distance_m": familiar}}))
-        gaps, was_familiar, last = [], [], None
+    after = 2.0  # keyframe_familiar_after_m of the third variant
+    for familiar, after_m in ((None, 0.0), (1.0, 0.0), (1.0, after)):
+        over = {"keyframe_familiar_distance_m": familiar, "keyframe_familiar_after_m": after_m}
+        m = Mapper(HippomapConfig.with_overrides({"mapper": over}))
+        gaps, was_familiar, streaks, last = [], [], [], None
         for k, item in enumerate(items):
             if isinstance(item, Odometry):
                 m.step(item)
                 continue
-            before = m.familiar
+            before, streak = m.familiar, m.distance - m.familiar_since
             turn_before = m.turn_at_keyframe
             m.observe(item)
             if m.distance_at_keyframe == m.distance:  # a key frame (the robot always moves here)
                 if last is not None and m.turn - turn_before < 0.9 * m.config.mapper.keyframe_turn_rad:
                     gaps.append(m.distance - last)  # made by distance, not by turning
                     was_familiar.append(before)
+                    streaks.append(streak)
                 last = m.distance
             if k == len(items) // 2 and familiar:
                 restored = Mapper.from_bytes(m.to_bytes())
-                assert restored.familiar == m.familiar
+                assert restored.familiar == m.familiar and restored.familiar_since == m.familiar_since
         gaps_a, fam_a = np.array(gaps), np.array(was_familiar)
-        spacing[familiar] = (gaps_a, fam_a, m.stats()["keyframes"] + m.stats()["recognitions"])
-    gaps, fam, _ = spacing[None]
+        spacing[(familiar, after_m)] = (gaps_a, fam_a, m.stats()["keyframes"] + m.stats()["recognitions"], streaks)
+    gaps, fam, _, _ = spacing[(None, 0.0)]
     assert not fam.any() or np.all(gaps < 0.7)  # without the option the spacing stays keyframe_distance_m
-    gaps, fam, _ = spacing[1.0]
+    gaps, fam, _, _ = spacing[(1.0, 0.0)]
     assert fam.sum() >= 5, "no verified loop on the second lap"
     assert np.all(gaps[fam] > 0.85) and np.all(gaps[~fam] < 0.7)
-    assert spacing[1.0][2] < spacing[None][2]
+    assert spacing[(1.0, 0.0)][2] < spacing[(None, 0.0)][2]
+    # keyframe_familiar_after_m: only a run of verified key frames at least that long spaces them out
+    gaps, fam, _, streaks = spacing[(1.0, after)]
+    long_run = fam & (np.array(streaks) >= after)
+    assert long_run.sum() >= 3 and (fam & ~long_run).sum() >= 1
+    assert np.all(gaps[long_run] > 0.85) and np.all(gaps[~long_run] < 0.7)
