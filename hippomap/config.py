@@ -617,12 +617,13 @@ class MapperConfig(_Frozen):
         "closures); chosen on the simulated tuning worlds, docs/MODEL.md [ours]",
     )
     global_search_after_m: float | None = Field(
-        60.0,
+        40.0,
         ge=0,
         description="after this much odometric path without a verified loop closure, a key frame that "
         "the gated search did not recognise is also searched against every recognisable key frame outside the "
-        "gate (its hypotheses need a consistent group: map.outside_min_support); None: never. 60 m chosen among "
-        "30 / 60 / 100 m on the simulated tuning runs (docs/MODEL.md item 38) [ours]",
+        "gate (its hypotheses need a consistent group: map.outside_min_support); None: never. 40 m chosen among "
+        "20 / 30 / 40 / 60 / 90 m on the Bicocca world's 16 simulated tuning seeds (60 m before, chosen on two "
+        "of them; docs/MODEL.md item 38) [ours]",
     )
     global_search_every_m: float = Field(
         1.0,

@@ -519,7 +519,7 @@ def test_the_global_search_schedule_survives_a_snapshot():
     off = Mapper.from_bytes(Mapper(never).to_bytes())
     off.distance = off.cmap._path = 1e6
     assert not off._global_search_due()  # None: never
-    assert HippomapConfig().mapper.global_search_after_m == 60.0  # the default (docs/MODEL.md item 38)
+    assert HippomapConfig().mapper.global_search_after_m == 40.0  # the default (docs/MODEL.md item 38)
 
 
 def test_kernel_weights_whiten_each_axis_by_its_own_information():
