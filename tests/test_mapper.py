@@ -216,7 +216,8 @@ def test_familiar_paths_take_key_frames_further_apart():
     """``keyframe_familiar_distance_m``: after a key frame whose recognition verified a loop, the
     next key frame comes that far on (unless the robot turns); elsewhere every keyframe_distance_m.
     The first lap is the same either way; the revisits take fewer key frames; the state is kept in a
-    snapshot."""
+    snapshot. With ``keyframe_familiar_after_m`` only a run of verified key frames at least that long
+    spaces them out."""
     world = sim.loop_world(seed=3, size=(8.0, 5.0), laps=2)
     run = sim.simulate(
         world, None, rate_hz=5.0, seed=1, odometry_noise=sim.OdometryNoise(sigma_v=0.02, sigma_omega=0.01)
