@@ -496,6 +496,23 @@ class MapConfig(_Frozen):
     lsq_window_residual_m: float = Field(
         0.5, gt=0, description="largest residual of a changed link that still counts as a local correction [ours]"
     )
+    lsq_window_max_fraction: float = Field(
+        0.9,
+        gt=0,
+        le=1,
+        description="a local window holding more than this fraction of the map's nodes is solved as the whole "
+        "map instead. 0.5 before: on maps of a few hundred nodes (a loop or corridor world) a 40-hop window is "
+        "about half the map, so most re-localisation solves were whole ones and their cost grew with the map "
+        "[ours, docs/MODEL.md item 50]",
+    )
+    lsq_step_tolerance: float = Field(
+        1e-4,
+        gt=0,
+        description="the map's Gauss-Newton solves stop once the largest update of any unknown is below this "
+        "(m or rad): a tenth of a millimetre is far below what the map can tell apart, and the solves of "
+        "small changes no longer spend a last linear solve confirming a micrometre step (1e-6 before) "
+        "[ours, docs/MODEL.md item 50]",
+    )
     lsq_weighted: bool = Field(
         True,
         description="solver='lsq' weights each link by its information (below) instead of alike: odometric "

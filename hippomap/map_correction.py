@@ -129,6 +129,7 @@ class MapCorrection(MapGraph):
                 local[dst[links]],
                 tr[links],
                 iterations=cfg.lsq_iterations,
+                tol=cfg.lsq_step_tolerance,
                 anchor=None,
                 information=info[links],
                 fixed=local[fixed],
@@ -166,7 +167,15 @@ class MapCorrection(MapGraph):
             Q = P.copy()
             b = self._rotation_init(Q, src, dst, tr, info, bias) if rotation_init else self._bias
             res = solve_lsq(
-                Q, src, dst, tr, iterations=cfg.lsq_iterations, anchor=0, information=info, **{**bias, "bias": b}
+                Q,
+                src,
+                dst,
+                tr,
+                iterations=cfg.lsq_iterations,
+                tol=cfg.lsq_step_tolerance,
+                anchor=0,
+                information=info,
+                **{**bias, "bias": b},
             )
             k, bound = cfg.odometry_bias_significance, cfg.odometry_bias_observed
             tested = k > 0 or bound is not None
@@ -183,7 +192,9 @@ class MapCorrection(MapGraph):
             self._bias = 0.0
         if rotation_init:
             self._rotation_init(P, src, dst, tr, info, {})
-        return solve_lsq(P, src, dst, tr, iterations=cfg.lsq_iterations, anchor=0, information=info)
+        return solve_lsq(
+            P, src, dst, tr, iterations=cfg.lsq_iterations, tol=cfg.lsq_step_tolerance, anchor=0, information=info
+        )
 
     def _bias_args(self) -> dict[str, Any]:
         """Keyword arguments of :func:`solve_lsq` for the odometry's heading bias (empty when
@@ -257,7 +268,7 @@ class MapCorrection(MapGraph):
         active = within_hops(n, src, dst, np.concatenate([src[k], dst[k]]), cfg.lsq_window_hops)
         active[0] = False  # the anchor never moves
         links = np.flatnonzero(active[src] | active[dst])
-        if not len(links) or 2 * active.sum() > n:
+        if not len(links) or active.sum() > cfg.lsq_window_max_fraction * n:
             return None  # the window is most of the map: solve it all
         nodes = np.unique(np.concatenate([src[links], dst[links]]))
         fixed = nodes[~active[nodes]]
