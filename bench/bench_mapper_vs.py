@@ -21,6 +21,10 @@ the new code with those config overrides (the old code keeps its defaults).
 
     python -m hippomap simulate loop --out SIM --seed 3 --omega-bias 0.01 --sigma-omega 0.01 --sigma-v 0.02
     python bench/bench_mapper_vs.py SIM --against REV [--repeats 2] [--limit N] [--expect-changes] [--config FILE]
+        [--interleave]
+
+``--interleave`` runs the two versions side by side, event by event, instead of one whole run after the
+other: a burst of load on a shared machine then falls on both alike.
 """
 
 from __future__ import annotations
@@ -86,62 +90,91 @@ def code_record(c: Any) -> tuple:
     )
 
 
+class _Run:
+    """One mapper of ``pkg`` fed event by event (:meth:`feed`), timing its parts; :meth:`result` gives
+    its outputs and timings."""
+
+    def __init__(self, pkg: ModuleType, config: Any = None):
+        self.m = m = pkg.mapper.Mapper(config)
+        m.pathway.localise()  # shared grid-cell tables built outside the timing
+        self.Odo, self.Frame = pkg.inputs.Odometry, pkg.inputs.Frame
+        self.codes: list[tuple] = []
+        self.spatial_ms: list[float] = []
+        self.rec_ms: list[float] = []
+        self.step_ms: list[float] = []
+        self.obs_ms: list[float] = []
+        self.pending = 0.0
+        step_inc, recognise = m.pathway.step_increment, m.memory.recognise
+
+        def timed_step(*a: Any) -> Any:
+            t0 = time.process_time()
+            c = step_inc(*a)
+            self.spatial_ms.append((time.process_time() - t0) * 1e3)
+            self.codes.append(code_record(c))
+            return c
+
+        def timed_recognise(*a: Any, **k: Any) -> Any:
+            t0 = time.process_time()
+            r = recognise(*a, **k)
+            self.rec_ms.append((time.process_time() - t0) * 1e3)
+            return r
+
+        m.pathway.step_increment = timed_step
+        m.memory.recognise = timed_recognise
+
+    def feed(self, kind: str, t: float, payload: Any) -> None:
+        m = self.m
+        if kind == "odo":
+            item = self.Odo(t, v=payload[0], omega=payload[1])
+            t0 = time.process_time()
+            m.step(item)
+            self.pending += (time.process_time() - t0) * 1e3
+        else:
+            item = self.Frame(t, payload)
+            t0 = time.process_time()
+            m.observe(item)
+            self.obs_ms.append((time.process_time() - t0) * 1e3)
+            self.step_ms.append(self.pending)
+            self.pending = 0.0
+
+    def result(self) -> dict[str, Any]:
+        m = self.m
+        m.cmap.finish()  # the run's final solve, as `hippomap run` ends it (outside the timing)
+        return {
+            "codes": self.codes,
+            "recognitions": m.recognitions,
+            "times": m.trajectory_times,
+            "trajectory": m.corrected_trajectory(),
+            "stats": m.stats(),
+            "step_ms": np.array(self.step_ms),
+            "obs_ms": np.array(self.obs_ms),
+            "rec_ms": np.array(self.rec_ms),
+            "spatial_ms": np.array(self.spatial_ms),
+        }
+
+
 def run_once(pkg: ModuleType, events: list[tuple[str, float, Any]], config: Any = None) -> dict[str, Any]:
     """Feed the events to a fresh ``pkg.mapper.Mapper`` (``config``: its config, default the package's
     defaults); return outputs and timings."""
-    m = pkg.mapper.Mapper(config)
-    m.pathway.localise()  # shared grid-cell tables built outside the timing
-    Odo, Frame = pkg.inputs.Odometry, pkg.inputs.Frame
-    codes: list[tuple] = []
-    spatial_ms: list[float] = []
-    rec_ms: list[float] = []
-    step_inc = m.pathway.step_increment
+    r = _Run(pkg, config)
+    for e in events:
+        r.feed(*e)
+    return r.result()
 
-    def timed_step(*a: Any) -> Any:
-        t0 = time.process_time()
-        c = step_inc(*a)
-        spatial_ms.append((time.process_time() - t0) * 1e3)
-        codes.append(code_record(c))
-        return c
 
-    recognise = m.memory.recognise
-
-    def timed_recognise(*a: Any, **k: Any) -> Any:
-        t0 = time.process_time()
-        r = recognise(*a, **k)
-        rec_ms.append((time.process_time() - t0) * 1e3)
-        return r
-
-    m.pathway.step_increment = timed_step
-    m.memory.recognise = timed_recognise
-    step_ms: list[float] = []
-    obs_ms: list[float] = []
-    pending = 0.0
-    for kind, t, payload in events:
-        if kind == "odo":
-            item = Odo(t, v=payload[0], omega=payload[1])
-            t0 = time.process_time()
-            m.step(item)
-            pending += (time.process_time() - t0) * 1e3
-        else:
-            item = Frame(t, payload)
-            t0 = time.process_time()
-            m.observe(item)
-            obs_ms.append((time.process_time() - t0) * 1e3)
-            step_ms.append(pending)
-            pending = 0.0
-    m.cmap.finish()  # the run's final solve, as `hippomap run` ends it (outside the timing)
-    return {
-        "codes": codes,
-        "recognitions": m.recognitions,
-        "times": m.trajectory_times,
-        "trajectory": m.corrected_trajectory(),
-        "stats": m.stats(),
-        "step_ms": np.array(step_ms),
-        "obs_ms": np.array(obs_ms),
-        "rec_ms": np.array(rec_ms),
-        "spatial_ms": np.array(spatial_ms),
-    }
+def run_interleaved(
+    versions: list[tuple[ModuleType, Any]], events: list[tuple[str, float, Any]]
+) -> list[dict[str, Any]]:
+    """:func:`run_once` of every ``(package, config)`` at once, in lockstep: each event goes to every
+    mapper before the next event, the order turning each time, so that a burst of load on a shared
+    machine falls on both versions alike (whole runs one after the other can catch it in one only).
+    The two packages share no module state: each keeps its own caches."""
+    runs = [_Run(pkg, cfg) for pkg, cfg in versions]
+    for i, e in enumerate(events):
+        k = i % len(runs)
+        for r in runs[k:] + runs[:k]:
+            r.feed(*e)
+    return [r.result() for r in runs]
 
 
 def _same(a: Any, b: Any, path: str, diffs: list[str]) -> None:
@@ -215,6 +248,11 @@ def main() -> int:
         help="a model change: report the differences and both map ATEs instead of failing on them",
     )
     ap.add_argument("--config", help="JSON config overrides for the new code (the old code keeps its defaults)")
+    ap.add_argument(
+        "--interleave",
+        action="store_true",
+        help="run old and new side by side, event by event (steadier ratios on a loaded machine)",
+    )
     args = ap.parse_args()
     new_config = hippomap.config.HippomapConfig.from_file(args.config) if args.config else None
     old_pkg = load_revision(args.against)
@@ -234,6 +272,11 @@ def main() -> int:
     print(f"{args.data}: {n_frames} frames; old = revision {old_pkg.revision}, new = working tree")
     runs: dict[str, list[dict[str, Any]]] = {"old": [], "new": []}
     for _ in range(args.repeats):
+        if args.interleave:
+            o, n = run_interleaved([(old_pkg, None), (hippomap, new_config)], events)
+            runs["old"].append(o)
+            runs["new"].append(n)
+            continue
         for label, pkg, cfg in (("old", old_pkg, None), ("new", hippomap, new_config)):
             runs[label].append(run_once(pkg, events, cfg))
     diffs = []

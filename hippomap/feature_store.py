@@ -62,6 +62,17 @@ def _gather_k(table: np.ndarray, idx: np.ndarray) -> np.ndarray:
     return np.take(table, idx)
 
 
+def _row_sums(g: np.ndarray) -> np.ndarray:
+    """The sum of each row of a 2-D float32 array (float32, one per row): ``einsum('ij->i')``, which
+    adds along each row in one vectorised pass, about three times as fast as numpy's pairwise
+    ``sum(axis=1)`` on a fixation's few hundred rows of a fovea's 961 values and as accurate for
+    them (both round in float32, within about 2e-7 of the sum). A row's sum depends only on its
+    values, never on the other rows or where the row lies in memory, so a unit driven in two
+    places of a fixation gets one drive. (OpenCV's row reduction is as fast on one thread but
+    spreads over OpenCV's threads, whose waiting costs more CPU than it saves.)"""
+    return np.einsum("ij->i", g)
+
+
 def _mean_var(u: np.ndarray) -> tuple[float, float]:
     """``(u.mean(), u.var())`` of a non-empty float64 vector, as floats, by the operations numpy runs for
     them (the pairwise sum divided by the count; the sum of the squared deviations from that mean divided
@@ -321,18 +332,17 @@ class FeatureStore:
             return np.zeros(0, np.float32)
         # flat index a * 256 + b into K, built in uint16 (fast gather; 255 * 256 + 255 fits)
         idx = (self._patch[flc].astype(np.uint16) << 8) | patch[None, :]
-        return _gather_k(self._K, idx).sum(axis=1) / self._z[flc]
+        return _row_sums(_gather_k(self._K, idx)) / self._z[flc]
 
     def _drive_rows(self, patch: np.ndarray, sub: FlcSubset) -> np.ndarray:
         """:meth:`_drive` of ``sub.rows`` from the subset's gathered patches (same numbers, no row gather).
 
-        Each row's drive is its own gather and its own pairwise sum along the row (``np.add.reduce`` over
-        axis 1 is what ``sum(axis=1)`` calls), so a row gathered once for a candidate that is also in the
-        statistics sample has the same value in both places."""
+        Each row's drive is its own gather and its own sum along the row (:func:`_row_sums`), so a row
+        gathered once for a candidate that is also in the statistics sample has the same value in both places."""
         if sub.rows is None or sub.rows.size == 0:
             return np.zeros(0, np.float32)
         idx = np.bitwise_or(sub.rows_hi, patch[None, :], out=sub.rows_buf)
-        u = np.add.reduce(_gather_k(self._K, idx), axis=1) / sub.rows_z
+        u = _row_sums(_gather_k(self._K, idx)) / sub.rows_z
         return u if sub.rows_inv is None else u[sub.rows_inv]
 
     def _drive_index(self, patch: np.ndarray, sub: FlcSubset, flc: np.ndarray) -> np.ndarray:
@@ -345,7 +355,7 @@ class FeatureStore:
         np.bitwise_or(head, patch[None, :], out=head)
         np.bitwise_or(sub.sample_hi, patch[None, :], out=idx[k:])
         z = np.concatenate([self._z[flc], sub.sample_z])
-        return np.add.reduce(_gather_k(self._K, idx), axis=1) / z
+        return _row_sums(_gather_k(self._K, idx)) / z
 
     def _shortlist_drive(
         self, patch: np.ndarray, x: int, y: int, sub: FlcSubset, predicted: int

@@ -9,6 +9,8 @@ import pickle
 import cv2
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as hs
 
 import hippomap
 from hippomap.config import VisualConfig
@@ -557,3 +559,28 @@ def test_zoomed_view_is_recognised_with_amplitude_scaled_microsaccades():
         ok[gain] = sum(r.frame_id == fid for r, fid in zip(recs, ids))
     assert ok[0.2] >= 9
     assert ok[0.2] >= ok[0.0] + 2
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    rows=hs.integers(0, 40),
+    cols=hs.integers(1, 1000),
+    seed=hs.integers(0, 2**32 - 1),
+    shift=hs.integers(0, 7),
+)
+def test_a_row_sum_is_the_rows_own(rows, cols, seed, shift):
+    """The drive's row sums (feature_store._row_sums): float32 sums within float32 rounding of the exact
+    ones, and each row's sum a function of that row alone, whatever the other rows and wherever the row
+    lies in memory (a unit driven in two places of a fixation gets one drive)."""
+    from hippomap.feature_store import _row_sums
+
+    g = np.random.default_rng(seed).random((rows, cols)).astype(np.float32)
+    s = _row_sums(g)
+    assert s.dtype == np.float32 and s.shape == (rows,)
+    exact = g.astype(np.float64).sum(axis=1)
+    np.testing.assert_allclose(s, exact, rtol=1e-6, atol=1e-6)
+    if rows:
+        buf = np.zeros(rows * cols + shift, np.float32)[shift:].reshape(rows, cols)  # another alignment
+        buf[:] = g[::-1]
+        assert _row_sums(buf)[::-1].tobytes() == s.tobytes()
+        assert _row_sums(g[rows // 2 : rows // 2 + 1]).tobytes() == s[rows // 2 : rows // 2 + 1].tobytes()

@@ -1,7 +1,8 @@
 """The visual memory's fast paths give exactly what the straightforward computation gives.
 
 :class:`ReferenceMemory` keeps, in this file, the plain implementation of every part the fast code
-replaces: the FLC drive as one ``np.take`` over freshly gathered patches for every fixation, the
+replaces: the FLC drive as one ``np.take`` over freshly gathered patches for every fixation (summed
+along each row by ``einsum``, as the fast code defines the drive), the
 saccade vector decoded from the two grid codes every time, the retina run on every call, no drive
 remembered per fixation point, ``dataclasses.asdict`` for a trace step, the candidate subset built
 from ``np.unique`` with nothing shared between recognitions, and the fixation bookkeeping (trace
@@ -131,7 +132,8 @@ class ReferenceMemory(vm.VisualMemory):
         if flc.size == 0:
             return np.zeros(0, np.float32)
         idx = (self._patch[flc].astype(np.uint16) << 8) | patch[None, :]
-        return np.take(self._K, idx).sum(axis=1) / self._z[flc]
+        # the drive's sum along each row is einsum's (feature_store._row_sums), not numpy's pairwise sum
+        return np.einsum("ij->i", np.take(self._K, idx)) / self._z[flc]
 
     def _drive_rows(self, patch: np.ndarray, sub) -> np.ndarray:
         rows = sub.idx if sub.is_all else np.concatenate([sub.idx, sub.sample])
