@@ -65,10 +65,10 @@ def _gather_k(table: np.ndarray, idx: np.ndarray) -> np.ndarray:
 def _row_sums(g: np.ndarray) -> np.ndarray:
     """The sum of each row of a 2-D float32 array (float32, one per row): ``einsum('ij->i')``, which
     adds along each row in one vectorised pass, about three times as fast as numpy's pairwise
-    ``sum(axis=1)`` on a fixation's few hundred rows of a fovea's 961 values and as accurate for
-    them (both round in float32, within about 2e-7 of the sum). A row's sum depends only on its
-    values, never on the other rows or where the row lies in memory, so a unit driven in two
-    places of a fixation gets one drive. (OpenCV's row reduction is as fast on one thread but
+    ``sum(axis=1)`` on a fixation's few hundred rows of a fovea's 961 values, within about 2e-7 of
+    the exact sum (the pairwise sum: about 1e-7), far below what tells two units apart. A row's sum
+    depends only on its values, never on the other rows or where the row lies in memory, so a unit
+    driven in two places of a fixation gets one drive. (OpenCV's row reduction is as fast on one thread but
     spreads over OpenCV's threads, whose waiting costs more CPU than it saves.)"""
     return np.einsum("ij->i", g)
 
