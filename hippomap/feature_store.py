@@ -68,8 +68,8 @@ def _row_sums(g: np.ndarray) -> np.ndarray:
     ``sum(axis=1)`` on a fixation's few hundred rows of a fovea's 961 values, within about 2e-7 of
     the exact sum (the pairwise sum: about 1e-7), far below what tells two units apart. A row's sum
     depends only on its values, never on the other rows or where the row lies in memory, so a unit
-    driven in two places of a fixation gets one drive. (OpenCV's row reduction is as fast on one thread but
-    spreads over OpenCV's threads, whose waiting costs more CPU than it saves.)"""
+    driven in two places of a fixation gets one drive. (OpenCV's row reduction is as fast on one
+    thread but spreads over OpenCV's threads, whose waiting costs more CPU than it saves.)"""
     return np.einsum("ij->i", g)
 
 

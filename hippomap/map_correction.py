@@ -258,7 +258,8 @@ class MapCorrection(MapGraph):
         mapped path, not closing a new loop): only the nodes within ``lsq_window_hops`` links of
         their ends move, the nodes just outside hold the rest of the map in place. The cost of
         such a step then depends on the window, not on the map (:meth:`finish` solves the
-        whole map)."""
+        whole map). A window that moves more than ``lsq_window_max_fraction`` of the nodes, or
+        has no node outside it to hold, is the whole map's solve."""
         cfg, n, m = self.cfg, self._n, self._m
         if cfg.lsq_window_hops <= 0 or not self._small_change():
             return None
