@@ -115,11 +115,36 @@ def sim_source_hash() -> str:
     return h.hexdigest()[:10]
 
 
+def motion_args(motion: dict[str, float | None] | None) -> list[str]:
+    """The simulator's options for a route driven at another speed (``--speed``, m/s) or odometry and
+    frame rate (``--rate``, Hz) than its defaults; none for the defaults (so their cache keys stay)."""
+    out: list[str] = []
+    for name in ("speed", "rate"):
+        v = (motion or {}).get(name)
+        if v is not None:
+            out += [f"--{name}", f"{v:g}"]
+    return out
+
+
+def motion_label(motion: dict[str, float | None] | None) -> str:
+    """``" (0.2 m/s, 10 Hz)"`` for a non-default speed or rate, ``""`` for the simulator's defaults."""
+    m = motion or {}
+    parts = [f"{m[k]:g} {unit}" for k, unit in (("speed", "m/s"), ("rate", "Hz")) if m.get(k) is not None]
+    return f" ({', '.join(parts)})" if parts else ""
+
+
 def simulate(
-    world: str, seed: int, size: tuple[int, int], texture: str, shared: Path, laps: int | None, cache: Path
+    world: str,
+    seed: int,
+    size: tuple[int, int],
+    texture: str,
+    shared: Path,
+    laps: int | None,
+    cache: Path,
+    motion: dict[str, float | None] | None = None,
 ) -> tuple[Path, float | None]:
     """The rendered folder for these arguments (rendered now unless cached); returns it and
-    the rendering time (None when cached)."""
+    the rendering time (None when cached). ``motion``: see :func:`motion_args`."""
     tex = texture_folder(texture, shared)
     args = [
         "simulate",
@@ -143,9 +168,11 @@ def simulate(
         args += ["--data", str(shared / "data" / "bicocca25b")]
     if laps is not None:
         args += ["--laps", str(laps)]
+    args += motion_args(motion)
     key = hashlib.sha1(json.dumps([args, sim_source_hash()]).encode()).hexdigest()[:12]
     tname = texture if texture in ("procedural", "rtabmap", "corridor") else "photos"
-    folder = cache / "sim" / f"{world}-s{seed}-{size[0]}x{size[1]}-{tname}-{key}"
+    drive = "".join(f"-{a[2]}{v}" for a, v in zip(motion_args(motion)[::2], motion_args(motion)[1::2]))  # -s0.8-r10
+    folder = cache / "sim" / f"{world}-s{seed}-{size[0]}x{size[1]}-{tname}{drive}-{key}"
     if (folder / "done").is_file():
         return folder, None
     tmp = folder.with_name(folder.name + f".tmp{os.getpid()}")
@@ -352,12 +379,15 @@ def sim_case(case: dict[str, Any]) -> dict[str, Any]:
         "seed": case["seed"],
         "size": f"{size[0]}x{size[1]}",
         "texture": case["texture"],
+        "motion": case.get("motion") or {},
         "hippomap_source": hippomap_source_hash(),
         "started": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
     }
     t0 = time.perf_counter()
     try:
-        data, render_s = simulate(case["world"], case["seed"], size, case["texture"], shared, case["laps"], cache)
+        data, render_s = simulate(
+            case["world"], case["seed"], size, case["texture"], shared, case["laps"], cache, case.get("motion")
+        )
         row["render_s"] = render_s
         work = peers.make_workdir(cache / "work", f"{case['world']}-{case['seed']}")
         try:
@@ -543,7 +573,7 @@ def sim_table(rows: list[dict[str, Any]]) -> list[str]:
     for r in rows:
         if "error" in r and "hippomap" not in r:
             out.append(
-                f"| {r['world']} | {r['seed']} | {r['size']} | {r['texture']} | error: {r['error'][:80]} "
+                f"| {world_label(r)} | {r['seed']} | {r['size']} | {r['texture']} | error: {r['error'][:80]} "
                 + "| " * 10
                 + "|"
             )
@@ -551,7 +581,7 @@ def sim_table(rows: list[dict[str, Any]]) -> list[str]:
         hm, ors = r["hippomap"], r.get("ors")
         c = hm["core_ms"]
         cells = [
-            r["world"],
+            world_label(r),
             str(r["seed"]),
             r["size"],
             r["texture"],
@@ -584,6 +614,11 @@ def sim_table(rows: list[dict[str, Any]]) -> list[str]:
     return out
 
 
+def world_label(r: dict[str, Any]) -> str:
+    """A row's world, with its speed and rate when they are not the simulator's defaults."""
+    return r["world"] + motion_label(r.get("motion"))
+
+
 def _used(hm: dict[str, Any]) -> int:
     return hm.get("closures_used", hm["closures_accepted"])
 
@@ -598,7 +633,7 @@ def sim_summary(rows: list[dict[str, Any]]) -> list[str]:
     ok = [r for r in rows if "hippomap" in r]
     groups: dict[tuple[str, str, str], list[dict[str, Any]]] = {}
     for r in ok:
-        groups.setdefault((r["world"], r["size"], r["texture"]), []).append(r)
+        groups.setdefault((world_label(r), r["size"], r["texture"]), []).append(r)
     out = [
         "| world | size | texture | seeds | odometry ATE | hippomap ATE | ORS stock ATE | ORS best ATE | "
         "worst ATE ratio hm/ORS best | hm closures used (false) | ORS best links (false) | hm ms | hm CPU ms | "
@@ -797,6 +832,11 @@ def main(argv: list[str] | None = None) -> int:
         help="procedural | rtabmap | corridor | a folder of photos",
     )
     ap.add_argument("--laps", type=int, default=None, help="loop laps / corridor passes (simulator default)")
+    for flag, what in (
+        ("--speeds", "loop and corridor: route speeds in m/s to render (simulator default 0.4)"),
+        ("--rates", "odometry and frame rates in Hz to render (simulator default 5; one frame per odometry step)"),
+    ):
+        ap.add_argument(flag, nargs="+", type=float, default=[None], help=what)
     ap.add_argument("--config", help="hippomap JSON config overrides (default: the default config)")
     ap.add_argument(
         "--thresholds",
@@ -910,6 +950,7 @@ def main(argv: list[str] | None = None) -> int:
                 "shared": str(shared),
                 "cache": str(cache),
                 "laps": args.laps,
+                "motion": {"speed": v, "rate": hz} if (v, hz) != (None, None) else {},
                 "config": config,
                 "ors_exe": str(exe) if exe else None,
                 "peer_dir": str(peer_dir),
@@ -920,11 +961,15 @@ def main(argv: list[str] | None = None) -> int:
             for tx in args.textures
             for sz in args.sizes
             for w in args.worlds
+            for v in (args.speeds if w != "bicocca" else [None])
+            for hz in (args.rates if w != "bicocca" else [None])
         ]
 
         def report(r: dict[str, Any]) -> None:
             sim_rows.append(r)
-            head = f"[{time.perf_counter() - t_start:6.0f} s] {r['world']} seed {r['seed']} {r['size']} {r['texture']}"
+            head = (
+                f"[{time.perf_counter() - t_start:6.0f} s] {world_label(r)} seed {r['seed']} {r['size']} {r['texture']}"
+            )
             if "hippomap" not in r:
                 print(f"{head}: {r.get('error')}", flush=True)
                 return
@@ -946,7 +991,9 @@ def main(argv: list[str] | None = None) -> int:
         if args.render_only:
             for c in cases:
                 t0 = time.perf_counter()
-                folder, secs = simulate(c["world"], c["seed"], tuple(c["size"]), c["texture"], shared, c["laps"], cache)
+                folder, secs = simulate(
+                    c["world"], c["seed"], tuple(c["size"]), c["texture"], shared, c["laps"], cache, c["motion"]
+                )
                 print(f"{folder.name}: {'cached' if secs is None else f'rendered in {secs:.0f} s'}", flush=True)
             return 0
         if args.jobs > 1:

@@ -540,7 +540,8 @@ class MapConfig(_Frozen):
         ge=0,
         description="with odometry_bias_sigma > 0: a whole solve keeps its bias estimate only when "
         "|bias| exceeds this many of its posterior standard deviations (Wald test); otherwise the map is solved "
-        "without a bias, as with the option off. 0 = always keep it [ours, docs/MODEL.md]",
+        "without a bias, as with the option off. The posterior counts only the loop links whose heading the "
+        "solution explains (docs/MODEL.md item 52). 0 = always keep it [ours, docs/MODEL.md]",
     )
     odometry_bias_observed: float | None = Field(
         0.25,

@@ -18,12 +18,14 @@ import numpy as np
 
 from .headings_first import rotation_first_init
 from .least_squares import bias_sigma, graph_cost, solve_lsq
-from .loop_closure import kernel_weights
+from .loop_closure import USED_WEIGHT, kernel_weights, robust_weight
 from .map_events import MapEvent, MapRelaxed
 from .map_graph import LOOP, ODOMETRY, MapGraph, within_hops
 from .relaxation import ColourGroups, RelaxResult, _link_residuals, relax, relax_jacobi
 
 __all__ = ["MapCorrection"]
+
+_FADED_INFORMATION = 1e-12  # what is left of a faded loop link's information in the bias's significance test
 
 
 class MapCorrection(MapGraph):
@@ -180,7 +182,16 @@ class MapCorrection(MapGraph):
             k, bound = cfg.odometry_bias_significance, cfg.odometry_bias_observed
             tested = k > 0 or bound is not None
             sigma = (
-                bias_sigma(Q, src, dst, tr, bias["bias_dt"], res.bias, bias["bias_information"], info)
+                bias_sigma(
+                    Q,
+                    src,
+                    dst,
+                    tr,
+                    bias["bias_dt"],
+                    res.bias,
+                    bias["bias_information"],
+                    self._used_information(info, Q),
+                )
                 if tested
                 else 0.0
             )
@@ -195,6 +206,25 @@ class MapCorrection(MapGraph):
         return solve_lsq(
             P, src, dst, tr, iterations=cfg.lsq_iterations, tol=cfg.lsq_step_tolerance, anchor=0, information=info
         )
+
+    def _used_information(self, info: np.ndarray, Q: np.ndarray) -> np.ndarray:
+        """``info`` (M, 3) without the loop links whose heading the solved poses ``Q`` leave
+        inconsistent: what observes the odometry's bias in its significance test. The bias is a
+        heading rate, so a loop link is evidence for an estimate only when its heading residual on
+        the solution is within its kernel width (the heading part of its robust weight at least
+        ``USED_WEIGHT``); a false closure the estimate cannot explain is not."""
+        m, cfg = self._m, self.cfg
+        loop = np.flatnonzero(self._kind[:m] == LOOP)
+        if not len(loop) or cfg.loop_kernel == "none":
+            return info
+        r = _link_residuals(Q, self._src[loop], self._dst[loop], self._tr[loop])
+        chi2 = r[:, 2] ** 2 * self._linfo[loop, 2] / self._lkw[loop] ** 2
+        faded = loop[robust_weight(chi2, cfg.loop_kernel) < USED_WEIGHT]
+        if not len(faded):
+            return info
+        out = info.copy()
+        out[faded] *= _FADED_INFORMATION  # (the solver's information must stay > 0)
+        return out
 
     def _bias_args(self) -> dict[str, Any]:
         """Keyword arguments of :func:`solve_lsq` for the odometry's heading bias (empty when

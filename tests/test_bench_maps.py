@@ -180,6 +180,14 @@ def test_sim_cache_key_changes_with_arguments(tmp_path, monkeypatch):
     assert a == a2 and ta is not None and ta2 is None  # second call is served from the cache
     assert a != b and len(calls) == 2
     assert "--omega-bias" in calls[0] and calls[0][calls[0].index("--seed") + 1] == "3"
+    # another speed or rate is another render, named so, with the simulator's options; the default adds none
+    c, _ = bench_maps.simulate("loop", 3, (320, 240), "procedural", shared, None, tmp_path, {"speed": 0.2})
+    d, _ = bench_maps.simulate("loop", 3, (320, 240), "procedural", shared, None, tmp_path, {"rate": 10.0})
+    assert len({a, c, d}) == 3 and "-s0.2-" in c.name and "-r10-" in d.name
+    assert calls[2][calls[2].index("--speed") + 1] == "0.2" and "--rate" not in calls[2]
+    assert "--speed" not in calls[0] and "--rate" not in calls[0]
+    assert bench_maps.world_label({"world": "loop", "motion": {"speed": 0.2, "rate": 10.0}}) == "loop (0.2 m/s, 10 Hz)"
+    assert bench_maps.world_label({"world": "corridor"}) == "corridor"
 
 
 def test_ors_loop_links_follow_the_experience_map_rules():

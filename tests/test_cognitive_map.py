@@ -792,6 +792,46 @@ def test_a_bias_is_kept_only_when_the_loops_observe_it():
     assert never == off and kept < off / 2
 
 
+@pytest.mark.parametrize(
+    "weight, beta, closure_error",
+    [(1.0, 0.01, None), (0.02, 0.01, None), (1.0, 0.0, (2.0, 0.5)), (0.3, 0.0, (2.0, 0.5))],
+)
+def test_a_bias_is_kept_only_when_loops_the_solved_map_uses_observe_it(weight, beta, closure_error):
+    """The significance test of the bias counts only the loop links whose heading the solved map
+    explains (heading residual within the kernel width). One lap of a square closed by one link. A true
+    closure over odometry drifting 0.01 rad/s: the bias explains it, so it is kept whatever weight the
+    link had before the solve (a true closure looks like an outlier until the bias is applied). A false
+    closure (2 m aside, 0.5 rad turned) over odometry without drift: the solution leaves its heading
+    inconsistent, so no bias is kept, whatever its weight before; counted, it made a bias "significant"
+    alone, and nodes placed with that rate pushed the next true closure's heading residual past ±π,
+    where the solve took the aliased bias."""
+    dt = 0.5
+    inc = square_increments(side=8.0, laps=1)[:-8]
+    gt = integrate(inc)
+    noisy = inc.copy()
+    noisy[:, 2] += beta * dt
+    times = 1.7e9 + dt * np.arange(len(inc) + 1)
+    cfg = MapConfig(solver="lsq", prune_online=False, loop_transform_radius_m=10.0, loop_radius_per_m=0.5)
+    cmap = CognitiveMap(cfg)
+    node_at, off, _ = drive(cmap, noisy, times=times)
+    j = 20
+    rel = compose(cmap.robot_offset, between(gt[-1], gt[j]))
+    if closure_error is not None:
+        rel = compose(rel, (0.0, *closure_error))
+    rel = compose(rel, between(off[j], np.zeros(3)))
+    d = cmap.propose_loop(LoopHypothesis(node=int(node_at[j]), transform=tuple(rel), source="test", time=times[-1]))
+    assert d.status == "accepted"
+    cmap._w[d.link] = weight  # the link's robust weight going into the next whole solve
+    cmap._dirty = True
+    cmap.finish()
+    if closure_error is None:
+        assert cmap._bias == pytest.approx(beta, rel=0.05)
+        assert cmap.link_weights()[d.link] > 0.5
+    else:
+        assert cmap._bias == 0.0
+        assert cmap.link_weights()[d.link] < 0.5
+
+
 def test_a_significant_heading_bias_is_estimated_and_closes_the_map():
     """A gyro's 0.01 rad/s drift is many posterior sigmas out: the whole solves estimate it
     (within 10 %) and the map is better than without the estimate."""

@@ -404,3 +404,44 @@ def test_command_line_writes_a_run(tmp_path, capsys):
     )
     assert main(["loop", "--out", str(tmp_path / "x"), "--width", "4"]) == 2
     assert "width" in capsys.readouterr().err
+
+
+def test_command_line_drives_the_route_at_the_speed_asked(tmp_path, capsys):
+    """``--speed`` (loop and corridor): the route is driven at that mean speed, in proportionally
+    fewer odometry steps; the Bicocca world keeps its recorded speed and says so; a speed that is not
+    positive is named."""
+    from hippomap.sim.cli import main
+
+    def run(speed: str | None) -> np.ndarray:
+        out = tmp_path / f"c{speed}"
+        args = ["corridor", "--out", str(out), "--laps", "1", "--frame-every", "50", "--no-noise", "--no-progress"]
+        assert main(args + (["--speed", speed] if speed else [])) == 0
+        rows = list(csv.DictReader((out / "odometry.csv").open()))
+        return np.array([float(r["v"]) for r in rows])
+
+    slow, fast = run(None), run("0.8")
+    assert np.median(slow) == pytest.approx(0.4, rel=0.2) and np.median(fast) == pytest.approx(0.8, rel=0.2)
+    assert len(fast) == pytest.approx(len(slow) / 2, rel=0.15)
+    assert main(["bicocca", "--out", str(tmp_path / "b"), "--speed", "1.0"]) == 2
+    assert "--speed" in capsys.readouterr().err
+    assert main(["loop", "--out", str(tmp_path / "z"), "--speed", "0"]) == 2
+    assert "speed_mps" in capsys.readouterr().err
+
+
+def test_a_slow_robot_turns_round_at_a_corridor_end_and_drives_on():
+    """At 0.2 m/s the pursuit of a point a lookahead along the route, where the route turns back on
+    itself, used to circle on the spot beside the corridor's end for the rest of the step budget (about
+    500 turns). The route is now driven to its end, with at most one turn on the spot at the turn-round."""
+    from hippomap.sim import worlds
+    from hippomap.sim.motion import RoutePlan
+
+    traj = worlds.corridor_world(seed=11, speed_mps=0.2).route.sample(5.0)
+    v, w = traj.velocities[:, 0], traj.velocities[:, 1]
+    # out and back: one turn-round of pi, at most one turn on the spot before the follower looks further on
+    assert np.abs(w).sum() * 0.2 < 4 * np.pi
+    assert np.hypot(*traj.poses[-1, :2]) < 0.5  # back at the start
+    assert v.mean() == pytest.approx(0.2, rel=0.15)
+    # a robot that cannot turn round never reaches the end: a clear error, not a run of spinning
+    plan = RoutePlan(((0.0, 0.0), (10.0, 0.0)), closed=False, laps=2, speed_mps=0.4, max_omega=1e-3)
+    with pytest.raises(InputError, match="did not reach the end of the route"):
+        plan.sample(5.0)

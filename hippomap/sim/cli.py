@@ -17,6 +17,7 @@ import sys
 from dataclasses import fields, replace
 
 from ..cli import add_progress_argument, clean_help, progress_enabled
+from ..errors import InputError
 from .params import Camera, OdometryNoise, SimConfig, TextureParams
 
 
@@ -69,6 +70,13 @@ def _world_arguments(p: argparse.ArgumentParser) -> None:
         type=float,
         default=5.0,
         help="odometry rate in Hz (default 5; the bicocca world keeps the recorded times)",
+    )
+    p.add_argument(
+        "--speed",
+        type=float,
+        default=None,
+        help="loop and corridor: the route's mean speed in m/s (default 0.4); the bicocca world drives "
+        "the recorded run at its recorded speed",
     )
 
 
@@ -128,10 +136,13 @@ def run_command(args) -> int:
     from .run import simulate
 
     tex = TextureParams(source=args.texture)
+    speed = {} if args.speed is None else {"speed_mps": args.speed}
     if args.world == "loop":
-        world = worlds.loop_world(seed=args.seed, laps=args.laps, texture=tex)
+        world = worlds.loop_world(seed=args.seed, laps=args.laps, texture=tex, **speed)
     elif args.world == "corridor":
-        world = worlds.corridor_world(seed=args.seed, passes=args.laps, texture=tex)
+        world = worlds.corridor_world(seed=args.seed, passes=args.laps, texture=tex, **speed)
+    elif speed:
+        raise InputError("--speed: the bicocca world drives the recorded run at its recorded speed")
     else:
         world = worlds.bicocca_world(args.data, seed=args.seed, texture=tex)
     config = SimConfig(

@@ -209,12 +209,33 @@ class RoutePlan:
         vs: list[float] = []
         ws: list[float] = []
         max_steps = int(10 * m * spacing / (self.speed_mps * dt)) + 100
-        while len(vs) < max_steps:
+        # where the route turns back on itself (a corridor's end), a slow robot can turn round before the
+        # last point of the leg: the nearest route point then stays on the leg behind it while it circles.
+        # After a whole turn's worth of steps without progress along the route, the nearest point is searched
+        # further on, among the route points heading the robot's way.
+        stuck_after = int(np.ceil(2 * np.pi / (self.max_omega * dt)))
+        stuck, best_i = 0, -1
+        tangent = np.gradient(q, axis=0)
+        while True:
+            if len(vs) >= max_steps:
+                raise InputError(
+                    f"the route follower did not reach the end of the route in {max_steps} steps (stuck at route "
+                    f"point {i} of {m}): "
+                    f"speed_mps {self.speed_mps}, lookahead_m {self.lookahead_m}, max_omega {self.max_omega}"
+                )
             lo, hi = i, min(m, i + window)
             d = np.hypot(q[lo:hi, 0] - pose[0], q[lo:hi, 1] - pose[1])
             i = lo + int(np.argmin(d))
+            if stuck >= stuck_after:
+                hi = min(m, i + 2 * look + window)
+                same_way = tangent[i:hi] @ np.array([np.cos(pose[2]), np.sin(pose[2])]) > 0
+                if same_way.any():
+                    d = np.hypot(q[i:hi, 0] - pose[0], q[i:hi, 1] - pose[1])
+                    i = i + int(np.argmin(np.where(same_way, d, np.inf)))
             if i >= m - 1 or (m - 1 - i) * spacing < 0.05:
                 break
+            stuck = stuck + 1 if i <= best_i else 0
+            best_i = max(i, best_i)
             tgt = q[min(m - 1, i + look)]
             alpha = wrap_angle(np.arctan2(tgt[1] - pose[1], tgt[0] - pose[0]) - pose[2])
             sp = speed[i]
