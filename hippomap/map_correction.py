@@ -179,24 +179,7 @@ class MapCorrection(MapGraph):
                 information=info,
                 **{**bias, "bias": b},
             )
-            k, bound = cfg.odometry_bias_significance, cfg.odometry_bias_observed
-            tested = k > 0 or bound is not None
-            sigma = (
-                bias_sigma(
-                    Q,
-                    src,
-                    dst,
-                    tr,
-                    bias["bias_dt"],
-                    res.bias,
-                    bias["bias_information"],
-                    self._used_information(info, Q),
-                )
-                if tested
-                else 0.0
-            )
-            observed = bound is None or sigma <= bound * cfg.odometry_bias_sigma
-            if abs(res.bias) > k * sigma and observed:
+            if self._bias_kept(Q, src, dst, tr, info, bias, res.bias):
                 P[:] = Q
                 self._bias = res.bias
                 return res
@@ -206,6 +189,29 @@ class MapCorrection(MapGraph):
         return solve_lsq(
             P, src, dst, tr, iterations=cfg.lsq_iterations, tol=cfg.lsq_step_tolerance, anchor=0, information=info
         )
+
+    def _bias_kept(
+        self,
+        Q: np.ndarray,
+        src: np.ndarray,
+        dst: np.ndarray,
+        tr: np.ndarray,
+        info: np.ndarray,
+        bias: dict[str, Any],
+        b: float,
+    ) -> bool:
+        """Whether the estimate ``b`` of the solution ``Q`` is kept: significant (``|b| >
+        odometry_bias_significance × σ_b``, σ_b its posterior standard deviation there, a Wald test)
+        and observed by the loops (``σ_b ≤ odometry_bias_observed × odometry_bias_sigma``), σ_b counting
+        only the loop links whose heading ``Q`` explains (:meth:`_used_information`)."""
+        cfg = self.cfg
+        k, bound = cfg.odometry_bias_significance, cfg.odometry_bias_observed
+        if k <= 0 and bound is None:  # no test: any estimate off zero is kept
+            return abs(b) > 0
+        used = self._used_information(info, Q)
+        sigma = bias_sigma(Q, src, dst, tr, bias["bias_dt"], b, bias["bias_information"], used)
+        observed = bound is None or sigma <= bound * cfg.odometry_bias_sigma
+        return abs(b) > k * sigma and observed
 
     def _used_information(self, info: np.ndarray, Q: np.ndarray) -> np.ndarray:
         """``info`` (M, 3) without the loop links whose heading the solved poses ``Q`` leave

@@ -133,6 +133,19 @@ def _smooth(rng, n, corr):
     return sm / (sm.std() or 1.0)
 
 
+def _nearest_heading_our_way(q: np.ndarray, tangent: np.ndarray, lo: int, hi: int, pose: np.ndarray) -> int:
+    """Index of the route point in ``q[lo:hi]`` nearest the robot at ``pose`` among those whose route
+    direction (``tangent``) points the robot's way; ``lo`` when none does. Where the route turns back on
+    itself (a corridor's end), a slow robot can turn round before the last point of the leg, and the nearest
+    route point then stays on the leg behind it while it circles; after a whole turn without progress,
+    :meth:`RoutePlan.sample` asks this for the leg the robot has turned onto instead."""
+    same_way = tangent[lo:hi] @ np.array([np.cos(pose[2]), np.sin(pose[2])]) > 0
+    if not same_way.any():
+        return lo
+    d = np.hypot(q[lo:hi, 0] - pose[0], q[lo:hi, 1] - pose[1])
+    return lo + int(np.argmin(np.where(same_way, d, np.inf)))
+
+
 @dataclass(frozen=True)
 class RoutePlan:
     """Drive along waypoints with a pure-pursuit controller (the robot steers towards
@@ -209,29 +222,21 @@ class RoutePlan:
         vs: list[float] = []
         ws: list[float] = []
         max_steps = int(10 * m * spacing / (self.speed_mps * dt)) + 100
-        # where the route turns back on itself (a corridor's end), a slow robot can turn round before the
-        # last point of the leg: the nearest route point then stays on the leg behind it while it circles.
-        # After a whole turn's worth of steps without progress along the route, the nearest point is searched
-        # further on, among the route points heading the robot's way.
+        # a whole turn's worth of steps without progress along the route: see _nearest_heading_our_way
         stuck_after = int(np.ceil(2 * np.pi / (self.max_omega * dt)))
         stuck, best_i = 0, -1
         tangent = np.gradient(q, axis=0)
         while True:
             if len(vs) >= max_steps:
                 raise InputError(
-                    f"the route follower did not reach the end of the route in {max_steps} steps (stuck at route "
-                    f"point {i} of {m}): "
-                    f"speed_mps {self.speed_mps}, lookahead_m {self.lookahead_m}, max_omega {self.max_omega}"
+                    f"the route follower did not reach the end of the route in {max_steps} steps (stuck at point {i} "
+                    f"of {m}): speed_mps {self.speed_mps}, lookahead_m {self.lookahead_m}, max_omega {self.max_omega}"
                 )
             lo, hi = i, min(m, i + window)
             d = np.hypot(q[lo:hi, 0] - pose[0], q[lo:hi, 1] - pose[1])
             i = lo + int(np.argmin(d))
             if stuck >= stuck_after:
-                hi = min(m, i + 2 * look + window)
-                same_way = tangent[i:hi] @ np.array([np.cos(pose[2]), np.sin(pose[2])]) > 0
-                if same_way.any():
-                    d = np.hypot(q[i:hi, 0] - pose[0], q[i:hi, 1] - pose[1])
-                    i = i + int(np.argmin(np.where(same_way, d, np.inf)))
+                i = _nearest_heading_our_way(q, tangent, i, min(m, i + 2 * look + window), pose)
             if i >= m - 1 or (m - 1 - i) * spacing < 0.05:
                 break
             stuck = stuck + 1 if i <= best_i else 0
