@@ -25,6 +25,7 @@ from .relaxation import ColourGroups, RelaxResult, _link_residuals, relax, relax
 
 __all__ = ["MapCorrection"]
 
+_STALE_FACTOR = 10.0  # a loop link's weight falling by this factor is revised whatever reweight_tolerance says
 _FADED_INFORMATION = 1e-12  # what is left of a faded loop link's information in the bias's significance test
 
 
@@ -264,7 +265,7 @@ class MapCorrection(MapGraph):
         """Revise the robust weights of the loop links from their residuals on the converged
         map (iteratively reweighted relaxation): each link's residual is whitened by
         ``loop_information`` and the kernel width, and ``loop_kernel`` turns it into a weight in
-        (0, 1]. Returns whether a weight changed by more than ``reweight_tolerance``."""
+        (0, 1]. Returns whether a weight changed by more than ``reweight_tolerance`` or fell tenfold."""
         cfg = self.cfg
         if cfg.loop_kernel == "none":
             return False
@@ -278,7 +279,10 @@ class MapCorrection(MapGraph):
             self._lkw[loop],
             cfg.loop_kernel,
         )
-        changed = np.abs(new - self._w[loop]) > cfg.reweight_tolerance
+        old = self._w[loop]
+        # a faded link's weight falling tenfold is a change too, however small in absolute terms: its
+        # stale weight times a residual of tens of metres would go on bending the map (docs/MODEL.md item 52)
+        changed = (np.abs(new - old) > cfg.reweight_tolerance) | (old > _STALE_FACTOR * new)
         if not changed.any():
             return False
         self._w[loop] = new

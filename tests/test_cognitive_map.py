@@ -832,6 +832,31 @@ def test_a_bias_is_kept_only_when_loops_the_solved_map_uses_observe_it(weight, b
         assert cmap.link_weights()[d.link] < 0.5
 
 
+def test_a_faded_link_is_not_left_pulling_with_a_stale_weight():
+    """A loop link's weight is revised when it changes by more than ``reweight_tolerance`` (0.05) or
+    falls tenfold: a false closure 6 m aside whose kernel weight is 3e-4 on the map, but which still
+    carries 0.003 from an earlier map (a change far below 0.05), gets its kernel weight back; left at
+    0.003, tens of metres of residual times that weight bent a slow corridor's map by 1.45 rad."""
+    inc = square_increments(side=8.0, laps=1)[:-8]
+    gt = integrate(inc)
+    cfg = MapConfig(solver="lsq", prune_online=False, loop_transform_radius_m=10.0, loop_radius_per_m=0.5)
+    cmap = CognitiveMap(cfg)
+    node_at, off, _ = drive(cmap, inc)
+    j = 20
+    rel = compose(compose(cmap.robot_offset, between(gt[-1], gt[j])), (0.0, 6.0, 0.5))
+    rel = compose(rel, between(off[j], np.zeros(3)))
+    d = cmap.propose_loop(LoopHypothesis(node=int(node_at[j]), transform=tuple(rel), source="test"))
+    assert d.status == "accepted"
+    cmap.finish()
+    kernel = float(cmap.link_weights()[d.link])
+    assert kernel < 1e-3
+    cmap._w[d.link] = 0.003  # stale: 0.003 - kernel is far below reweight_tolerance
+    assert cmap._reweight()
+    assert float(cmap.link_weights()[d.link]) == pytest.approx(kernel, rel=0.05)
+    cmap._w[d.link] = 2.0 * kernel  # a small change of a faded weight is still no change
+    assert not cmap._reweight()
+
+
 def test_a_significant_heading_bias_is_estimated_and_closes_the_map():
     """A gyro's 0.01 rad/s drift is many posterior sigmas out: the whole solves estimate it
     (within 10 %) and the map is better than without the estimate."""
