@@ -168,10 +168,11 @@ def simulate(
         args += ["--data", str(shared / "data" / "bicocca25b")]
     if laps is not None:
         args += ["--laps", str(laps)]
-    args += motion_args(motion)
+    drive_args = motion_args(motion)
+    args += drive_args
     key = hashlib.sha1(json.dumps([args, sim_source_hash()]).encode()).hexdigest()[:12]
     tname = texture if texture in ("procedural", "rtabmap", "corridor") else "photos"
-    drive = "".join(f"-{a[2]}{v}" for a, v in zip(motion_args(motion)[::2], motion_args(motion)[1::2]))  # -s0.8-r10
+    drive = "".join(f"-{flag[2]}{v}" for flag, v in zip(drive_args[::2], drive_args[1::2]))  # -s0.8-r10
     folder = cache / "sim" / f"{world}-s{seed}-{size[0]}x{size[1]}-{tname}{drive}-{key}"
     if (folder / "done").is_file():
         return folder, None

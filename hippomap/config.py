@@ -447,7 +447,13 @@ class MapConfig(_Frozen):
         "ones. False (default): the kernel revises every loop link; measured better on Bicocca and the simulated "
         "worlds (biased true closures fade too) [ours, docs/MODEL.md]",
     )
-    reweight_tolerance: float = Field(0.05, gt=0, lt=1, description="a weight change above this relaxes again [ours]")
+    reweight_tolerance: float = Field(
+        0.05,
+        gt=0,
+        lt=1,
+        description="a weight change above this relaxes again; so does a weight falling tenfold, however small "
+        "the change (a faded link's stale weight would go on bending the map, docs/MODEL.md item 52) [ours]",
+    )
     solver: Literal["relax", "jacobi", "lsq"] = Field(
         "lsq",
         description="map correction after each action: 'relax' = [ORS] per-link relaxation (Eq. 14), vectorised by "

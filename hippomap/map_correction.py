@@ -18,7 +18,7 @@ import numpy as np
 
 from .headings_first import rotation_first_init
 from .least_squares import bias_sigma, graph_cost, solve_lsq
-from .loop_closure import USED_WEIGHT, kernel_weights, robust_weight
+from .loop_closure import USED_WEIGHT, kernel_weights
 from .map_events import MapEvent, MapRelaxed
 from .map_graph import LOOP, ODOMETRY, MapGraph, within_hops
 from .relaxation import ColourGroups, RelaxResult, _link_residuals, relax, relax_jacobi
@@ -225,8 +225,8 @@ class MapCorrection(MapGraph):
         if not len(loop) or cfg.loop_kernel == "none":
             return info
         r = _link_residuals(Q, self._src[loop], self._dst[loop], self._tr[loop])
-        chi2 = r[:, 2] ** 2 * self._linfo[loop, 2] / self._lkw[loop] ** 2
-        faded = loop[robust_weight(chi2, cfg.loop_kernel) < USED_WEIGHT]
+        r[:, :2] = 0.0  # the heading part of each link's kernel weight
+        faded = loop[kernel_weights(r, self._linfo[loop], self._lkw[loop], cfg.loop_kernel) < USED_WEIGHT]
         if not len(faded):
             return info
         out = info.copy()
