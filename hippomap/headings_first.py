@@ -95,6 +95,7 @@ def rotation_first_init(
     bias_dt=None,
     bias: float = 0.0,
     bias_information: float = 0.0,
+    heading_turns=None,
 ) -> tuple[float, float]:
     """Re-initialise the poses of a pose graph **in place**, headings first (the LAGO idea of
     Carlone et al., 2014), and return the largest position change.
@@ -109,8 +110,9 @@ def rotation_first_init(
     anchor and ``fixed`` nodes keep their poses; nodes without links keep theirs. Weights:
     ``information`` (M, 3) diagonals (x/y mean for positions), unit when None. With ``bias_dt``
     the odometry's heading bias is solved with the headings (as in
-    :func:`~hippomap.least_squares.solve_lsq`, from ``bias``). Returns the largest position
-    change and the bias.
+    :func:`~hippomap.least_squares.solve_lsq`, from ``bias``). ``heading_turns`` (M,): whole turns
+    added to each link's wrapped heading residual, another branch of the wrap (a loop that drifted
+    more than π reads as the opposite drift). Returns the largest position change and the bias.
     """
     P, src, dst, T = _as_graph(poses, src, dst, transforms, inplace=True)
     n, m = len(P), len(src)
@@ -121,7 +123,8 @@ def rotation_first_init(
     keep = _free_nodes(n, src, anchor, fixed)
     bdt = None if bias_dt is None else np.asarray(bias_dt, dtype=float).reshape(m)
     order = group_order(n, src, dst, keep)  # the node graph's order, for both solves
-    th, new_bias = _solve_headings(P, src, dst, T, info[:, 2], keep, order, bdt, float(bias), bias_information)
+    turns = None if heading_turns is None else np.asarray(heading_turns, dtype=float).reshape(m)
+    th, new_bias = _solve_headings(P, src, dst, T, info[:, 2], keep, order, bdt, float(bias), bias_information, turns)
     dxy = _solve_positions(P, src, dst, T, th, 0.5 * (info[:, 0] + info[:, 1]), keep, order)
     P[:, :2] += dxy
     P[:, 2] = th
@@ -154,6 +157,7 @@ def _solve_headings(
     bdt: np.ndarray | None,
     bias: float,
     bias_information: float,
+    turns: np.ndarray | None = None,
 ) -> tuple[np.ndarray, float]:
     """The headings alone: the heading changes that make every link's wrapped heading residual,
     taken on the current poses ``P``, agree in the least squares with weights ``w`` (M,). With
@@ -163,6 +167,8 @@ def _solve_headings(
     headings (N,, unwrapped) and the new bias."""
     T_th = T[:, 2] if bdt is None else T[:, 2] - bias * bdt
     e_th = _wrap_inplace(P[dst, 2] - P[src, 2] - T_th)
+    if turns is not None:  # another branch of the wrapped residuals: whole turns added
+        e_th += 2.0 * np.pi * turns
     sol, dbias = _laplacian_solve(
         len(P),
         src,

@@ -251,15 +251,41 @@ class MapCorrection(MapGraph):
     ) -> float:
         """Headings-first re-initialisation before a whole solve (with the bias when it is
         estimated), kept only when it lowers the weighted cost (it cannot on a map that is
-        already at its optimum). Returns the bias to start the solve from."""
+        already at its optimum); with loop links whose heading residual may have wrapped round, from
+        each branch of :meth:`_heading_branches`, the cheaper kept. Returns the bias to start the solve
+        from."""
         b0 = float(bias.get("bias", 0.0))
-        before = graph_cost(P, src, dst, tr, info, **bias)
-        Q = P.copy()
-        _, b = rotation_first_init(Q, src, dst, tr, info, anchor=0, **bias)
-        if graph_cost(Q, src, dst, tr, info, **{**bias, "bias": b}) < before:
-            P[:] = Q
-            return b
-        return b0
+        best_cost, best = graph_cost(P, src, dst, tr, info, **bias), None
+        for turns in self._heading_branches(P, src, dst, tr):
+            Q = P.copy()
+            _, b = rotation_first_init(Q, src, dst, tr, info, anchor=0, heading_turns=turns, **bias)
+            cost = graph_cost(Q, src, dst, tr, info, **{**bias, "bias": b})
+            if cost < best_cost:
+                best_cost, best = cost, (Q, b)
+        if best is None:
+            return b0
+        P[:] = best[0]
+        return best[1]
+
+    def _heading_branches(
+        self, P: np.ndarray, src: np.ndarray, dst: np.ndarray, tr: np.ndarray
+    ) -> list[np.ndarray | None]:
+        """The branches of the loop links' heading residuals the headings-first init tries: each
+        wrapped into (−π, π] as it reads on ``P`` (None), and, when some are over π/2, those links
+        taken the other way round the circle (whole turns per link, (M,)). A closure alone cannot tell
+        a drift of +3.4 rad from one of −2.9 rad; the positions the two branches give can
+        (docs/MODEL.md item 53)."""
+        m = self._m
+        loop = np.flatnonzero(self._kind[:m] == LOOP)
+        if not len(loop):
+            return [None]
+        r = _link_residuals(P, src[loop], dst[loop], tr[loop])[:, 2]
+        far = np.abs(r) > 0.5 * np.pi
+        if not far.any():
+            return [None]
+        turns = np.zeros(m)
+        turns[loop[far]] = -np.sign(r[far])
+        return [None, turns]
 
     def _reweight(self) -> bool:
         """Revise the robust weights of the loop links from their residuals on the converged

@@ -857,6 +857,32 @@ def test_a_faded_link_is_not_left_pulling_with_a_stale_weight():
     assert not cmap._reweight()
 
 
+@pytest.mark.parametrize("beta", [0.016, 0.0125])
+def test_a_drift_past_half_a_turn_is_unwound_the_right_way_round(beta):
+    """A corridor driven three times (there, back, there again: turns on the spot), odometry drifting
+    ``beta`` rad/s, true closures from the third pass to the first only (the second faces the other
+    way). At 0.016 rad/s the third pass starts 3.5 rad off, more than π: each closure's heading
+    residual wraps round and reads as a drift of −2.8 rad, and the headings-first init took that
+    branch (a bias of the wrong sign: the map stayed as bad as odometry, 5.6 m). Both branches are
+    tried and the positions tell them apart. At 0.0125 rad/s (2.75 rad) the residuals read right and
+    the other branch, tried too, is not taken."""
+    dt = 1.0
+    inc = back_and_forth(passes=3, length=10.0, step=0.1)
+    gt = integrate(inc)
+    noisy = inc.copy()
+    noisy[:, 2] += beta * dt
+    times = 1.7e9 + dt * np.arange(len(inc) + 1)
+    cfg = MapConfig(solver="lsq", prune_online=False, loop_transform_radius_m=30.0, loop_radius_per_m=0.5)
+    cmap = CognitiveMap(cfg)
+    per_pass = len(inc) // 3
+    node_at, off, _ = drive(cmap, noisy, times=times, hypotheses=true_loops(gt, 2 * per_pass, every=10, start=20))
+    cmap.finish()
+    loops = cmap.links["kind"] == "loop"
+    assert loops.sum() >= 8 and np.all(cmap.link_weights()[loops] > 0.5)
+    assert cmap._bias == pytest.approx(beta, rel=0.05)
+    assert rms_xy(corrected(cmap, node_at, off), gt) < 0.5 < 5.0 < rms_xy(integrate(noisy), gt)
+
+
 def test_a_significant_heading_bias_is_estimated_and_closes_the_map():
     """A gyro's 0.01 rad/s drift is many posterior sigmas out: the whole solves estimate it
     (within 10 %) and the map is better than without the estimate."""

@@ -345,6 +345,35 @@ def test_rotation_first_init_lets_gauss_newton_close_a_long_drifting_loop_in_a_f
     assert rms_xy(init, gt) < 0.2
 
 
+def test_rotation_first_init_takes_a_loop_past_half_a_turn_the_way_it_is_told():
+    """A loop whose odometry turned 4 rad too far at a constant rate (more than π), solved with that
+    rate as the odometry's bias: the closing link's residual, wrapped, reads as the opposite drift, and
+    the init unwinds it the wrong way (a bias of the wrong sign, the square bent by a whole extra turn).
+    ``heading_turns`` takes that link the other way round the circle: the right rate and map. (Which
+    branch to take is the map's choice, by cost: ``tests/test_cognitive_map.py``.)"""
+    side = 100
+    gt, _, src, dst, T = square_loop(side_nodes=side, spacing=0.2, bias=0.0)
+    n = len(gt)
+    T = T.copy()
+    rate = 4.0 / (n - 1)
+    T[:-1, 2] += rate
+    odo = integrate(T[:-1])
+    info = np.tile([1810.0, 1810.0, 1810.0], (len(src), 1))
+    bias = {"bias_dt": np.append(np.ones(n - 1), 0.0), "bias_information": 1.0 / 0.02**2}
+    r = link_residuals(odo, src[-1:], dst[-1:], T[-1:])[0, 2]
+    assert abs(r) < np.pi and abs(r - 4.0) > 1.0  # wrapped: not the drift
+    wrapped, turned = odo.copy(), odo.copy()
+    _, b_wrapped = rotation_first_init(wrapped, src, dst, T, information=info, **bias)
+    turns = np.zeros(len(src))
+    turns[-1] = -np.sign(r)
+    _, b_turned = rotation_first_init(turned, src, dst, T, information=info, heading_turns=turns, **bias)
+    assert b_turned == pytest.approx(rate, rel=0.01) and b_wrapped < 0
+    assert rms_xy(turned, gt) < 0.05 < 2.0 < rms_xy(wrapped, gt)
+    same = odo.copy()
+    rotation_first_init(same, src, dst, T, information=info, heading_turns=np.zeros(len(src)), **bias)
+    np.testing.assert_array_equal(same, wrapped)  # no turns: the wrapped reading
+
+
 @settings(max_examples=25, deadline=None)
 @given(st.integers(0, 10_000))
 def test_rotation_first_init_is_exact_on_a_consistent_graph(seed):
