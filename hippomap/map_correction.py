@@ -27,6 +27,8 @@ __all__ = ["MapCorrection"]
 
 _STALE_FACTOR = 10.0  # a loop link's weight falling by this factor is revised whatever reweight_tolerance says
 _FADED_INFORMATION = 1e-12  # what is left of a faded loop link's information in the bias's significance test
+_BRANCH_TURNS = (-2, -1, 1, 2)  # whole turns the headings-first init also tries on loop links the map does not use
+_BRANCH_MARGIN = 0.5  # ... and keeps only at under this fraction of the wrapped reading's cost (docs/MODEL.md item 53)
 
 
 class MapCorrection(MapGraph):
@@ -260,7 +262,8 @@ class MapCorrection(MapGraph):
             Q = P.copy()
             _, b = rotation_first_init(Q, src, dst, tr, info, anchor=0, heading_turns=turns, **bias)
             cost = graph_cost(Q, src, dst, tr, info, **{**bias, "bias": b})
-            if cost < best_cost:
+            # another branch must explain the map clearly better than the wrapped reading
+            if cost < (best_cost if turns is None else _BRANCH_MARGIN * best_cost):
                 best_cost, best = cost, (Q, b)
         if best is None:
             return b0
@@ -271,21 +274,27 @@ class MapCorrection(MapGraph):
         self, P: np.ndarray, src: np.ndarray, dst: np.ndarray, tr: np.ndarray
     ) -> list[np.ndarray | None]:
         """The branches of the loop links' heading residuals the headings-first init tries: each
-        wrapped into (−π, π] as it reads on ``P`` (None), and, when some are over π/2, those links
-        taken the other way round the circle (whole turns per link, (M,)). A closure alone cannot tell
-        a drift of +3.4 rad from one of −2.9 rad; the positions the two branches give can
-        (docs/MODEL.md item 53)."""
-        m = self._m
+        wrapped into (−π, π] as it reads on ``P`` (None), then the loop links ``P`` does not use
+        (robust weight on ``P`` below ``USED_WEIGHT``: new closures, faded ones) taken together
+        ``_BRANCH_TURNS`` whole turns further round (each (M,)). A closure alone cannot tell a drift
+        of +3.4 rad from one of −2.9 rad, nor of +6.1 rad from −0.2 rad; the positions the branches
+        give can (docs/MODEL.md item 53)."""
+        m, cfg = self._m, self.cfg
         loop = np.flatnonzero(self._kind[:m] == LOOP)
-        if not len(loop):
+        if not len(loop) or cfg.loop_kernel == "none":
             return [None]
-        r = _link_residuals(P, src[loop], dst[loop], tr[loop])[:, 2]
-        far = np.abs(r) > 0.5 * np.pi
-        if not far.any():
+        w = kernel_weights(
+            _link_residuals(P, src[loop], dst[loop], tr[loop]), self._linfo[loop], self._lkw[loop], cfg.loop_kernel
+        )
+        unused = loop[w < USED_WEIGHT]
+        if not len(unused):
             return [None]
-        turns = np.zeros(m)
-        turns[loop[far]] = -np.sign(r[far])
-        return [None, turns]
+        out: list[np.ndarray | None] = [None]
+        for k in _BRANCH_TURNS:
+            turns = np.zeros(m)
+            turns[unused] = k
+            out.append(turns)
+        return out
 
     def _reweight(self) -> bool:
         """Revise the robust weights of the loop links from their residuals on the converged
