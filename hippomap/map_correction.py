@@ -28,7 +28,8 @@ __all__ = ["MapCorrection"]
 _STALE_FACTOR = 10.0  # a loop link's weight falling by this factor is revised whatever reweight_tolerance says
 _FADED_INFORMATION = 1e-12  # what is left of a faded loop link's information in the bias's significance test
 _BRANCH_TURNS = (-2, -1, 1, 2)  # whole turns the headings-first init also tries on loop links the map does not use
-_BRANCH_MARGIN = 0.5  # ... and keeps only at under this fraction of the wrapped reading's cost (docs/MODEL.md item 53)
+_BRANCH_MARGIN = 0.5  # ... and keeps only at under this fraction of the wrapped reading's cost, at a rate within
+# odometry_bias_sigma (docs/MODEL.md item 53)
 
 
 class MapCorrection(MapGraph):
@@ -253,17 +254,22 @@ class MapCorrection(MapGraph):
     ) -> float:
         """Headings-first re-initialisation before a whole solve (with the bias when it is
         estimated), kept only when it lowers the weighted cost (it cannot on a map that is
-        already at its optimum); with loop links whose heading residual may have wrapped round, from
-        each branch of :meth:`_heading_branches`, the cheaper kept. Returns the bias to start the solve
-        from."""
+        already at its optimum); with loop links the map does not use, from each branch of
+        :meth:`_heading_branches` too, a turned branch kept only at under ``_BRANCH_MARGIN`` of the
+        cost and at a rate within ``odometry_bias_sigma`` (a lone false closure can be explained by a
+        whole extra turn at an extraordinary rate). Returns the bias to start the solve from."""
         b0 = float(bias.get("bias", 0.0))
         best_cost, best = graph_cost(P, src, dst, tr, info, **bias), None
         for turns in self._heading_branches(P, src, dst, tr):
             Q = P.copy()
             _, b = rotation_first_init(Q, src, dst, tr, info, anchor=0, heading_turns=turns, **bias)
             cost = graph_cost(Q, src, dst, tr, info, **{**bias, "bias": b})
-            # another branch must explain the map clearly better than the wrapped reading
-            if cost < (best_cost if turns is None else _BRANCH_MARGIN * best_cost):
+            # another branch must explain the map clearly better than the wrapped reading, at an ordinary rate
+            if turns is None:
+                better = cost < best_cost
+            else:
+                better = cost < _BRANCH_MARGIN * best_cost and abs(b) <= self.cfg.odometry_bias_sigma
+            if better:
                 best_cost, best = cost, (Q, b)
         if best is None:
             return b0
