@@ -217,6 +217,15 @@ class MapCorrection(MapGraph):
         observed = bound is None or sigma <= bound * cfg.odometry_bias_sigma
         return abs(b) > k * sigma and observed
 
+    def _loop_weights(self, P: np.ndarray, loop: np.ndarray, heading_only: bool = False) -> np.ndarray:
+        """The ``loop_kernel`` weights the loop links ``loop`` would have on the poses ``P``: each link's
+        residual whitened by its ``loop_information`` and kernel width (:func:`kernel_weights`); with
+        ``heading_only`` the heading part alone (x/y residuals taken as 0)."""
+        r = _link_residuals(P, self._src[loop], self._dst[loop], self._tr[loop])
+        if heading_only:
+            r[:, :2] = 0.0
+        return kernel_weights(r, self._linfo[loop], self._lkw[loop], self.cfg.loop_kernel)
+
     def _used_information(self, info: np.ndarray, Q: np.ndarray) -> np.ndarray:
         """``info`` (M, 3) without the loop links whose heading the solved poses ``Q`` leave
         inconsistent: what observes the odometry's bias in its significance test. The bias is a
@@ -227,9 +236,7 @@ class MapCorrection(MapGraph):
         loop = np.flatnonzero(self._kind[:m] == LOOP)
         if not len(loop) or cfg.loop_kernel == "none":
             return info
-        r = _link_residuals(Q, self._src[loop], self._dst[loop], self._tr[loop])
-        r[:, :2] = 0.0  # the heading part of each link's kernel weight
-        faded = loop[kernel_weights(r, self._linfo[loop], self._lkw[loop], cfg.loop_kernel) < USED_WEIGHT]
+        faded = loop[self._loop_weights(Q, loop, heading_only=True) < USED_WEIGHT]
         if not len(faded):
             return info
         out = info.copy()
@@ -260,7 +267,7 @@ class MapCorrection(MapGraph):
         whole extra turn at an extraordinary rate). Returns the bias to start the solve from."""
         b0 = float(bias.get("bias", 0.0))
         best_cost, best = graph_cost(P, src, dst, tr, info, **bias), None
-        for turns in self._heading_branches(P, src, dst, tr):
+        for turns in self._heading_branches(P):
             Q = P.copy()
             _, b = rotation_first_init(Q, src, dst, tr, info, anchor=0, heading_turns=turns, **bias)
             cost = graph_cost(Q, src, dst, tr, info, **{**bias, "bias": b})
@@ -276,9 +283,7 @@ class MapCorrection(MapGraph):
         P[:] = best[0]
         return best[1]
 
-    def _heading_branches(
-        self, P: np.ndarray, src: np.ndarray, dst: np.ndarray, tr: np.ndarray
-    ) -> list[np.ndarray | None]:
+    def _heading_branches(self, P: np.ndarray) -> list[np.ndarray | None]:
         """The branches of the loop links' heading residuals the headings-first init tries: each
         wrapped into (−π, π] as it reads on ``P`` (None), then the loop links ``P`` does not use
         (robust weight on ``P`` below ``USED_WEIGHT``: new closures, faded ones) taken together
@@ -289,10 +294,7 @@ class MapCorrection(MapGraph):
         loop = np.flatnonzero(self._kind[:m] == LOOP)
         if not len(loop) or cfg.loop_kernel == "none":
             return [None]
-        w = kernel_weights(
-            _link_residuals(P, src[loop], dst[loop], tr[loop]), self._linfo[loop], self._lkw[loop], cfg.loop_kernel
-        )
-        unused = loop[w < USED_WEIGHT]
+        unused = loop[self._loop_weights(P, loop) < USED_WEIGHT]
         if not len(unused):
             return [None]
         out: list[np.ndarray | None] = [None]
@@ -314,12 +316,7 @@ class MapCorrection(MapGraph):
         loop = np.flatnonzero(self._kind[:m] == LOOP)
         if not len(loop):
             return False
-        new = kernel_weights(
-            _link_residuals(self._P[: self._n], self._src[loop], self._dst[loop], self._tr[loop]),
-            self._linfo[loop],
-            self._lkw[loop],
-            cfg.loop_kernel,
-        )
+        new = self._loop_weights(self._P[: self._n], loop)
         old = self._w[loop]
         # a faded link's weight falling tenfold is a change too, however small in absolute terms: its
         # stale weight times a residual of tens of metres would go on bending the map (docs/MODEL.md item 52)

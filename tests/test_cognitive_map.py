@@ -750,14 +750,20 @@ def test_the_first_link_lasts_from_the_first_step_not_from_time_zero():
     assert dt.sum() <= times[-1] - times[0] and dt[0] < 1.0
 
 
+def drifting(inc, beta, dt):
+    """Odometry whose heading drifts ``beta`` rad/s, one step every ``dt`` s on a real clock:
+    ``(true poses, drifting increments, times)``."""
+    noisy = inc.copy()
+    noisy[:, 2] += beta * dt
+    return integrate(inc), noisy, 1.7e9 + dt * np.arange(len(inc) + 1)
+
+
 def _bias_run(beta, sigma_omega, significance, seed=0, observed=None):
     """Two laps of the square at 5 Hz on a real clock, odometry turning at ``beta`` rad/s too
     much plus white heading noise, closed by true loops; returns the map's error and bias."""
     inc = square_increments()
-    gt = integrate(inc)
-    noisy = inc.copy()
-    noisy[:, 2] += beta * 0.2 + np.random.default_rng(seed).normal(0.0, sigma_omega, len(inc))
-    times = 1.7e9 + 0.2 * np.arange(len(inc) + 1)
+    gt, noisy, times = drifting(inc, beta, 0.2)
+    noisy[:, 2] += np.random.default_rng(seed).normal(0.0, sigma_omega, len(inc))
     cfg = MapConfig(
         **VERIFIED,
         solver="lsq",
@@ -807,10 +813,7 @@ def test_a_bias_is_kept_only_when_loops_the_solved_map_uses_observe_it(weight, b
     where the solve took the aliased bias."""
     dt = 0.5
     inc = square_increments(side=8.0, laps=1)[:-8]
-    gt = integrate(inc)
-    noisy = inc.copy()
-    noisy[:, 2] += beta * dt
-    times = 1.7e9 + dt * np.arange(len(inc) + 1)
+    gt, noisy, times = drifting(inc, beta, dt)
     cfg = MapConfig(solver="lsq", prune_online=False, loop_transform_radius_m=10.0, loop_radius_per_m=0.5)
     cmap = CognitiveMap(cfg)
     node_at, off, _ = drive(cmap, noisy, times=times)
@@ -868,10 +871,7 @@ def test_a_drift_past_half_a_turn_is_unwound_the_right_way_round(beta, dt):
     are tried and the positions tell them apart. At 0.0125 rad/s (2.75 rad) the residuals read right
     and the other branches, tried too, are not taken."""
     inc = back_and_forth(passes=3, length=10.0, step=0.1)
-    gt = integrate(inc)
-    noisy = inc.copy()
-    noisy[:, 2] += beta * dt
-    times = 1.7e9 + dt * np.arange(len(inc) + 1)
+    gt, noisy, times = drifting(inc, beta, dt)
     cfg = MapConfig(solver="lsq", prune_online=False, loop_transform_radius_m=30.0, loop_radius_per_m=0.5)
     cmap = CognitiveMap(cfg)
     per_pass = len(inc) // 3
