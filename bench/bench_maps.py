@@ -115,22 +115,42 @@ def sim_source_hash() -> str:
     return h.hexdigest()[:10]
 
 
+#: ``hippomap simulate`` options a run may set beside the speed and rate (``--sim-option NAME=VALUE``):
+#: the odometry's errors, the camera's noise and field of view, frames rarer than odometry steps
+SIM_OPTIONS = ("omega-bias", "sigma-omega", "sigma-v", "scale-error", "pixel-noise", "frame-every", "hfov")
+
+
 def motion_args(motion: dict[str, float | None] | None) -> list[str]:
     """The simulator's options for a route driven at another speed (``--speed``, m/s) or odometry and
-    frame rate (``--rate``, Hz) than its defaults; none for the defaults (so their cache keys stay)."""
+    frame rate (``--rate``, Hz) than its defaults, then any of :data:`SIM_OPTIONS` the run sets (given
+    after the issue's noise, so they override it); none for the defaults (so their cache keys stay)."""
     out: list[str] = []
-    for name in ("speed", "rate"):
-        v = (motion or {}).get(name)
+    m = motion or {}
+    for name in ("speed", "rate", *SIM_OPTIONS):
+        v = m.get(name)
         if v is not None:
             out += [f"--{name}", f"{v:g}"]
     return out
 
 
 def motion_label(motion: dict[str, float | None] | None) -> str:
-    """``" (0.2 m/s, 10 Hz)"`` for a non-default speed or rate, ``""`` for the simulator's defaults."""
+    """``" (0.2 m/s, 10 Hz)"`` for a non-default speed or rate (and ``scale-error 0.05`` and so on for
+    the other simulator options), ``""`` for the simulator's defaults."""
     m = motion or {}
     parts = [f"{m[k]:g} {unit}" for k, unit in (("speed", "m/s"), ("rate", "Hz")) if m.get(k) is not None]
+    parts += [f"{k} {m[k]:g}" for k in SIM_OPTIONS if m.get(k) is not None]
     return f" ({', '.join(parts)})" if parts else ""
+
+
+def parse_sim_option(s: str) -> tuple[str, float]:
+    """``NAME=VALUE`` of ``--sim-option``: a name of :data:`SIM_OPTIONS` and a number."""
+    name, _, value = s.partition("=")
+    if name not in SIM_OPTIONS:
+        raise argparse.ArgumentTypeError(f"unknown simulator option {name!r}; one of {', '.join(SIM_OPTIONS)}")
+    try:
+        return name, float(value)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{name} needs a number, got {value!r}") from None
 
 
 def simulate(
@@ -172,7 +192,9 @@ def simulate(
     args += drive_args
     key = hashlib.sha1(json.dumps([args, sim_source_hash()]).encode()).hexdigest()[:12]
     tname = texture if texture in ("procedural", "rtabmap", "corridor") else "photos"
-    drive = "".join(f"-{flag[2]}{v}" for flag, v in zip(drive_args[::2], drive_args[1::2]))  # -s0.8-r10
+    # -s0.8-r10 for a speed and a rate, -scale-error0.05 for the other options
+    pairs = zip(drive_args[::2], drive_args[1::2])
+    drive = "".join(f"-{flag[2] if flag in ('--speed', '--rate') else flag[2:]}{v}" for flag, v in pairs)
     folder = cache / "sim" / f"{world}-s{seed}-{size[0]}x{size[1]}-{tname}{drive}-{key}"
     if (folder / "done").is_file():
         return folder, None
@@ -299,6 +321,8 @@ def run_hippomap(data: Path, config_file: str | None, out_dir: Path) -> dict[str
     s = metrics.get("stats", {})
     return {
         "ate": metrics["map"]["ate"]["rmse"],
+        "ate_scaled": metrics["map"]["ate_scaled"]["rmse"],
+        "scale": metrics["map"]["ate_scaled"]["scale"],
         "rpe": metrics["map"]["rpe"].get("rmse"),
         "odometry_ate": metrics["odometry"]["ate"]["rmse"],
         "odometry_rpe": metrics["odometry"]["rpe"].get("rmse"),
@@ -333,7 +357,7 @@ def run_hippomap(data: Path, config_file: str | None, out_dir: Path) -> dict[str
 
 
 def score_ors(res: peers.ORSResult, gt: tuple[np.ndarray, np.ndarray]) -> dict[str, Any]:
-    tm = trajectory_metrics(res.times, res.poses, *gt)
+    tm = trajectory_metrics(res.times, res.poses, *gt, scaled=True)
     created = res.exp_created
     judged, false = 0, 0
     for t, _src, dest in res.links:
@@ -345,6 +369,8 @@ def score_ors(res: peers.ORSResult, gt: tuple[np.ndarray, np.ndarray]) -> dict[s
     return {
         "threshold": res.threshold,
         "ate": tm["ate"]["rmse"],
+        "ate_scaled": tm["ate_scaled"]["rmse"],
+        "scale": tm["ate_scaled"]["scale"],
         "rpe": tm["rpe"].get("rmse"),
         "closures_accepted": len(res.links),
         "closures_false": false,
@@ -615,6 +641,33 @@ def sim_table(rows: list[dict[str, Any]]) -> list[str]:
     return out
 
 
+def sim_scaled_table(rows: list[dict[str, Any]]) -> list[str]:
+    """hippomap's and OpenRatSLAM's best ATE after a similarity alignment (scale corrected, evo's
+    ``-as``) beside the rigid one: with a constant odometric scale error the best a camera-only map
+    can be is a scaled copy, whose rigid ATE grows with the map's size however right its shape."""
+    out = [
+        "| world | seed | size | texture | hippomap ATE: rigid / scale corrected (scale) | "
+        "ORS best ATE: rigid / scale corrected (scale) | ratio, scale corrected |",
+        "|---|---:|---|---|---:|---:|---:|",
+    ]
+    for r in rows:
+        hm, ors = r.get("hippomap"), r.get("ors")
+        if not hm or "ate_scaled" not in hm:
+            continue
+        cells = [world_label(r), str(r["seed"]), r["size"], r["texture"]]
+        cells.append(f"{f2(hm['ate'])} / {f2(hm['ate_scaled'])} ({hm['scale']:.3f})")
+        b = ors["best"] if ors else None
+        if b and "ate_scaled" in b:
+            cells += [
+                f"{f2(b['ate'])} / {f2(b['ate_scaled'])} ({b['scale']:.3f})",
+                f2(hm["ate_scaled"] / max(b["ate_scaled"], 1e-12)),
+            ]
+        else:
+            cells += ["n/a", "n/a"]
+        out.append("| " + " | ".join(cells) + " |")
+    return out
+
+
 def world_label(r: dict[str, Any]) -> str:
     """A row's world, with its speed and rate when they are not the simulator's defaults."""
     return r["world"] + motion_label(r.get("motion"))
@@ -794,6 +847,9 @@ def report_lines(sim_rows: list[dict[str, Any]], bic_rows: list[dict[str, Any]])
     lines += sim_table(sim_rows) if sim_rows else ["(none)"]
     if sim_rows:
         lines += ["", "Mean over seeds:", "", *sim_summary(sim_rows)]
+    if any("scale-error" in (r.get("motion") or {}) for r in sim_rows):
+        lines += ["", "With the odometry's scale wrong, ATE after an alignment that corrects the scale too:", ""]
+        lines += sim_scaled_table(sim_rows)
     lines += ["", *sim_targets(sim_rows), "", "## Bicocca 25b proposal files (ATE vs GPS ground truth)", ""]
     lines += bicocca_table(bic_rows) if bic_rows else ["(none)"]
     lines += ["", *bicocca_targets(bic_rows), ""]
@@ -838,6 +894,14 @@ def main(argv: list[str] | None = None) -> int:
         ("--rates", "odometry and frame rates in Hz to render (simulator default 5; one frame per odometry step)"),
     ):
         ap.add_argument(flag, nargs="+", type=float, default=[None], help=what)
+    ap.add_argument(
+        "--sim-option",
+        action="append",
+        type=parse_sim_option,
+        metavar="NAME=VALUE",
+        help=f"another hippomap simulate option for every loop and corridor run, repeatable: {', '.join(SIM_OPTIONS)} "
+        "(e.g. scale-error=0.05; the odometry noise options override the issue's setting)",
+    )
     ap.add_argument("--config", help="hippomap JSON config overrides (default: the default config)")
     ap.add_argument(
         "--thresholds",
@@ -951,7 +1015,7 @@ def main(argv: list[str] | None = None) -> int:
                 "shared": str(shared),
                 "cache": str(cache),
                 "laps": args.laps,
-                "motion": {"speed": v, "rate": hz} if (v, hz) != (None, None) else {},
+                "motion": ({"speed": v, "rate": hz} if (v, hz) != (None, None) else {}) | dict(args.sim_option or []),
                 "config": config,
                 "ors_exe": str(exe) if exe else None,
                 "peer_dir": str(peer_dir),

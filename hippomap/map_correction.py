@@ -30,6 +30,8 @@ _FADED_INFORMATION = 1e-12  # what is left of a faded loop link's information in
 _BRANCH_TURNS = (-2, -1, 1, 2)  # whole turns the headings-first init also tries on loop links the map does not use
 _BRANCH_MARGIN = 0.5  # ... and keeps only at under this fraction of the wrapped reading's cost, at a rate within
 # odometry_bias_sigma (docs/MODEL.md item 53)
+_BRANCH_WIDE = 3.0  # ... or within this many odometry_bias_sigma when the branch fits every link well (item 54)
+_BRANCH_FIT_P = 0.99  # ... "well": its whole cost within this chi-square quantile, 3 dof per turned link
 
 
 class MapCorrection(MapGraph):
@@ -264,7 +266,8 @@ class MapCorrection(MapGraph):
         already at its optimum); with loop links the map does not use, from each branch of
         :meth:`_heading_branches` too, a turned branch kept only at under ``_BRANCH_MARGIN`` of the
         cost and at a rate within ``odometry_bias_sigma`` (a lone false closure can be explained by a
-        whole extra turn at an extraordinary rate). Returns the bias to start the solve from."""
+        whole extra turn at an extraordinary rate), or within ``_BRANCH_WIDE`` of it when the branch
+        fits (:meth:`_branch_fits`). Returns the bias to start the solve from."""
         b0 = float(bias.get("bias", 0.0))
         best_cost, best = graph_cost(P, src, dst, tr, info, **bias), None
         for turns in self._heading_branches(P):
@@ -275,13 +278,28 @@ class MapCorrection(MapGraph):
             if turns is None:
                 better = cost < best_cost
             else:
-                better = cost < _BRANCH_MARGIN * best_cost and abs(b) <= self.cfg.odometry_bias_sigma
+                better = cost < _BRANCH_MARGIN * best_cost and self._branch_rate_ok(b, cost, turns)
             if better:
                 best_cost, best = cost, (Q, b)
         if best is None:
             return b0
         P[:] = best[0]
         return best[1]
+
+    def _branch_rate_ok(self, b: float, cost: float, turns: np.ndarray) -> bool:
+        """Whether a turned branch's rate ``b`` may be taken: within ``odometry_bias_sigma``, or within
+        ``_BRANCH_WIDE`` sigmas when the branch's whole cost is within the chi-square ``_BRANCH_FIT_P``
+        quantile of 3 degrees of freedom per turned link. A gyro drifting faster than sigma is then
+        unwound when the turn makes every link agree; a lone false closure that one extra turn half
+        explains bends the odometry between its ends and stays far above (docs/MODEL.md item 54)."""
+        sigma = self.cfg.odometry_bias_sigma
+        if abs(b) <= sigma:
+            return True
+        if abs(b) > _BRANCH_WIDE * sigma:
+            return False
+        from scipy.special import chdtri  # the chi-square quantile; needed only here, rarely
+
+        return bool(cost <= chdtri(3 * int(np.count_nonzero(turns)), 1.0 - _BRANCH_FIT_P))
 
     def _heading_branches(self, P: np.ndarray) -> list[np.ndarray | None]:
         """The branches of the loop links' heading residuals the headings-first init tries: each

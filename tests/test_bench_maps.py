@@ -188,6 +188,34 @@ def test_sim_cache_key_changes_with_arguments(tmp_path, monkeypatch):
     assert "--speed" not in calls[0] and "--rate" not in calls[0]
     assert bench_maps.world_label({"world": "loop", "motion": {"speed": 0.2, "rate": 10.0}}) == "loop (0.2 m/s, 10 Hz)"
     assert bench_maps.world_label({"world": "corridor"}) == "corridor"
+    # other simulator options: after the noise (so they override it), in the name and the label
+    e, _ = bench_maps.simulate("loop", 3, (320, 240), "procedural", shared, None, tmp_path, {"scale-error": 0.05})
+    f, _ = bench_maps.simulate(
+        "loop", 3, (320, 240), "procedural", shared, None, tmp_path, {"omega-bias": 0.03, "frame-every": 5.0}
+    )
+    assert len({a, c, d, e, f}) == 5 and "-scale-error0.05-" in e.name and "-omega-bias0.03-frame-every5-" in f.name
+    assert calls[4][calls[4].index("--scale-error") + 1] == "0.05"
+    assert calls[5][len(calls[5]) - 1 - calls[5][::-1].index("--omega-bias") + 1] == "0.03"  # the last one counts
+    assert bench_maps.world_label({"world": "loop", "motion": {"speed": 0.2, "scale-error": 0.05}}) == (
+        "loop (0.2 m/s, scale-error 0.05)"
+    )
+
+
+@pytest.mark.parametrize("bad", ["scale=0.05", "scale-error=big", "hfov"])
+def test_sim_options_are_checked_by_name_and_number(bad):
+    with pytest.raises(argparse.ArgumentTypeError, match="scale-error|hfov|number"):
+        bench_maps.parse_sim_option(bad)
+    assert bench_maps.parse_sim_option("pixel-noise=8") == ("pixel-noise", 8.0)
+
+
+def test_scale_corrected_ates_are_reported_for_runs_with_a_scale_error():
+    hm = {"ate": 0.36, "ate_scaled": 0.09, "scale": 0.956}
+    best = {"ate": 0.30, "ate_scaled": 0.20, "scale": 0.97}
+    row = {"world": "loop", "seed": 17, "size": "320x240", "texture": "procedural", "hippomap": hm}
+    scaled = {**row, "motion": {"scale-error": 0.05}, "ors": {"best": best}}
+    lines = bench_maps.sim_scaled_table([scaled, row])
+    assert len(lines) == 4 and "0.36 / 0.09 (0.956)" in lines[2] and lines[2].endswith("| 0.45 |")
+    assert lines[3].endswith("| n/a | n/a |")  # no peer in that row
 
 
 def test_ors_loop_links_follow_the_experience_map_rules():

@@ -154,3 +154,22 @@ def test_metrics_measure_known_error():
     line = np.column_stack([np.arange(10.0), np.zeros(10), np.zeros(10)])
     with pytest.raises(InputError, match="cannot align"):
         trajectory_metrics(t[:10], line, t[:10], line)
+
+
+def test_scaled_ate_tells_a_scaled_copy_from_a_wrong_shape():
+    """``scaled``: a map drawn with every distance 5 % long (a scaled copy, moved and turned) has a
+    rigid ATE of about 5 % of the path's spread but none once the scale is corrected too, at the
+    scale that undoes it; a wrong shape keeps its error either way."""
+    rng = np.random.default_rng(2)
+    t = np.arange(400) * 0.2
+    gt = integrate(np.column_stack([np.full(399, 0.1), np.zeros(399), rng.normal(0, 0.05, 399)]))
+    big = compose(np.array([2.0, 1.0, 0.3]), np.column_stack([1.05 * gt[:, :2], gt[:, 2]]))
+    m = trajectory_metrics(t, big, t, gt, scaled=True)
+    spread = float(np.sqrt(((gt[:, :2] - gt[:, :2].mean(0)) ** 2).sum(1).mean()))
+    assert m["ate_scaled"]["rmse"] < 1e-6 and m["ate_scaled"]["scale"] == pytest.approx(1 / 1.05, rel=1e-9)
+    assert m["ate"]["rmse"] == pytest.approx(0.05 / 1.05 * spread, rel=0.1)  # the scale error alone, rigidly
+    assert "ate_scaled" not in trajectory_metrics(t, big, t, gt)  # only when asked
+    wobble = gt.copy()
+    wobble[:, 1] += 0.5 * np.sign(np.sin(np.arange(400)))
+    w = trajectory_metrics(t, wobble, t, gt, scaled=True)
+    assert 0.3 < w["ate_scaled"]["rmse"] <= w["ate"]["rmse"] + 1e-9  # a similarity cannot undo a wrong shape

@@ -107,9 +107,12 @@ def test_run_command_on_a_simulated_folder(tmp_path, capsys):
     run.write(data)
     out = tmp_path / "out"
     assert main(["run", str(data), "--out", str(out), "--no-progress"]) == 0  # the default config
-    assert "ATE rmse odometry" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "ATE rmse odometry" in printed and "with the scale corrected" in printed
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["stats"]["odometry_steps"] == len(run)
+    # a similarity alignment fits at least as well as a rigid one
+    assert metrics["map"]["ate_scaled"]["rmse"] <= metrics["map"]["ate"]["rmse"] + 1e-9
     assert metrics["stats"]["frames"] == run.n_frames
     assert metrics["loop_closures"]["used"] > 0
     assert metrics["loop_closures"]["used_false"] == 0  # a false hypothesis may be linked, but faded

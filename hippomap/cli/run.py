@@ -137,8 +137,8 @@ def write_run(
         "rejected": sum(r["status"] == "rejected" for r in loops),
     }
     if dataset.groundtruth is not None and len(t) > 3:
-        metrics["odometry"] = trajectory_metrics(t, odo, *dataset.groundtruth)
-        metrics["map"] = trajectory_metrics(t, cor, *dataset.groundtruth)
+        metrics["odometry"] = trajectory_metrics(t, odo, *dataset.groundtruth, scaled=True)
+        metrics["map"] = trajectory_metrics(t, cor, *dataset.groundtruth, scaled=True)
         metrics["map_ate_ratio"] = metrics["map"]["ate"]["rmse"] / max(metrics["odometry"]["ate"]["rmse"], 1e-12)
         judged = [r for r in accepted if "groundtruth_distance_m" in r]
         metrics["loop_closures"]["accepted_false"] = sum(
@@ -211,6 +211,8 @@ def _cmd(args: argparse.Namespace) -> int:
         line += (
             f"; ATE rmse odometry {metrics['odometry']['ate']['rmse']:.3f} m"
             f" -> map {metrics['map']['ate']['rmse']:.3f} m"
+            f" ({metrics['map']['ate_scaled']['rmse']:.3f} m with the scale corrected,"
+            f" x{metrics['map']['ate_scaled']['scale']:.3f})"
         )
     print(line)
     return 0

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 from typing import Any
 
 import numpy as np
@@ -35,10 +36,16 @@ def trajectory_metrics(
     ref_poses: Any,
     max_time_diff: float = 0.1,
     rpe_delta_m: float = 10.0,
+    scaled: bool = False,
 ) -> dict[str, Any]:
     """ATE (translation, after an SE(3) Umeyama alignment without scale, evo's ``-a``)
     and RPE (translation over ``rpe_delta_m`` metres of travel) of an estimate against
-    ground truth. Poses are associated by nearest timestamp within ``max_time_diff``."""
+    ground truth. Poses are associated by nearest timestamp within ``max_time_diff``.
+
+    ``scaled``: also ``ate_scaled``, the ATE after an alignment that corrects the scale too (evo's
+    ``-as``), with the ``scale`` applied: odometry whose distances are off by a constant factor draws
+    a map that is a scaled copy at best (no camera-only cue tells the metre), and this tells such a
+    map's shape apart from its scale."""
     with requires("eval", "the trajectory metrics"):
         from evo.core import metrics, sync
         from evo.core.units import Unit
@@ -51,13 +58,21 @@ def trajectory_metrics(
         raise InputError(f"cannot match estimate and ground truth by timestamp: {exc}") from exc
     if ref_s.num_poses < 3:
         raise InputError(f"only {ref_s.num_poses} poses matched ground truth by timestamp")
+    est_c = copy.deepcopy(est_s) if scaled else None
+    scale = 1.0
     try:
         est_s.align(ref_s, correct_scale=False)
+        if est_c is not None:
+            scale = float(est_c.align(ref_s, correct_scale=True)[2])
     except Exception as exc:  # evo's GeometryException: e.g. all poses on one line
         raise InputError(f"cannot align estimate to ground truth: {exc}") from exc
     ape = metrics.APE(metrics.PoseRelation.translation_part)
     ape.process_data((ref_s, est_s))
     out: dict[str, Any] = {"matched_poses": int(ref_s.num_poses), "ate": _stats(ape)}
+    if est_c is not None:
+        ape_c = metrics.APE(metrics.PoseRelation.translation_part)
+        ape_c.process_data((ref_s, est_c))
+        out["ate_scaled"] = {**_stats(ape_c), "scale": scale}
     try:
         rpe = metrics.RPE(
             metrics.PoseRelation.translation_part, delta=rpe_delta_m, delta_unit=Unit.meters, all_pairs=False
