@@ -899,7 +899,7 @@ def main(argv: list[str] | None = None) -> int:
         action="append",
         type=parse_sim_option,
         metavar="NAME=VALUE",
-        help=f"another hippomap simulate option for every loop and corridor run, repeatable: {', '.join(SIM_OPTIONS)} "
+        help=f"another hippomap simulate option for every simulated run, repeatable: {', '.join(SIM_OPTIONS)} "
         "(e.g. scale-error=0.05; the odometry noise options override the issue's setting)",
     )
     ap.add_argument("--config", help="hippomap JSON config overrides (default: the default config)")
