@@ -267,7 +267,7 @@ class MapCorrection(MapGraph):
         :meth:`_heading_branches` too, a turned branch kept only at under ``_BRANCH_MARGIN`` of the
         cost and at a rate within ``odometry_bias_sigma`` (a lone false closure can be explained by a
         whole extra turn at an extraordinary rate), or within ``_BRANCH_WIDE`` of it when the branch
-        fits (:meth:`_branch_fits`). Returns the bias to start the solve from."""
+        fits every link (:meth:`_branch_rate_ok`). Returns the bias to start the solve from."""
         b0 = float(bias.get("bias", 0.0))
         best_cost, best = graph_cost(P, src, dst, tr, info, **bias), None
         for turns in self._heading_branches(P):
