@@ -29,6 +29,18 @@ def _stats(metric) -> dict[str, float]:
     return {k: float(s[k]) for k in ("rmse", "mean", "median", "std", "min", "max")}
 
 
+def _aligned_ate(metrics: Any, ref: Any, est: Any, correct_scale: bool) -> tuple[dict[str, float], float]:
+    """The translation ATE statistics of ``est`` against ``ref`` after aligning ``est`` to it in place
+    (Umeyama, with or without the scale; evo's ``metrics`` module passed in), and the scale applied."""
+    try:
+        scale = float(est.align(ref, correct_scale=correct_scale)[2])
+    except Exception as exc:  # evo's GeometryException: e.g. all poses on one line
+        raise InputError(f"cannot align estimate to ground truth: {exc}") from exc
+    ape = metrics.APE(metrics.PoseRelation.translation_part)
+    ape.process_data((ref, est))
+    return _stats(ape), scale
+
+
 def trajectory_metrics(
     est_times: Any,
     est_poses: Any,
@@ -58,21 +70,12 @@ def trajectory_metrics(
         raise InputError(f"cannot match estimate and ground truth by timestamp: {exc}") from exc
     if ref_s.num_poses < 3:
         raise InputError(f"only {ref_s.num_poses} poses matched ground truth by timestamp")
-    est_c = copy.deepcopy(est_s) if scaled else None
-    scale = 1.0
-    try:
-        est_s.align(ref_s, correct_scale=False)
-        if est_c is not None:
-            scale = float(est_c.align(ref_s, correct_scale=True)[2])
-    except Exception as exc:  # evo's GeometryException: e.g. all poses on one line
-        raise InputError(f"cannot align estimate to ground truth: {exc}") from exc
-    ape = metrics.APE(metrics.PoseRelation.translation_part)
-    ape.process_data((ref_s, est_s))
-    out: dict[str, Any] = {"matched_poses": int(ref_s.num_poses), "ate": _stats(ape)}
+    est_c = copy.deepcopy(est_s) if scaled else None  # before est_s is aligned in place
+    ate, _ = _aligned_ate(metrics, ref_s, est_s, correct_scale=False)
+    out: dict[str, Any] = {"matched_poses": int(ref_s.num_poses), "ate": ate}
     if est_c is not None:
-        ape_c = metrics.APE(metrics.PoseRelation.translation_part)
-        ape_c.process_data((ref_s, est_c))
-        out["ate_scaled"] = {**_stats(ape_c), "scale": scale}
+        ate_c, scale = _aligned_ate(metrics, ref_s, est_c, correct_scale=True)
+        out["ate_scaled"] = {**ate_c, "scale": scale}
     try:
         rpe = metrics.RPE(
             metrics.PoseRelation.translation_part, delta=rpe_delta_m, delta_unit=Unit.meters, all_pairs=False
