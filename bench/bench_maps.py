@@ -117,7 +117,20 @@ def sim_source_hash() -> str:
 
 #: ``hippomap simulate`` options a run may set beside the speed and rate (``--sim-option NAME=VALUE``):
 #: the odometry's errors, the camera's noise and field of view, frames rarer than odometry steps
-SIM_OPTIONS = ("omega-bias", "sigma-omega", "sigma-v", "scale-error", "pixel-noise", "frame-every", "hfov")
+SIM_OPTIONS = (
+    "omega-bias",
+    "sigma-omega",
+    "sigma-v",
+    "scale-error",
+    "pixel-noise",
+    "frame-every",
+    "hfov",
+    "exposure-change",
+    "exposure-period",
+    "light-swing",
+    "light-period",
+    "directional",
+)
 
 
 def motion_args(motion: dict[str, float | None] | None) -> list[str]:

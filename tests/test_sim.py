@@ -83,6 +83,41 @@ def test_wall_ahead_projects_to_f_H_over_d(d):
     assert abs((col2 == 255).sum() - cam2.focal_px * 2.5 / d) <= 1.5
 
 
+def test_a_swinging_light_brightens_walls_facing_it_and_darkens_the_others():
+    """``Shading.light_swing_deg``: at time t the light comes from light_deg + swing sin(2 pi t / period), and a
+    wall's brightness is (1 - directional) + directional (1 + cos(angle to the light)) / 2: a white wall seen
+    head-on (normal along -x) is as bright as that formula says at each time, on a run's frames too; a wall
+    facing the other way changes the other way; no swing is the fixed light, bit for bit."""
+    d, cam = 6.0, sim.Camera()
+    shade = sim.Shading(fog_floor=1.0, directional=0.6, floor_contrast=0.0, light_deg=0.0, light_swing_deg=90.0)
+    assert sim.Shading(light_swing_deg=0.0).at(12.3) == sim.Shading()
+    period = shade.light_period_s
+
+    def wall_level(pose, t):
+        img = sim.render(flat_wall_world(d), pose, cam, shade.at(t))
+        return float(np.median(img[int(cam.cy) - 5, 100:220]))
+
+    times = ((0.0, 0.0), (period / 4, 90.0), (period / 2, 0.0), (3 * period / 4, -90.0), (period / 8, 90 * 0.5**0.5))
+    for t, light in times:
+        assert shade.at(t).light_deg == pytest.approx(light)
+        facing = 0.4 + 0.6 * (0.5 + 0.5 * -np.cos(np.radians(light)))  # normal (-1, 0) seen from x < d
+        assert wall_level((0.0, 0.0, 0.0), t) == pytest.approx(255 * facing, abs=1.0)
+    # seen from behind (the camera at 2 d looking back), the same wall darkens as the light turns away from it
+    back = [wall_level((2 * d, 0.0, np.pi), t) for t in (0.0, period / 8, period / 4)]
+    front = [wall_level((0.0, 0.0, 0.0), t) for t in (0.0, period / 8, period / 4)]
+    assert back[0] > back[1] > back[2] and front[0] < front[1] < front[2]
+    # a run renders each frame under the light of its time
+    traj = sim.Trajectory(np.array([0.0, period / 4]), np.zeros((2, 3)))
+    run = sim.simulate(flat_wall_world(d), traj, shading=shade, odometry_noise=sim.OdometryNoise())
+    assert [float(np.median(run.frame(i)[int(cam.cy) - 5, 100:220])) for i in (0, 1)] == pytest.approx(
+        [wall_level((0.0, 0.0, 0.0), 0.0), wall_level((0.0, 0.0, 0.0), period / 4)]
+    )
+    with pytest.raises(InputError, match="light_swing_deg"):
+        sim.Shading(light_swing_deg=-5.0)
+    with pytest.raises(InputError, match="light_period_s"):
+        sim.Shading(light_swing_deg=10.0, light_period_s=0.0)
+
+
 def test_wall_seen_at_an_angle_has_perpendicular_depth():
     """Camera turned 20° from a wall at x = d: each column's ray (forward component 1 in
     the camera frame) meets the wall at the analytic parameter t = d / dx."""
@@ -101,6 +136,33 @@ def test_same_pose_same_image_and_seeded_worlds(loop, loop_run):
     assert np.array_equal(a, sim.render(loop, p))
     assert np.array_equal(a, sim.render(sim.loop_world(seed=3), p))
     assert not np.array_equal(a, sim.render(sim.loop_world(seed=4), p))
+
+
+def test_exposure_change_scales_frames_by_the_light_of_their_time(loop, loop_run):
+    """``Camera.exposure_change``: each frame is the constant-light frame of the same pose with its grey
+    levels scaled by 1 + A sin(2 pi t / period) (rounded, clipped at white), so the same place looks
+    brighter or darker at other times; A = 0 renders the constant-light frames bit for bit; an
+    amplitude of 1 or more (black or negative light) and a period that is not positive are named."""
+    traj = sim.Trajectory(np.array([0.0, 24.25, 72.75]), np.tile(loop_run.groundtruth[77], (3, 1)))  # one pose
+    still = sim.simulate(loop, traj, odometry_noise=sim.OdometryNoise())
+    cam = sim.Camera(exposure_change=0.3, exposure_period_s=97.0)
+    lit = sim.simulate(loop, traj, camera=cam, odometry_noise=sim.OdometryNoise())
+    base = still.frame(0)
+    assert all(np.array_equal(base, still.frame(i)) for i in (1, 2))
+    assert np.array_equal(base, sim.simulate(loop, traj, camera=sim.Camera(exposure_change=0.0)).frame(0))
+    gains = [1.0, 1.3, 0.7]  # sin(0), sin(pi / 2), sin(3 pi / 2)
+    for i, g in enumerate(gains):
+        assert cam.exposure_gain(float(traj.times[i])) == pytest.approx(g)
+        img = lit.frame(i).astype(float)
+        expect = np.clip(base.astype(float) * g, 0, 255)  # base is already rounded: within a grey level
+        assert np.abs(img - expect).max() <= 1.0 + 0.5 * g
+    assert lit.frame(1).mean() > base.mean() * 1.2 and lit.frame(2).mean() < base.mean() * 0.75
+    with pytest.raises(InputError, match="exposure_change"):
+        sim.Camera(exposure_change=1.0)
+    with pytest.raises(InputError, match="exposure_change"):
+        sim.Camera(exposure_change=-0.1)
+    with pytest.raises(InputError, match="exposure_period_s"):
+        sim.Camera(exposure_change=0.2, exposure_period_s=0.0)
 
 
 def test_revisits_look_alike_distant_places_differ(loop, loop_run):
@@ -394,9 +456,20 @@ def test_command_line_writes_a_run(tmp_path, capsys):
             "0.01",
             "--format",
             "jpg",
+            "--exposure-change",
+            "0.2",
+            "--light-swing",
+            "60",
+            "--directional",
+            "0.5",
         ]
     )
     assert rc == 0
+    import json
+
+    config = json.loads((tmp_path / "c" / "sim.json").read_text())["config"]
+    assert config["camera"]["exposure_change"] == 0.2 and config["camera"]["exposure_period_s"] == 97.0
+    assert config["shading"]["light_swing_deg"] == 60.0 and config["shading"]["directional"] == 0.5
     assert (
         len(list((tmp_path / "c" / "frames").glob("*.jpg")))
         == len((tmp_path / "c" / "frames.csv").read_text().splitlines()) - 1

@@ -18,7 +18,7 @@ from dataclasses import fields, replace
 
 from ..cli import add_progress_argument, clean_help, progress_enabled
 from ..errors import InputError
-from .params import Camera, OdometryNoise, SimConfig, TextureParams
+from .params import Camera, OdometryNoise, Shading, SimConfig, TextureParams
 
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
@@ -81,12 +81,32 @@ def _world_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _camera_arguments(p: argparse.ArgumentParser) -> None:
-    """The camera: how often it renders, its image size, field of view and sensor noise."""
+    """The camera: how often it renders, its image size, field of view, sensor noise and the light."""
     p.add_argument("--frame-every", type=int, default=1, help="render a frame every N odometry steps (default 1)")
     p.add_argument("--width", type=int, default=320, help="frame width in pixels (default 320)")
     p.add_argument("--height", type=int, default=240, help="frame height in pixels (default 240)")
     p.add_argument("--hfov", type=float, default=60.0, help="horizontal field of view, degrees (default 60)")
     p.add_argument("--pixel-noise", type=float, default=0.0, help="sensor noise std, grey levels (default 0)")
+    p.add_argument(
+        "--exposure-change",
+        type=float,
+        default=0.0,
+        help="the light changes slowly: grey levels scaled by 1 + A sin(2 pi t / period) (default 0)",
+    )
+    p.add_argument("--exposure-period", type=float, default=97.0, help="seconds of one light cycle (default 97)")
+    p.add_argument(
+        "--light-swing",
+        type=float,
+        default=0.0,
+        help="the light's direction swings by up to this many degrees (default 0: a fixed light)",
+    )
+    p.add_argument("--light-period", type=float, default=131.0, help="seconds of one swing of the light (default 131)")
+    p.add_argument(
+        "--directional",
+        type=float,
+        default=0.25,
+        help="how much darker a wall facing away from the light is than one facing it, a fraction (default 0.25)",
+    )
 
 
 def _noise_arguments(p: argparse.ArgumentParser) -> None:
@@ -146,7 +166,17 @@ def run_command(args) -> int:
     else:
         world = worlds.bicocca_world(args.data, seed=args.seed, texture=tex)
     config = SimConfig(
-        camera=Camera(width=args.width, height=args.height, hfov_deg=args.hfov, pixel_noise=args.pixel_noise),
+        camera=Camera(
+            width=args.width,
+            height=args.height,
+            hfov_deg=args.hfov,
+            pixel_noise=args.pixel_noise,
+            exposure_change=args.exposure_change,
+            exposure_period_s=args.exposure_period,
+        ),
+        shading=Shading(
+            directional=args.directional, light_swing_deg=args.light_swing, light_period_s=args.light_period
+        ),
         odometry_noise=odometry_noise(args),
         rate_hz=args.rate,
         frame_every=args.frame_every,

@@ -9,7 +9,7 @@ bad field.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 
 from ..errors import InputError
 
@@ -48,6 +48,12 @@ class Camera:
     #: grey-level std of per-pixel sensor noise added to simulated frames (seeded per
     #: frame, so a run stays deterministic); 0 renders noise-free images
     pixel_noise: float = 0.0
+    #: the scene's light changing slowly (clouds, lamps, the camera's auto-exposure): frame grey levels
+    #: are scaled by ``1 + exposure_change * sin(2 pi t / exposure_period_s)`` (clipped at white), so a
+    #: place seen again on a later lap can be brighter or darker than when it was learned; 0 = constant
+    exposure_change: float = 0.0
+    #: seconds of one brightness cycle; not a multiple of a lap, so revisits meet other light
+    exposure_period_s: float = 97.0
 
     def __post_init__(self):
         _finite(self)
@@ -58,6 +64,14 @@ class Camera:
         _check(self, "max_range_m", self.max_range_m > 0, "must be > 0")
         _check(self, "near_range_m", self.near_range_m > 0, "must be > 0")
         _check(self, "pixel_noise", self.pixel_noise >= 0, "must be >= 0")
+        _check(self, "exposure_change", 0 <= self.exposure_change < 1, "a fraction in [0, 1)")
+        _check(self, "exposure_period_s", self.exposure_period_s > 0, "must be > 0")
+
+    def exposure_gain(self, t: float) -> float:
+        """The factor on the frame's grey levels at time ``t`` (s): 1 without ``exposure_change``."""
+        if self.exposure_change == 0:
+            return 1.0
+        return 1.0 + self.exposure_change * math.sin(2 * math.pi * t / self.exposure_period_s)
 
     @property
     def focal_px(self) -> float:
@@ -83,15 +97,22 @@ class Camera:
 
 @dataclass(frozen=True)
 class Shading:
-    """How walls, floor and ceiling are lit (all view-consistent: a place looks the same
-    every time it is seen from the same pose)."""
+    """How walls, floor and ceiling are lit. View-consistent by default (a place looks the same
+    every time it is seen from the same pose); with ``light_swing_deg`` the light's direction
+    changes with time (:meth:`at`), so walls facing it brighten while the others darken."""
 
     #: wall brightness falls as 1 / (1 + depth / fog_m) towards ``fog_floor`` of its value
     fog_m: float = 12.0
     fog_floor: float = 0.35
-    #: walls facing different directions get different brightness (fixed light direction)
+    #: walls facing different directions get different brightness (light from ``light_deg``,
+    #: a wall's brightness between 1 - directional and 1 as it faces away from or towards it)
     light_deg: float = 30.0
     directional: float = 0.25
+    #: the light's direction swings by up to this much about ``light_deg`` (lamps switched, the
+    #: sun moving): ``light_deg + light_swing_deg * sin(2 pi t / light_period_s)`` at time t
+    light_swing_deg: float = 0.0
+    #: seconds of one swing (not a multiple of a lap: revisits meet the light from elsewhere)
+    light_period_s: float = 131.0
     floor_level: float = 95.0
     ceiling_level: float = 185.0
     #: world-anchored floor tiles with a seeded shade each; contrast fades with distance
@@ -109,6 +130,15 @@ class Shading:
         _check(self, "floor_tile_m", self.floor_tile_m > 0, "must be > 0")
         _check(self, "floor_contrast", self.floor_contrast >= 0, "must be >= 0")
         _check(self, "floor_fade_m", self.floor_fade_m > 0, "must be > 0")
+        _check(self, "light_swing_deg", 0 <= self.light_swing_deg <= 180, "degrees in [0, 180]")
+        _check(self, "light_period_s", self.light_period_s > 0, "must be > 0")
+
+    def at(self, t: float) -> "Shading":
+        """The shading at time ``t`` (s): the light turned by its swing (this shading without one)."""
+        if self.light_swing_deg == 0:
+            return self
+        turn = self.light_swing_deg * math.sin(2 * math.pi * t / self.light_period_s)
+        return replace(self, light_deg=self.light_deg + turn)
 
 
 @dataclass(frozen=True)

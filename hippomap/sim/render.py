@@ -143,13 +143,15 @@ def render(
     camera: Camera = Camera(),
     shading: Shading = Shading(),
     rng: np.random.Generator | None = None,
+    gain: float = 1.0,
 ) -> np.ndarray:
     """Grey uint8 image (height, width) seen from ``pose`` = (x, y, θ).
 
     Walls: texture (mip level from the texel footprint of each column) times a
     directional light term and a depth fog. Floor: world-anchored tiles with a seeded
     shade each, fading with distance. Ceiling: brightness falling with distance.
-    Sensor noise (``camera.pixel_noise``) only when ``rng`` is given.
+    The scene's light scales every grey level by ``gain`` (``Camera.exposure_gain`` of the frame's
+    time); sensor noise (``camera.pixel_noise``) is added after it, only when ``rng`` is given.
     """
     pose = _check_pose(pose)
     hits = raycast(world, pose, camera)
@@ -159,6 +161,8 @@ def render(
     _ceiling(img, yv, world, camera, shading)
     _floor(img, yv, pose, hits, world, camera, shading)
     _walls(img, yv, hits, dz, world, camera, shading)
+    if gain != 1.0:
+        img *= np.float32(gain)
     if rng is not None and camera.pixel_noise > 0:
         img += rng.normal(0.0, camera.pixel_noise, img.shape).astype(np.float32)
     return np.clip(img + 0.5, 0, 255).astype(np.uint8)

@@ -66,7 +66,9 @@ class SimRun:
         i %= self.n_frames
         cam = self.config.camera
         rng = np.random.default_rng([self.config.seed, 7, i]) if cam.pixel_noise > 0 else None
-        return render(self.world, self.groundtruth[self.frame_steps[i]], cam, self.config.shading, rng)
+        t = float(self.frame_times[i])
+        shading = self.config.shading.at(t)
+        return render(self.world, self.groundtruth[self.frame_steps[i]], cam, shading, rng, cam.exposure_gain(t))
 
     def frames(self) -> Iterator[tuple[float, np.ndarray]]:
         """Iterate (t, frame) over all frames, one rendered at a time."""
