@@ -845,7 +845,7 @@ def bicocca_targets(rows: list[dict[str, Any]]) -> list[str]:
 
 
 def report_lines(sim_rows: list[dict[str, Any]], bic_rows: list[dict[str, Any]]) -> list[str]:
-    worlds = ["loop", "corridor", "bicocca"]
+    worlds = ["loop", "corridor", "figure8", "bicocca"]
     sim_rows = sorted(
         sim_rows,
         key=lambda r: (
@@ -891,7 +891,10 @@ def main(argv: list[str] | None = None) -> int:
         help="loop world, seed 3, 320x240, procedural, ORS stock + 2 thresholds, one Bicocca file",
     )
     ap.add_argument(
-        "--worlds", nargs="+", default=["loop", "corridor", "bicocca"], choices=["loop", "corridor", "bicocca"]
+        "--worlds",
+        nargs="+",
+        default=["loop", "corridor", "bicocca"],
+        choices=["loop", "corridor", "figure8", "bicocca"],
     )
     ap.add_argument("--seeds", nargs="+", type=int, default=[3, 4, 5])
     ap.add_argument("--sizes", nargs="+", type=parse_size, default=[(320, 240), (640, 480)])

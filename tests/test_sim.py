@@ -309,6 +309,36 @@ def test_drive_plan_circle_closes():
     np.testing.assert_allclose(radius, 0.5 / w, atol=1e-9)
 
 
+def test_figure8_world_drives_round_both_blocks_and_through_its_junctions():
+    """The figure8 world: ``laps`` figures of eight round two blocks; the shared middle corridor is driven
+    twice a lap, northwards both times; the junction at its foot is left eastwards, northwards and westwards
+    (three directions); walls never come within half a metre of the route's camera, either side."""
+    bx, by = 10.0, 7.0
+    world = sim.figure8_world(seed=2, block=(bx, by), laps=2)
+    run = sim.simulate(world, rate_hz=2.0, odometry_noise=sim.OdometryNoise())
+    gt = run.groundtruth
+    assert gt[:, 0].min() == pytest.approx(0.0, abs=0.5) and gt[:, 0].max() == pytest.approx(2 * bx, abs=0.5)
+    assert gt[:, 1].min() == pytest.approx(0.0, abs=0.5) and gt[:, 1].max() == pytest.approx(by, abs=0.5)
+    length = float(np.hypot(*np.diff(gt[:, :2], axis=0).T).sum())
+    assert length == pytest.approx(2 * (5 * bx + 4 * by), rel=0.05)  # a lap: the bottom of the left block 1.5 x
+    middle = (np.abs(gt[:, 0] - bx) < 0.5) & (gt[:, 1] > 1.5) & (gt[:, 1] < by - 1.5)
+    assert np.all(np.abs(wrap_angle(gt[middle, 2] - np.pi / 2)) < 0.5)  # northwards only
+    passes = np.flatnonzero(np.diff(middle.astype(int)) == 1).size + int(middle[0])
+    assert passes == 4  # twice a lap
+    foot = np.hypot(gt[:, 0] - bx, gt[:, 1]) < 2.0
+    leaving = gt[foot & (np.hypot(gt[:, 0] - bx, gt[:, 1]) > 1.5), 2]
+    directions = {int(np.rint(wrap_angle(a) / (np.pi / 2))) % 4 for a in leaving}
+    assert {0, 1, 2} <= directions
+    cam = sim.Camera(width=9, hfov_deg=2)
+    for p in gt[::4]:
+        for side in (np.pi / 2, -np.pi / 2):
+            assert sim.raycast(world, (p[0], p[1], p[2] + side), cam).depth.min() > 0.5
+    frame = run.frame(run.n_frames // 3)
+    assert frame.shape == (240, 320) and frame.std() > 10
+    with pytest.raises(InputError, match="block"):
+        sim.figure8_world(block=(2.0, 7.0))
+
+
 # --------------------------------------------------------------------------- output
 
 
@@ -477,6 +507,8 @@ def test_command_line_writes_a_run(tmp_path, capsys):
     )
     assert main(["loop", "--out", str(tmp_path / "x"), "--width", "4"]) == 2
     assert "width" in capsys.readouterr().err
+    assert main(["figure8", "--out", str(tmp_path / "f"), "--laps", "1", "--frame-every", "100", "--no-progress"]) == 0
+    assert json.loads((tmp_path / "f" / "sim.json").read_text())["world"] == "figure8"
 
 
 def test_command_line_drives_the_route_at_the_speed_asked(tmp_path, capsys):

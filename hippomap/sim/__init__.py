@@ -21,7 +21,15 @@ from .render import Hits, raycast, render
 from .run import SimRun, simulate
 from .textures import MipAtlas, photo_strip, procedural_strip
 from .world import SegmentGrid, World, point_segment_distance, walls_around_path
-from .worlds import bicocca_trajectory, bicocca_world, corridor_world, interpolate_poses, loop_world, path_world
+from .worlds import (
+    bicocca_trajectory,
+    bicocca_world,
+    corridor_world,
+    figure8_world,
+    interpolate_poses,
+    loop_world,
+    path_world,
+)
 
 __all__ = [
     "Camera",
@@ -41,6 +49,7 @@ __all__ = [
     "bicocca_trajectory",
     "bicocca_world",
     "corridor_world",
+    "figure8_world",
     "interpolate_poses",
     "loop_world",
     "measure_odometry",

@@ -47,8 +47,9 @@ def _world_arguments(p: argparse.ArgumentParser) -> None:
     """The world and the route: which world, where it goes, its seed, how long and how fast it is driven."""
     p.add_argument(
         "world",
-        choices=["loop", "corridor", "bicocca"],
+        choices=["loop", "corridor", "figure8", "bicocca"],
         help="loop: a 16 m x 10 m corridor loop; corridor: a straight corridor driven out and back; "
+        "figure8: corridors round two 10 m x 7 m blocks driven as a figure of eight; "
         "bicocca: walls along the real Bicocca run, driven as recorded",
     )
     p.add_argument("--out", required=True, help="output folder")
@@ -63,7 +64,7 @@ def _world_arguments(p: argparse.ArgumentParser) -> None:
         "--laps",
         type=int,
         default=3,
-        help="loop: laps, corridor: passes (default 3; the bicocca world drives the recorded run once)",
+        help="loop and figure8: laps, corridor: passes (default 3; the bicocca world drives the recorded run once)",
     )
     p.add_argument(
         "--rate",
@@ -75,7 +76,7 @@ def _world_arguments(p: argparse.ArgumentParser) -> None:
         "--speed",
         type=float,
         default=None,
-        help="loop and corridor: the route's mean speed in m/s (default 0.4); the bicocca world drives "
+        help="loop, corridor and figure8: the route's mean speed in m/s (default 0.4); the bicocca world drives "
         "the recorded run at its recorded speed",
     )
 
@@ -161,6 +162,8 @@ def run_command(args) -> int:
         world = worlds.loop_world(seed=args.seed, laps=args.laps, texture=tex, **speed)
     elif args.world == "corridor":
         world = worlds.corridor_world(seed=args.seed, passes=args.laps, texture=tex, **speed)
+    elif args.world == "figure8":
+        world = worlds.figure8_world(seed=args.seed, laps=args.laps, texture=tex, **speed)
     elif speed:
         raise InputError("--speed: the bicocca world drives the recorded run at its recorded speed")
     else:

@@ -1,5 +1,6 @@
-"""Ready-made worlds: a rectangular corridor loop, a straight corridor, and the
-Bicocca 2009-02-25b run (real odometry, ground-truth camera path, walls built around it)."""
+"""Ready-made worlds: a rectangular corridor loop, a straight corridor, a figure of eight
+of corridors round two blocks, and the Bicocca 2009-02-25b run (real odometry, ground-truth
+camera path, walls built around it)."""
 
 from __future__ import annotations
 
@@ -72,6 +73,49 @@ def corridor_world(
         seed=seed,
     )
     return World.from_polylines([walls], name="corridor", texture=texture, seed=seed, route=route)
+
+
+def figure8_world(
+    seed: int = 0,
+    block: tuple[float, float] = (10.0, 7.0),
+    corridor_width: float = 2.5,
+    laps: int = 3,
+    speed_mps: float = 0.4,
+    texture: TextureParams | None = None,
+) -> World:
+    """Corridors round two ``block``-sized blocks side by side, their centre lines the rectangles
+    ``[0, bx] x [0, by]`` and ``[bx, 2 bx] x [0, by]``, so the middle corridor is shared and meets
+    the others in two T-junctions. The default route drives a figure of eight ``laps`` times,
+    starting at (bx / 2, 0) facing +x: round the left block anticlockwise, then up the middle
+    corridor again and round the right block clockwise. Junctions are passed in three directions
+    and two places look alike from both of their loops, unlike the single loop (walls built round
+    the route, as for Bicocca: :func:`walls_around_path`)."""
+    bx, by = block
+    if not (bx > corridor_width and by > corridor_width and corridor_width > 0):
+        raise InputError(f"figure8 block {block} must exceed the corridor width {corridor_width} in both directions")
+    way = [
+        (bx / 2, 0.0),
+        (bx, 0.0),
+        (bx, by),
+        (0.0, by),
+        (0.0, 0.0),
+        (bx, 0.0),
+        (bx, by),
+        (2 * bx, by),
+        (2 * bx, 0.0),
+        (bx, 0.0),
+    ]
+    route = RoutePlan(
+        tuple(way),
+        closed=True,
+        laps=laps,
+        speed_mps=speed_mps,
+        lateral_jitter_m=min(0.12, 0.1 * corridor_width),
+        seed=seed,
+    )
+    centre = RoutePlan(tuple(way), closed=True, lateral_jitter_m=0.0).path(0.05)
+    polys = walls_around_path(centre, half_width_m=corridor_width / 2)
+    return World.from_polylines(polys, name="figure8", texture=texture, seed=seed, route=route)
 
 
 def interpolate_poses(t_query, t, poses) -> np.ndarray:
