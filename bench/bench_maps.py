@@ -116,7 +116,7 @@ def sim_source_hash() -> str:
 
 
 #: ``hippomap simulate`` options a run may set beside the speed and rate (``--sim-option NAME=VALUE``):
-#: the odometry's errors, the camera's noise and field of view, frames rarer than odometry steps
+#: the odometry's errors, the camera's noise and field of view, frames rarer than odometry steps, light that changes
 SIM_OPTIONS = (
     "omega-bias",
     "sigma-omega",

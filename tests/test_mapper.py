@@ -130,7 +130,7 @@ def test_loops_close_when_the_light_changes_between_laps(tmp_path):
     (a gain ratio above 1.2 or the light turned by more than 30 degrees between them)."""
     from hippomap.cli import main
 
-    world = sim.loop_world(seed=5, size=(8.0, 5.0))
+    world = sim.loop_world(seed=5, size=(8.0, 5.0), laps=2)
     camera = sim.Camera(exposure_change=0.4, exposure_period_s=40.0)
     shading = sim.Shading(directional=0.6, light_swing_deg=90.0, light_period_s=53.0)
     run = sim.simulate(

@@ -163,6 +163,8 @@ def test_exposure_change_scales_frames_by_the_light_of_their_time(loop, loop_run
         sim.Camera(exposure_change=-0.1)
     with pytest.raises(InputError, match="exposure_period_s"):
         sim.Camera(exposure_change=0.2, exposure_period_s=0.0)
+    with pytest.raises(InputError, match="gain"):
+        sim.render(loop, loop_run.groundtruth[77], gain=float("nan"))
 
 
 def test_revisits_look_alike_distant_places_differ(loop, loop_run):

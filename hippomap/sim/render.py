@@ -10,6 +10,7 @@ heights in [0, wall height] are wall texture, below is the floor, above the ceil
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -154,6 +155,8 @@ def render(
     time); sensor noise (``camera.pixel_noise``) is added after it, only when ``rng`` is given.
     """
     pose = _check_pose(pose)
+    if not (math.isfinite(gain) and gain >= 0):
+        raise InputError(f"gain = {gain!r} must be a finite factor >= 0")
     hits = raycast(world, pose, camera)
     yv = _rows(camera)[:, None]  # (H, 1) upward slope of each row
     dz = np.where(np.isfinite(hits.depth), hits.depth, 0.0)
