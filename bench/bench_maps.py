@@ -73,6 +73,7 @@ from hippomap.eval.evaluation import groundtruth_at, trajectory_metrics  # noqa:
 from hippomap.geometry import between, wrap_angle  # noqa: E402
 from hippomap.inputs import Frame, Odometry  # noqa: E402
 from hippomap.mapper import Mapper  # noqa: E402
+from hippomap.sim.cli import WORLDS  # noqa: E402
 
 #: odometry noise of every simulated run (the issue's reference setting)
 NOISE = {"omega_bias": 0.01, "sigma_omega": 0.01, "sigma_v": 0.02}
@@ -845,11 +846,10 @@ def bicocca_targets(rows: list[dict[str, Any]]) -> list[str]:
 
 
 def report_lines(sim_rows: list[dict[str, Any]], bic_rows: list[dict[str, Any]]) -> list[str]:
-    worlds = ["loop", "corridor", "figure8", "bicocca"]
     sim_rows = sorted(
         sim_rows,
         key=lambda r: (
-            worlds.index(r["world"]) if r["world"] in worlds else 9,
+            WORLDS.index(r["world"]) if r["world"] in WORLDS else 9,
             int(r["size"].split("x")[0]),
             r["texture"],
             r["seed"],
@@ -894,7 +894,7 @@ def main(argv: list[str] | None = None) -> int:
         "--worlds",
         nargs="+",
         default=["loop", "corridor", "bicocca"],
-        choices=["loop", "corridor", "figure8", "bicocca"],
+        choices=WORLDS,
     )
     ap.add_argument("--seeds", nargs="+", type=int, default=[3, 4, 5])
     ap.add_argument("--sizes", nargs="+", type=parse_size, default=[(320, 240), (640, 480)])

@@ -43,11 +43,15 @@ def _arguments(p: argparse.ArgumentParser) -> None:
     add_progress_argument(p)
 
 
+#: the worlds ``hippomap simulate`` renders (bench/bench_maps.py reports them in this order)
+WORLDS = ("loop", "corridor", "figure8", "bicocca")
+
+
 def _world_arguments(p: argparse.ArgumentParser) -> None:
     """The world and the route: which world, where it goes, its seed, how long and how fast it is driven."""
     p.add_argument(
         "world",
-        choices=["loop", "corridor", "figure8", "bicocca"],
+        choices=WORLDS,
         help="loop: a 16 m x 10 m corridor loop; corridor: a straight corridor driven out and back; "
         "figure8: corridors round two 10 m x 7 m blocks driven as a figure of eight; "
         "bicocca: walls along the real Bicocca run, driven as recorded",

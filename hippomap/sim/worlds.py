@@ -87,9 +87,8 @@ def figure8_world(
     ``[0, bx] x [0, by]`` and ``[bx, 2 bx] x [0, by]``, so the middle corridor is shared and meets
     the others in two T-junctions. The default route drives a figure of eight ``laps`` times,
     starting at (bx / 2, 0) facing +x: round the left block anticlockwise, then up the middle
-    corridor again and round the right block clockwise. Junctions are passed in three directions
-    and two places look alike from both of their loops, unlike the single loop (walls built round
-    the route, as for Bicocca: :func:`walls_around_path`)."""
+    corridor again and round the right block clockwise. Junctions are passed in three directions,
+    unlike the single loop's corners (walls built round the route, as for Bicocca: :func:`path_world`)."""
     bx, by = block
     if not (bx > corridor_width and by > corridor_width and corridor_width > 0):
         raise InputError(f"figure8 block {block} must exceed the corridor width {corridor_width} in both directions")
@@ -114,8 +113,7 @@ def figure8_world(
         seed=seed,
     )
     centre = RoutePlan(tuple(way), closed=True, lateral_jitter_m=0.0).path(0.05)
-    polys = walls_around_path(centre, half_width_m=corridor_width / 2)
-    return World.from_polylines(polys, name="figure8", texture=texture, seed=seed, route=route)
+    return path_world(centre, half_width_m=corridor_width / 2, seed=seed, texture=texture, route=route, name="figure8")
 
 
 def interpolate_poses(t_query, t, poses) -> np.ndarray:
