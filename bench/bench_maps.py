@@ -67,7 +67,7 @@ sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import peers  # noqa: E402
-from hippomap.cli.run import open_dataset, run_dataset, write_run  # noqa: E402
+from hippomap.cli.run import dataset_config, open_dataset, run_dataset, write_run  # noqa: E402
 from hippomap.config import HippomapConfig  # noqa: E402
 from hippomap.eval.evaluation import groundtruth_at, trajectory_metrics  # noqa: E402
 from hippomap.geometry import between, wrap_angle  # noqa: E402
@@ -316,7 +316,7 @@ def _summary(xs: list[float]) -> dict[str, Any]:
 
 def run_hippomap(data: Path, config_file: str | None, out_dir: Path) -> dict[str, Any]:
     dataset = open_dataset(data)
-    cfg = HippomapConfig.from_file(config_file) if config_file else HippomapConfig()
+    cfg = dataset_config(dataset, HippomapConfig.from_file(config_file) if config_file else HippomapConfig())
     # warm-up (not timed): first-use set-up shared across mappers (e.g. rate tables)
     warm = Mapper(cfg)
     first = dataset.frames[0].load()

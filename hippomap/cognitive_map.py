@@ -169,6 +169,7 @@ class CognitiveMap(Pruning):
                 "weight": self._w[:m].copy(),
                 "information": self._linfo[:m].copy(),
                 "kernel_width": self._lkw[:m].copy(),
+                "coupling": self._lcoup[:m].copy(),
             },
             "robot": {
                 "current": self._cur,
@@ -221,6 +222,7 @@ class CognitiveMap(Pruning):
             li = li.reshape(m, 2 if li.size == 2 * m else 3)  # (x/y, heading) in states before (x, y, heading)
             cmap._linfo[:m] = li if li.shape[1] == 3 else li[:, [0, 0, 1]]
             cmap._lkw[:m] = np.asarray(links.get("kernel_width", np.full(m, cfg.loop_kernel_width)), dtype=float)
+            cmap._lcoup[:m] = np.asarray(links.get("coupling", np.zeros(m)), dtype=float)
             if n == 0 or not np.all(np.isfinite(cmap._P[:n])):
                 raise InputError("cognitive-map state: node poses missing or not finite")
             ends = np.concatenate([cmap._src[:m], cmap._dst[:m]])

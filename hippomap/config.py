@@ -678,6 +678,13 @@ class MapperConfig(_Frozen):
         "the track. None = the robot is taken to be at the key frame [ours: fitted on the simulated tuning runs, "
         "docs/MODEL.md]",
     )
+    shift_coupling: bool = Field(
+        True,
+        description="a recognition's image shift measures its heading plus its offset beside the key frame "
+        "over view_distance_m, and its loop link holds that combination (a turn and a sideways step shift the "
+        "scene alike), so that the map, not the shift, decides how much of it is turn; False = the shift is "
+        "the heading alone. Needs camera_hfov_deg [ours, docs/MODEL.md item 56]",
+    )
     mode: Literal["map", "localise"] = Field(
         "map",
         description="'map': build the map (new nodes, key frames, loop links); 'localise': recognise places "

@@ -37,7 +37,11 @@ def _sqrt_information(information, m: int) -> np.ndarray:
     return np.sqrt(w)
 
 
-def _lsq_errors(P, src, dst, T, sw=None):
+def _lsq_errors(P, src, dst, T, sw=None, coupling=None):
+    """Each link's error (M, 3) in its source frame, weighted by ``sw`` (the square roots of the
+    information), with the heading error of a coupled link replaced by heading + ``coupling`` · y
+    (:func:`~hippomap.loop_closure.couple`); and the cosines, sines and position differences the
+    Jacobian needs."""
     ti = P[src, 2]
     dx = P[dst, 0] - P[src, 0]
     dy = P[dst, 1] - P[src, 1]
@@ -46,16 +50,27 @@ def _lsq_errors(P, src, dst, T, sw=None):
     e[:, 0] = c * dx + s * dy - T[:, 0]
     e[:, 1] = -s * dx + c * dy - T[:, 1]
     e[:, 2] = _wrap_inplace(P[dst, 2] - ti - T[:, 2])
+    if coupling is not None:
+        e[:, 2] += coupling * e[:, 1]
     if sw is not None:
         e *= sw
     return e, c, s, dx, dy
 
 
 def graph_cost(
-    poses, src, dst, transforms, information=None, bias_dt=None, bias: float = 0.0, bias_information: float = 0.0
+    poses,
+    src,
+    dst,
+    transforms,
+    information=None,
+    bias_dt=None,
+    bias: float = 0.0,
+    bias_information: float = 0.0,
+    coupling=None,
 ) -> float:
     """Sum of squared link errors in the links' own frames, weighted by ``information`` (M, 3)
-    when given: the objective of :func:`solve_lsq`. With ``bias_dt``, each link's heading change
+    when given, heading errors coupled by ``coupling`` (M,) when given: the objective of
+    :func:`solve_lsq`. With ``bias_dt``, each link's heading change
     is corrected by ``bias · bias_dt`` and the bias's prior ``bias_information · bias²`` is added,
     as :func:`solve_lsq` does."""
     P, src, dst, T = _as_graph(poses, src, dst, transforms)
@@ -64,11 +79,11 @@ def graph_cost(
         T = T.copy()
         T[:, 2] -= bias * np.asarray(bias_dt, dtype=float)
         prior = bias_information * bias * bias
-    e = _lsq_errors(P, src, dst, T, _sqrt_information(information, len(src)))[0]
+    e = _lsq_errors(P, src, dst, T, _sqrt_information(information, len(src)), coupling)[0]
     return float(np.sum(e * e)) + prior
 
 
-def _lsq_jacobian(c, s, dx, dy, sw: np.ndarray, bdt: np.ndarray | None) -> np.ndarray:
+def _lsq_jacobian(c, s, dx, dy, sw: np.ndarray, bdt: np.ndarray | None, coupling=None) -> np.ndarray:
     """Each link's weighted Jacobian (M, 3, q) at the poses :func:`_lsq_errors` returned ``c, s, dx,
     dy`` for: rows ex, ey, et; columns xi, yi, ti, xj, yj, tj, and the bias when ``bdt`` is given
     (the bias is estimated)."""
@@ -77,6 +92,9 @@ def _lsq_jacobian(c, s, dx, dy, sw: np.ndarray, bdt: np.ndarray | None) -> np.nd
     Jk[:, 1, :5] = np.column_stack([s, -c, -c * dx - s * dy, -s, c]) * sw[:, 1:2]
     Jk[:, 2, 2] = -sw[:, 2]
     Jk[:, 2, 5] = sw[:, 2]
+    if coupling is not None:  # d(heading + coupling · y): the y row, unweighted, times the coupling
+        r1 = np.column_stack([s, -c, -c * dx - s * dy, -s, c])
+        Jk[:, 2, :5] += r1 * (coupling * sw[:, 2])[:, None]
     if bdt is not None:
         Jk[:, 2, 6] = bdt * sw[:, 2]  # d et / d bias
     return Jk
@@ -97,6 +115,7 @@ def solve_lsq(
     bias: float = 0.0,
     bias_information: float = 0.0,
     estimate_bias: bool = True,
+    coupling=None,
 ) -> RelaxResult:
     """Gauss–Newton on the SE(2) pose graph, **in place**.
 
@@ -114,6 +133,10 @@ def solve_lsq(
     raises the cost by less than ``cost_rtol`` ends the solve: the poses are at the optimum up to
     rounding. ``fixed``: ids of further nodes held at their poses (the boundary of a
     local solve). Nodes without links keep their pose.
+
+    ``coupling`` (M,), m⁻¹: a link with a coupling measures ``heading + coupling · y`` where the
+    others measure the heading (a visual link's image shift: :attr:`LoopHypothesis.coupling`); its
+    heading information weighs that combination. All zeros or None: the plain errors.
 
     ``bias_dt`` (M,): a heading bias of the odometry, estimated with the poses (odometry
     calibration, as in Kümmerle et al., *Simultaneous calibration, localization, and mapping*,
@@ -152,10 +175,16 @@ def solve_lsq(
     def total(e_: np.ndarray, b_: float) -> float:
         return float(np.sum(e_ * e_)) + prior * b_ * b_
 
-    e, c, s, dx, dy = _lsq_errors(P, src, dst, T, sw)
+    if coupling is not None:
+        coupling = np.asarray(coupling, dtype=float)
+        if coupling.shape != (m,) or not np.all(np.isfinite(coupling)):
+            raise InputError(f"coupling must be {m} finite values, one per link, got shape {coupling.shape}")
+        if not np.any(coupling):
+            coupling = None  # the plain errors, bit for bit
+    e, c, s, dx, dy = _lsq_errors(P, src, dst, T, sw, coupling)
     cost = total(e, b)
     while done < iterations and cost > 0:
-        H, damped, g = H_of(_lsq_jacobian(c, s, dx, dy, sw, bdt if est else None), e)
+        H, damped, g = H_of(_lsq_jacobian(c, s, dx, dy, sw, bdt if est else None, coupling), e)
         if est:
             g[col[3 * n]] -= prior * b  # the prior's gradient (its Hessian is in damp)
         while True:
@@ -171,7 +200,7 @@ def solve_lsq(
             if est:
                 assert bdt is not None  # est implies bias_dt was given
                 T[:, 2] = T_raw - b_t * bdt
-            e_t, c_t, s_t, dx_t, dy_t = _lsq_errors(trial, src, dst, T, sw)
+            e_t, c_t, s_t, dx_t, dy_t = _lsq_errors(trial, src, dst, T, sw, coupling)
             cost_t = total(e_t, b_t)
             done += 1
             if np.isfinite(cost_t) and cost_t <= cost:

@@ -149,6 +149,8 @@ class LoopClosing(MapCorrection):
             self._path,
             tuple(float(v) for v in info),
             cfg.loop_kernel_width if h.transform is not None else cfg.visual_kernel_width,
+            h.coupling,
+            (h.offset[2] + h.coupling * h.offset[1]) if h.coupling and h.offset is not None else 0.0,
         )
 
     def _screen(self, h: LoopHypothesis, cand: Candidate) -> tuple[LoopDecision, str, bool]:
@@ -302,7 +304,10 @@ class LoopClosing(MapCorrection):
                 out.append(c)
                 continue
             robot = _compose3(T, c.odom)  # where the fit puts the robot on the map at the proposal
-            out.append(c.with_offset(_between3(P[c.node], robot)))
+            off = _between3(P[c.node], robot)
+            if c.coupling:  # the fit's place, turned so that heading + coupling x lateral is what was measured
+                off = (off[0], off[1], c.coupled_heading - c.coupling * off[1])
+            out.append(c.with_offset(off))
         return out
 
     def _accept(
@@ -444,6 +449,7 @@ class LoopClosing(MapCorrection):
                 allow_duplicate=True,
                 info=c.info,
                 kernel_width=c.kernel_width,
+                coupling=c.coupling,
             )
         k = c.arrival
         if k < 0 or k >= self._m or self._dst[k] != c.node:
@@ -455,12 +461,21 @@ class LoopClosing(MapCorrection):
             self._w[k] = 1.0
             self._linfo[k] = link_info3(c.info)
             self._lkw[k] = c.kernel_width
+            self._lcoup[k] = c.coupling
             self._version += 1
             self._dirty = True
             self._touched.append(k)
             return k
         return self._add_link(
-            int(self._src[k]), c.node, tr, LOOP, 0.0, allow_duplicate=True, info=c.info, kernel_width=c.kernel_width
+            int(self._src[k]),
+            c.node,
+            tr,
+            LOOP,
+            0.0,
+            allow_duplicate=True,
+            info=c.info,
+            kernel_width=c.kernel_width,
+            coupling=c.coupling,
         )
 
     def _trust(self, k: int) -> None:

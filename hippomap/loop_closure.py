@@ -50,6 +50,7 @@ __all__ = [
     "consistent",
     "robust_weight",
     "kernel_weights",
+    "couple",
     "link_info3",
     "vec3",
     "node_id",
@@ -108,7 +109,11 @@ class LoopHypothesis:
     m⁻², heading in rad⁻²) of the estimate, ``None`` for the map's default of its kind
     (``loop_information`` for a measured transform, ``visual_loop_information`` for a visual one).
     ``evidence``: the proposer's score. ``source``: who proposed it ('dataset', 'visual', ...).
-    ``meta``: free-form, JSON-able.
+    ``meta``: free-form, JSON-able. ``coupling`` (m⁻¹, visual only): what the estimate's heading
+    measures is the heading plus ``coupling`` × the robot's offset beside the node, not the heading
+    alone (an image shift is a turn plus a sideways step over the scene's depth, so ``coupling`` =
+    1 / that depth); 0 = the heading alone. The link then holds ``heading + coupling · lateral``
+    with the heading's information and the lateral offset with its own (:func:`couple`).
     """
 
     node: int
@@ -119,6 +124,7 @@ class LoopHypothesis:
     meta: dict[str, Any] = field(default_factory=dict)
     offset: tuple[float, float, float] | None = None
     information: tuple[float, float] | None = None
+    coupling: float = 0.0
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "node", node_id(self.node, "LoopHypothesis.node"))
@@ -135,6 +141,11 @@ class LoopHypothesis:
             if len(info) != 2 or min(info) <= 0:
                 raise InputError(f"LoopHypothesis.information must be two positive numbers, got {self.information!r}")
             object.__setattr__(self, "information", info)
+        object.__setattr__(self, "coupling", finite("LoopHypothesis.coupling", self.coupling))
+        if self.coupling < 0 or (self.coupling and self.transform is not None):
+            raise InputError(
+                f"LoopHypothesis.coupling must be >= 0 and only on a visual hypothesis, got {self.coupling!r}"
+            )
         object.__setattr__(self, "evidence", finite("LoopHypothesis.evidence", self.evidence))
         object.__setattr__(self, "time", finite("LoopHypothesis.time", self.time))
         if not isinstance(self.source, str):
@@ -147,7 +158,7 @@ class LoopHypothesis:
         return self.transform is not None
 
     def to_dict(self) -> dict[str, Any]:
-        return {
+        out = {
             "node": self.node,
             "transform": None if self.transform is None else list(self.transform),
             "offset": None if self.offset is None else list(self.offset),
@@ -157,6 +168,9 @@ class LoopHypothesis:
             "time": self.time,
             "meta": jsonable(self.meta),
         }
+        if self.coupling:  # absent when 0, as in records written before the field
+            out["coupling"] = self.coupling
+        return out
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "LoopHypothesis":
@@ -170,6 +184,7 @@ class LoopHypothesis:
             meta=dict(d.get("meta", {})),
             offset=None if o is None else tuple(o),
             information=None if i is None else tuple(i),
+            coupling=d.get("coupling", 0.0),
         )
 
 
@@ -249,6 +264,8 @@ class Candidate:
     path: float = 0.0  # path travelled by the robot at proposal (m)
     info: tuple[float, ...] = (100.0, 1000.0)  # information of the link (x/y, heading) or (x, y, heading)
     kernel_width: float = 1.0  # robust kernel width of the link, in its standard deviations
+    coupling: float = 0.0  # the hypothesis' heading-lateral coupling (m^-1; LoopHypothesis.coupling)
+    coupled_heading: float = 0.0  # what it measured: heading + coupling x lateral of the robot in the node frame
 
     @property
     def delta(self) -> tuple[float, float, float]:
@@ -274,7 +291,7 @@ class Candidate:
             "path": self.path,
             "info": list(self.info),
             "kernel_width": self.kernel_width,
-        }
+        } | ({"coupling": self.coupling, "coupled_heading": self.coupled_heading} if self.coupling else {})
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "Candidate":
@@ -291,6 +308,8 @@ class Candidate:
             float(d.get("path", 0.0)),
             tuple(float(v) for v in d.get("info", (100.0, 1000.0))),
             float(d.get("kernel_width", 1.0)),
+            float(d.get("coupling", 0.0)),
+            float(d.get("coupled_heading", 0.0)),
         )
 
 
@@ -392,6 +411,15 @@ def link_info3(info: Any) -> tuple[float, float, float]:
     if len(v) != 3:
         raise InputError(f"loop-link information must be (x/y, heading) or (x, y, heading), got {len(v)} values")
     return cast("tuple[float, float, float]", v)
+
+
+def couple(e: np.ndarray, coupling: np.ndarray) -> np.ndarray:
+    """Link residuals ``e`` (K, 3: x, y, heading in the source frame) with each heading residual
+    replaced by what a coupled visual link measures, ``heading + coupling · y`` (``coupling`` (K,),
+    m⁻¹; :attr:`LoopHypothesis.coupling`), in place; the same array. A link without coupling
+    keeps its heading residual (adding 0 changes no value but the sign of a zero)."""
+    e[:, 2] += coupling * e[:, 1]
+    return e
 
 
 def kernel_weights(e: np.ndarray, info: np.ndarray, width: np.ndarray, kernel: str = "cauchy") -> np.ndarray:

@@ -18,7 +18,7 @@ import numpy as np
 
 from .headings_first import rotation_first_init
 from .least_squares import bias_sigma, graph_cost, solve_lsq
-from .loop_closure import USED_WEIGHT, kernel_weights
+from .loop_closure import USED_WEIGHT, couple, kernel_weights
 from .map_events import MapEvent, MapRelaxed
 from .map_graph import LOOP, ODOMETRY, MapGraph, within_hops
 from .relaxation import ColourGroups, RelaxResult, _link_residuals, relax, relax_jacobi
@@ -119,9 +119,12 @@ class MapCorrection(MapGraph):
         cfg = self.cfg
         w = self._w[:m]
         info = (self.link_information() if cfg.lsq_weighted else np.ones((m, 3))) * w[:, None]
+        coupling = self._lcoup[:m].copy()
         bias = self._bias_args()
         if window is None:
-            res = self._whole_solve(P, src, dst, tr, info, bias, rotation_init=cfg.lsq_rotation_init and rotation_init)
+            res = self._whole_solve(
+                P, src, dst, tr, info, bias, rotation_init=cfg.lsq_rotation_init and rotation_init, coupling=coupling
+            )
             self._local_solves = 0
         else:
             self._local_solves += 1
@@ -141,6 +144,7 @@ class MapCorrection(MapGraph):
                 anchor=None,
                 information=info[links],
                 fixed=local[fixed],
+                coupling=coupling[links],
                 **bias,
             )
             P[nodes] = Q
@@ -158,6 +162,7 @@ class MapCorrection(MapGraph):
         info: np.ndarray,
         bias: dict[str, Any],
         rotation_init: bool,
+        coupling: np.ndarray | None = None,
     ) -> RelaxResult:
         """A whole-map 'lsq' solve of ``P`` in place (headings first when ``rotation_init``).
 
@@ -183,6 +188,7 @@ class MapCorrection(MapGraph):
                 tol=cfg.lsq_step_tolerance,
                 anchor=0,
                 information=info,
+                coupling=coupling,
                 **{**bias, "bias": b},
             )
             if self._bias_kept(Q, src, dst, tr, info, bias, res.bias):
@@ -193,7 +199,15 @@ class MapCorrection(MapGraph):
         if rotation_init:
             self._rotation_init(P, src, dst, tr, info, {})
         return solve_lsq(
-            P, src, dst, tr, iterations=cfg.lsq_iterations, tol=cfg.lsq_step_tolerance, anchor=0, information=info
+            P,
+            src,
+            dst,
+            tr,
+            iterations=cfg.lsq_iterations,
+            tol=cfg.lsq_step_tolerance,
+            anchor=0,
+            information=info,
+            coupling=coupling,
         )
 
     def _bias_kept(
@@ -226,6 +240,8 @@ class MapCorrection(MapGraph):
         r = _link_residuals(P, self._src[loop], self._dst[loop], self._tr[loop])
         if heading_only:
             r[:, :2] = 0.0
+        else:
+            couple(r, self._lcoup[loop])
         return kernel_weights(r, self._linfo[loop], self._lkw[loop], self.cfg.loop_kernel)
 
     def _used_information(self, info: np.ndarray, Q: np.ndarray) -> np.ndarray:

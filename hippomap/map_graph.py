@@ -31,7 +31,7 @@ from scipy.sparse.csgraph import dijkstra
 from .config import MapConfig
 from .errors import InputError, finite
 from .geometry import se2_between, se2_compose, se2_inverse
-from .loop_closure import USED_WEIGHT, LoopBook, drift_path, kernel_weights, link_info3, node_id, vec3
+from .loop_closure import USED_WEIGHT, LoopBook, couple, drift_path, kernel_weights, link_info3, node_id, vec3
 from .map_events import FrameAssigned, MapEvent
 from .relaxation import ColourGroups, _link_residuals, colour_link, edge_colouring
 
@@ -76,6 +76,7 @@ class MapGraph:
         self._w = np.ones(cap)  # robust weight of each link (loop links: revised, see _reweight)
         self._linfo = np.zeros((cap, 3))  # information (x, y, heading; source frame) of loop links
         self._lkw = np.ones(cap)  # robust kernel width of loop links (standard deviations)
+        self._lcoup = np.zeros(cap)  # heading-lateral coupling of visual loop links (m^-1; loop_closure.couple)
         self._pairs: set[tuple[int, int]] = set()
         self._groups: ColourGroups | None = None
         self._groups_key = -1
@@ -188,7 +189,7 @@ class MapGraph:
 
     def _grow_links(self) -> None:
         cap = 2 * len(self._src)
-        for name in ("_src", "_dst", "_tr", "_dt", "_kind", "_col", "_w", "_linfo", "_lkw"):
+        for name in ("_src", "_dst", "_tr", "_dt", "_kind", "_col", "_w", "_linfo", "_lkw", "_lcoup"):
             old = getattr(self, name)
             new = np.zeros((cap,) + old.shape[1:], dtype=old.dtype)
             new[: len(old)] = old
@@ -217,6 +218,7 @@ class MapGraph:
         allow_duplicate: bool = False,
         info: tuple[float, ...] | None = None,
         kernel_width: float | None = None,
+        coupling: float = 0.0,
     ) -> int:
         """Append link a→b (ORS ``on_create_link``); -1 if the pair is already linked (either way)."""
         key = (min(a, b), max(a, b))
@@ -232,6 +234,7 @@ class MapGraph:
         self._w[k] = 1.0
         self._linfo[k] = link_info3(self.cfg.loop_information if info is None else info)
         self._lkw[k] = self.cfg.loop_kernel_width if kernel_width is None else kernel_width
+        self._lcoup[k] = coupling
         self._col[k] = colour_link(self._mask, a, b)
         self._pairs.add(key)
         self._m += 1
@@ -242,7 +245,9 @@ class MapGraph:
             self._dirty = True
             self._touched.append(k)
         if kind == LOOP and self.cfg.loop_weight_init == "kernel":
-            self._w[k] = kernel_weights(r, self._linfo[k : k + 1], self._lkw[k : k + 1], self.cfg.loop_kernel)[0]
+            self._w[k] = kernel_weights(
+                couple(r, self._lcoup[k : k + 1]), self._linfo[k : k + 1], self._lkw[k : k + 1], self.cfg.loop_kernel
+            )[0]
         return k
 
     def _rebuild_link_index(self, colours=None) -> None:

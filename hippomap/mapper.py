@@ -279,6 +279,7 @@ class Mapper(KeyFrames):
             time=t,
             meta=meta,
             offset=self._visual_offset(rec, gray.shape[1]),
+            coupling=self._shift_coupling(rec),
         )
         decision = self.cmap.propose_loop(hyp)
         events.append(LoopDecided(t, decision))
@@ -298,6 +299,19 @@ class Mapper(KeyFrames):
             and self.cmap.path_since_verified >= m.global_search_after_m
             and self.distance - self.global_search_path >= m.global_search_every_m
         )
+
+    def _shift_coupling(self, rec: Any) -> float:
+        """The coupling of a recognition's heading with the robot's offset beside the key frame
+        (:attr:`~hippomap.loop_closure.LoopHypothesis.coupling`): ``1 / mapper.view_distance_m`` when
+        the heading comes from the image shift (the camera's field of view is known and the
+        recognition has correspondences) and ``mapper.shift_coupling`` is on; else 0. A scene ``D``
+        away shifts in the image by the turn plus the sideways step over ``D``, so the shift fixes
+        ``heading + lateral / D``, not the heading alone."""
+        m = self.config.mapper
+        shift = getattr(rec, "shift", None)
+        if not m.shift_coupling or m.camera_hfov_deg is None or m.view_distance_m is None:
+            return 0.0
+        return 1.0 / m.view_distance_m if shift and shift.get("n", 0) >= 2 else 0.0
 
     def _visual_offset(self, rec: Any, width: int) -> tuple[float, float, float]:
         """The robot's pose in the matched node's frame as recognition tells it: where the

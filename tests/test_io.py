@@ -173,3 +173,31 @@ def test_scaled_ate_tells_a_scaled_copy_from_a_wrong_shape():
     wobble[:, 1] += 0.5 * np.sign(np.sin(np.arange(400)))
     w = trajectory_metrics(t, wobble, t, gt, scaled=True)
     assert 0.3 < w["ate_scaled"]["rmse"] <= w["ate"]["rmse"] + 1e-9  # a similarity cannot undo a wrong shape
+
+
+def test_the_camera_field_of_view_comes_from_the_data_folder(tmp_path):
+    """camera.json (hfov_deg or intrinsics) or the simulator's sim.json give the field of view that
+    `hippomap run` fills in where the config leaves it unset; a broken file is named, never guessed."""
+    import json
+
+    from hippomap.cli.run import dataset_config
+    from hippomap.config import HippomapConfig
+    from hippomap.io.datasets import SensorDataset, read_camera_hfov
+
+    assert read_camera_hfov(tmp_path) is None
+    (tmp_path / "sim.json").write_text(json.dumps({"intrinsics": {"fx": 160.0, "width": 320}}))
+    assert read_camera_hfov(tmp_path) == pytest.approx(90.0)
+    (tmp_path / "camera.json").write_text(json.dumps({"hfov_deg": 60}))  # camera.json comes first
+    assert read_camera_hfov(tmp_path) == 60.0
+    for bad, text in (("{", "cannot read"), ("[1]", "JSON object"), ('{"hfov_deg": 200}', r"\(0, 180\)")):
+        (tmp_path / "camera.json").write_text(bad)
+        with pytest.raises(InputError, match=text):
+            read_camera_hfov(tmp_path)
+    (tmp_path / "camera.json").write_text(json.dumps({"intrinsics": {"width": 320}}))
+    with pytest.raises(InputError, match="camera.json.*fx"):
+        read_camera_hfov(tmp_path)
+    ds = SensorDataset([], [], None, tmp_path, camera_hfov_deg=70.0)
+    assert dataset_config(ds).mapper.camera_hfov_deg == 70.0
+    own = HippomapConfig.model_validate({"mapper": {"camera_hfov_deg": 50.0}})
+    assert dataset_config(ds, own).mapper.camera_hfov_deg == 50.0  # the config's own value wins
+    assert dataset_config(SensorDataset([], [], None, tmp_path)).mapper.camera_hfov_deg is None

@@ -620,3 +620,18 @@ def test_a_group_fit_over_a_short_window_follows_a_drifting_odometry():
         assert len(e) > 20
         errors[window] = float(np.median(e))
     assert errors[2.5] < 0.6 * errors[None], errors  # measured 0.032 vs 0.076 m
+
+
+def test_a_hypothesis_coupling_is_checked_and_round_trips():
+    """LoopHypothesis.coupling: visual only, >= 0 and finite; kept through to_dict/from_dict, absent
+    from the dict when 0 (as in records written before it); the map's links keep it."""
+    from hippomap.loop_closure import LoopHypothesis, couple
+
+    h = LoopHypothesis(3, offset=(0.1, 0.0, 0.05), coupling=0.25)
+    assert LoopHypothesis.from_dict(h.to_dict()) == h
+    assert "coupling" not in LoopHypothesis(3).to_dict()
+    for kw in ({"coupling": -1.0}, {"coupling": float("nan")}, {"coupling": 0.5, "transform": (0, 0, 0)}):
+        with pytest.raises(InputError, match="coupling"):
+            LoopHypothesis(3, **kw)
+    e = np.array([[0.1, 0.2, 0.3], [0.1, 0.2, 0.3]])
+    np.testing.assert_allclose(couple(e, np.array([0.5, 0.0])), [[0.1, 0.2, 0.4], [0.1, 0.2, 0.3]])

@@ -302,3 +302,18 @@ def test_familiar_paths_take_key_frames_further_apart():
     long_run = fam & (np.array(streaks) >= after)
     assert long_run.sum() >= 3 and (fam & ~long_run).sum() >= 1
     assert np.all(gaps[long_run] > 0.85) and np.all(gaps[~long_run] < 0.7)
+
+
+def test_a_recognition_shift_couples_heading_and_lateral_only_with_a_known_camera():
+    """The coupling a visual hypothesis carries: 1 / view_distance_m when the camera's field of view is
+    known and the recognition has an image shift; 0 without the field of view, without a shift, or
+    with mapper.shift_coupling off."""
+    from types import SimpleNamespace
+
+    rec = SimpleNamespace(shift={"x": 4.0, "y": 0.0, "n": 5})
+    known = HippomapConfig.model_validate({"mapper": {"camera_hfov_deg": 60.0, "view_distance_m": 4.0}})
+    assert Mapper(known)._shift_coupling(rec) == pytest.approx(0.25)
+    assert Mapper(known)._shift_coupling(SimpleNamespace(shift=None)) == 0.0
+    assert Mapper()._shift_coupling(rec) == 0.0  # no field of view: the shift says nothing
+    off = HippomapConfig.model_validate({"mapper": {"camera_hfov_deg": 60.0, "shift_coupling": False}})
+    assert Mapper(off)._shift_coupling(rec) == 0.0

@@ -589,3 +589,75 @@ def test_a_step_that_only_rounding_makes_worse_ends_the_solve():
     again = solve_lsq(Q, src, dst, T, iterations=100, information=info)
     assert again.iterations <= 2  # already at the optimum: at most a step and a refused one
     assert graph_cost(Q, src, dst, T, info) <= graph_cost(P, src, dst, T, info)
+
+
+# ----------------------------------------------------------------------------- coupled visual links
+@settings(max_examples=20, deadline=None)
+@given(st.integers(0, 10_000))
+def test_the_coupled_jacobian_is_the_derivative_of_the_coupled_errors(seed):
+    """A coupled link's heading row is d(heading + coupling · y): checked against central differences."""
+    from hippomap.least_squares import _lsq_errors, _lsq_jacobian
+
+    rng = np.random.default_rng(seed)
+    true, src, dst, T = random_graph(rng, noise=0.05)
+    P = true + rng.normal(0, 0.05, true.shape)
+    sw = np.sqrt(rng.uniform(0.5, 50.0, (len(src), 3)))
+    coupling = np.where(rng.random(len(src)) < 0.5, rng.uniform(0.1, 1.0, len(src)), 0.0)
+    e, c, s, dx, dy = _lsq_errors(P, src, dst, T, sw, coupling)
+    J = _lsq_jacobian(c, s, dx, dy, sw, None, coupling)
+    h = 1e-6
+    for k in range(len(src)):
+        for col, (node, axis) in enumerate(
+            [(src[k], 0), (src[k], 1), (src[k], 2), (dst[k], 0), (dst[k], 1), (dst[k], 2)]
+        ):
+            Pp, Pm = P.copy(), P.copy()
+            Pp[node, axis] += h
+            Pm[node, axis] -= h
+            num = (
+                _lsq_errors(Pp, src, dst, T, sw, coupling)[0][k] - _lsq_errors(Pm, src, dst, T, sw, coupling)[0][k]
+            ) / (2 * h)
+            np.testing.assert_allclose(J[k, :, col], num, atol=1e-5)
+
+
+def test_coupled_links_tell_a_sideways_step_from_a_turn():
+    """A second pass 0.3 m beside the first, parallel to it, its shape fixed by odometry. Each of its
+    nodes sees the first pass's node beside it, and what it measures is heading + lateral / 4 m (an
+    image shift), the lateral offset itself only weakly (0 with 10 m⁻²). Read as a heading alone, the
+    shift turns the second pass across the first; coupled, the map keeps it nearly parallel and
+    beside it (the weak lateral prior still pulls it part of the way in)."""
+    n, Z = 20, 4.0
+    first = np.column_stack([np.arange(n) * 0.5, np.zeros(n), np.zeros(n)])
+    second = first + [0.0, 0.3, 0.0]
+    true = np.vstack([first, second])
+    src = list(range(n - 1)) + list(range(n, 2 * n - 1))
+    dst = list(range(1, n)) + list(range(n + 1, 2 * n))
+    T = [between(true[a], true[b]) for a, b in zip(src, dst)]
+    info = [(1e8, 1e8, 1e8)] * len(src)  # odometry: the passes' shapes
+    for i in range(n):  # visual links second -> first: the first node seen from the second
+        rel = between(true[n + i], true[i])  # (0, -0.3, 0)
+        robot = between(true[i], true[n + i])  # the robot beside the node: (0, 0.3, 0)
+        measured = robot[2] + robot[1] / Z  # what the image shift gives
+        src.append(n + i)
+        dst.append(i)
+        T.append((rel[0], 0.0, -measured))  # heading read off the shift, lateral taken as 0
+        info.append((100.0, 10.0, 1000.0))
+    src, dst, T, info = np.array(src), np.array(dst), np.array(T), np.array(info)
+    coupling = np.r_[np.zeros(2 * (n - 1)), np.full(n, 1 / Z)]
+    start = np.vstack([first, first])  # the second pass starts on the first
+    plain, coupled = start.copy(), start.copy()
+    solve_lsq(plain, src, dst, T, iterations=50, information=info)
+    solve_lsq(coupled, src, dst, T, iterations=50, information=info, coupling=coupling)
+    # the truth has no coupled residual; the coupled solve is far nearer to it than the plain one
+    from hippomap.least_squares import _lsq_errors
+
+    assert np.max(np.abs(_lsq_errors(true, src, dst, T, None, coupling)[0][-n:, 2])) < 1e-12
+    heading_err = [float(np.max(np.abs(P[n:, 2]))) for P in (plain, coupled)]
+    lateral_err = [float(np.sqrt(np.mean((P[n:, 1] - 0.3) ** 2))) for P in (plain, coupled)]
+    assert heading_err[0] > 0.06 and heading_err[1] < heading_err[0] / 4
+    assert lateral_err[1] < lateral_err[0] / 2
+    # all-zero coupling is the plain solve, bit for bit; a wrong shape is refused by name
+    zero = start.copy()
+    solve_lsq(zero, src, dst, T, iterations=50, information=info, coupling=np.zeros(len(src)))
+    assert np.array_equal(zero, plain)
+    with pytest.raises(InputError, match="coupling"):
+        solve_lsq(start.copy(), src, dst, T, information=info, coupling=np.zeros(3))

@@ -53,6 +53,18 @@ def open_dataset(
     raise InputError(f"{path}: not a hippomap data folder (frames.csv), a TUM RGB-D folder (rgb.txt) or a ROS bag")
 
 
+def dataset_config(dataset: SensorDataset, config: HippomapConfig | None = None) -> HippomapConfig:
+    """``config`` (default: the defaults) with the camera's field of view the data set states
+    (:func:`~hippomap.io.datasets.read_camera_hfov`) where the config leaves it unset: a calibrated
+    camera's image shift then gives each recognition its heading (docs/MODEL.md items 25 and 56)."""
+    cfg = config or HippomapConfig()
+    if cfg.mapper.camera_hfov_deg is None and dataset.camera_hfov_deg is not None:
+        cfg = cfg.model_copy(
+            update={"mapper": cfg.mapper.model_copy(update={"camera_hfov_deg": dataset.camera_hfov_deg})}
+        )
+    return cfg
+
+
 def run_dataset(
     dataset: SensorDataset, config: HippomapConfig | None = None, progress: bool = False, mapper: Mapper | None = None
 ) -> tuple[Mapper, dict[str, Any]]:
@@ -199,7 +211,8 @@ def _cmd(args: argparse.Namespace) -> int:
         base = base_mapper(args.base_map, args.config)
         m, timing = run_dataset(dataset, None, progress=progress_enabled(args), mapper=base)
     else:
-        m, timing = run_dataset(dataset, HippomapConfig.from_file(args.config), progress=progress_enabled(args))
+        cfg = dataset_config(dataset, HippomapConfig.from_file(args.config))
+        m, timing = run_dataset(dataset, cfg, progress=progress_enabled(args))
     metrics = write_run(m, dataset, args.out, timing)
     s = metrics["stats"]
     lc = metrics["loop_closures"]

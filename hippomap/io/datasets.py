@@ -293,12 +293,14 @@ class FrameRef:
 
 @dataclass(frozen=True)
 class SensorDataset:
-    """Odometry readings, frame references and optional ground truth, each time-sorted."""
+    """Odometry readings, frame references and optional ground truth, each time-sorted; and the
+    camera's horizontal field of view when the data set states it (:func:`read_camera_hfov`)."""
 
     odometry: list  # list[hippomap.inputs.Odometry]
     frames: Sequence[FrameRef | DecodedFrame]  # on disk (folders, TUM) or decoded from a ROS bag
     groundtruth: tuple[np.ndarray, np.ndarray] | None
     source: Path
+    camera_hfov_deg: float | None = None
 
     def events(self):
         """All inputs merged in time order (odometry before a frame of the same time)."""
@@ -333,7 +335,8 @@ def read_folder_dataset(folder: str | Path) -> SensorDataset:
     """The project's folder format: ``frames/`` images, ``frames.csv`` (``t,file``),
     ``odometry.csv`` (``t,v,omega`` in m/s, rad/s, or ``t,dx,dy,dtheta``: see
     :func:`read_folder_odometry`), optional ``groundtruth.csv``
-    (``t,x,y,theta``). Timestamps must increase within each file."""
+    (``t,x,y,theta``), optional camera calibration (``camera.json`` or the simulator's ``sim.json``:
+    :func:`read_camera_hfov`). Timestamps must increase within each file."""
     folder = Path(folder)
     for name in ("frames.csv", "odometry.csv"):
         if not (folder / name).is_file():
@@ -349,7 +352,42 @@ def read_folder_dataset(folder: str | Path) -> SensorDataset:
         frames.append(FrameRef(tf, path))
     _check_increasing(np.array([f.t for f in frames]), folder / "frames.csv", [r[0] for r in rows])
     gt = read_groundtruth_csv(folder / "groundtruth.csv") if (folder / "groundtruth.csv").is_file() else None
-    return SensorDataset(odometry, frames, gt, folder)
+    return SensorDataset(odometry, frames, gt, folder, read_camera_hfov(folder))
+
+
+def read_camera_hfov(folder: str | Path) -> float | None:
+    """The camera's horizontal field of view (degrees) a data folder states, or None: from
+    ``camera.json`` (``{"hfov_deg": 60}``, or ``{"intrinsics": {"fx": ..., "width": ...}}``), else
+    from the ``intrinsics`` of ``sim.json`` (what ``hippomap simulate`` writes):
+    ``hfov = 2 atan(width / 2 / fx)``. A file that is there but unreadable, or a value outside
+    (0, 180) degrees, raises :class:`InputError` naming it."""
+    import json
+
+    folder = Path(folder)
+    for name in ("camera.json", "sim.json"):
+        path = folder / name
+        if not path.is_file():
+            continue
+        try:
+            data = json.loads(path.read_text())
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise InputError(f"{path}: cannot read the camera calibration: {exc}") from None
+        if not isinstance(data, dict):
+            raise InputError(f"{path}: the camera calibration must be a JSON object")
+        try:
+            if "hfov_deg" in data:
+                hfov = float(data["hfov_deg"])
+            elif isinstance(data.get("intrinsics"), dict):
+                k = data["intrinsics"]
+                hfov = math.degrees(2 * math.atan(float(k["width"]) / 2 / float(k["fx"])))
+            else:
+                continue
+        except (KeyError, TypeError, ValueError, ZeroDivisionError) as exc:
+            raise InputError(f"{path}: camera calibration needs hfov_deg or intrinsics fx and width: {exc!r}") from None
+        if not (math.isfinite(hfov) and 0 < hfov < 180):
+            raise InputError(f"{path}: horizontal field of view must be in (0, 180) degrees, got {hfov!r}")
+        return hfov
+    return None
 
 
 def _read_tum_like(path: Path) -> np.ndarray:
