@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from .errors import InputError
-from .geometry import compose, se2_between, se2_compose, se2_inverse, wrap_angle
+from .geometry import se2_between, se2_compose, se2_inverse
 from .loop_closure import (
     USED_WEIGHT,
     Candidate,
@@ -29,9 +29,8 @@ from .loop_closure import (
     consistent,
     gate_limit,
     link_info3,
-    place_of,
 )
-from .loop_pose import align_group
+from .loop_pose import fit_group
 from .map_correction import MapCorrection
 from .map_events import LoopAccepted, LoopPending, LoopRejected, MapEvent
 from .map_graph import LOOP, PRUNE
@@ -274,41 +273,8 @@ class LoopClosing(MapCorrection):
         return d
 
     def _fit_group(self, group: list[Candidate], anchors: list[Candidate]) -> list[Candidate] | None:
-        """The group's visual candidates with the offsets of one SE(2) fit of the robot's
-        dead-reckoned poses onto the places they name (``anchors``: accepted candidates of the last
-        ``loop_fit_window_m`` of path, which back the fit but keep their links: a rigid transform
-        cannot follow the odometry's heading drift over a longer stretch). ``None`` when the fit
-        does not hold: a member lies more than ``loop_consistency_m`` from where the fit puts it,
-        or the fit turns the robot more than ``loop_view_rad`` away from the way a member's key
-        frame looked (recognising a view means facing roughly as it was learned)."""
-        fit_m = self.cfg.loop_fit_window_m
-        if fit_m is not None and group:
-            newest = max(g.path for g in group)
-            anchors = [c for c in anchors if newest - c.path <= fit_m]
-        vis = [c for c in group + anchors if not c.measured]
-        if len(vis) < 2:
-            return group
-        P, cfg = self._P, self.cfg
-        odom = np.array([c.odom for c in vis])
-        targets = np.array([place_of(c, P) for c in vis])
-        T = align_group(odom, targets, cfg.loop_fit_min_spread_m)
-        fitted = compose(T, odom)
-        if (
-            np.max(np.hypot(*(fitted[:, :2] - targets[:, :2]).T)) > cfg.loop_consistency_m
-            or np.max(np.abs(wrap_angle(fitted[:, 2] - targets[:, 2]))) > cfg.loop_view_rad
-        ):
-            return None
-        out = []
-        for c in group:
-            if c.measured:
-                out.append(c)
-                continue
-            robot = _compose3(T, c.odom)  # where the fit puts the robot on the map at the proposal
-            off = _between3(P[c.node], robot)
-            if c.coupling:  # the fit's place, turned so that heading + coupling x lateral is what was measured
-                off = (off[0], off[1], c.coupled_heading - c.coupling * off[1])
-            out.append(c.with_offset(off))
-        return out
+        """:func:`~hippomap.loop_pose.fit_group` on the map's poses."""
+        return fit_group(group, anchors, self._P, self.cfg)
 
     def _accept(
         self,

@@ -11,6 +11,8 @@ A visual recognition names a node; how far the robot is from it comes from two p
   2-D Procrustes fit); each hypothesis' offset is then where the fit puts the robot relative to
   its node. Single matches are off along the track by up to the key-frame spacing; the fit
   averages that out, and the heading comes from the shape of the path.
+* :func:`fit_group` — :func:`align_group` on a group of candidates and the map, checked, each
+  candidate's offset set from the fit.
 
 The map's decisions that use them are in :mod:`hippomap.loop_closing` and :mod:`hippomap.mapper`.
 """
@@ -22,10 +24,12 @@ from typing import Any
 
 import numpy as np
 
+from .config import MapConfig
 from .errors import InputError
-from .geometry import wrap_angle
+from .geometry import compose, se2_between, se2_compose, wrap_angle
+from .loop_closure import Candidate, place_of
 
-__all__ = ["align_group", "looming_offset"]
+__all__ = ["align_group", "fit_group", "looming_offset"]
 
 
 def align_group(odom: np.ndarray, targets: np.ndarray, min_spread_m: float) -> np.ndarray:
@@ -85,3 +89,44 @@ def looming_offset(query: Any, memory: Any, view_distance_m: float, min_separati
     scale = math.exp(float(np.median(np.log(dq[ok] / dm[ok]))))
     d = view_distance_m * (1.0 - 1.0 / scale)
     return float(min(max(d, -0.5 * view_distance_m), 0.5 * view_distance_m))
+
+
+def fit_group(
+    group: list[Candidate], anchors: list[Candidate], P: np.ndarray, cfg: MapConfig
+) -> list[Candidate] | None:
+    """The group's visual candidates with the offsets of one SE(2) fit (:func:`align_group`) of the
+    robot's dead-reckoned poses onto the places they name on the map ``P`` (``anchors``: accepted
+    candidates of the last ``loop_fit_window_m`` of path, which back the fit but keep their links: a
+    rigid transform cannot follow the odometry's heading drift over a longer stretch). A coupled
+    candidate (:attr:`~hippomap.loop_closure.LoopHypothesis.coupling`) keeps the fit's place and is
+    turned so that heading + coupling × lateral is what its recognition measured. ``None`` when the
+    fit does not hold: a member lies more than ``loop_consistency_m`` from where the fit puts it, or
+    the fit turns the robot more than ``loop_view_rad`` away from the way a member's key frame looked
+    (recognising a view means facing roughly as it was learned)."""
+    fit_m = cfg.loop_fit_window_m
+    if fit_m is not None and group:
+        newest = max(g.path for g in group)
+        anchors = [c for c in anchors if newest - c.path <= fit_m]
+    vis = [c for c in group + anchors if not c.measured]
+    if len(vis) < 2:
+        return group
+    odom = np.array([c.odom for c in vis])
+    targets = np.array([place_of(c, P) for c in vis])
+    T = align_group(odom, targets, cfg.loop_fit_min_spread_m)
+    fitted = compose(T, odom)
+    if (
+        np.max(np.hypot(*(fitted[:, :2] - targets[:, :2]).T)) > cfg.loop_consistency_m
+        or np.max(np.abs(wrap_angle(fitted[:, 2] - targets[:, 2]))) > cfg.loop_view_rad
+    ):
+        return None
+    out = []
+    for c in group:
+        if c.measured:
+            out.append(c)
+            continue
+        robot = se2_compose(T, c.odom)  # where the fit puts the robot on the map at the proposal
+        off = se2_between(P[c.node], robot)
+        if c.coupling:  # the fit's place, turned so that heading + coupling x lateral is what was measured
+            off = (off[0], off[1], c.coupled_heading - c.coupling * off[1])
+        out.append(c.with_offset(off))
+    return out
