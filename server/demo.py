@@ -60,9 +60,11 @@ def demo_run(rate_hz: float, laps: int, seed: int) -> Any:
     )
 
 
-def open_demo_session(client: Any) -> DemoSession:
+def open_demo_session(client: Any, camera_hfov_deg: float | None = None) -> DemoSession:
     """The admin's ``demo robot`` session (the oldest, if several) or a new one, with a fresh
-    viewer token for it; the viewer tokens earlier starts minted for it are revoked."""
+    viewer token for it; the viewer tokens earlier starts minted for it are revoked. A new session
+    gets the model's default config with the demo camera's field of view, as a robot's client gives
+    its calibration (the image shift of a recognition is then a heading: docs/MODEL.md item 56)."""
     found = sorted((s for s in client.sessions() if s["name"] == DEMO_NAME), key=lambda s: s["created"])
     if found:
         sid = found[0]["id"]
@@ -72,7 +74,8 @@ def open_demo_session(client: Any) -> DemoSession:
             if tok.get("session") == sid and tok.get("label") == VIEWER_LABEL:
                 client.delete_token(tok["id"])
     else:
-        sid = client.create_session(name=DEMO_NAME)["id"]  # the model's default config
+        config = {} if camera_hfov_deg is None else {"mapper": {"camera_hfov_deg": camera_hfov_deg}}
+        sid = client.create_session(name=DEMO_NAME, config=config)["id"]
         last_odo = last_frame = None
     viewer = client.create_token("viewer", session=sid, label=VIEWER_LABEL)
     return DemoSession(sid, viewer["token"], bool(found), last_odo, last_frame)
@@ -132,7 +135,7 @@ async def run_demo(
 
     def setup() -> DemoSession:
         with Client(url, token) as c:
-            return open_demo_session(c)
+            return open_demo_session(c, float(run.config.camera.hfov_deg))
 
     demo = await asyncio.to_thread(setup)
     sid = demo.id

@@ -237,6 +237,8 @@ def test_serve_demo_reuses_its_session_across_restarts_and_says_when_it_finished
         with srv.client() as c:
             st = c.wait_processed(sid)
             stored = c.all_inputs(sid)
+            # the demo robot gave its camera's field of view, as a calibrated robot's client does
+            assert c.session(sid)["config"]["mapper"]["camera_hfov_deg"] == run.config.camera.hfov_deg
         # the stats show the whole run: every input once, the last at the run's end
         assert st["inputs_stored"] == n_inputs and st["last_odometry_t"] == pytest.approx(float(run.times[-1]))
         assert st["mapper"]["odometry_steps"] == len(run.times) and st["rejected"] == {}
