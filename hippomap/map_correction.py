@@ -418,6 +418,12 @@ class MapCorrection(MapGraph):
         info[loop] = self._linfo[:m][loop]
         return info
 
+    def link_coupling(self) -> np.ndarray:
+        """(M,) each link's heading-lateral coupling (m⁻¹; 0 but on coupled visual loop links,
+        :attr:`~hippomap.loop_closure.LoopHypothesis.coupling`): with :meth:`weighted_link_information`,
+        the link's full information matrix, which the g2o export writes."""
+        return self._lcoup[: self._m].copy()
+
     def weighted_link_information(self) -> np.ndarray:
         """(M, 3) diagonal information (x, y, θ) the map gives each link when it solves: the
         solver's weights (:meth:`link_information`; unit information when ``lsq_weighted`` is

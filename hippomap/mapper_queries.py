@@ -102,6 +102,7 @@ class GraphArrays(Query[dict[str, np.ndarray]]):
         }
         if self.information:
             out["information"] = np.array(cm.weighted_link_information())
+            out["coupling"] = np.array(cm.link_coupling())
         return out
 
 

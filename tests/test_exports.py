@@ -135,6 +135,14 @@ def test_g2o_information_defaults_and_is_checked(tmp_path):
         write_g2o(tmp_path / "bad.g2o", poses, [0, 1, 2, 3], [1, 2, 3, 0], tr, [*info[:3], [0.5, -1, 5]])
     with pytest.raises(InputError, match=r"information must have shape \(4, 3\)"):
         write_g2o(tmp_path / "bad.g2o", poses, [0, 1, 2, 3], [1, 2, 3, 0], tr, info[:2])
+    # a coupled loop link (heading + c · y measured): its matrix has the y-heading term, J^T diag J
+    g = read_g2o(write_g2o(tmp_path / "c.g2o", poses, [0, 1, 2, 3], [1, 2, 3, 0], tr, info, [0, 0, 0, 0.25]))
+    np.testing.assert_array_equal(g.odometry_information[:, [0, 3, 5]], info[:3])  # uncoupled: as before
+    J = np.array([[1, 0, 0], [0, 1, 0], [0, 0.25, 1]])  # residual rows x, y, heading + c · y
+    full = J.T @ np.diag(info[3]) @ J
+    np.testing.assert_allclose(g.loops[0].information, full[np.triu_indices(3)])
+    with pytest.raises(InputError, match="coupling must be 4 finite values"):
+        write_g2o(tmp_path / "bad.g2o", poses, [0, 1, 2, 3], [1, 2, 3, 0], tr, info, [0, 0, -1, 0])
 
 
 # ------------------------------------------------------------- recorded inputs

@@ -79,11 +79,19 @@ def link_information(cmap: Any) -> np.ndarray:
 
 
 def write_g2o(
-    path: str | Path, poses: Any, sources: Any, targets: Any, transforms: Any, information: Any | None = None
+    path: str | Path,
+    poses: Any,
+    sources: Any,
+    targets: Any,
+    transforms: Any,
+    information: Any | None = None,
+    coupling: Any | None = None,
 ) -> Path:
     """Write nodes as VERTEX_SE2 and links as EDGE_SE2. ``information`` (M, 3) is each link's
     diagonal information (x, y, θ; e.g. :func:`link_information`), written as the upper
-    triangle ``ix 0 0 iy 0 iθ`` that g2o reads; None writes unit information."""
+    triangle ``ix 0 0 iy 0 iθ`` that g2o reads; None writes unit information. ``coupling`` (M,),
+    m⁻¹ (``CognitiveMap.link_coupling``): a coupled link's heading information weighs heading +
+    coupling · y, so its matrix is ``ix 0 0 (iy + c² iθ) (c iθ) iθ``."""
     p = _as_poses(poses, "poses")
     src = np.asarray(sources, dtype=int)
     dst = np.asarray(targets, dtype=int)
@@ -101,11 +109,13 @@ def write_g2o(
             raise InputError(
                 f"link {int(bad[0])} has information {info[bad[0]].tolist()}: every value must be finite and > 0"
             )
+    c = np.zeros(len(src)) if coupling is None else np.asarray(coupling, dtype=float)
+    if c.shape != (len(src),) or not np.all(np.isfinite(c) & (c >= 0)):
+        raise InputError(f"coupling must be {len(src)} finite values >= 0, one per link, got shape {c.shape}")
     lines = [f"VERTEX_SE2 {i} {x:.9f} {y:.9f} {th:.9f}" for i, (x, y, th) in enumerate(p)]
-    lines += [
-        f"EDGE_SE2 {a} {b} {dx:.9f} {dy:.9f} {dth:.9f} {ix!r} 0 0 {iy!r} 0 {ith!r}"
-        for a, b, (dx, dy, dth), (ix, iy, ith) in zip(src.tolist(), dst.tolist(), tr, info.tolist())
-    ]
+    for a, b, (dx, dy, dth), (ix, iy, ith), k in zip(src.tolist(), dst.tolist(), tr, info.tolist(), c.tolist()):
+        iyy, iyt = (iy, 0) if k == 0 else (iy + k * k * ith, k * ith)
+        lines.append(f"EDGE_SE2 {a} {b} {dx:.9f} {dy:.9f} {dth:.9f} {ix!r} 0 0 {iyy!r} {iyt!r} {ith!r}")
     path = Path(path)
     path.write_text("\n".join(lines) + "\n")
     return path
@@ -220,7 +230,15 @@ def export_map(
     links = cmap.links
     write_tum(out / "map.tum", times, corrected)
     write_tum(out / "odometry.tum", times, odometry)
-    write_g2o(out / "map.g2o", cmap.poses, links["source"], links["target"], links["transform"], link_information(cmap))
+    write_g2o(
+        out / "map.g2o",
+        cmap.poses,
+        links["source"],
+        links["target"],
+        links["transform"],
+        link_information(cmap),
+        cmap.link_coupling(),
+    )
     write_json(
         out / "map.json",
         graph_dict(

@@ -44,10 +44,11 @@ def graphml(arrays: dict[str, np.ndarray]) -> str:
 
 def g2o(arrays: dict[str, np.ndarray]) -> str:
     """The map as g2o VERTEX_SE2/EDGE_SE2 lines (``hippomap.io.exports.write_g2o``), each edge with
-    ``arrays["information"]`` (M, 3) when given (``hippomap.io.exports.link_information``), else unit."""
+    ``arrays["information"]`` (M, 3) when given (``hippomap.io.exports.link_information``, with the
+    links' ``arrays["coupling"]``), else unit."""
     from hippomap.io.exports import write_g2o
 
-    info = arrays.get("information")
+    info, coupling = arrays.get("information"), arrays.get("coupling")
     with tempfile.TemporaryDirectory() as tmp:
         path = write_g2o(
             Path(tmp) / "map.g2o",
@@ -56,6 +57,7 @@ def g2o(arrays: dict[str, np.ndarray]) -> str:
             arrays["target"],
             arrays["transform"].reshape(-1, 3),
             None if info is None else np.asarray(info).reshape(-1, 3),
+            None if coupling is None or info is None else np.asarray(coupling).reshape(-1),
         )
         return path.read_text()
 
