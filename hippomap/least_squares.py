@@ -37,10 +37,19 @@ def _sqrt_information(information, m: int) -> np.ndarray:
     return np.sqrt(w)
 
 
+def couple(e: np.ndarray, coupling: np.ndarray) -> np.ndarray:
+    """Link residuals ``e`` (K, 3: x, y, heading in the source frame) with each heading residual
+    replaced by what a coupled visual link measures, ``heading + coupling · y`` (``coupling`` (K,),
+    m⁻¹; :attr:`~hippomap.loop_closure.LoopHypothesis.coupling`), in place; the same array. A link without coupling
+    keeps its heading residual (adding 0 changes no value but the sign of a zero)."""
+    e[:, 2] += coupling * e[:, 1]
+    return e
+
+
 def _lsq_errors(P, src, dst, T, sw=None, coupling=None):
     """Each link's error (M, 3) in its source frame, weighted by ``sw`` (the square roots of the
     information), with the heading error of a coupled link replaced by heading + ``coupling`` · y
-    (:func:`~hippomap.loop_closure.couple`); and the cosines, sines and position differences the
+    (:func:`couple`); and the cosines, sines and position differences the
     Jacobian needs."""
     ti = P[src, 2]
     dx = P[dst, 0] - P[src, 0]
@@ -51,7 +60,7 @@ def _lsq_errors(P, src, dst, T, sw=None, coupling=None):
     e[:, 1] = -s * dx + c * dy - T[:, 1]
     e[:, 2] = _wrap_inplace(P[dst, 2] - ti - T[:, 2])
     if coupling is not None:
-        e[:, 2] += coupling * e[:, 1]
+        couple(e, coupling)
     if sw is not None:
         e *= sw
     return e, c, s, dx, dy
@@ -89,12 +98,12 @@ def _lsq_jacobian(c, s, dx, dy, sw: np.ndarray, bdt: np.ndarray | None, coupling
     (the bias is estimated)."""
     Jk = np.zeros((len(sw), 3, 7 if bdt is not None else 6))
     Jk[:, 0, :5] = np.column_stack([-c, -s, -s * dx + c * dy, c, s]) * sw[:, :1]
-    Jk[:, 1, :5] = np.column_stack([s, -c, -c * dx - s * dy, -s, c]) * sw[:, 1:2]
+    y_row = np.column_stack([s, -c, -c * dx - s * dy, -s, c])  # d ey, unweighted
+    Jk[:, 1, :5] = y_row * sw[:, 1:2]
     Jk[:, 2, 2] = -sw[:, 2]
     Jk[:, 2, 5] = sw[:, 2]
     if coupling is not None:  # d(heading + coupling · y): the y row, unweighted, times the coupling
-        r1 = np.column_stack([s, -c, -c * dx - s * dy, -s, c])
-        Jk[:, 2, :5] += r1 * (coupling * sw[:, 2])[:, None]
+        Jk[:, 2, :5] += y_row * (coupling * sw[:, 2])[:, None]
     if bdt is not None:
         Jk[:, 2, 6] = bdt * sw[:, 2]  # d et / d bias
     return Jk

@@ -406,34 +406,25 @@ class LoopClosing(MapCorrection):
         only corrects the robot's offset when it relocalises.
         """
         if c.node != c.from_node:
-            return self._add_link(
-                c.from_node,
-                c.node,
-                c.link_tr,
-                LOOP,
-                0.0,
-                allow_duplicate=True,
-                info=c.info,
-                kernel_width=c.kernel_width,
-                coupling=c.coupling,
-            )
-        k = c.arrival
-        if k < 0 or k >= self._m or self._dst[k] != c.node:
-            return -1
-        tr = _compose3(self._tr[k], c.link_tr)
-        if self._kind[k] == PRUNE:
-            self._tr[k] = tr
-            self._kind[k] = LOOP
-            self._w[k] = 1.0
-            self._linfo[k] = link_info3(c.info)
-            self._lkw[k] = c.kernel_width
-            self._lcoup[k] = c.coupling
-            self._version += 1
-            self._dirty = True
-            self._touched.append(k)
-            return k
+            source, tr = c.from_node, c.link_tr
+        else:
+            k = c.arrival
+            if k < 0 or k >= self._m or self._dst[k] != c.node:
+                return -1
+            source, tr = int(self._src[k]), _compose3(self._tr[k], c.link_tr)
+            if self._kind[k] == PRUNE:
+                self._tr[k] = tr
+                self._kind[k] = LOOP
+                self._w[k] = 1.0
+                self._linfo[k] = link_info3(c.info)
+                self._lkw[k] = c.kernel_width
+                self._lcoup[k] = c.coupling
+                self._version += 1
+                self._dirty = True
+                self._touched.append(k)
+                return k
         return self._add_link(
-            int(self._src[k]),
+            source,
             c.node,
             tr,
             LOOP,

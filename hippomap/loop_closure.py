@@ -36,6 +36,7 @@ import numpy as np
 from .config import MapConfig
 from .errors import InputError, finite
 from .geometry import between, compose, se2_compose, se2_inverse
+from .least_squares import couple
 
 _Pose = tuple[float, float, float]  # (x, y, theta): the fixed length the type checker needs
 
@@ -411,15 +412,6 @@ def link_info3(info: Any) -> tuple[float, float, float]:
     if len(v) != 3:
         raise InputError(f"loop-link information must be (x/y, heading) or (x, y, heading), got {len(v)} values")
     return cast("tuple[float, float, float]", v)
-
-
-def couple(e: np.ndarray, coupling: np.ndarray) -> np.ndarray:
-    """Link residuals ``e`` (K, 3: x, y, heading in the source frame) with each heading residual
-    replaced by what a coupled visual link measures, ``heading + coupling · y`` (``coupling`` (K,),
-    m⁻¹; :attr:`LoopHypothesis.coupling`), in place; the same array. A link without coupling
-    keeps its heading residual (adding 0 changes no value but the sign of a zero)."""
-    e[:, 2] += coupling * e[:, 1]
-    return e
 
 
 def kernel_weights(e: np.ndarray, info: np.ndarray, width: np.ndarray, kernel: str = "cauchy") -> np.ndarray:

@@ -176,21 +176,17 @@ class MapCorrection(MapGraph):
         cannot tell from the odometry's own noise is not applied, so that loop links' errors
         cannot pose as one."""
         cfg = self.cfg
+        solve: dict[str, Any] = {
+            "iterations": cfg.lsq_iterations,
+            "tol": cfg.lsq_step_tolerance,
+            "anchor": 0,
+            "information": info,
+            "coupling": coupling,
+        }
         if bias:
             Q = P.copy()
             b = self._rotation_init(Q, src, dst, tr, info, bias) if rotation_init else self._bias
-            res = solve_lsq(
-                Q,
-                src,
-                dst,
-                tr,
-                iterations=cfg.lsq_iterations,
-                tol=cfg.lsq_step_tolerance,
-                anchor=0,
-                information=info,
-                coupling=coupling,
-                **{**bias, "bias": b},
-            )
+            res = solve_lsq(Q, src, dst, tr, **solve, **{**bias, "bias": b})
             if self._bias_kept(Q, src, dst, tr, info, bias, res.bias):
                 P[:] = Q
                 self._bias = res.bias
@@ -198,17 +194,7 @@ class MapCorrection(MapGraph):
             self._bias = 0.0
         if rotation_init:
             self._rotation_init(P, src, dst, tr, info, {})
-        return solve_lsq(
-            P,
-            src,
-            dst,
-            tr,
-            iterations=cfg.lsq_iterations,
-            tol=cfg.lsq_step_tolerance,
-            anchor=0,
-            information=info,
-            coupling=coupling,
-        )
+        return solve_lsq(P, src, dst, tr, **solve)
 
     def _bias_kept(
         self,

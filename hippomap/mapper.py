@@ -308,10 +308,17 @@ class Mapper(KeyFrames):
         away shifts in the image by the turn plus the sideways step over ``D``, so the shift fixes
         ``heading + lateral / D``, not the heading alone."""
         m = self.config.mapper
-        shift = getattr(rec, "shift", None)
-        if not m.shift_coupling or m.camera_hfov_deg is None or m.view_distance_m is None:
+        if not m.shift_coupling or m.view_distance_m is None or self._shift_of(rec) is None:
             return 0.0
-        return 1.0 / m.view_distance_m if shift and shift.get("n", 0) >= 2 else 0.0
+        return 1.0 / m.view_distance_m
+
+    def _shift_of(self, rec: Any) -> dict[str, Any] | None:
+        """The recognition's image shift when it gives a heading (the camera's field of view is known
+        and the shift rests on at least two correspondences), else None."""
+        shift = getattr(rec, "shift", None)
+        if self.config.mapper.camera_hfov_deg is None or not shift or shift.get("n", 0) < 2:
+            return None
+        return cast("dict[str, Any]", shift)
 
     def _visual_offset(self, rec: Any, width: int) -> tuple[float, float, float]:
         """The robot's pose in the matched node's frame as recognition tells it: where the
@@ -329,8 +336,8 @@ class Mapper(KeyFrames):
             d = looming_offset([c["query"] for c in pairs], [c["memory"] for c in pairs], view)
             ahead = 0.0 if d is None else d
         hfov = self.config.mapper.camera_hfov_deg
-        shift = getattr(rec, "shift", None)
-        if hfov is not None and shift and shift.get("n", 0) >= 2:
+        shift = self._shift_of(rec)
+        if hfov is not None and shift is not None:
             focal = 0.5 * width / math.tan(math.radians(hfov) / 2)
             turn = math.atan2(float(shift["x"]), focal)
         if ahead == 0.0 and turn == 0.0:
