@@ -285,7 +285,7 @@ def link_errors(map_json: Path, gt: tuple[np.ndarray, np.ndarray]) -> dict[str, 
     kinds = sorted({str(link["kind"]) for link in g["links"]} | {"loop", "odometry"})
     out: dict[str, Any] = {}
     for kind in kinds:
-        errs, herrs = [], []
+        errs, herrs, axes = [], [], []
         for link in g["links"]:
             if str(link["kind"]) != kind:
                 continue
@@ -296,13 +296,19 @@ def link_errors(map_json: Path, gt: tuple[np.ndarray, np.ndarray]) -> dict[str, 
             tr = np.asarray(link["transform"], float)
             errs.append(float(np.hypot(*(tr[:2] - rel[:2]))))
             herrs.append(abs(float(wrap_angle(tr[2] - rel[2]))))
+            axes.append(tr[:2] - rel[:2])  # both in the link's source frame: along, beside
         e = np.array(errs)
+        rms = np.sqrt(np.mean(np.square(axes), axis=0)) if axes else [None, None]
         out[kind] = {
             "n": len(errs),
             "mean_m": float(e.mean()) if len(e) else None,
             "median_m": float(np.median(e)) if len(e) else None,
             "max_m": float(e.max()) if len(e) else None,
             "mean_heading_deg": float(np.degrees(np.mean(herrs))) if herrs else None,
+            # per axis of the source frame, the frame of a link's information (x along, y beside the heading)
+            "rms_along_m": None if rms[0] is None else float(rms[0]),
+            "rms_lateral_m": None if rms[1] is None else float(rms[1]),
+            "rms_heading_deg": float(np.degrees(np.sqrt(np.mean(np.square(herrs))))) if herrs else None,
         }
     return out
 

@@ -46,6 +46,14 @@ def couple(e: np.ndarray, coupling: np.ndarray) -> np.ndarray:
     return e
 
 
+def link_errors(P: np.ndarray, src: np.ndarray, dst: np.ndarray, T: np.ndarray, coupling=None) -> np.ndarray:
+    """Each link's residual (K, 3) in its source frame, the frame of its per-axis information, with
+    coupled heading residuals (:func:`couple`) when ``coupling`` is given: what the solver
+    whitens and what the robust kernel must see. ``P``, ``src``, ``dst``, ``T`` are the map's own
+    checked arrays (float64 poses and transforms, int64 link ends)."""
+    return _lsq_errors(P, src, dst, T, coupling=coupling)[0]
+
+
 def _lsq_errors(P, src, dst, T, sw=None, coupling=None):
     """Each link's error (M, 3) in its source frame, weighted by ``sw`` (the square roots of the
     information), with the heading error of a coupled link replaced by heading + ``coupling`` · y

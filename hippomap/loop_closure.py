@@ -18,7 +18,8 @@ an image's looming, is :mod:`hippomap.loop_pose`):
 * :func:`cycle_errors` / :func:`consistent` — geometric verification: two hypotheses made at
   different times and the odometry between them form a cycle through the map, which must
   compose to identity.
-* :func:`robust_weight` / :func:`kernel_weights` — the Cauchy weight of a loop link from its whitened residual, which
+* :func:`robust_weight` / :func:`kernel_weights` — the Cauchy weight of a loop link from its whitened residual
+  (:func:`link_errors`: in the link's source frame, where its information is given), which
   the map revises as the map converges (iteratively reweighted relaxation), so a true closure
   is applied fully and a false one fades.
 * :class:`LoopBook` — the decisions, pending and recently accepted candidates, and their
@@ -36,7 +37,7 @@ import numpy as np
 from .config import MapConfig
 from .errors import InputError, finite
 from .geometry import between, compose, se2_compose, se2_inverse
-from .least_squares import couple
+from .least_squares import couple, link_errors
 
 _Pose = tuple[float, float, float]  # (x, y, theta): the fixed length the type checker needs
 
@@ -52,6 +53,7 @@ __all__ = [
     "robust_weight",
     "kernel_weights",
     "couple",
+    "link_errors",
     "link_info3",
     "vec3",
     "node_id",

@@ -18,7 +18,7 @@ import numpy as np
 
 from .headings_first import rotation_first_init
 from .least_squares import bias_sigma, graph_cost, solve_lsq
-from .loop_closure import USED_WEIGHT, couple, kernel_weights
+from .loop_closure import USED_WEIGHT, link_errors
 from .map_events import MapEvent, MapRelaxed
 from .map_graph import LOOP, ODOMETRY, MapGraph, within_hops
 from .relaxation import ColourGroups, RelaxResult, _link_residuals, relax, relax_jacobi
@@ -221,14 +221,16 @@ class MapCorrection(MapGraph):
 
     def _loop_weights(self, P: np.ndarray, loop: np.ndarray, heading_only: bool = False) -> np.ndarray:
         """The ``loop_kernel`` weights the loop links ``loop`` would have on the poses ``P``: each link's
-        residual whitened by its ``loop_information`` and kernel width (:func:`kernel_weights`); with
-        ``heading_only`` the heading part alone (x/y residuals taken as 0)."""
-        r = _link_residuals(P, self._src[loop], self._dst[loop], self._tr[loop])
+        residual in its source frame, coupled (:func:`~hippomap.loop_closure.link_errors`), weighed by
+        :meth:`_kernel_weights`; with ``heading_only`` the heading part alone (x/y residuals taken as 0,
+        no coupling)."""
+        src, dst, tr = self._src[loop], self._dst[loop], self._tr[loop]
         if heading_only:
+            r = link_errors(P, src, dst, tr)
             r[:, :2] = 0.0
         else:
-            couple(r, self._lcoup[loop])
-        return kernel_weights(r, self._linfo[loop], self._lkw[loop], self.cfg.loop_kernel)
+            r = link_errors(P, src, dst, tr, self._lcoup[loop])
+        return self._kernel_weights(r, loop)
 
     def _used_information(self, info: np.ndarray, Q: np.ndarray) -> np.ndarray:
         """``info`` (M, 3) without the loop links whose heading the solved poses ``Q`` leave
@@ -269,13 +271,15 @@ class MapCorrection(MapGraph):
         :meth:`_heading_branches` too, a turned branch kept only at under ``_BRANCH_MARGIN`` of the
         cost and at a rate within ``odometry_bias_sigma`` (a lone false closure can be explained by a
         whole extra turn at an extraordinary rate), or within ``_BRANCH_WIDE`` of it when the branch
-        fits every link (:meth:`_branch_rate_ok`). Returns the bias to start the solve from."""
+        fits every link (:meth:`_branch_rate_ok`). Costs are the whole solve's own, the map's coupled
+        heading residuals included. Returns the bias to start the solve from."""
         b0 = float(bias.get("bias", 0.0))
-        best_cost, best = graph_cost(P, src, dst, tr, info, **bias), None
+        coupling = self._lcoup[: self._m]
+        best_cost, best = graph_cost(P, src, dst, tr, info, coupling=coupling, **bias), None
         for turns in self._heading_branches(P):
             Q = P.copy()
             _, b = rotation_first_init(Q, src, dst, tr, info, anchor=0, heading_turns=turns, **bias)
-            cost = graph_cost(Q, src, dst, tr, info, **{**bias, "bias": b})
+            cost = graph_cost(Q, src, dst, tr, info, coupling=coupling, **{**bias, "bias": b})
             # another branch must explain the map clearly better than the wrapped reading, at an ordinary rate
             if turns is None:
                 better = cost < best_cost

@@ -31,9 +31,9 @@ from scipy.sparse.csgraph import dijkstra
 from .config import MapConfig
 from .errors import InputError, finite
 from .geometry import se2_between, se2_compose, se2_inverse
-from .loop_closure import USED_WEIGHT, LoopBook, couple, drift_path, kernel_weights, link_info3, node_id, vec3
+from .loop_closure import USED_WEIGHT, LoopBook, drift_path, kernel_weights, link_errors, link_info3, node_id, vec3
 from .map_events import FrameAssigned, MapEvent
-from .relaxation import ColourGroups, _link_residuals, colour_link, edge_colouring
+from .relaxation import ColourGroups, colour_link, edge_colouring
 
 __all__ = ["LINK_KINDS", "ODOMETRY", "LOOP", "PRUNE", "MapGraph", "within_hops"]
 
@@ -240,15 +240,23 @@ class MapGraph:
         self._m += 1
         self._version += 1
         ends = np.array([a, b], dtype=np.int64)
-        r = _link_residuals(self._P[: self._n], ends[:1], ends[1:], np.asarray(tr, dtype=float).reshape(1, 3))
+        tr3 = np.asarray(tr, dtype=float).reshape(1, 3)
+        r = link_errors(self._P[: self._n], ends[:1], ends[1:], tr3, self._lcoup[k : k + 1])
         if np.max(np.abs(r)) > 1e-9:
             self._dirty = True
             self._touched.append(k)
         if kind == LOOP and self.cfg.loop_weight_init == "kernel":
-            self._w[k] = kernel_weights(
-                couple(r, self._lcoup[k : k + 1]), self._linfo[k : k + 1], self._lkw[k : k + 1], self.cfg.loop_kernel
-            )[0]
+            self._w[k] = self._kernel_weights(r, np.array([k]))[0]
         return k
+
+    def _kernel_weights(self, r: np.ndarray, k: np.ndarray) -> np.ndarray:
+        """The ``loop_kernel`` weights of the loop links ``k`` with residuals ``r`` (K, 3) in their source
+        frames (:func:`~hippomap.loop_closure.link_errors`), whitened by their kernel widths and
+        information, with the position residual taken as a distance at the along-track information:
+        a visual link's looser lateral information (``visual_lateral_information``) lets the odometry
+        place the robot beside the track in the solve, but a link the map puts far beside its key
+        frame is no likelier true for it (docs/MODEL.md item 57)."""
+        return kernel_weights(r, self._linfo[k][:, [0, 0, 2]], self._lkw[k], self.cfg.loop_kernel)
 
     def _rebuild_link_index(self, colours=None) -> None:
         m, n = self._m, self._n

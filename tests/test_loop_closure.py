@@ -21,11 +21,12 @@ from hippomap.loop_closure import (
     LoopHypothesis,
     consistent,
     kernel_weights,
+    link_errors,
     link_info3,
     robust_weight,
 )
 from hippomap.loop_pose import align_group, looming_offset
-from hippomap.map_graph import LOOP, _undirected_paths, _undirected_paths_reference, within_hops
+from hippomap.map_graph import LOOP, MapGraph, _undirected_paths, _undirected_paths_reference, within_hops
 from hippomap.map_reuse import ReuseMap
 from hippomap.mapper import Mapper
 from hippomap.visual_memory import VisualMemory
@@ -534,6 +535,38 @@ def test_kernel_weights_whiten_each_axis_by_its_own_information():
         link_info3((1.0,))
 
 
+@settings(max_examples=40, deadline=None)
+@given(
+    heading=st.floats(-math.pi, math.pi),
+    along=st.floats(-1.0, 1.0),
+    lateral=st.floats(-1.0, 1.0),
+    turn=st.floats(-0.3, 0.3),
+)
+def test_a_loop_links_kernel_weight_does_not_depend_on_which_way_the_map_faces(heading, along, lateral, turn):
+    """The kernel whitens a link's residual in the link's source frame (along the track, beside it,
+    heading), where its information is given: a new link's weight is the same whether its source
+    faces along the map's x axis or any other way, and its residual is what :func:`link_errors`
+    returns, invariant under moving the whole map. The position is weighed as a distance at the
+    along-track information (the looser lateral information is the solve's, docs/MODEL.md item 57)."""
+    info, coupling = (100.0, 1.0, 1000.0), 1 / 3
+    weights = []
+    for h in (0.0, heading):
+        g = MapGraph(MapConfig(loop_weight_init="kernel"))
+        a = g._add_node((0.0, 0.0, h), (0.0, 0.0, 0.0), 0.0)
+        b = g._add_node(tuple(compose(np.array([0.0, 0.0, h]), np.array([along, lateral, turn]))), (0.0,) * 3, 1.0)
+        k = g._add_link(a, b, (0.0, 0.0, 0.0), LOOP, 0.0, info=info, coupling=coupling)
+        weights.append(g._w[k])
+        P = g._P[: g._n].copy()
+        moved = compose(np.array([2.0, -1.0, 0.7]), P)
+        ends = np.array([a]), np.array([b])
+        e = link_errors(P, *ends, np.zeros((1, 3)), np.array([coupling]))
+        np.testing.assert_allclose(link_errors(moved, *ends, np.zeros((1, 3)), np.array([coupling])), e, atol=1e-9)
+        np.testing.assert_allclose(e[0], [along, lateral, turn + coupling * lateral], atol=1e-9)
+    residual = np.array([[along, lateral, turn + coupling * lateral]])
+    expected = kernel_weights(residual, np.array([[100.0, 100.0, 1000.0]]), np.ones(1))
+    np.testing.assert_allclose(weights, [expected[0]] * 2, rtol=1e-9)
+
+
 def test_loose_lateral_information_lets_odometry_place_a_visual_link_beside_the_track():
     """Out and back along a 10 m corridor with exact odometry; on the way back every visual
     hypothesis puts the robot 0.3 m beside where it is (what recognition cannot see). With a low
@@ -589,16 +622,22 @@ def test_a_state_with_pair_loop_information_loads_as_isotropic():
     assert np.array_equal(info, cmap.link_information()[loop]) and np.all(info[:, 0] == info[:, 1])
 
 
+def _drifting_out_and_back():
+    """Out and back along a 10 m corridor (ground-truth poses) and its odometry increments, which
+    turn 0.03 rad per metre on the way back (a gyro's drift)."""
+    inc = back_and_forth(passes=2, length=10.0, step=0.05)
+    noisy = inc.copy()
+    noisy[len(inc) // 2 :, 2] += 0.03 * 0.05
+    return integrate(inc), noisy
+
+
 def test_a_group_fit_over_a_short_window_follows_a_drifting_odometry():
     """The group fit moves the dead-reckoned path rigidly onto the places the hypotheses name. Out
     and back along a 10 m corridor whose odometry turns 0.03 rad per metre on the way back (a gyro's
     drift), with every hypothesis exact: over the whole 5 m support window the bent path pulls the
     fitted links off; over the last ``loop_fit_window_m`` of path they stay near the truth."""
-    inc = back_and_forth(passes=2, length=10.0, step=0.05)
-    gt = integrate(inc)
-    n = len(inc)
-    noisy = inc.copy()
-    noisy[n // 2 :, 2] += 0.03 * 0.05
+    gt, noisy = _drifting_out_and_back()
+    n = len(noisy)
 
     def hyps(k, cmap, node_at, off):
         j = n - k - 10  # the outbound pose at the same place
@@ -620,6 +659,38 @@ def test_a_group_fit_over_a_short_window_follows_a_drifting_odometry():
         assert len(e) > 20
         errors[window] = float(np.median(e))
     assert errors[2.5] < 0.6 * errors[None], errors  # measured 0.032 vs 0.076 m
+
+
+def test_the_corrected_map_does_not_depend_on_which_way_the_map_frame_faces():
+    """The map frame is the first node's (``initial_pose``); turning it turns the whole corrected map
+    and changes nothing else. Out and back along a 10 m corridor whose odometry drifts on the way
+    back, coupled visual hypotheses 0.8 m beside the truth and 0.1 rad off, none trusted: the robust
+    kernel weighs each link in its own source frame, so a map started facing 1 rad off the corridor is
+    the same map turned by 1 rad (measured 5e-15 m apart; a kernel fed map-frame residuals weighed the
+    links differently, and the two maps came 6 mm apart)."""
+    gt, noisy = _drifting_out_and_back()
+    n = len(noisy)
+
+    def hyps(k, cmap, node_at, off):
+        j = n - k - 10
+        if k <= n // 2 + 40 or k % 5 or not 0 <= j < n // 2:
+            return []
+        h = _visual(gt, node_at, off, k, j, search=None)
+        assert h.offset is not None
+        wrong = tuple(compose(np.array(h.offset), np.array([0.0, 0.8, 0.1])))
+        return [LoopHypothesis(node=h.node, source="visual", time=h.time, meta=h.meta, offset=wrong, coupling=1 / 3)]
+
+    maps = []
+    for turn in (0.0, 1.0):
+        start = np.array([0.0, 0.0, turn])
+        cmap = CognitiveMap(MapConfig(initial_pose=tuple(start), trust_verified=False))  # every link weighed
+        node_at, off, _ = drive(cmap, noisy, hypotheses=hyps)
+        cmap.finish()
+        assert (cmap.links["kind"] == "loop").sum() > 20
+        weights = cmap.link_weights()[cmap.links["kind"] == "loop"]
+        assert weights.min() < 0.9  # the kernel is at work
+        maps.append(between(start, corrected(cmap, node_at, off)))  # back in the first node's frame
+    np.testing.assert_allclose(maps[1][:, :2], maps[0][:, :2], atol=1e-6)
 
 
 def test_a_hypothesis_coupling_is_checked_and_round_trips():
