@@ -298,16 +298,15 @@ def link_errors(map_json: Path, gt: tuple[np.ndarray, np.ndarray]) -> dict[str, 
             herrs.append(abs(float(wrap_angle(tr[2] - rel[2]))))
             axes.append(tr[:2] - rel[:2])  # both in the link's source frame: along, beside
         e = np.array(errs)
-        rms = np.sqrt(np.mean(np.square(axes), axis=0)) if axes else [None, None]
+        ax = np.array(axes).reshape(-1, 2)  # per axis of the source frame, the frame of a link's information
         out[kind] = {
             "n": len(errs),
             "mean_m": float(e.mean()) if len(e) else None,
             "median_m": float(np.median(e)) if len(e) else None,
             "max_m": float(e.max()) if len(e) else None,
             "mean_heading_deg": float(np.degrees(np.mean(herrs))) if herrs else None,
-            # per axis of the source frame, the frame of a link's information (x along, y beside the heading)
-            "rms_along_m": None if rms[0] is None else float(rms[0]),
-            "rms_lateral_m": None if rms[1] is None else float(rms[1]),
+            "rms_along_m": float(np.sqrt(np.mean(ax[:, 0] ** 2))) if len(ax) else None,
+            "rms_lateral_m": float(np.sqrt(np.mean(ax[:, 1] ** 2))) if len(ax) else None,
             "rms_heading_deg": float(np.degrees(np.sqrt(np.mean(np.square(herrs))))) if herrs else None,
         }
     return out

@@ -119,12 +119,9 @@ class MapCorrection(MapGraph):
         cfg = self.cfg
         w = self._w[:m]
         info = (self.link_information() if cfg.lsq_weighted else np.ones((m, 3))) * w[:, None]
-        coupling = self._lcoup[:m].copy()
         bias = self._bias_args()
         if window is None:
-            res = self._whole_solve(
-                P, src, dst, tr, info, bias, rotation_init=cfg.lsq_rotation_init and rotation_init, coupling=coupling
-            )
+            res = self._whole_solve(P, src, dst, tr, info, bias, rotation_init=cfg.lsq_rotation_init and rotation_init)
             self._local_solves = 0
         else:
             self._local_solves += 1
@@ -144,7 +141,7 @@ class MapCorrection(MapGraph):
                 anchor=None,
                 information=info[links],
                 fixed=local[fixed],
-                coupling=coupling[links],
+                coupling=self._lcoup[links],
                 **bias,
             )
             P[nodes] = Q
@@ -162,7 +159,6 @@ class MapCorrection(MapGraph):
         info: np.ndarray,
         bias: dict[str, Any],
         rotation_init: bool,
-        coupling: np.ndarray | None = None,
     ) -> RelaxResult:
         """A whole-map 'lsq' solve of ``P`` in place (headings first when ``rotation_init``).
 
@@ -181,7 +177,7 @@ class MapCorrection(MapGraph):
             "tol": cfg.lsq_step_tolerance,
             "anchor": 0,
             "information": info,
-            "coupling": coupling,
+            "coupling": self._lcoup[: self._m],  # the map's links: a whole solve's are all of them
         }
         if bias:
             Q = P.copy()
