@@ -20,7 +20,10 @@ false when ground truth puts its two places more than 2 m apart (hippomap: robot
 proposal vs the matched node; OpenRatSLAM: robot at the link vs where the destination
 experience was created). Loop-link error: hippomap's per-decision ``link_error_m`` (the
 used link's relative pose vs the ground-truth relative pose of its two nodes); the JSON
-also re-measures every link of the final map per kind (``links``). Core time per frame:
+also re-measures every link of the final map per kind (``links``). Revisits: the ground
+truth's revisit episodes (:mod:`hippomap.eval.revisits`: back within 1.5 m of a place passed
+30 m or more of path earlier) and how many of them a true closure closed (hippomap: one it
+uses; OpenRatSLAM: any true link), the same episodes for both. Core time per frame:
 hippomap's ``step`` + ``observe`` (image decoding excluded; wall clock, and process CPU
 time in the JSON); OpenRatSLAM's ``core_us`` (its driver's figure: local view, pose cells,
 experience map; decoding excluded). Mean, and mean over the first vs the last third.
@@ -70,6 +73,7 @@ import peers  # noqa: E402
 from hippomap.cli.run import dataset_config, open_dataset, run_dataset, write_run  # noqa: E402
 from hippomap.config import HippomapConfig  # noqa: E402
 from hippomap.eval.evaluation import groundtruth_at, trajectory_metrics  # noqa: E402
+from hippomap.eval.revisits import revisit_episodes, revisit_recall  # noqa: E402
 from hippomap.geometry import between, wrap_angle  # noqa: E402
 from hippomap.inputs import Frame, Odometry  # noqa: E402
 from hippomap.mapper import Mapper  # noqa: E402
@@ -360,6 +364,8 @@ def run_hippomap(data: Path, config_file: str | None, out_dir: Path) -> dict[str
             [d["link_error_m"] for d in accepted if "link_error_m" in d and d.get("used", True)]
         ),
         "links": link_errors(out_dir / "map.json", dataset.groundtruth),
+        # the ground truth's revisit episodes and how many a true closure the map used closed
+        "revisits": metrics["loop_closures"].get("revisits"),
         "core_ms": thirds(ms),
         "core_cpu_ms": thirds(np.array(m.frame_cpu_seconds) * 1e3),
         "frames": len(ms),
@@ -379,12 +385,16 @@ def score_ors(res: peers.ORSResult, gt: tuple[np.ndarray, np.ndarray]) -> dict[s
     tm = trajectory_metrics(res.times, res.poses, *gt, scaled=True)
     created = res.exp_created
     judged, false = 0, 0
+    true_times: list[float] = []
     for t, _src, dest in res.links:
         a, b = groundtruth_at(gt, t), groundtruth_at(gt, created.get(dest, float("nan")))
         if a is None or b is None:
             continue
         judged += 1
-        false += float(np.linalg.norm(a[:2] - b[:2])) > TRUE_M
+        true = float(np.linalg.norm(a[:2] - b[:2])) <= TRUE_M
+        false += not true
+        if true:
+            true_times.append(t)
     return {
         "threshold": res.threshold,
         "ate": tm["ate"]["rmse"],
@@ -394,6 +404,8 @@ def score_ors(res: peers.ORSResult, gt: tuple[np.ndarray, np.ndarray]) -> dict[s
         "closures_accepted": len(res.links),
         "closures_false": false,
         "closures_unjudged": len(res.links) - judged,
+        # every OpenRatSLAM link is applied by its experience map: a true one closes its revisit
+        "revisits": revisit_recall(revisit_episodes(*gt), *gt, true_times),
         "core_ms": res.core_ms,
         "templates": res.templates,
         "experiences": res.experiences,
@@ -475,6 +487,18 @@ def closure_truth(dataset, pairs: list[tuple[int, int]]) -> list[float | None]:
     return out
 
 
+def pair_revisits(dataset, pairs: list[tuple[int, int]], dist: list[float | None], used: list[bool]) -> dict[str, Any]:
+    """:func:`~hippomap.eval.revisits.revisit_recall` of the ground truth's revisit episodes by the used true
+    closures among the pose ``pairs`` (each made when the robot stood at the later pose of its pair)."""
+    gt = dataset.groundtruth
+    times = [
+        float(dataset.times[max(i, j)])
+        for (i, j), d, ok in zip(pairs, dist, used)
+        if ok and d is not None and d <= TRUE_M
+    ]
+    return revisit_recall(revisit_episodes(*gt), *gt, times)
+
+
 def count_closures(dist: list[float | None], used: list[bool]) -> dict[str, int]:
     u = [d for d, ok in zip(dist, used) if ok]
     return {
@@ -532,7 +556,8 @@ def bicocca_case(case: dict[str, Any]) -> list[dict[str, Any]]:
                 rows.append({**base, "method": f"gtsam-{kernel}", "error": "gtsam not installed (pip install gtsam)"})
                 break
             tm = trajectory_metrics(dataset.times, r.poses, *gt)
-            dist = closure_truth(dataset, [(lp["i"], lp["j"]) for lp in r.loops])
+            gpairs = [(lp["i"], lp["j"]) for lp in r.loops]
+            dist = closure_truth(dataset, gpairs)
             rows.append(
                 {
                     **base,
@@ -542,6 +567,7 @@ def bicocca_case(case: dict[str, Any]) -> list[dict[str, Any]]:
                     "closures": count_closures(dist, [lp["used"] for lp in r.loops]),
                     "closures_alt": count_closures(dist, [lp["weight_half"] for lp in r.loops]),
                     "alt_rule": "weight >= 0.5",
+                    "revisits": pair_revisits(dataset, gpairs, dist, [lp["used"] for lp in r.loops]),
                     "iterations": r.iterations,
                     "seconds": r.seconds,
                 }
@@ -587,6 +613,7 @@ def bicocca_case(case: dict[str, Any]) -> list[dict[str, Any]]:
                 "closures": count_closures(dist, used),
                 "closures_alt": count_closures(dist, accepted),
                 "alt_rule": "accepted",
+                "revisits": pair_revisits(dataset, pairs, dist, used),
                 "map_never_worse_than_odometry": metrics.get("map_never_worse_than_odometry"),
                 "online": online_reference(case, data / fname, dataset, metrics.get("online", [])),
                 "seconds": secs,
@@ -613,14 +640,15 @@ def sim_table(rows: list[dict[str, Any]]) -> list[str]:
     out = [
         "| world | seed | size | texture | odometry ATE | hippomap ATE / RPE | ORS stock ATE (vt) | "
         "ORS best ATE (vt) | ATE ratio hm/ORS best | hm closures acc/used/false used | ORS best links/false | "
-        "hm loop-link err m | hm ms mean (1st/last third) | ORS best ms (1st/last third) | ms ratio |",
-        "|---|---:|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "revisits closed hm / ORS best | hm loop-link err m | hm ms mean (1st/last third) | "
+        "ORS best ms (1st/last third) | ms ratio |",
+        "|---|---:|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for r in rows:
         if "error" in r and "hippomap" not in r:
             out.append(
                 f"| {world_label(r)} | {r['seed']} | {r['size']} | {r['texture']} | error: {r['error'][:80]} "
-                + "| " * 10
+                + "| " * 11
                 + "|"
             )
             continue
@@ -648,6 +676,7 @@ def sim_table(rows: list[dict[str, Any]]) -> list[str]:
             f"{hm.get('closures_used_false', hm['closures_false'])}"
         )
         cells.append(f"{b['closures_accepted']} / {b['closures_false']}" if ors else "n/a")
+        cells.append(f"{revisits_cell(hm)} / {revisits_cell(b) if ors else 'n/a'}")
         le = hm.get("loop_link_error_m", {})
         cells.append(f2(le.get("mean")) if le.get("n") else f2(hm["links"]["loop"]["mean_m"]))
         cells.append(f"{f2(c['mean'])} ({f2(c['first_third'])}/{f2(c['last_third'])})")
@@ -658,6 +687,12 @@ def sim_table(rows: list[dict[str, Any]]) -> list[str]:
             cells += ["n/a", "n/a"]
         out.append("| " + " | ".join(cells) + " |")
     return out
+
+
+def revisits_cell(r: dict[str, Any]) -> str:
+    """``closed/episodes`` of a system's revisit recall (``n/a`` in rows written before it was measured)."""
+    rv = r.get("revisits")
+    return f"{rv['closed']}/{rv['episodes']}" if rv else "n/a"
 
 
 def sim_scaled_table(rows: list[dict[str, Any]]) -> list[str]:
@@ -781,6 +816,7 @@ def sim_targets(rows: list[dict[str, Any]]) -> list[str]:
             f"- the same on CPU time (less load-dependent): median {np.median(g):.2f}, max {g.max():.2f}; "
             f"runs meeting <= 1.2: {int((g <= 1.2).sum())}/{len(g)}"
         )
+    lines += revisit_lines(ok)
     false = sum(r["hippomap"]["closures_false"] for r in ok)
     lines.append(
         f"- hippomap closures with ground-truth separation > {TRUE_M:g} m: used "
@@ -790,15 +826,39 @@ def sim_targets(rows: list[dict[str, Any]]) -> list[str]:
     return lines
 
 
+def revisit_lines(ok: list[dict[str, Any]]) -> list[str]:
+    """The ground truth's revisit episodes closed by hippomap and by OpenRatSLAM's best threshold (the same
+    episodes for both), and the runs where hippomap missed one."""
+    hm = [r for r in ok if r["hippomap"].get("revisits")]
+    if not hm:
+        return []
+    n = sum(r["hippomap"]["revisits"]["episodes"] for r in hm)
+    closed = sum(r["hippomap"]["revisits"]["closed"] for r in hm)
+    line = f"- ground-truth revisit episodes closed by a true closure used: hippomap {closed} of {n}"
+    ors = [r for r in hm if r.get("ors") and r["ors"]["best"].get("revisits")]
+    if ors:
+        line += (
+            f"; ORS best {sum(r['ors']['best']['revisits']['closed'] for r in ors)} of "
+            f"{sum(r['ors']['best']['revisits']['episodes'] for r in ors)} ({len(ors)} runs)"
+        )
+    missed = [
+        f"{world_label(r)} {r['seed']} {r['size']} {r['texture']} "
+        + ", ".join(f"{e['length_m']:.0f} m at {e['path_m']:.0f} m" for e in r["hippomap"]["revisits"]["missed"])
+        for r in hm
+        if r["hippomap"]["revisits"]["missed"]
+    ]
+    return [line] + ([f"- hippomap missed (episode length at path): {'; '.join(missed)}"] if missed else [])
+
+
 def bicocca_table(rows: list[dict[str, Any]]) -> list[str]:
     out = [
         "| file | method | ATE rmse m | RPE rmse m | closures proposed | used | false > 2 m | false > 5 m | "
-        "true rejected | other rule: used / false > 2 m | time s |",
-        "|---|---|---:|---:|---:|---:|---:|---:|---:|---|---:|",
+        "true rejected | other rule: used / false > 2 m | revisits closed | time s |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---|---:|---:|",
     ]
     for r in rows:
         if "error" in r:
-            out.append(f"| {r['file']} | {r['method']} | error: {r['error'][:80]} | | | | | | | | |")
+            out.append(f"| {r['file']} | {r['method']} | error: {r['error'][:80]} | | | | | | | | | |")
             continue
         c = r.get("closures")
         cc = (
@@ -808,6 +868,7 @@ def bicocca_table(rows: list[dict[str, Any]]) -> list[str]:
         )
         alt = r.get("closures_alt")
         cc.append(f"{r['alt_rule']}: {alt['accepted']} / {alt['false_2m']}" if alt else "")
+        cc.append(revisits_cell(r) if c else "")
         out.append(
             "| "
             + " | ".join(

@@ -125,6 +125,43 @@ def test_ors_scoring_counts_false_links_by_ground_truth_separation():
     assert s["ate"] == pytest.approx(0.0, abs=1e-6)  # a constant offset is aligned away
 
 
+def test_ors_revisits_are_closed_only_by_its_true_links():
+    """Twice round a 31 m circle: the second lap is one revisit episode. OpenRatSLAM's link made on it to
+    the experience of the same place closes it; a false link made there (to the far side) does not."""
+    n = 400
+    t = np.arange(n) * 0.2
+    a = np.linspace(0, 4 * np.pi, n, endpoint=False)
+    gt = np.column_stack([5.0 * np.cos(a), 5.0 * np.sin(a), a + np.pi / 2])
+    created = {0: float(t[10]), 1: float(t[100])}  # experience 1 is on the far side of the circle
+    ms = {"mean": 1.0, "median": 1.0, "first_third": 1.0, "last_third": 1.0}
+
+    def score(links):
+        return bench_maps.score_ors(peers.ORSResult(0.03, t, gt, links, created, ms, 3, 2, 0.1), (t, gt))["revisits"]
+
+    true = score([(float(t[210]), 5, 0)])
+    assert true["episodes"] == 1 and true["closed"] == 1 and true["recall"] == 1.0 and true["missed"] == []
+    false = score([(float(t[210]), 5, 1)])
+    assert false["closed"] == 0 and len(false["missed"]) == 1
+
+
+def test_revisit_lines_total_the_runs_and_name_the_episodes_missed():
+    def row(seed, hm_closed, ors_closed, n=2):
+        missed = [{"length_m": 11.0, "path_m": 406.0}] * (n - hm_closed)
+        return {
+            "world": "bicocca",
+            "seed": seed,
+            "size": "640x480",
+            "texture": "procedural",
+            "hippomap": {"revisits": {"episodes": n, "closed": hm_closed, "missed": missed}},
+            "ors": {"best": {"revisits": {"episodes": n, "closed": ors_closed, "missed": []}}},
+        }
+
+    lines = bench_maps.revisit_lines([row(3, 1, 0), row(4, 2, 1)])
+    assert "hippomap 3 of 4; ORS best 1 of 4 (2 runs)" in lines[0]
+    assert lines[1] == "- hippomap missed (episode length at path): bicocca 3 640x480 procedural 11 m at 406 m"
+    assert bench_maps.revisit_lines([{**row(3, 1, 0), "hippomap": {}}]) == []  # rows from before it was measured
+
+
 def test_closure_counts():
     dist = [0.5, 3.0, 7.0, None, 1.0]
     used = [True, True, True, True, False]

@@ -117,6 +117,8 @@ def test_run_command_on_a_simulated_folder(tmp_path, capsys):
     assert metrics["loop_closures"]["used"] > 0
     assert metrics["loop_closures"]["used_false"] == 0  # a false hypothesis may be linked, but faded
     assert metrics["map"]["ate"]["rmse"] < metrics["odometry"]["ate"]["rmse"]
+    revisits = metrics["loop_closures"]["revisits"]  # the laps after the first revisit it: closed
+    assert revisits["episodes"] >= 1 and revisits["closed"] == revisits["episodes"] and revisits["missed"] == []
     for name in ("map.tum", "odometry.tum", "map.g2o", "map.json", "loop_closures.json", "map.png"):
         assert (out / name).stat().st_size > 0
     assert main(["run", str(tmp_path / "nowhere"), "--out", str(out), "--no-progress"]) == 2

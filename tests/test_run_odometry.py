@@ -110,6 +110,7 @@ def test_cli_writes_exports(dataset_dir, tmp_path, capsys):
     assert metrics["loop_closures"]["accepted_false"] == 0
     lc = metrics["loop_closures"]
     assert lc["accepted"] + lc["rejected"] == lc["proposed"]
+    assert lc["revisits"]["episodes"] >= 1 and lc["revisits"]["closed"] == lc["revisits"]["episodes"]  # lap 2
     t_map, p_map = read_tum(out / "map.tum")
     t_odo, _ = read_tum(out / "odometry.tum")
     ts = np.array([float(x) for x in (folder / "synthetic_timestamps.txt").read_text().split()])

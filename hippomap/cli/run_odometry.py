@@ -21,6 +21,7 @@ from ..cognitive_map import CognitiveMap, LoopHypothesis
 from ..config import HippomapConfig
 from ..errors import InputError
 from ..eval.evaluation import LOOP_TRUTH_DISTANCE_M, groundtruth_at, trajectory_metrics
+from ..eval.revisits import revisit_episodes, revisit_recall
 from ..extras import check
 from ..geometry import between, compose, integrate
 from ..io.datasets import LoopEdge, OdometryDataset, load_odometry_dataset
@@ -206,6 +207,14 @@ def summarise(run: OdometryRun, dataset: OdometryDataset) -> dict[str, Any]:
         metrics["loop_closures"]["accepted_false"] = sum(not d["groundtruth_true"] for d in judged)
         metrics["loop_closures"]["used_false"] = sum(not d["groundtruth_true"] for d in judged if d["used"])
         metrics["loop_closures"]["true_distance_m"] = LOOP_TRUTH_DISTANCE_M
+        # which ground-truth revisits a true closure the map used closed (made at the later pose of its pair)
+        true_used = [
+            float(run.times[max(d["hypothesis"]["meta"]["poses"])])
+            for d in judged
+            if d["used"] and d["groundtruth_true"]
+        ]
+        tg, pg = dataset.groundtruth
+        metrics["loop_closures"]["revisits"] = revisit_recall(revisit_episodes(tg, pg), tg, pg, true_used)
     return metrics
 
 

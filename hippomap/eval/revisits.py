@@ -1,0 +1,149 @@
+"""Revisits in the ground truth, and which of them a map closed: loop-closure recall by place.
+
+A map's ATE says how far off it is, and the closures' precision says whether any was false; neither
+says *which* loops the map never closed. One lost revisit (the robot back at its start after a long
+excursion, say) can cost a map tens of metres while every closure it made was true. So the ground
+truth is cut into *revisit episodes* — stretches of path along which the robot stands within
+``radius_m`` of a place it passed at least ``min_path_m`` of path earlier, facing within
+``max_heading_rad`` of the way it faced then (a forward camera driven back the other way sees the
+other side of the corridor: nothing to recognise) — and an episode counts as closed when a true loop
+closure the map used was made along it. The episodes come from the ground
+truth alone, so every system run on the same data (hippomap, OpenRatSLAM) is scored on the same ones.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ..errors import InputError
+
+#: within this of an earlier place, the robot revisits it [ours]
+REVISIT_RADIUS_M = 1.5
+#: ... when it passed there at least this much path earlier (not its own recent track) [ours]
+REVISIT_MIN_PATH_M = 30.0
+#: revisited stretches closer than this along the path are one episode [ours]
+REVISIT_JOIN_M = 2.0
+#: an episode shorter than this is a graze, not a revisit [ours]
+REVISIT_MIN_LENGTH_M = 2.0
+#: ... facing within this of the way it faced then (ground truth with headings) [ours]
+REVISIT_MAX_HEADING_RAD = math.pi / 2
+#: the ground truth is sampled every this much path (its own rate may be anything) [ours]
+SAMPLE_STEP_M = 0.25
+
+
+@dataclass(frozen=True)
+class Revisit:
+    """One revisit episode of the ground truth: from ``t0`` to ``t1`` (s), starting ``path_m`` metres
+    of path into the run and ``length_m`` long, revisiting places first passed around ``earlier_t``."""
+
+    t0: float
+    t1: float
+    path_m: float
+    length_m: float
+    earlier_t: float
+
+
+def path_lengths(xy: np.ndarray) -> np.ndarray:
+    """The path length (m) at each of the positions ``xy`` (N, 2), from 0."""
+    return np.concatenate(([0.0], np.cumsum(np.hypot(*np.diff(xy, axis=0).T))))
+
+
+def revisit_episodes(
+    times: Any,
+    poses: Any,
+    radius_m: float = REVISIT_RADIUS_M,
+    min_path_m: float = REVISIT_MIN_PATH_M,
+    join_m: float = REVISIT_JOIN_M,
+    min_length_m: float = REVISIT_MIN_LENGTH_M,
+    max_heading_rad: float | None = REVISIT_MAX_HEADING_RAD,
+) -> list[Revisit]:
+    """The revisit episodes of a ground-truth trajectory (``times`` (N,), sorted; ``poses`` (N, >=2),
+    x and y first, then the heading when there is one). Vectorised: the trajectory is sampled every
+    :data:`SAMPLE_STEP_M` of path, every pair of samples within ``radius_m`` is found at once (a k-d
+    tree), and a sample revisits when a partner lies ``min_path_m`` or more of path behind it, facing
+    within ``max_heading_rad`` of it (None, or poses without headings: any heading)."""
+    t = np.asarray(times, dtype=float).ravel()
+    p = np.asarray(poses, dtype=float)
+    if p.ndim != 2 or p.shape[1] < 2 or len(p) != len(t):
+        raise InputError(f"revisit_episodes needs N times and N poses with x, y; got {t.shape} and {p.shape}")
+    if not (np.isfinite(t).all() and np.isfinite(p[:, : min(p.shape[1], 3)]).all()):
+        raise InputError("revisit_episodes: times and positions must be finite")
+    if len(t) > 1 and np.any(np.diff(t) < 0):
+        raise InputError("revisit_episodes: times must be sorted")
+    if min(radius_m, min_path_m, join_m) <= 0 or min_length_m < 0:
+        raise InputError("revisit_episodes: radius, minimum path and join distance must be positive")
+    if len(t) < 2:
+        return []
+    xy = p[:, :2]
+    s_all = path_lengths(xy)
+    # one sample per SAMPLE_STEP_M of path (the first pose at or past each step)
+    idx = np.unique(np.searchsorted(s_all, np.arange(0.0, s_all[-1] + SAMPLE_STEP_M, SAMPLE_STEP_M)))
+    idx = idx[idx < len(t)]
+    s, pts = s_all[idx], xy[idx]
+    pairs = cKDTree(pts).query_pairs(radius_m, output_type="ndarray")  # i < j
+    if pairs.size == 0:
+        return []
+    i, j = pairs[:, 0], pairs[:, 1]
+    far = s[j] - s[i] >= min_path_m
+    if max_heading_rad is not None and p.shape[1] >= 3:
+        heading = p[idx, 2]
+        turn = np.abs((heading[j] - heading[i] + np.pi) % (2 * np.pi) - np.pi)
+        far &= turn <= max_heading_rad
+    if not far.any():
+        return []
+    i, j = i[far], j[far]
+    # each revisiting sample, with the earliest place it revisits
+    order = np.lexsort((i, j))
+    j_sorted, i_sorted = j[order], i[order]
+    first = np.concatenate(([True], j_sorted[1:] != j_sorted[:-1]))
+    rev, earlier = j_sorted[first], i_sorted[first]
+    # episodes: runs of revisiting samples less than join_m of path apart
+    cut = np.flatnonzero(np.diff(s[rev]) > join_m) + 1
+    starts = np.concatenate(([0], cut))
+    ends = np.concatenate((cut, [len(rev)])) - 1
+    out = []
+    for a, b in zip(starts.tolist(), ends.tolist()):  # one per episode (a handful per run)
+        length = float(s[rev[b]] - s[rev[a]])
+        if length < min_length_m:
+            continue
+        out.append(
+            Revisit(
+                t0=float(t[idx[rev[a]]]),
+                t1=float(t[idx[rev[b]]]),
+                path_m=float(s[rev[a]]),
+                length_m=length,
+                earlier_t=float(t[idx[earlier[a : b + 1].min()]]),
+            )
+        )
+    return out
+
+
+def revisit_recall(
+    episodes: list[Revisit], times: Any, poses: Any, closure_times: Any, join_m: float = REVISIT_JOIN_M
+) -> dict[str, Any]:
+    """How many ``episodes`` (of the ground truth ``times``, ``poses``) a map closed: an episode is
+    closed when one of ``closure_times`` (when the robot made each true loop closure the map used)
+    lies on its stretch of path, give or take ``join_m`` (a recognition may come a little before
+    the robot is within the episode's radius). Returns the counts, the recall (None without
+    episodes) and the episodes missed."""
+    t = np.asarray(times, dtype=float).ravel()
+    s_all = path_lengths(np.asarray(poses, dtype=float)[:, :2])
+    ct = np.asarray(closure_times, dtype=float).ravel()
+    cs = np.interp(ct, t, s_all) if ct.size and t.size else np.zeros(0)
+    lo = np.array([e.path_m - join_m for e in episodes])
+    hi = np.array([e.path_m + e.length_m + join_m for e in episodes])
+    closed: np.ndarray = np.zeros(len(episodes), dtype=bool)
+    if len(episodes) and cs.size:
+        closed = np.any((cs[None, :] >= lo[:, None]) & (cs[None, :] <= hi[:, None]), axis=1)
+    n = len(episodes)
+    return {
+        "episodes": n,
+        "closed": int(closed.sum()),
+        "recall": float(closed.mean()) if n else None,
+        "missed": [asdict(e) for e, c in zip(episodes, closed) if not c],
+    }
