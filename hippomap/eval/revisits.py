@@ -67,6 +67,37 @@ def revisit_episodes(
     :data:`SAMPLE_STEP_M` of path, every pair of samples within ``radius_m`` is found at once (a k-d
     tree), and a sample revisits when a partner lies ``min_path_m`` or more of path behind it, facing
     within ``max_heading_rad`` of it (None, or poses without headings: any heading)."""
+    t, p = _checked(times, poses, radius_m, min_path_m, join_m, min_length_m)
+    if len(t) < 2:
+        return []
+    s_all = path_lengths(p[:, :2])
+    # one sample per SAMPLE_STEP_M of path (the first pose at or past each step)
+    idx = np.unique(np.searchsorted(s_all, np.arange(0.0, s_all[-1] + SAMPLE_STEP_M, SAMPLE_STEP_M)))
+    idx = idx[idx < len(t)]
+    heading = p[idx, 2] if max_heading_rad is not None and p.shape[1] >= 3 else None
+    s = s_all[idx]
+    rev, earlier = _revisiting(p[idx, :2], s, heading, radius_m, min_path_m, max_heading_rad)
+    if rev.size == 0:
+        return []
+    # episodes: runs of revisiting samples less than join_m of path apart
+    cut = np.flatnonzero(np.diff(s[rev]) > join_m) + 1
+    starts = np.concatenate(([0], cut))
+    ends = np.concatenate((cut, [len(rev)])) - 1
+    ts = t[idx]
+    out = []
+    for a, b in zip(starts.tolist(), ends.tolist()):  # one per episode (a handful per run)
+        length = float(s[rev[b]] - s[rev[a]])
+        if length >= min_length_m:
+            first = float(ts[earlier[a : b + 1].min()])
+            out.append(Revisit(float(ts[rev[a]]), float(ts[rev[b]]), float(s[rev[a]]), length, first))
+    return out
+
+
+def _checked(
+    times: Any, poses: Any, radius_m: float, min_path_m: float, join_m: float, min_length_m: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """``times`` and ``poses`` as float arrays, or an :class:`InputError` naming what is wrong with them
+    or with the episode parameters."""
     t = np.asarray(times, dtype=float).ravel()
     p = np.asarray(poses, dtype=float)
     if p.ndim != 2 or p.shape[1] < 2 or len(p) != len(t):
@@ -77,50 +108,35 @@ def revisit_episodes(
         raise InputError("revisit_episodes: times must be sorted")
     if min(radius_m, min_path_m, join_m) <= 0 or min_length_m < 0:
         raise InputError("revisit_episodes: radius, minimum path and join distance must be positive")
-    if len(t) < 2:
-        return []
-    xy = p[:, :2]
-    s_all = path_lengths(xy)
-    # one sample per SAMPLE_STEP_M of path (the first pose at or past each step)
-    idx = np.unique(np.searchsorted(s_all, np.arange(0.0, s_all[-1] + SAMPLE_STEP_M, SAMPLE_STEP_M)))
-    idx = idx[idx < len(t)]
-    s, pts = s_all[idx], xy[idx]
+    return t, p
+
+
+def _revisiting(
+    pts: np.ndarray,
+    s: np.ndarray,
+    heading: np.ndarray | None,
+    radius_m: float,
+    min_path_m: float,
+    max_heading_rad: float | None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(rev, earlier)``: the samples (positions ``pts``, path lengths ``s``) that revisit an earlier one,
+    ascending, and for each the earliest sample it revisits; every pair within ``radius_m`` in one k-d
+    tree query, kept when ``min_path_m`` of path apart (and facing within ``max_heading_rad``)."""
+    none = np.zeros(0, dtype=np.int64)
     pairs = cKDTree(pts).query_pairs(radius_m, output_type="ndarray")  # i < j
     if pairs.size == 0:
-        return []
+        return none, none
     i, j = pairs[:, 0], pairs[:, 1]
     far = s[j] - s[i] >= min_path_m
-    if max_heading_rad is not None and p.shape[1] >= 3:
-        heading = p[idx, 2]
-        turn = np.abs((heading[j] - heading[i] + np.pi) % (2 * np.pi) - np.pi)
-        far &= turn <= max_heading_rad
+    if heading is not None and max_heading_rad is not None:
+        far &= np.abs((heading[j] - heading[i] + np.pi) % (2 * np.pi) - np.pi) <= max_heading_rad
     if not far.any():
-        return []
+        return none, none
     i, j = i[far], j[far]
-    # each revisiting sample, with the earliest place it revisits
-    order = np.lexsort((i, j))
+    order = np.lexsort((i, j))  # by revisiting sample, then earliest partner first
     j_sorted, i_sorted = j[order], i[order]
     first = np.concatenate(([True], j_sorted[1:] != j_sorted[:-1]))
-    rev, earlier = j_sorted[first], i_sorted[first]
-    # episodes: runs of revisiting samples less than join_m of path apart
-    cut = np.flatnonzero(np.diff(s[rev]) > join_m) + 1
-    starts = np.concatenate(([0], cut))
-    ends = np.concatenate((cut, [len(rev)])) - 1
-    out = []
-    for a, b in zip(starts.tolist(), ends.tolist()):  # one per episode (a handful per run)
-        length = float(s[rev[b]] - s[rev[a]])
-        if length < min_length_m:
-            continue
-        out.append(
-            Revisit(
-                t0=float(t[idx[rev[a]]]),
-                t1=float(t[idx[rev[b]]]),
-                path_m=float(s[rev[a]]),
-                length_m=length,
-                earlier_t=float(t[idx[earlier[a : b + 1].min()]]),
-            )
-        )
-    return out
+    return j_sorted[first], i_sorted[first]
 
 
 def revisit_recall(
