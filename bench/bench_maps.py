@@ -73,7 +73,7 @@ import peers  # noqa: E402
 from hippomap.cli.run import dataset_config, open_dataset, run_dataset, write_run  # noqa: E402
 from hippomap.config import HippomapConfig  # noqa: E402
 from hippomap.eval.evaluation import groundtruth_at, trajectory_metrics  # noqa: E402
-from hippomap.eval.revisits import revisit_episodes, revisit_recall  # noqa: E402
+from hippomap.eval.revisits import closed_revisits  # noqa: E402
 from hippomap.geometry import between, wrap_angle  # noqa: E402
 from hippomap.inputs import Frame, Odometry  # noqa: E402
 from hippomap.mapper import Mapper  # noqa: E402
@@ -405,7 +405,7 @@ def score_ors(res: peers.ORSResult, gt: tuple[np.ndarray, np.ndarray]) -> dict[s
         "closures_false": false,
         "closures_unjudged": len(res.links) - judged,
         # every OpenRatSLAM link is applied by its experience map: a true one closes its revisit
-        "revisits": revisit_recall(revisit_episodes(*gt), *gt, true_times),
+        "revisits": closed_revisits(gt, true_times),
         "core_ms": res.core_ms,
         "templates": res.templates,
         "experiences": res.experiences,
@@ -490,13 +490,12 @@ def closure_truth(dataset, pairs: list[tuple[int, int]]) -> list[float | None]:
 def pair_revisits(dataset, pairs: list[tuple[int, int]], dist: list[float | None], used: list[bool]) -> dict[str, Any]:
     """:func:`~hippomap.eval.revisits.revisit_recall` of the ground truth's revisit episodes by the used true
     closures among the pose ``pairs`` (each made when the robot stood at the later pose of its pair)."""
-    gt = dataset.groundtruth
     times = [
         float(dataset.times[max(i, j)])
         for (i, j), d, ok in zip(pairs, dist, used)
         if ok and d is not None and d <= TRUE_M
     ]
-    return revisit_recall(revisit_episodes(*gt), *gt, times)
+    return closed_revisits(dataset.groundtruth, times)
 
 
 def count_closures(dist: list[float | None], used: list[bool]) -> dict[str, int]:

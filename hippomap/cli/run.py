@@ -21,7 +21,7 @@ import numpy as np
 from ..config import HippomapConfig
 from ..errors import InputError
 from ..eval.evaluation import LOOP_TRUTH_DISTANCE_M, groundtruth_at, trajectory_metrics
-from ..eval.revisits import revisit_episodes, revisit_recall
+from ..eval.revisits import closed_revisits
 from ..extras import check
 from ..geometry import between
 from ..inputs import Odometry
@@ -167,8 +167,7 @@ def write_run(
         true_used = [
             r["hypothesis"]["time"] for r in used if r.get("groundtruth_distance_m", np.inf) < LOOP_TRUTH_DISTANCE_M
         ]
-        tg, pg = dataset.groundtruth
-        metrics["loop_closures"]["revisits"] = revisit_recall(revisit_episodes(tg, pg), tg, pg, true_used)
+        metrics["loop_closures"]["revisits"] = closed_revisits(dataset.groundtruth, true_used)
         errs = [r["link_error_m"] for r in used if "link_error_m" in r]
         if errs:
             metrics["loop_closures"]["link_error_m"] = {

@@ -21,7 +21,7 @@ from ..cognitive_map import CognitiveMap, LoopHypothesis
 from ..config import HippomapConfig
 from ..errors import InputError
 from ..eval.evaluation import LOOP_TRUTH_DISTANCE_M, groundtruth_at, trajectory_metrics
-from ..eval.revisits import revisit_episodes, revisit_recall
+from ..eval.revisits import closed_revisits
 from ..extras import check
 from ..geometry import between, compose, integrate
 from ..io.datasets import LoopEdge, OdometryDataset, load_odometry_dataset
@@ -213,8 +213,7 @@ def summarise(run: OdometryRun, dataset: OdometryDataset) -> dict[str, Any]:
             for d in judged
             if d["used"] and d["groundtruth_true"]
         ]
-        tg, pg = dataset.groundtruth
-        metrics["loop_closures"]["revisits"] = revisit_recall(revisit_episodes(tg, pg), tg, pg, true_used)
+        metrics["loop_closures"]["revisits"] = closed_revisits(dataset.groundtruth, true_used)
     return metrics
 
 

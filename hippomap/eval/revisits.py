@@ -163,3 +163,10 @@ def revisit_recall(
         "recall": float(closed.mean()) if n else None,
         "missed": [asdict(e) for e, c in zip(episodes, closed) if not c],
     }
+
+
+def closed_revisits(groundtruth: tuple[Any, Any], closure_times: Any) -> dict[str, Any]:
+    """:func:`revisit_recall` of the ground truth's own episodes (:func:`revisit_episodes`, default
+    parameters): what ``hippomap run``, ``hippomap run-odometry`` and the benchmark's peers report."""
+    t, p = groundtruth
+    return revisit_recall(revisit_episodes(t, p), t, p, closure_times)
