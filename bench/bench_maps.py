@@ -22,8 +22,9 @@ experience was created). Loop-link error: hippomap's per-decision ``link_error_m
 used link's relative pose vs the ground-truth relative pose of its two nodes); the JSON
 also re-measures every link of the final map per kind (``links``). Revisits: the ground
 truth's revisit episodes (:mod:`hippomap.eval.revisits`: back within 1.5 m of a place passed
-30 m or more of path earlier) and how many of them a true closure closed (hippomap: one it
-uses; OpenRatSLAM: any true link), the same episodes for both. Core time per frame:
+30 m or more of path earlier, facing within 90 degrees of the way it faced then) and how many
+of them a true closure closed (hippomap: one it uses; OpenRatSLAM: any true link), the same
+episodes for both. Core time per frame:
 hippomap's ``step`` + ``observe`` (image decoding excluded; wall clock, and process CPU
 time in the JSON); OpenRatSLAM's ``core_us`` (its driver's figure: local view, pose cells,
 experience map; decoding excluded). Mean, and mean over the first vs the last third.
