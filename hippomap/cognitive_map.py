@@ -189,6 +189,7 @@ class CognitiveMap(Pruning):
                 "solved_path": None if math.isinf(self._solved_path) else self._solved_path,
                 "solved_t": None if math.isinf(self._solved_t) else self._solved_t,
                 "odometry_bias": self._bias,
+                "odometry_bias_sd": self._bias_sd,
             },
             "loop": self._loops.state_dict(),
             "events": [e.to_dict() for e in self._events],
@@ -262,3 +263,4 @@ class CognitiveMap(Pruning):
         st = robot.get("solved_t")
         self._solved_t = -math.inf if st is None else float(st)
         self._bias = float(robot.get("odometry_bias", 0.0))
+        self._bias_sd = float(robot.get("odometry_bias_sd", 0.0))

@@ -294,6 +294,15 @@ class MapConfig(_Frozen):
         ge=0,
         description="gate growth per metre travelled between the two nodes: odometric drift allowance [ours]",
     )
+    loop_radius_bias_sd: float = Field(
+        2.0,
+        ge=0,
+        description="gate growth for the error of the odometry's estimated heading bias (odometry_bias_sigma): a "
+        "rate error e turns the robot's heading by e t over the t seconds since the last verified closure anchored "
+        "it, and moves its map pose by e D^2 / (2 v) over those D metres at speed v; the gate adds this for e = "
+        "this many posterior standard deviations of the estimate kept by the last whole solve (0 while none is "
+        "kept). 0 = off. 2 chosen on the Bicocca world's 16 simulated tuning seeds (docs/MODEL.md item 58) [ours]",
+    )
     loop_drift: Literal["verified", "graph"] = Field(
         "graph",
         description="the path over which drift may separate a visual hypothesis's node from the robot, for the gate: "

@@ -27,7 +27,6 @@ from .loop_closure import (
     LoopDecision,
     LoopHypothesis,
     consistent,
-    gate_limit,
     link_info3,
 )
 from .loop_pose import fit_group
@@ -64,7 +63,7 @@ class LoopClosing(MapCorrection):
         n = self._n
         r = self.robot_map_pose()
         d = np.hypot(self._P[:n, 0] - r[0], self._P[:n, 1] - r[1])
-        lim = gate_limit(self.cfg, False, self._drift(np.arange(n), False))
+        lim = self._gate_limit(np.arange(n), False)
         mask = d < lim
         mask[max(0, n - self.cfg.exclude_recent) :] = False
         mask[self._cur] = False
@@ -254,8 +253,7 @@ class LoopClosing(MapCorrection):
     def _gate(self, c: Candidate) -> tuple[float | None, float, str]:
         """(distance, limit, what) of the gate for candidate ``c``; distance None: cannot gate."""
         cfg = self.cfg
-        drift = float(self._drift(np.array([c.node]), c.measured)[0])
-        limit = float(gate_limit(cfg, c.measured, drift))
+        limit = float(self._gate_limit(np.array([c.node]), c.measured)[0])
         if cfg.loop_gate == "map":
             pred = _compose3(self.robot_map_pose(), c.M)
             return math.hypot(pred[0] - self._P[c.node, 0], pred[1] - self._P[c.node, 1]), limit, "map"

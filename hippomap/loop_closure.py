@@ -14,7 +14,8 @@ an image's looming, is :mod:`hippomap.loop_pose`):
   dead-reckoned pose and path at the proposal, the node's pose in the robot's frame.
 * :func:`gate_limit` — the radius a hypothesis must fall within: a base radius plus an
   allowance for odometric drift that grows with the path travelled since the node was made or
-  since the last verified closure, whichever is shorter.
+  since the last verified closure, whichever is shorter, and one for the error of the
+  odometry's estimated bias (:func:`bias_drift`), which grows with its square.
 * :func:`cycle_errors` / :func:`consistent` — geometric verification: two hypotheses made at
   different times and the odometry between them form a cycle through the map, which must
   compose to identity.
@@ -48,6 +49,7 @@ __all__ = [
     "Candidate",
     "LoopBook",
     "gate_limit",
+    "bias_drift",
     "cycle_errors",
     "consistent",
     "robust_weight",
@@ -330,11 +332,27 @@ def drift_path(path: float, node_path, last_verified_path: float | None = None):
     return np.maximum(d, 0.0)
 
 
-def gate_limit(cfg: MapConfig, measured: bool, drift) -> Any:
+def gate_limit(cfg: MapConfig, measured: bool, drift, bias_m: float = 0.0) -> Any:
     """Gate radius (m): base radius (smaller for a measured transform, which says where the
-    node is) plus ``loop_radius_per_m`` per metre of drift path."""
+    node is) plus ``loop_radius_per_m`` per metre of drift path, plus ``bias_m``, what the error of
+    the odometry's estimated bias may have moved the robot (:func:`bias_drift`)."""
     base = cfg.loop_transform_radius_m if measured else cfg.loop_radius_m
-    return base + cfg.loop_radius_per_m * np.asarray(drift, dtype=float)
+    return base + cfg.loop_radius_per_m * np.asarray(drift, dtype=float) + bias_m
+
+
+def bias_drift(cfg: MapConfig, bias_sd: float, path_m: float, seconds_per_m: float) -> float:
+    """How far (m) the error of the odometry's estimated heading bias may have moved the robot's map
+    pose over the ``path_m`` metres since the map last anchored it (the last verified closure).
+
+    A bias error ``e`` (rad/s) turns the heading by ``e t`` after ``t`` seconds; each metre driven
+    then is off by that angle, so at a steady ``seconds_per_m`` the position is off by ``∫ e t ds =
+    e path_m² seconds_per_m / 2``. The gate allows it for ``e`` = ``loop_radius_bias_sd`` posterior
+    standard deviations ``bias_sd`` of the estimate (0 when no bias estimate is applied): the drift
+    allowance ``loop_radius_per_m`` grows with the path, this one with its square, which is how a
+    heading-rate error grows."""
+    if cfg.loop_radius_bias_sd <= 0 or bias_sd <= 0 or path_m <= 0 or seconds_per_m <= 0:
+        return 0.0
+    return float(cfg.loop_radius_bias_sd * bias_sd * path_m * path_m * seconds_per_m / 2.0)
 
 
 def cycle_errors(older: list[Candidate], b: Candidate, P: np.ndarray) -> np.ndarray:

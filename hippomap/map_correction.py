@@ -183,11 +183,12 @@ class MapCorrection(MapGraph):
             Q = P.copy()
             b = self._rotation_init(Q, src, dst, tr, info, bias) if rotation_init else self._bias
             res = solve_lsq(Q, src, dst, tr, **solve, **{**bias, "bias": b})
-            if self._bias_kept(Q, src, dst, tr, info, bias, res.bias):
+            sd = self._bias_kept(Q, src, dst, tr, info, bias, res.bias)
+            if sd is not None:
                 P[:] = Q
-                self._bias = res.bias
+                self._bias, self._bias_sd = res.bias, sd
                 return res
-            self._bias = 0.0
+            self._bias = self._bias_sd = 0.0
         if rotation_init:
             self._rotation_init(P, src, dst, tr, info, {})
         return solve_lsq(P, src, dst, tr, **solve)
@@ -201,19 +202,20 @@ class MapCorrection(MapGraph):
         info: np.ndarray,
         bias: dict[str, Any],
         b: float,
-    ) -> bool:
-        """Whether the estimate ``b`` of the solution ``Q`` is kept: significant (``|b| >
+    ) -> float | None:
+        """σ_b when the estimate ``b`` of the solution ``Q`` is kept, else None. Kept: significant (``|b| >
         odometry_bias_significance × σ_b``, σ_b its posterior standard deviation there, a Wald test)
         and observed by the loops (``σ_b ≤ odometry_bias_observed × odometry_bias_sigma``), σ_b counting
-        only the loop links whose heading ``Q`` explains (:meth:`_used_information`)."""
+        only the loop links whose heading ``Q`` explains (:meth:`_used_information`). The gate widens
+        with σ_b (:meth:`_bias_drift`)."""
         cfg = self.cfg
         k, bound = cfg.odometry_bias_significance, cfg.odometry_bias_observed
-        if k <= 0 and bound is None:  # no test: any estimate off zero is kept
-            return abs(b) > 0
         used = self._used_information(info, Q)
         sigma = bias_sigma(Q, src, dst, tr, bias["bias_dt"], b, bias["bias_information"], used)
+        if k <= 0 and bound is None:  # no test: any estimate off zero is kept
+            return sigma if abs(b) > 0 else None
         observed = bound is None or sigma <= bound * cfg.odometry_bias_sigma
-        return abs(b) > k * sigma and observed
+        return sigma if abs(b) > k * sigma and observed else None
 
     def _loop_weights(self, P: np.ndarray, loop: np.ndarray, heading_only: bool = False) -> np.ndarray:
         """The ``loop_kernel`` weights the loop links ``loop`` would have on the poses ``P``: each link's

@@ -31,7 +31,18 @@ from scipy.sparse.csgraph import dijkstra
 from .config import MapConfig
 from .errors import InputError, finite
 from .geometry import se2_between, se2_compose, se2_inverse
-from .loop_closure import USED_WEIGHT, LoopBook, drift_path, kernel_weights, link_errors, link_info3, node_id, vec3
+from .loop_closure import (
+    USED_WEIGHT,
+    LoopBook,
+    bias_drift,
+    drift_path,
+    gate_limit,
+    kernel_weights,
+    link_errors,
+    link_info3,
+    node_id,
+    vec3,
+)
 from .map_events import FrameAssigned, MapEvent
 from .relaxation import ColourGroups, colour_link, edge_colouring
 
@@ -87,6 +98,7 @@ class MapGraph:
         self._solved_path = -math.inf  # odometric path (m) at the last correction (see MapCorrection._deferred)
         self._solved_t = -math.inf  # time of the last correction
         self._bias = 0.0  # the odometry's heading bias (rad/s), estimated by the whole solves (see _bias_args)
+        self._bias_sd = 0.0  # its posterior standard deviation (rad/s) when a whole solve kept it; 0: none kept
         # robot state
         self._cur = 0
         self._delta = (0.0, 0.0, 0.0)  # robot pose in the current node's frame
@@ -340,6 +352,25 @@ class MapGraph:
             graph = self.graph_path(nodes)
             return np.where(np.isfinite(graph), graph, path)
         return path
+
+    def _gate_limit(self, nodes: np.ndarray, measured: bool) -> np.ndarray:
+        """:func:`~hippomap.loop_closure.gate_limit` of ``nodes``: the base radius, their drift path's
+        allowance (:meth:`_drift`) and the bias estimate's (:meth:`_bias_drift`)."""
+        return np.asarray(gate_limit(self.cfg, measured, self._drift(nodes, measured), self._bias_drift()))
+
+    def _bias_drift(self) -> float:
+        """:func:`~hippomap.loop_closure.bias_drift` since the last verified closure (or the start): its
+        path, and the seconds per metre of the nodes made since (the robot's pace over the drift)."""
+        if self._bias_sd <= 0:
+            return 0.0
+        n, since = self._n, self._loops.last_verified_path or 0.0
+        first = int(np.searchsorted(self._S[:n], since))  # nodes are made in path order
+        if n - first < 2:
+            return 0.0
+        ds, dt = self._S[n - 1] - self._S[first], self._Tn[n - 1] - self._Tn[first]
+        if ds <= 0:
+            return 0.0
+        return bias_drift(self.cfg, self._bias_sd, self._path - since, dt / ds)
 
     def take_events(self) -> list[MapEvent]:
         """The events queued since the last call that returned events (by :meth:`propose_loop`,

@@ -6,6 +6,8 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from hippomap.cognitive_map import (
     CognitiveMap,
@@ -20,6 +22,7 @@ from hippomap.cognitive_map import (
 from hippomap.config import MapConfig
 from hippomap.errors import InputError
 from hippomap.geometry import between, compose, integrate
+from hippomap.loop_closure import bias_drift
 
 
 def square_increments(side=8.0, step=0.1, laps=2, turn_steps=5):
@@ -758,6 +761,18 @@ def drifting(inc, beta, dt):
     return integrate(inc), noisy, 1.7e9 + dt * np.arange(len(inc) + 1)
 
 
+# closures of a drifting square: the lsq solver, support 2, the cycle tolerances of transform hypotheses
+_DRIFT_LOOPS = dict(
+    **VERIFIED,
+    solver="lsq",
+    prune_online=False,
+    loop_transform_radius_m=3.0,
+    loop_min_support=2,
+    loop_transform_consistency_rad=0.1,
+    loop_consistency_rad_per_m=0.0,
+)
+
+
 def _bias_run(beta, sigma_omega, significance, seed=0, observed=None):
     """Two laps of the square at 5 Hz on a real clock, odometry turning at ``beta`` rad/s too
     much plus white heading noise, closed by true loops; returns the map's error and bias."""
@@ -765,13 +780,7 @@ def _bias_run(beta, sigma_omega, significance, seed=0, observed=None):
     gt, noisy, times = drifting(inc, beta, 0.2)
     noisy[:, 2] += np.random.default_rng(seed).normal(0.0, sigma_omega, len(inc))
     cfg = MapConfig(
-        **VERIFIED,
-        solver="lsq",
-        prune_online=False,
-        loop_transform_radius_m=3.0,
-        loop_min_support=2,
-        loop_transform_consistency_rad=0.1,
-        loop_consistency_rad_per_m=0.0,
+        **_DRIFT_LOOPS,
         odometry_bias_sigma=0.02 if significance is not None else 0.0,
         odometry_bias_significance=significance or 0.0,
         odometry_bias_observed=observed,
@@ -904,3 +913,63 @@ def test_an_insignificant_heading_bias_is_not_applied():
     assert raw != 0.0 and bias == 0.0
     np.testing.assert_array_equal(poses_on, poses_off)
     assert on == off
+
+
+# ----------------------------------------------------------------------------- the gate and the bias's error
+@settings(max_examples=60, deadline=None)
+@given(
+    k=st.floats(0.0, 5.0),
+    sd=st.floats(0.0, 0.01),
+    path=st.floats(0.0, 500.0),
+    pace=st.floats(0.1, 10.0),
+)
+def test_bias_drift_is_the_position_error_of_a_heading_rate_error(k, sd, path, pace):
+    """``bias_drift``: a heading-rate error of ``k`` standard deviations turns the heading linearly in
+    time, so the position it moves grows with the square of the path: ``k sd D^2 pace / 2``, nothing
+    when the option is off or no bias is kept, four times as much over twice the path."""
+    cfg = MapConfig(loop_radius_bias_sd=k)
+    got = bias_drift(cfg, sd, path, pace)
+    assert got == pytest.approx(k * sd * path * path * pace / 2.0, rel=1e-12, abs=1e-15)
+    assert bias_drift(MapConfig(loop_radius_bias_sd=0.0), sd, path, pace) == 0.0
+    assert bias_drift(cfg, 0.0, path, pace) == 0.0
+    assert bias_drift(cfg, sd, 2 * path, pace) == pytest.approx(4 * got, rel=1e-12, abs=1e-15)
+    # the position error of the rate error e = k sd integrated step by step over the path
+    steps = np.full(200, path / 200)
+    t = pace * (np.cumsum(steps) - steps / 2)  # the time at the middle of each step
+    assert np.sum(steps * k * sd * t) == pytest.approx(got, rel=1e-6, abs=1e-12)
+
+
+def test_the_gate_widens_with_the_error_of_the_kept_bias():
+    """After two laps closed over odometry turning 0.01 rad/s too much, the whole solves keep a bias
+    estimate and its posterior standard deviation; 20 m further without a closure the gate of a
+    hypothesis is the drift allowance plus ``bias_drift`` of that deviation over the path since the
+    last verified closure at the robot's pace (0.2 s per 0.1 m step, and the turns). With ``loop_radius_bias_sd`` 0
+    the gate is the drift allowance alone, and a restored map gives the same gate."""
+    inc = square_increments()
+    straight = np.tile([0.1, 0.0, 0.0], (200, 1))
+    gt, noisy, times = drifting(np.vstack([inc, straight]), 0.01, 0.2)
+    loops = true_loops(gt, len(inc) // 2)
+
+    def laps_only(k, cmap, node_at, off):  # the closures of the second lap, none on the straight
+        return loops(k, cmap, node_at, off) if k <= len(inc) else []
+
+    maps = {}
+    for k in (2.0, 0.0):
+        cmap = CognitiveMap(MapConfig(**_DRIFT_LOOPS, loop_radius_bias_sd=k))
+        drive(cmap, noisy, times=times, hypotheses=laps_only)
+        maps[k] = cmap
+    robot = maps[2.0].state_dict()["robot"]
+    assert robot["odometry_bias"] == pytest.approx(0.01, rel=0.1)
+    sd = robot["odometry_bias_sd"]
+    assert 0.0 < sd < 0.25 * 0.02
+    since = maps[2.0].path_since_verified
+    assert since == pytest.approx(20.0 + 0.1 * 20, abs=2.5)  # the straight, and what followed the last closure
+    wide, plain = (maps[k].propose_loop(LoopHypothesis(node=2, transform=None, source="test")) for k in (2.0, 0.0))
+    assert wide.status == plain.status == "rejected"
+    # the pace: 2 s per metre on the straight, a little more with the turns on the spot since the last closure
+    pace = (wide.gate_limit - plain.gate_limit) / bias_drift(maps[2.0].cfg, sd, since, 1.0)
+    assert 2.0 <= pace <= 2.2
+    assert wide.gate_limit - plain.gate_limit > 0.5
+    restored = CognitiveMap.from_state(maps[2.0].cfg, maps[2.0].state_dict())
+    again = restored.propose_loop(LoopHypothesis(node=2, transform=None, source="test"))
+    assert again.gate_limit == wide.gate_limit
