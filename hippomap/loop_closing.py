@@ -43,11 +43,6 @@ class LoopClosing(MapCorrection):
     """Loop hypotheses and their decisions, over :class:`~hippomap.map_correction.MapCorrection`."""
 
     @property
-    def path_since_verified(self) -> float:
-        """Odometric path (m) since the last verified loop closure, or since the start."""
-        return self._path - (self._loops.last_verified_path or 0.0)
-
-    @property
     def loop_decisions(self) -> list[LoopDecision]:
         """One decision per proposed hypothesis (index = decision id), latest status."""
         return list(self._loops.decisions)

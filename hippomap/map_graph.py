@@ -353,6 +353,11 @@ class MapGraph:
             return np.where(np.isfinite(graph), graph, path)
         return path
 
+    @property
+    def path_since_verified(self) -> float:
+        """Odometric path (m) since the last verified loop closure, or since the start."""
+        return self._path - (self._loops.last_verified_path or 0.0)
+
     def _gate_limit(self, nodes: np.ndarray, measured: bool) -> np.ndarray:
         """:func:`~hippomap.loop_closure.gate_limit` of ``nodes``: the base radius, their drift path's
         allowance (:meth:`_drift`) and the bias estimate's (:meth:`_bias_drift`)."""
@@ -363,14 +368,14 @@ class MapGraph:
         path, and the seconds per metre of the nodes made since (the robot's pace over the drift)."""
         if self._bias_sd <= 0:
             return 0.0
-        n, since = self._n, self._loops.last_verified_path or 0.0
-        first = int(np.searchsorted(self._S[:n], since))  # nodes are made in path order
+        n = self._n
+        first = int(np.searchsorted(self._S[:n], self._loops.last_verified_path or 0.0))  # nodes: in path order
         if n - first < 2:
             return 0.0
         ds, dt = self._S[n - 1] - self._S[first], self._Tn[n - 1] - self._Tn[first]
         if ds <= 0:
             return 0.0
-        return bias_drift(self.cfg, self._bias_sd, self._path - since, dt / ds)
+        return bias_drift(self.cfg, self._bias_sd, self.path_since_verified, dt / ds)
 
     def take_events(self) -> list[MapEvent]:
         """The events queued since the last call that returned events (by :meth:`propose_loop`,
