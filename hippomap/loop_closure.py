@@ -349,8 +349,10 @@ def bias_drift(cfg: MapConfig, bias_sd: float, path_m: float, seconds_per_m: flo
     e path_m² seconds_per_m / 2``. The gate allows it for ``e`` = ``loop_radius_bias_sd`` posterior
     standard deviations ``bias_sd`` of the estimate (0 when no bias estimate is applied): the drift
     allowance ``loop_radius_per_m`` grows with the path, this one with its square, which is how a
-    heading-rate error grows."""
-    if cfg.loop_radius_bias_sd <= 0 or bias_sd <= 0 or path_m <= 0 or seconds_per_m <= 0:
+    heading-rate error grows. A ``bias_sd`` that is not finite (an estimate kept by a config without the
+    significance test while the graph does not determine it) bounds nothing: no allowance, rather
+    than a gate over the whole map."""
+    if cfg.loop_radius_bias_sd <= 0 or not 0 < bias_sd < math.inf or path_m <= 0 or seconds_per_m <= 0:
         return 0.0
     return float(cfg.loop_radius_bias_sd * bias_sd * path_m * path_m * seconds_per_m / 2.0)
 

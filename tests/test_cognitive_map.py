@@ -932,6 +932,7 @@ def test_bias_drift_is_the_position_error_of_a_heading_rate_error(k, sd, path, p
     assert got == pytest.approx(k * sd * path * path * pace / 2.0, rel=1e-12, abs=1e-15)
     assert bias_drift(MapConfig(loop_radius_bias_sd=0.0), sd, path, pace) == 0.0
     assert bias_drift(cfg, 0.0, path, pace) == 0.0
+    assert bias_drift(cfg, math.inf, path, pace) == 0.0  # an undetermined estimate bounds nothing
     assert bias_drift(cfg, sd, 2 * path, pace) == pytest.approx(4 * got, rel=1e-12, abs=1e-15)
     # the position error of the rate error e = k sd integrated step by step over the path
     steps = np.full(200, path / 200)
