@@ -25,6 +25,7 @@ from hippomap import sim
 from hippomap.errors import InputError
 from hippomap.geometry import compose
 from hippomap.inputs import Frame, Odometry
+from hippomap.map_reuse import ReuseMap
 from hippomap.mapper import Mapper
 
 RELOCALISE_KEYFRAMES = 8  # key frames with a recognition attempt before the run is placed (measured 3-7)
@@ -405,6 +406,32 @@ def test_service_reuse_refuses_bad_requests(service):
     code, detail = status("POST", "/sessions", {"base_session": lost})
     assert code == 409 and "never placed" in detail
     assert status("POST", f"/sessions/{lost}/merge", {"from": sid})[0] == 409
+
+
+def test_a_runs_start_node_takes_the_time_of_its_first_valid_update():
+    """The first node is made with the map, before any time is known; on a robot's clock (Unix
+    seconds) it must take the first update's time, or everything measured from it (the pace of the
+    drift allowance, a closure's ground truth, the exported map) would start in 1970. An update
+    with a bad time changes nothing; a later run's start node takes its own first time."""
+    t0 = 1_235_603_336.2
+    cmap = ReuseMap()
+    with pytest.raises(InputError):
+        cmap.update((0.0, 0.0, 0.0), (0.1, 0.0, 0.0), math.nan)
+    assert cmap.times[0] == 0.0  # untouched by the rejected update
+    for k in range(40):
+        cmap.update((0.1 * k, 0.0, 0.0), (0.1, 0.0, 0.0), t0 + 0.2 * k)
+    times = np.asarray(cmap.times)
+    assert times[0] == t0 and len(times) > 3
+    assert np.all(np.diff(times) > 0) and times[-1] - t0 < 8.0
+    restored = ReuseMap.from_state(cmap.cfg, cmap.state_dict())
+    assert restored.times[0] == t0
+    n = len(times)
+    cmap.start_run((0.0, 0.0, 0.0))  # a new run: its own start node
+    with pytest.raises(InputError):
+        cmap.update((0.0, 0.0, 0.0), (0.1, 0.0, 0.0), math.inf)
+    assert cmap.times[n] == 0.0
+    cmap.update((0.0, 0.0, 0.0), (0.1, 0.0, 0.0), t0 + 100.0)
+    assert cmap.times[0] == t0 and cmap.times[n] == t0 + 100.0
 
 
 if __name__ == "__main__":  # the figures of the module doc: python tests/test_map_reuse.py
