@@ -88,6 +88,9 @@ class CognitiveMap(Pruning):
     :attr:`current`, :attr:`robot_offset`, :attr:`robot_pose`, :attr:`loop_decisions`.
     """
 
+    #: a map that only localises in a saved map (:class:`~hippomap.map_reuse.ReuseMap`) keeps its nodes' times
+    localise_only = False
+
     # ------------------------------------------------------------------ the per-step update
     def update(self, place_code, increment, t: float) -> list[MapEvent]:
         """One step: robot-frame odometry ``increment`` (dx, dy, dθ) since the last call, the
@@ -103,6 +106,8 @@ class CognitiveMap(Pruning):
             raise InputError(f"time t={t} is before the previous update's time {self._t}")
         if self._t is None:  # a run's first step: its first node's time starts here, not at t = 0
             self._t_arrive = t
+            if self._n == 1 and self._m == 0 and not self.localise_only:
+                self._Tn[0] = t  # the map's first node, made with the map before any time was known
         self._t = t
         self._delta = _compose3(self._delta, inc)
         self._odom = _compose3(self._odom, inc)

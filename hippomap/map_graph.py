@@ -114,7 +114,7 @@ class MapGraph:
         self._events: list[MapEvent] = []
         self._loops = LoopBook()
         self._paths = _GraphPaths()  # graph_path's memo (not state: rebuilt from the links on demand)
-        self._add_node(self._odom, (np.nan, np.nan, np.nan), 0.0)
+        self._add_node(self._odom, (np.nan, np.nan, np.nan), 0.0)  # dated by the first update
 
     # ------------------------------------------------------------------ read-only views
     @staticmethod

@@ -79,13 +79,9 @@ class ReuseMap(CognitiveMap):
             self.configure(False, True, start)
 
     def update(self, place_code, increment, t: float):
-        # a run's start node is made before any time is known (the first run's node 0 with the map, a later
-        # run's by start_run): it takes the time of the run's first update, once that update's input is valid
-        first_run = self._t is None and self._n == 1 and self._m == 0 and not self.localise_only
-        start = self.component_from if self._fresh_start else 0 if first_run else -1
         events = super().update(place_code, increment, t)
-        if start >= 0:
-            self._Tn[start] = float(t)
+        if self._fresh_start:  # a later run's start node (start_run) takes the time of the run's first valid update
+            self._Tn[self.component_from] = float(t)
             self._fresh_start = False
         return events
 

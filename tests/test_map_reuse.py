@@ -22,6 +22,7 @@ import numpy as np
 import pytest
 
 from hippomap import sim
+from hippomap.cognitive_map import CognitiveMap
 from hippomap.errors import InputError
 from hippomap.geometry import compose
 from hippomap.inputs import Frame, Odometry
@@ -414,17 +415,18 @@ def test_a_runs_start_node_takes_the_time_of_its_first_valid_update():
     drift allowance, a closure's ground truth, the exported map) would start in 1970. An update
     with a bad time changes nothing; a later run's start node takes its own first time."""
     t0 = 1_235_603_336.2
-    cmap = ReuseMap()
-    with pytest.raises(InputError):
-        cmap.update((0.0, 0.0, 0.0), (0.1, 0.0, 0.0), math.nan)
-    assert cmap.times[0] == 0.0  # untouched by the rejected update
-    for k in range(40):
-        cmap.update((0.1 * k, 0.0, 0.0), (0.1, 0.0, 0.0), t0 + 0.2 * k)
-    times = np.asarray(cmap.times)
-    assert times[0] == t0 and len(times) > 3
-    assert np.all(np.diff(times) > 0) and times[-1] - t0 < 8.0
-    restored = ReuseMap.from_state(cmap.cfg, cmap.state_dict())
-    assert restored.times[0] == t0
+    for cls in (CognitiveMap, ReuseMap):  # hippomap run-odometry's map, and the mapper's
+        cmap = cls()
+        with pytest.raises(InputError):
+            cmap.update((0.0, 0.0, 0.0), (0.1, 0.0, 0.0), math.nan)
+        assert cmap.times[0] == 0.0  # untouched by the rejected update
+        for k in range(40):
+            cmap.update((0.1 * k, 0.0, 0.0), (0.1, 0.0, 0.0), t0 + 0.2 * k)
+        times = np.asarray(cmap.times)
+        assert times[0] == t0 and len(times) > 3
+        assert np.all(np.diff(times) > 0) and times[-1] - t0 < 8.0
+        restored = cls.from_state(cmap.cfg, cmap.state_dict())
+        assert restored.times[0] == t0
     n = len(times)
     cmap.start_run((0.0, 0.0, 0.0))  # a new run: its own start node
     with pytest.raises(InputError):
