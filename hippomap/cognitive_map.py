@@ -88,7 +88,8 @@ class CognitiveMap(Pruning):
     :attr:`current`, :attr:`robot_offset`, :attr:`robot_pose`, :attr:`loop_decisions`.
     """
 
-    #: a map that only localises in a saved map (:class:`~hippomap.map_reuse.ReuseMap`) keeps its nodes' times
+    #: a run that only localises in a saved map (:class:`~hippomap.map_reuse.ReuseMap`) starts on one of its
+    #: nodes, whose time it keeps
     localise_only = False
 
     # ------------------------------------------------------------------ the per-step update
@@ -106,8 +107,8 @@ class CognitiveMap(Pruning):
             raise InputError(f"time t={t} is before the previous update's time {self._t}")
         if self._t is None:  # a run's first step: its first node's time starts here, not at t = 0
             self._t_arrive = t
-            if self._n == 1 and self._m == 0 and not self.localise_only:
-                self._Tn[0] = t  # the map's first node, made with the map before any time was known
+            if not self.localise_only:  # the current node is the run's start node, made before any time was known
+                self._Tn[self._cur] = t
         self._t = t
         self._delta = _compose3(self._delta, inc)
         self._odom = _compose3(self._odom, inc)

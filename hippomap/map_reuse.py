@@ -43,7 +43,6 @@ class ReuseMap(CognitiveMap):
         self.localise_only = False
         self.lost = False
         self.component_from = -1  # map mode while lost: first node of the run's own, unplaced nodes
-        self._fresh_start = False  # the run's start node takes the time of the first update
 
     def configure(self, localise_only: bool, lost: bool, component_from: int = -1) -> None:
         """Set the mode and the lost state; while lost or localising only verified groups are accepted."""
@@ -73,17 +72,9 @@ class ReuseMap(CognitiveMap):
             self._delta = se2_between(tuple(self._P[self._cur]), self._odom)
             self.configure(True, True, -1)
         else:
-            start = self._add_node(self._odom, (np.nan, np.nan, np.nan), 0.0)
+            start = self._add_node(self._odom, (np.nan, np.nan, np.nan), 0.0)  # dated by the run's first update
             self._cur, self._delta = start, (0.0, 0.0, 0.0)
-            self._fresh_start = True
             self.configure(False, True, start)
-
-    def update(self, place_code, increment, t: float):
-        events = super().update(place_code, increment, t)
-        if self._fresh_start:  # a later run's start node (start_run) takes the time of the run's first valid update
-            self._Tn[self.component_from] = float(t)
-            self._fresh_start = False
-        return events
 
     def propose_loop(self, h: LoopHypothesis) -> LoopDecision:
         """The map's own door; while lost, the decisions made here record no gate (there was none),

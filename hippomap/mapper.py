@@ -422,7 +422,6 @@ class Mapper(KeyFrames):
                 "base_nodes": self.base_nodes,
                 "lost": self.cmap.lost,
                 "component_from": self.cmap.component_from,
-                "fresh_start": self.cmap._fresh_start,
             },
         }
         arrays["traj"] = self._traj.view
@@ -439,7 +438,6 @@ class Mapper(KeyFrames):
         reuse = meta.get("reuse") or {}
         self.base_nodes = int(reuse.get("base_nodes", 0))
         self.cmap.configure(self.localise_only, bool(reuse.get("lost", False)), int(reuse.get("component_from", -1)))
-        self.cmap._fresh_start = bool(reuse.get("fresh_start", False))
         self.memory = VisualMemory.from_state(self.config.visual, join_arrays(meta["memory"], arrays))
         self.last_t = meta["last_t"]
         self.last_odometry_t = meta["last_odometry_t"]
