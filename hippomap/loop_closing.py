@@ -174,8 +174,8 @@ class LoopClosing(MapCorrection):
         P, S = self._P, self._S
         pend = [c for c in book.pending if c.step != cand.step]
         acc = [c for c in book.accepted if c.step != cand.step]
-        ok_pend = [c for c, ok in zip(pend, consistent(cfg, pend, cand, P, S)) if ok]
-        ok_acc = [c for c, ok in zip(acc, consistent(cfg, acc, cand, P, S)) if ok]
+        ok_pend = [c for c, ok in zip(pend, consistent(cfg, pend, cand, P, S) & self._leg_known(cand, pend)) if ok]
+        ok_acc = [c for c, ok in zip(acc, consistent(cfg, acc, cand, P, S) & self._leg_known(cand, acc)) if ok]
         if ok_acc or (not acc and 1 + len(ok_pend) >= cfg.loop_min_support):
             support = tuple(c.id for c in ok_pend + ok_acc)
             self._accept(ok_pend + [cand], cand, t, support, ok_acc)
@@ -356,8 +356,8 @@ class LoopClosing(MapCorrection):
         P, S = self._P, self._S
         pend = [c for c in book.pending if c.step != cand.step]
         acc = [c for c in book.accepted if c.step != cand.step]
-        ok_pend = [c for c, ok in zip(pend, consistent(cfg, pend, cand, P, S)) if ok]
-        ok_acc = [c for c, ok in zip(acc, consistent(cfg, acc, cand, P, S)) if ok]
+        ok_pend = [c for c, ok in zip(pend, consistent(cfg, pend, cand, P, S) & self._leg_known(cand, pend)) if ok]
+        ok_acc = [c for c, ok in zip(acc, consistent(cfg, acc, cand, P, S) & self._leg_known(cand, acc)) if ok]
         verified = bool(ok_acc) or 1 + len(ok_pend) >= cfg.loop_min_support
         group = self._fit_group(ok_pend + [cand], ok_acc) if verified else None
         verified = group is not None
@@ -387,6 +387,25 @@ class LoopClosing(MapCorrection):
                 self._set_current(c.node, _inv3(c.M), t, link)
         self._events.extend(self._optimise(t))
         return book.decisions[cand.id]
+
+    def _leg_known(self, cand: Candidate, others: list[Candidate]) -> np.ndarray:
+        """Whether the map knows where ``cand``'s node lies from each of ``others``' nodes well enough for
+        their cycle to test anything: the drift the gate allows (``loop_radius_per_m``) over the path
+        between the two nodes through the map's graph is within ``loop_consistency_m``, the cycle's own
+        tolerance. A cycle through a leg the map does not know agrees with a hypothesis that repeats the
+        map's error as readily as with a true one, so it verifies nothing. The path between the two is
+        bounded below by the difference of their graph paths from the robot (triangle inequality); a
+        node the graph does not reach (a saved map's, before a closure joins it) keeps the cycle test."""
+        if not others:
+            return np.zeros(0, dtype=bool)
+        g = self.graph_path(np.array([cand.node] + [c.node for c in others], dtype=np.int64))
+        with np.errstate(invalid="ignore"):
+            far = (
+                np.isfinite(g[0])
+                & np.isfinite(g[1:])
+                & (self.cfg.loop_radius_per_m * np.abs(g[1:] - g[0]) > self.cfg.loop_consistency_m)
+            )
+        return ~far
 
     def _add_loop_link(self, c: Candidate) -> int:
         """The loop link of an accepted hypothesis ``from_node → node`` with the measured transform.

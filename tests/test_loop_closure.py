@@ -706,3 +706,31 @@ def test_a_hypothesis_coupling_is_checked_and_round_trips():
             LoopHypothesis(3, **kw)
     e = np.array([[0.1, 0.2, 0.3], [0.1, 0.2, 0.3]])
     np.testing.assert_allclose(couple(e, np.array([0.5, 0.0])), [[0.1, 0.2, 0.4], [0.1, 0.2, 0.3]])
+
+
+@pytest.mark.parametrize("far", [False, True])
+def test_a_cycle_through_a_leg_the_map_does_not_know_verifies_nothing(far):
+    """Cycle consistency verifies a hypothesis only where the map knows the leg between the two nodes
+    the cycle joins: a revisit of a corridor's far end, confirmed by three recognitions, verifies a
+    fourth naming a node beside them; a fourth naming the corridor's start (25 m of path back) is
+    linked and weighed by the robust kernel, but not verified: the gate allows 0.05 m of drift per
+    metre, so that leg is known to 1.25 m, and a cycle closing within 0.5 m through it says nothing."""
+    out = [(0.1, 0.0, 0.0)] * 400  # 40 m east
+    inc = np.array(out + [(0.0, 0.0, math.pi / 10)] * 10 + out[:100])  # turn round, 10 m back west
+    gt = integrate(inc)
+    back = 410  # the pose index where the robot faces west at the far end
+
+    def hyps(k, cmap, node_at, off):
+        if k in (back + 80, back + 85, back + 90):  # robot at x = 32, 31.5, 31 m: same place, outbound
+            return [_visual(gt, node_at, off, k, int(round(gt[k, 0] / 0.1)), search=None)]
+        if k == back + 95:  # x = 30.5 m: a node beside the confirmed ones, or the corridor's start
+            return [_visual(gt, node_at, off, k, 50 if far else 300, search=None)]
+        return []
+
+    cmap = CognitiveMap(MapConfig())
+    drive(cmap, inc, hypotheses=hyps)
+    rows = cmap.loop_rows()
+    assert len(rows) == 4 and all(r["status"] == "accepted" for r in rows)
+    assert any("verified by cycle consistency" in r["reason"] for r in rows[:3])
+    assert ("verified by cycle consistency" in rows[3]["reason"]) is not far
+    assert (len(rows[3]["support"]) == 0) is far  # no consistent support across the unknown leg
