@@ -172,10 +172,10 @@ class LoopClosing(MapCorrection):
         cfg, book = self.cfg, self._loops
         did = cand.id
         P, S = self._P, self._S
-        pend = [c for c in book.pending if c.step != cand.step]
-        acc = [c for c in book.accepted if c.step != cand.step]
-        ok_pend = [c for c, ok in zip(pend, consistent(cfg, pend, cand, P, S) & self._leg_known(cand, pend)) if ok]
-        ok_acc = [c for c, ok in zip(acc, consistent(cfg, acc, cand, P, S) & self._leg_known(cand, acc)) if ok]
+        pend = self._comparable(cand, book.pending)
+        acc = self._comparable(cand, book.accepted)
+        ok_pend = [c for c, ok in zip(pend, consistent(cfg, pend, cand, P, S)) if ok]
+        ok_acc = [c for c, ok in zip(acc, consistent(cfg, acc, cand, P, S)) if ok]
         if ok_acc or (not acc and 1 + len(ok_pend) >= cfg.loop_min_support):
             support = tuple(c.id for c in ok_pend + ok_acc)
             self._accept(ok_pend + [cand], cand, t, support, ok_acc)
@@ -354,10 +354,10 @@ class LoopClosing(MapCorrection):
         cfg, book = self.cfg, self._loops
         link = self._add_loop_link(cand)
         P, S = self._P, self._S
-        pend = [c for c in book.pending if c.step != cand.step]
-        acc = [c for c in book.accepted if c.step != cand.step]
-        ok_pend = [c for c, ok in zip(pend, consistent(cfg, pend, cand, P, S) & self._leg_known(cand, pend)) if ok]
-        ok_acc = [c for c, ok in zip(acc, consistent(cfg, acc, cand, P, S) & self._leg_known(cand, acc)) if ok]
+        pend = self._comparable(cand, book.pending)
+        acc = self._comparable(cand, book.accepted)
+        ok_pend = [c for c, ok in zip(pend, consistent(cfg, pend, cand, P, S)) if ok]
+        ok_acc = [c for c, ok in zip(acc, consistent(cfg, acc, cand, P, S)) if ok]
         verified = bool(ok_acc) or 1 + len(ok_pend) >= cfg.loop_min_support
         group = self._fit_group(ok_pend + [cand], ok_acc) if verified else None
         verified = group is not None
@@ -388,16 +388,18 @@ class LoopClosing(MapCorrection):
         self._events.extend(self._optimise(t))
         return book.decisions[cand.id]
 
-    def _leg_known(self, cand: Candidate, others: list[Candidate]) -> np.ndarray:
-        """Whether the map knows where ``cand``'s node lies from each of ``others``' nodes well enough for
-        their cycle to test anything: the drift the gate allows (``loop_radius_per_m``) over the path
-        between the two nodes through the map's graph is within ``loop_consistency_m``, the cycle's own
-        tolerance. A cycle through a leg the map does not know agrees with a hypothesis that repeats the
-        map's error as readily as with a true one, so it verifies nothing. The path between the two is
-        bounded below by the difference of their graph paths from the robot (triangle inequality); a
-        node the graph does not reach (a saved map's, before a closure joins it) keeps the cycle test."""
+    def _comparable(self, cand: Candidate, others: list[Candidate]) -> list[Candidate]:
+        """The hypotheses of ``others`` (made at another step) that a cycle test can compare with ``cand``:
+        those whose node the map places relative to ``cand``'s well enough for the cycle to mean anything.
+        That is, the drift the gate allows (``loop_radius_per_m``) over the path between the two nodes
+        through the map's graph is within ``loop_consistency_m``, the cycle's own tolerance. A cycle through
+        a leg the map does not know agrees with a hypothesis that repeats the map's error as readily as with
+        a true one: it neither supports nor contradicts. The path between the two is bounded below by the
+        difference of their graph paths from the robot (triangle inequality); a node the graph does not
+        reach (a saved map's, before a closure joins it) keeps the cycle test."""
+        others = [c for c in others if c.step != cand.step]
         if not others:
-            return np.zeros(0, dtype=bool)
+            return []
         g = self.graph_path(np.array([cand.node] + [c.node for c in others], dtype=np.int64))
         with np.errstate(invalid="ignore"):
             far = (
@@ -405,7 +407,7 @@ class LoopClosing(MapCorrection):
                 & np.isfinite(g[1:])
                 & (self.cfg.loop_radius_per_m * np.abs(g[1:] - g[0]) > self.cfg.loop_consistency_m)
             )
-        return ~far
+        return [c for c, f in zip(others, far.tolist()) if not f]
 
     def _add_loop_link(self, c: Candidate) -> int:
         """The loop link of an accepted hypothesis ``from_node → node`` with the measured transform.
