@@ -171,11 +171,7 @@ class LoopClosing(MapCorrection):
         pending and accepted candidates of the window; accepted, rejected, or left pending."""
         cfg, book = self.cfg, self._loops
         did = cand.id
-        P, S = self._P, self._S
-        pend = self._comparable(cand, book.pending)
-        acc = self._comparable(cand, book.accepted)
-        ok_pend = [c for c, ok in zip(pend, consistent(cfg, pend, cand, P, S)) if ok]
-        ok_acc = [c for c, ok in zip(acc, consistent(cfg, acc, cand, P, S)) if ok]
+        acc, ok_pend, ok_acc = self._cycle_support(cand)
         if ok_acc or (not acc and 1 + len(ok_pend) >= cfg.loop_min_support):
             support = tuple(c.id for c in ok_pend + ok_acc)
             self._accept(ok_pend + [cand], cand, t, support, ok_acc)
@@ -352,12 +348,8 @@ class LoopClosing(MapCorrection):
         *verified*: a verified group has its relative pose fitted, its weights set to 1 and
         relocalises the robot; unverified links can only pull as far as their weight lets them."""
         cfg, book = self.cfg, self._loops
+        _, ok_pend, ok_acc = self._cycle_support(cand)  # on the graph without the link under test
         link = self._add_loop_link(cand)
-        P, S = self._P, self._S
-        pend = self._comparable(cand, book.pending)
-        acc = self._comparable(cand, book.accepted)
-        ok_pend = [c for c, ok in zip(pend, consistent(cfg, pend, cand, P, S)) if ok]
-        ok_acc = [c for c, ok in zip(acc, consistent(cfg, acc, cand, P, S)) if ok]
         verified = bool(ok_acc) or 1 + len(ok_pend) >= cfg.loop_min_support
         group = self._fit_group(ok_pend + [cand], ok_acc) if verified else None
         verified = group is not None
@@ -387,6 +379,18 @@ class LoopClosing(MapCorrection):
                 self._set_current(c.node, _inv3(c.M), t, link)
         self._events.extend(self._optimise(t))
         return book.decisions[cand.id]
+
+    def _cycle_support(self, cand: Candidate) -> tuple[list[Candidate], list[Candidate], list[Candidate]]:
+        """``(accepted, consistent pending, consistent accepted)``: the hypotheses of other steps that the
+        cycle test can compare with ``cand`` (:meth:`_comparable`) and, of those, the ones it agrees with
+        (:func:`~hippomap.loop_closure.consistent`). Called before ``cand``'s own link exists: a link not
+        yet judged must not shorten the leg it is tested across."""
+        cfg, book, P, S = self.cfg, self._loops, self._P, self._S
+        pend = self._comparable(cand, book.pending)
+        acc = self._comparable(cand, book.accepted)
+        ok_pend = [c for c, ok in zip(pend, consistent(cfg, pend, cand, P, S)) if ok]
+        ok_acc = [c for c, ok in zip(acc, consistent(cfg, acc, cand, P, S)) if ok]
+        return acc, ok_pend, ok_acc
 
     def _comparable(self, cand: Candidate, others: list[Candidate]) -> list[Candidate]:
         """The hypotheses of ``others`` (made at another step) that a cycle test can compare with ``cand``:
