@@ -34,7 +34,10 @@ NOISE = sim.OdometryNoise(sigma_v=0.02, sigma_omega=0.01, omega_bias=0.01)
 BASE_STEPS, RUN_STEPS = 400, 150  # 80 s of the base run; 30 s of the localising one (placed after ~7 s)
 NEAR_M = 0.75  # the ground truth's mean distance to the nearest base node (0.18 m measured; 1.55 m in the run's frame)
 ODOMETRY_START_M = 0.1  # raw odometry start to the map trajectory's (0 measured; 7.1 m unanchored: test_viewer.py)
-LOOP_M = 1.5  # longest loop segment drawn (0.64 m measured; a decision made while lost would join the base's last node)
+# longest loop segment drawn: 1.77 m measured (on a familiar path key frames come 1 m apart, and one that
+# is not recognised adds 0.5 m before the next); a decision made while lost would join the base's last node,
+# about 8 m from where this run is placed
+LOOP_M = 2.5
 
 
 def _items(run: sim.SimRun, steps: int) -> tuple:
@@ -127,8 +130,9 @@ def test_localisation_session_draws_the_base_map_and_its_ground_truth(localising
             seg = _scene_points(page, "/loops/accepted", but="/loops/accepted/ends").reshape(-1, 2, 3)
             placing = [lc for lc in accepted if lc["decision"]["gate_distance_m"] is None]
             assert placing and len(seg) == len(accepted) - len(placing)
-            # a relocalisation joins the robot's node to a recognised neighbour (0.64 m at most measured)
-            assert np.linalg.norm(seg[:, 0, :2] - seg[:, 1, :2], axis=1).max() < LOOP_M
+            # a relocalisation joins the robot's node to a node recognised a key frame or two later
+            lengths = np.linalg.norm(seg[:, 0, :2] - seg[:, 1, :2], axis=1)
+            assert lengths.max() < LOOP_M, lengths
         finally:
             browser.close()
     gt_px, map_px = teal(img), blue(img)
