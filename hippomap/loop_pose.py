@@ -29,7 +29,7 @@ from .errors import InputError
 from .geometry import compose, se2_between, se2_compose, wrap_angle
 from .loop_closure import Candidate, place_of
 
-__all__ = ["align_group", "fit_group", "looming_offset"]
+__all__ = ["align_group", "fit_group", "looming_offset", "looming_scale"]
 
 
 def align_group(odom: np.ndarray, targets: np.ndarray, min_spread_m: float) -> np.ndarray:
@@ -58,26 +58,17 @@ def align_group(odom: np.ndarray, targets: np.ndarray, min_spread_m: float) -> n
     return np.array([t[0], t[1], phi])
 
 
-def looming_offset(query: Any, memory: Any, view_distance_m: float, min_separation_px: float = 10.0) -> float | None:
-    """How far the camera stands ahead of where a key frame was taken, along the key frame's
-    view (m; negative: behind it), from the scale change of the scene between the two images.
-
-    ``query``, ``memory`` (K, 2): the same K scene points in the query and in the key frame
-    (a recognition's saccade correspondences, px). A camera that moves ``d`` towards a surface
-    ``D`` away sees it magnified by ``s = D / (D - d)`` (looming), so ``d = D (1 - 1 / s)``.
-    ``s`` is the median ratio of the distances between pairs of points in the query and in
-    memory (pairs closer than ``min_separation_px`` in memory are left out: their ratio is
-    pixel noise); a pairwise ratio ignores the image shift that a turn causes. The scene's
-    depth is not measured: ``view_distance_m`` stands for it (one typical distance, a model
-    parameter). The result is bounded by ±``view_distance_m`` / 2 (a scale change beyond
-    2 : 3 is no plausible recognition). ``None`` with fewer than three points or no usable
-    pair: then the recognition says nothing about the along-view offset."""
-    if not (math.isfinite(view_distance_m) and view_distance_m > 0):
-        raise InputError(f"view_distance_m must be a positive number, got {view_distance_m!r}")
+def looming_scale(query: Any, memory: Any, min_separation_px: float = 10.0) -> float | None:
+    """The scale change of the scene from a key frame to a query: the median ratio of the distances
+    between pairs of the same K scene points in the query and in memory (``query``, ``memory`` (K, 2),
+    px; a recognition's saccade correspondences), taken as the exponential of the median log ratio.
+    Pairs closer than ``min_separation_px`` in memory are left out (their ratio is pixel noise); a
+    pairwise ratio ignores the image shift that a turn causes. ``None`` with fewer than three points
+    or no usable pair."""
     q = np.asarray(query, dtype=float).reshape(-1, 2)
     m = np.asarray(memory, dtype=float).reshape(-1, 2)
     if q.shape != m.shape:
-        raise InputError(f"looming_offset: {len(q)} query points but {len(m)} memory points")
+        raise InputError(f"looming: {len(q)} query points but {len(m)} memory points")
     if len(q) < 3:
         return None
     i, j = np.triu_indices(len(q), 1)
@@ -86,7 +77,26 @@ def looming_offset(query: Any, memory: Any, view_distance_m: float, min_separati
     ok = (dm >= min_separation_px) & (dq > 0)
     if not ok.any():
         return None
-    scale = math.exp(float(np.median(np.log(dq[ok] / dm[ok]))))
+    return math.exp(float(np.median(np.log(dq[ok] / dm[ok]))))
+
+
+def looming_offset(query: Any, memory: Any, view_distance_m: float, min_separation_px: float = 10.0) -> float | None:
+    """How far the camera stands ahead of where a key frame was taken, along the key frame's
+    view (m; negative: behind it), from the scale change of the scene between the two images.
+
+    ``query``, ``memory`` (K, 2): the same K scene points in the query and in the key frame
+    (a recognition's saccade correspondences, px). A camera that moves ``d`` towards a surface
+    ``D`` away sees it magnified by ``s = D / (D - d)`` (looming), so ``d = D (1 - 1 / s)``,
+    with ``s`` from :func:`looming_scale`. The scene's
+    depth is not measured: ``view_distance_m`` stands for it (one typical distance, a model
+    parameter). The result is bounded by ±``view_distance_m`` / 2 (a scale change beyond
+    2 : 3 is no plausible recognition). ``None`` with fewer than three points or no usable
+    pair: then the recognition says nothing about the along-view offset."""
+    if not (math.isfinite(view_distance_m) and view_distance_m > 0):
+        raise InputError(f"view_distance_m must be a positive number, got {view_distance_m!r}")
+    scale = looming_scale(query, memory, min_separation_px)
+    if scale is None:
+        return None
     d = view_distance_m * (1.0 - 1.0 / scale)
     return float(min(max(d, -0.5 * view_distance_m), 0.5 * view_distance_m))
 

@@ -322,3 +322,53 @@ def test_ors_frames_parser_recovers_consecutive_cut_rows(tmp_path):
     assert [int(r["action"]) for r in rows[3:5]] == [peers.ORS_CREATE_NODE, peers.ORS_CREATE_NODE]
     links, n, _ = peers.ors_loop_links(rows)
     assert links == [] and n == 3
+
+
+@pytest.fixture(scope="module")
+def short_run(tmp_path_factory) -> Path:
+    """Two fast laps of the loop world at 96x72 with drifting odometry, written as a data folder: loops
+    close, and some recognitions name a key frame and some none."""
+    from hippomap import sim
+
+    world = sim.loop_world(seed=1, laps=2, speed_mps=1.6)
+    noise = sim.OdometryNoise(sigma_v=0.02, sigma_omega=0.01, omega_bias=0.01)
+    run = sim.simulate(world, rate_hz=5.0, camera=sim.Camera(width=96, height=72), odometry_noise=noise)
+    return run.write(tmp_path_factory.mktemp("short") / "run")
+
+
+def test_mapper_parts_add_up_to_the_whole_and_see_every_recognition(short_run):
+    import bench_mapper_parts
+
+    timer, m = bench_mapper_parts.run(short_run, None)
+    frames = len((short_run / "frames.csv").read_text().splitlines()) - 1
+    assert len(timer.rows) == frames  # one row per camera frame
+    # every recognition the mapper made was timed, with its outcome
+    assert len(timer.recognitions) == len(m.recognitions) > 0
+    named = sum(r["frame_id"] is not None for r in m.recognitions)
+    assert sum(ok for _, _, ok in timer.recognitions) == named > 0
+    n = len(timer.rows)
+    whole = bench_mapper_parts.per_frame(timer.rows, 0, n)
+    assert all(whole[p] >= 0 for p in bench_mapper_parts.PARTS) and whole["total"] > 0
+    # the parts and the rest make the total, over the run and over each third
+    for lo, hi in ((0, n), (0, n // 3), (n - n // 3, n)):
+        f = bench_mapper_parts.per_frame(timer.rows, lo, hi)
+        assert sum(f[p] for p in bench_mapper_parts.PARTS) + f["rest"] == pytest.approx(f["total"])
+    # the thirds are means of the frames they cover: weighted, they give the run's mean
+    a = n // 3
+    first, mid, last = (bench_mapper_parts.per_frame(timer.rows, lo, hi) for lo, hi in ((0, a), (a, n - a), (n - a, n)))
+    mean = (first["total"] * a + mid["total"] * (n - 2 * a) + last["total"] * a) / n
+    assert mean == pytest.approx(whole["total"])
+
+
+def test_looming_bench_scores_named_recognitions_against_ground_truth(short_run):
+    import bench_looming
+    from hippomap.loop_pose import looming_offset
+
+    rows = bench_looming.record(short_run, None)
+    assert len(rows) > 0 and np.all(rows[:, 0] > 0) and np.all(np.isfinite(rows))
+    # most recognitions that name a key frame name one near the robot (the loop's laps lie within 0.5 m)
+    assert np.median(np.hypot(rows[:, 1], rows[:, 2])) < 1.0
+    # the bench's estimate is the model's looming offset for the same scale
+    pts = np.array([[10.0, 10.0], [200.0, 30.0], [120.0, 180.0]])
+    for s in (0.7, 1.1, 1.6):
+        assert bench_looming.estimate(np.array([s]), 3.0)[0] == pytest.approx(looming_offset(pts * s, pts, 3.0))

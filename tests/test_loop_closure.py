@@ -25,7 +25,7 @@ from hippomap.loop_closure import (
     link_info3,
     robust_weight,
 )
-from hippomap.loop_pose import align_group, looming_offset
+from hippomap.loop_pose import align_group, looming_offset, looming_scale
 from hippomap.map_graph import LOOP, MapGraph, _undirected_paths, _undirected_paths_reference, within_hops
 from hippomap.map_reuse import ReuseMap
 from hippomap.mapper import Mapper
@@ -242,6 +242,15 @@ def test_looming_offset_is_bounded_and_says_nothing_without_enough_points():
         looming_offset(pts, pts, 0.0)
     with pytest.raises(InputError, match="3 query points but 2 memory points"):
         looming_offset(pts, pts[:2], 3.0)
+
+
+def test_looming_scale_is_the_magnification_beyond_the_offset_bound():
+    """The scale itself is not bounded (the offset is) and is the same whatever the view distance."""
+    pts = np.array([[10.0, 10.0], [200.0, 30.0], [120.0, 180.0], [60.0, 90.0]])
+    for s in (0.2, 0.8, 1.0, 1.3, 3.0):
+        assert looming_scale(_magnified(pts, s), pts) == pytest.approx(s, rel=1e-12)
+    assert looming_scale(pts[:2], pts[:2]) is None
+    assert looming_offset(_magnified(pts, 1.3), pts, 3.0) == pytest.approx(3.0 * (1 - 1 / 1.3), rel=1e-12)
 
 
 def test_looming_offset_places_rendered_views_along_the_track():

@@ -1,0 +1,198 @@
+"""Where the mapper's time per frame goes, part by part and third by third of a recorded run.
+
+The speed targets compare the whole mapper's mean cost per frame with OpenRatSLAM's, and the last
+third of a run with the first. This bench says which part of the mapper makes each figure, so that a
+speed-up is aimed where the time is. One mapper (the default config, or ``--config``) runs over a
+recorded run's frames, decoded before timing, ``--repeats`` times (the figures are the medians: the
+same work reads up to a third apart between runs on a shared machine); every part is timed with
+``time.process_time`` (CPU of this process) by wrapping the mapper's own objects:
+
+* ``spatial pathway``: odometry to place code (grid cells, place cells; ``SpatialPathway.step_increment``);
+* ``map update``: the cognitive map's per-step update (new nodes, and the corrections it runs:
+  ``CognitiveMap.update``);
+* ``candidates``: which key frames the gate offers (``loop_candidates``);
+* ``recognition``: ``VisualMemory.recognise``, split into the recognitions that named a key frame and
+  those that did not;
+* ``loop decision``: ``propose_loop`` (verification, fit, and the correction it starts);
+* ``learning``: ``VisualMemory.learn``;
+* ``rest``: everything else of ``step`` and ``observe``.
+
+Printed: each part's CPU ms per frame over the whole run, its first and last third, and the change
+between them; then the recognitions per outcome with their mean and p95 ms, and the local solves of the
+map's corrections (``map.lsq_window_hops``) with the nodes their windows hold.
+
+    python -m hippomap simulate loop --out SIM --seed 3 --omega-bias 0.01 --sigma-omega 0.01 --sigma-v 0.02
+    python bench/bench_mapper_parts.py SIM [SIM ...] [--config FILE] [--repeats 3]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from hippomap.cli.run import dataset_config, open_dataset  # noqa: E402
+from hippomap.config import HippomapConfig  # noqa: E402
+from hippomap.inputs import Frame, Odometry  # noqa: E402
+from hippomap.mapper import Mapper  # noqa: E402
+
+#: the timed parts, in the order they are printed (``rest`` and ``total`` are derived)
+PARTS = ("spatial pathway", "map update", "candidates", "recognition", "loop decision", "learning")
+
+
+class PartTimer:
+    """CPU seconds per part, accumulated while the mapper runs; :meth:`mark` closes a frame."""
+
+    def __init__(self) -> None:
+        self.acc = dict.fromkeys(PARTS, 0.0)
+        self.rows: list[dict[str, float]] = []  # per frame: cumulative seconds per part and in total
+        self.total = 0.0
+        self.recognitions: list[tuple[int, float, bool]] = []  # (frame index, seconds, named a key frame)
+        self.windows: list[tuple[int, int]] = []  # (frame index, nodes) of each local solve's window
+
+    def wrap(self, obj: Any, name: str, part: str) -> None:
+        """Time every call of ``obj.name`` as ``part`` (an instance attribute shadows the method)."""
+        f: Callable[..., Any] = getattr(obj, name)
+        acc = self.acc
+
+        def timed(*a: Any, **k: Any) -> Any:
+            c = time.process_time()
+            try:
+                return f(*a, **k)
+            finally:
+                acc[part] += time.process_time() - c
+
+        setattr(obj, name, timed)
+
+    def wrap_recognise(self, memory: Any) -> None:
+        """Time ``memory.recognise`` as ``recognition`` and keep each call's outcome."""
+        f = memory.recognise
+
+        def timed(*a: Any, **k: Any) -> Any:
+            c = time.process_time()
+            r = f(*a, **k)
+            dt = time.process_time() - c
+            self.acc["recognition"] += dt
+            self.recognitions.append((len(self.rows), dt, r.frame is not None))
+            return r
+
+        memory.recognise = timed
+
+    def wrap_windows(self, cmap: Any) -> None:
+        """Keep the size of every local solve's window (``CognitiveMap._local_window``: None for a whole solve)."""
+        f = cmap._local_window
+
+        def seen(*a: Any, **k: Any) -> Any:
+            w = f(*a, **k)
+            if w is not None:
+                self.windows.append((len(self.rows), len(w[0])))
+            return w
+
+        cmap._local_window = seen
+
+    def mark(self, seconds: float) -> None:
+        self.total += seconds
+        self.rows.append({**self.acc, "total": self.total})
+
+
+def run(folder: Path, config: HippomapConfig | None) -> tuple[PartTimer, Mapper]:
+    """The part times of one default (or ``config``) mapper over the run in ``folder``, and the mapper."""
+    dataset = open_dataset(folder)
+    cfg = dataset_config(dataset, config)
+    events = [e if isinstance(e, Odometry) else e.load() for e in dataset.events()]
+    frames = [e for e in events if isinstance(e, Frame)]
+    if not frames:
+        raise SystemExit(f"{folder}: no camera frames")
+    warm = Mapper(cfg)  # first-use set-up shared across mappers (rate tables), not timed
+    warm.step(Odometry(0.0, v=0.0, omega=0.0))
+    warm.step(Odometry(0.2, v=0.1, omega=0.0))
+    warm.observe(Frame(0.2, frames[0].image))
+    m = Mapper(cfg)
+    timer = PartTimer()
+    timer.wrap(m.pathway, "step_increment", "spatial pathway")
+    timer.wrap(m.cmap, "update", "map update")
+    timer.wrap(m.cmap, "loop_candidates", "candidates")
+    timer.wrap(m.cmap, "propose_loop", "loop decision")
+    timer.wrap(m.memory, "learn", "learning")
+    timer.wrap_recognise(m.memory)
+    timer.wrap_windows(m.cmap)
+    pending = 0.0  # the odometry steps since the previous frame count with the frame
+    for e in events:
+        c = time.process_time()
+        if isinstance(e, Odometry):
+            m.step(e)
+            pending += time.process_time() - c
+        else:
+            m.observe(e)
+            timer.mark(pending + time.process_time() - c)
+            pending = 0.0
+    return timer, m
+
+
+def per_frame(rows: list[dict[str, float]], lo: int, hi: int) -> dict[str, float]:
+    """ms per frame of each part over frames ``lo`` to ``hi`` (exclusive), from the cumulative rows."""
+    end = rows[hi - 1]
+    start = rows[lo - 1] if lo > 0 else dict.fromkeys(end, 0.0)
+    out = {k: (end[k] - start[k]) * 1e3 / (hi - lo) for k in end}
+    out["rest"] = out["total"] - sum(out[p] for p in PARTS)
+    return out
+
+
+def thirds(rows: list[dict[str, float]]) -> tuple[dict[str, float], dict[str, float], dict[str, float]]:
+    """:func:`per_frame` over the whole run, its first third and its last third."""
+    n = len(rows)
+    a = max(1, n // 3)
+    return per_frame(rows, 0, n), per_frame(rows, 0, a), per_frame(rows, n - a, n)
+
+
+def report(name: str, timers: list[PartTimer]) -> None:
+    """Print the parts of one run measured ``len(timers)`` times: the median of each figure over the
+    repeats, and the recognitions' times of all repeats together (the same recognitions each time)."""
+    t = timers[0]
+    n = len(t.rows)
+    a = max(1, n // 3)
+    each = [thirds(x.rows) for x in timers]
+    whole, first, last = ({k: float(np.median([e[i][k] for e in each])) for k in each[0][i]} for i in range(3))
+    print(f"\n{name}: {n} frames, {len(t.recognitions)} recognitions; CPU ms per frame, median of {len(timers)} runs")
+    print(f"{'part':18s} {'run':>7s} {'1st 3rd':>8s} {'last 3rd':>9s} {'last-1st':>9s}")
+    for p in (*PARTS, "rest", "total"):
+        print(f"{p:18s} {whole[p]:7.3f} {first[p]:8.3f} {last[p]:9.3f} {last[p] - first[p]:+9.3f}")
+    print(f"last third / first third: {last['total'] / first['total']:.2f}")
+    r = np.concatenate([np.array(x.recognitions, dtype=float).reshape(-1, 3) for x in timers])
+    for label, lo, hi in (("first third", 0, a), ("middle", a, n - a), ("last third", n - a, n), ("run", 0, n)):
+        sel = r[(r[:, 0] >= lo) & (r[:, 0] < hi)]
+        parts = []
+        for outcome, keep in (("named a key frame", 1.0), ("named none", 0.0)):
+            s = sel[sel[:, 2] == keep, 1] * 1e3
+            if len(s):
+                count = len(s) // len(timers)
+                parts.append(f"{outcome} {count} (mean {s.mean():.1f}, p95 {np.percentile(s, 95):.1f} ms)")
+        p95 = f"p95 of all {np.percentile(sel[:, 1] * 1e3, 95):.1f} ms; " if len(sel) else ""
+        print(f"recognitions, {label}: {p95}{'; '.join(parts) or 'none'}")
+    w = np.array(t.windows, dtype=float).reshape(-1, 2)
+    for label, lo, hi in (("first third", 0, a), ("middle", a, n - a), ("last third", n - a, n)):
+        sel = w[(w[:, 0] >= lo) & (w[:, 0] < hi), 1]
+        print(f"local solves, {label}: {len(sel)}" + (f", {sel.mean():.0f} nodes each (mean)" if len(sel) else ""))
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("data", nargs="+", type=Path, help="recorded runs (hippomap data folders)")
+    ap.add_argument("--config", help="hippomap JSON config overrides (default: the default config)")
+    ap.add_argument("--repeats", type=int, default=3, help="runs of each recorded run; the median is printed")
+    args = ap.parse_args(argv)
+    config = HippomapConfig.from_file(args.config) if args.config else None
+    for folder in args.data:
+        report(folder.name, [run(folder, config)[0] for _ in range(max(1, args.repeats))])
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
