@@ -488,6 +488,15 @@ class MapConfig(_Frozen):
         "spacing), holding the nodes around; 0 = always the whole map. Keeps the cost of re-localising along a "
         "mapped path independent of the map's size [ours, docs/MODEL.md]",
     )
+    lsq_window_max_nodes: int | None = Field(
+        250,
+        ge=1,
+        description="... and no more nodes than this: the window takes the most hops (up to lsq_window_hops) "
+        "whose nodes number at most this, so that on a path retraced lap after lap, where the window reaches "
+        "every pass through the loop links, a step's cost stops growing with the laps; None = hops only. 250: "
+        "the smallest of 100 / 150 / 200 / 250 that left every Bicocca-world tuning map as it was "
+        "[ours, docs/MODEL.md item 29]",
+    )
     lsq_defer_m: float = Field(
         1.0,
         ge=0,

@@ -20,7 +20,7 @@ from .headings_first import rotation_first_init
 from .least_squares import bias_sigma, graph_cost, solve_lsq
 from .loop_closure import USED_WEIGHT, link_errors
 from .map_events import MapEvent, MapRelaxed
-from .map_graph import LOOP, ODOMETRY, MapGraph, within_hops
+from .map_graph import LOOP, ODOMETRY, MapGraph, hop_distances
 from .relaxation import ColourGroups, RelaxResult, _link_residuals, relax, relax_jacobi
 
 __all__ = ["MapCorrection"]
@@ -366,7 +366,8 @@ class MapCorrection(MapGraph):
         k = np.unique(np.asarray(self._touched, dtype=np.int64))
         k = k[k < m]
         src, dst = self._src[:m], self._dst[:m]
-        active = within_hops(n, src, dst, np.concatenate([src[k], dst[k]]), cfg.lsq_window_hops)
+        d = hop_distances(n, src, dst, np.concatenate([src[k], dst[k]]), cfg.lsq_window_hops)
+        active = d <= self._window_hops(d)
         active[0] = False  # the anchor never moves
         links = np.flatnonzero(active[src] | active[dst])
         if not len(links) or active.sum() > cfg.lsq_window_max_fraction * n:
@@ -376,6 +377,19 @@ class MapCorrection(MapGraph):
         if not len(fixed):
             return None
         return nodes, links, fixed
+
+    def _window_hops(self, d: np.ndarray) -> int:
+        """The hops of a local solve's window, given each node's hop distance ``d`` from the changed links
+        (``inf`` beyond ``lsq_window_hops``): ``lsq_window_hops``, or the most hops whose window holds at
+        most ``lsq_window_max_nodes`` nodes. On a path retraced many times the window reaches every pass
+        through the loop links, so with hops alone its size, and a step's cost, grows with the laps."""
+        cfg = self.cfg
+        cap = cfg.lsq_window_max_nodes
+        if cap is None:
+            return cfg.lsq_window_hops
+        within = np.cumsum(np.bincount(d[np.isfinite(d)].astype(np.int64), minlength=cfg.lsq_window_hops + 1))
+        fits = np.flatnonzero(within <= cap)
+        return int(fits[-1]) if len(fits) else 0
 
     def _small_change(self) -> bool:
         """Every link added or changed since the last solve agrees with the map within

@@ -46,7 +46,7 @@ from .loop_closure import (
 from .map_events import FrameAssigned, MapEvent
 from .relaxation import ColourGroups, colour_link, edge_colouring
 
-__all__ = ["LINK_KINDS", "ODOMETRY", "LOOP", "PRUNE", "MapGraph", "within_hops"]
+__all__ = ["LINK_KINDS", "ODOMETRY", "LOOP", "PRUNE", "MapGraph", "hop_distances", "within_hops"]
 
 #: link kinds, stored as small integer codes
 LINK_KINDS = ("odometry", "loop", "prune")
@@ -397,18 +397,23 @@ def _both_ways(n: int, src: np.ndarray, dst: np.ndarray, weight: np.ndarray) -> 
     return csr_matrix((np.concatenate([weight, weight])[by_row], cols, indptr), shape=(n, n), copy=False)
 
 
-def within_hops(n: int, src: np.ndarray, dst: np.ndarray, seeds: np.ndarray, hops: int) -> np.ndarray:
-    """(n,) mask of the nodes within ``hops`` links (either direction) of any of ``seeds``: the
-    seeds grown ``hops`` times by every link with an end already inside. One breadth-first search
-    from all seeds at once (an unweighted multi-source Dijkstra counts links: whole numbers,
-    compared exactly) instead of ``hops`` passes over every link."""
+def hop_distances(n: int, src: np.ndarray, dst: np.ndarray, seeds: np.ndarray, hops: int) -> np.ndarray:
+    """(n,) the number of links (either direction) from the nearest of ``seeds`` to each node, ``inf``
+    beyond ``hops``: one breadth-first search from all seeds at once (an unweighted multi-source
+    Dijkstra counts links: whole numbers, compared exactly) instead of ``hops`` passes over every link."""
     if hops <= 0 or not len(src):
-        out = np.zeros(n, dtype=bool)
-        out[seeds] = True
+        out = np.full(n, np.inf)
+        out[seeds] = 0.0
         return out
     g = _both_ways(n, src, dst, np.ones(len(src)))
     d = dijkstra(g, directed=True, indices=np.unique(seeds), unweighted=True, min_only=True, limit=hops + 0.5)
-    return cast(np.ndarray, d <= hops)
+    return cast(np.ndarray, d)
+
+
+def within_hops(n: int, src: np.ndarray, dst: np.ndarray, seeds: np.ndarray, hops: int) -> np.ndarray:
+    """(n,) mask of the nodes within ``hops`` links (either direction) of any of ``seeds``: the
+    seeds grown ``hops`` times by every link with an end already inside (:func:`hop_distances`)."""
+    return cast(np.ndarray, hop_distances(n, src, dst, seeds, hops) <= max(hops, 0))
 
 
 def _undirected_paths_reference(

@@ -663,6 +663,41 @@ def test_local_solves_match_the_whole_map_and_stay_bounded(hops, fraction):
     assert rms_xy(local, whole) < 0.1
 
 
+def test_a_node_cap_keeps_the_local_windows_from_growing_with_the_laps():
+    """Over four laps of the same square every pass lies within a few links of the others through the
+    loop links, so a 40-hop window grows with the laps. With lsq_window_max_nodes the window takes the
+    most hops that keep it within the cap: every local solve moves at most that many nodes, and the map
+    stays the whole-map solve's."""
+    inc, gt, noisy, first_lap = biased_square(side=8.0, laps=4)
+    cap = 60
+    runs = {}
+    for h, max_nodes in ((0, None), (40, None), (40, cap)):
+        cmap = CognitiveMap(
+            MapConfig(
+                prune_online=False, loop_transform_radius_m=3.0, lsq_window_hops=h, lsq_window_max_nodes=max_nodes
+            )
+        )
+        sizes: list[int] = []
+        original = cmap._local_window
+
+        def spy(original=original, sizes=sizes):
+            w = original()
+            if w is not None:
+                sizes.append(len(w[0]) - len(w[2]))  # the nodes the solve moves
+            return w
+
+        cmap._local_window = spy
+        node_at, off, _ = drive(cmap, noisy, hypotheses=true_loops(gt, first_lap))
+        runs[(h, max_nodes)] = (corrected(cmap, node_at, off), sizes)
+    whole, _ = runs[(0, None)]
+    _, free = runs[(40, None)]
+    capped, sizes = runs[(40, cap)]
+    assert max(free) > cap  # without the cap the windows outgrow it
+    assert sizes and max(sizes) <= cap
+    assert rms_xy(capped, whole) < 0.1
+    assert rms_xy(capped, gt) < 1.1 * rms_xy(whole, gt) + 0.02
+
+
 def test_the_step_tolerance_saves_solves_not_accuracy():
     """lsq_step_tolerance ends a Gauss-Newton solve once no unknown moves by more than it: at 0.1 mm
     the map's solves take fewer linear solves than at 1e-9 and end on the same map within a
