@@ -36,7 +36,7 @@ from hippomap.config import HippomapConfig  # noqa: E402
 from hippomap.eval.evaluation import groundtruth_at  # noqa: E402
 from hippomap.geometry import between  # noqa: E402
 from hippomap.inputs import Odometry  # noqa: E402
-from hippomap.loop_pose import looming_scale  # noqa: E402
+from hippomap.loop_pose import looming_distance, looming_scale  # noqa: E402
 from hippomap.mapper import Mapper  # noqa: E402
 
 #: bands of true along offset (m) and of estimated along offset (m) the tables are split into
@@ -56,7 +56,7 @@ def record(folder: Path, config: HippomapConfig | None) -> np.ndarray:
     learn, recognise = m.memory.learn, m.memory.recognise
     rows: list[tuple[float, float, float]] = []
 
-    def timed_learn(image: Any) -> Any:
+    def dated_learn(image: Any) -> Any:
         fid = learn(image)
         if fid is not None:
             learned_at[int(fid)] = now["t"]
@@ -74,7 +74,7 @@ def record(folder: Path, config: HippomapConfig | None) -> np.ndarray:
             rows.append((s, float(rel[0]), float(rel[1])))
         return rec
 
-    m.memory.learn = timed_learn
+    m.memory.learn = dated_learn
     m.memory.recognise = scored_recognise
     for e in dataset.events():
         if isinstance(e, Odometry):
@@ -86,12 +86,6 @@ def record(folder: Path, config: HippomapConfig | None) -> np.ndarray:
     return np.array(rows, dtype=float).reshape(-1, 3)
 
 
-def estimate(scale: np.ndarray, view_distance_m: float) -> np.ndarray:
-    """``looming_offset``'s along offset for each scale at this view distance (bounded by ±D/2)."""
-    d = view_distance_m * (1.0 - 1.0 / scale)
-    return np.clip(d, -0.5 * view_distance_m, 0.5 * view_distance_m)
-
-
 def report(name: str, rows: np.ndarray, view_distances: list[float], default_d: float, plausible_m: float) -> None:
     ok = (np.abs(rows[:, 1]) <= plausible_m) & (np.abs(rows[:, 2]) <= plausible_m)
     r = rows[ok]
@@ -99,8 +93,8 @@ def report(name: str, rows: np.ndarray, view_distances: list[float], default_d: 
     if len(r) < 3:
         return
     along, beside = r[:, 1], np.abs(r[:, 2])
-    est = estimate(r[:, 0], default_d)
-    errs = ", ".join(f"D {d:g}: {np.median(np.abs(estimate(r[:, 0], d) - along)):.3f}" for d in view_distances)
+    est = looming_distance(r[:, 0], default_d)
+    errs = ", ".join(f"D {d:g}: {np.median(np.abs(looming_distance(r[:, 0], d) - along)):.3f}" for d in view_distances)
     corr = np.corrcoef(est, along)[0, 1]
     print(f"correlation of the estimate (D {default_d:g} m) with the true along offset: {corr:.2f}")
     print(f"median |along error| (m): none (on the key frame): {np.median(np.abs(along)):.3f}, {errs}")

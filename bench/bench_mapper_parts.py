@@ -38,6 +38,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from bench_maps import TimedMapper, warm_up  # noqa: E402
 from hippomap.cli.run import dataset_config, open_dataset  # noqa: E402
 from hippomap.config import HippomapConfig  # noqa: E402
 from hippomap.inputs import Frame, Odometry  # noqa: E402
@@ -110,11 +111,8 @@ def run(folder: Path, config: HippomapConfig | None) -> tuple[PartTimer, Mapper]
     frames = [e for e in events if isinstance(e, Frame)]
     if not frames:
         raise SystemExit(f"{folder}: no camera frames")
-    warm = Mapper(cfg)  # first-use set-up shared across mappers (rate tables), not timed
-    warm.step(Odometry(0.0, v=0.0, omega=0.0))
-    warm.step(Odometry(0.2, v=0.1, omega=0.0))
-    warm.observe(Frame(0.2, frames[0].image))
-    m = Mapper(cfg)
+    warm_up(cfg, frames[0].image)
+    m = TimedMapper(cfg)  # a frame's CPU time with the odometry steps before it
     timer = PartTimer()
     timer.wrap(m.pathway, "step_increment", "spatial pathway")
     timer.wrap(m.cmap, "update", "map update")
@@ -123,16 +121,12 @@ def run(folder: Path, config: HippomapConfig | None) -> tuple[PartTimer, Mapper]
     timer.wrap(m.memory, "learn", "learning")
     timer.wrap_recognise(m.memory)
     timer.wrap_windows(m.cmap)
-    pending = 0.0  # the odometry steps since the previous frame count with the frame
     for e in events:
-        c = time.process_time()
         if isinstance(e, Odometry):
             m.step(e)
-            pending += time.process_time() - c
         else:
             m.observe(e)
-            timer.mark(pending + time.process_time() - c)
-            pending = 0.0
+            timer.mark(m.frame_cpu_seconds[-1])
     return timer, m
 
 

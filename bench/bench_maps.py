@@ -269,6 +269,15 @@ class TimedMapper(Mapper):
         return out
 
 
+def warm_up(cfg: HippomapConfig, image: np.ndarray) -> None:
+    """The first-use set-up shared across mappers (the grid cells' rate tables), done by a throw-away
+    mapper on one frame so that no timed run pays for it."""
+    warm = Mapper(cfg)
+    warm.step(Odometry(0.0, v=0.0, omega=0.0))
+    warm.step(Odometry(0.2, v=0.1, omega=0.0))
+    warm.observe(Frame(0.2, image))
+
+
 def thirds(ms: np.ndarray) -> dict[str, float]:
     a = len(ms) // 3
     return {
@@ -327,12 +336,7 @@ def _summary(xs: list[float]) -> dict[str, Any]:
 def run_hippomap(data: Path, config_file: str | None, out_dir: Path) -> dict[str, Any]:
     dataset = open_dataset(data)
     cfg = dataset_config(dataset, HippomapConfig.from_file(config_file) if config_file else HippomapConfig())
-    # warm-up (not timed): first-use set-up shared across mappers (e.g. rate tables)
-    warm = Mapper(cfg)
-    first = dataset.frames[0].load()
-    warm.step(Odometry(0.0, v=0.0, omega=0.0))
-    warm.step(Odometry(0.2, v=0.1, omega=0.0))
-    warm.observe(Frame(0.2, first.image))
+    warm_up(cfg, dataset.frames[0].load().image)
     m = TimedMapper(cfg)
     t0 = time.perf_counter()
     m, timing = run_dataset(dataset, cfg, mapper=m)

@@ -29,7 +29,7 @@ from .errors import InputError
 from .geometry import compose, se2_between, se2_compose, wrap_angle
 from .loop_closure import Candidate, place_of
 
-__all__ = ["align_group", "fit_group", "looming_offset", "looming_scale"]
+__all__ = ["align_group", "fit_group", "looming_distance", "looming_offset", "looming_scale"]
 
 
 def align_group(odom: np.ndarray, targets: np.ndarray, min_spread_m: float) -> np.ndarray:
@@ -95,10 +95,14 @@ def looming_offset(query: Any, memory: Any, view_distance_m: float, min_separati
     if not (math.isfinite(view_distance_m) and view_distance_m > 0):
         raise InputError(f"view_distance_m must be a positive number, got {view_distance_m!r}")
     scale = looming_scale(query, memory, min_separation_px)
-    if scale is None:
-        return None
-    d = view_distance_m * (1.0 - 1.0 / scale)
-    return float(min(max(d, -0.5 * view_distance_m), 0.5 * view_distance_m))
+    return None if scale is None else float(looming_distance(scale, view_distance_m))
+
+
+def looming_distance(scale: Any, view_distance_m: float) -> Any:
+    """:func:`looming_offset` of a scale change ``s`` (a number or an array of them): ``D (1 - 1 / s)``
+    with ``D`` = ``view_distance_m``, bounded by ±``D`` / 2."""
+    d = view_distance_m * (1.0 - 1.0 / np.asarray(scale, dtype=float))
+    return np.clip(d, -0.5 * view_distance_m, 0.5 * view_distance_m)
 
 
 def fit_group(

@@ -46,7 +46,7 @@ from .loop_closure import (
 from .map_events import FrameAssigned, MapEvent
 from .relaxation import ColourGroups, colour_link, edge_colouring
 
-__all__ = ["LINK_KINDS", "ODOMETRY", "LOOP", "PRUNE", "MapGraph", "hop_distances", "within_hops"]
+__all__ = ["LINK_KINDS", "ODOMETRY", "LOOP", "PRUNE", "MapGraph", "hop_distances"]
 
 #: link kinds, stored as small integer codes
 LINK_KINDS = ("odometry", "loop", "prune")
@@ -408,12 +408,6 @@ def hop_distances(n: int, src: np.ndarray, dst: np.ndarray, seeds: np.ndarray, h
     g = _both_ways(n, src, dst, np.ones(len(src)))
     d = dijkstra(g, directed=True, indices=np.unique(seeds), unweighted=True, min_only=True, limit=hops + 0.5)
     return cast(np.ndarray, d)
-
-
-def within_hops(n: int, src: np.ndarray, dst: np.ndarray, seeds: np.ndarray, hops: int) -> np.ndarray:
-    """(n,) mask of the nodes within ``hops`` links (either direction) of any of ``seeds``: the
-    seeds grown ``hops`` times by every link with an end already inside (:func:`hop_distances`)."""
-    return cast(np.ndarray, hop_distances(n, src, dst, seeds, hops) <= max(hops, 0))
 
 
 def _undirected_paths_reference(

@@ -371,4 +371,4 @@ def test_looming_bench_scores_named_recognitions_against_ground_truth(short_run)
     # the bench's estimate is the model's looming offset for the same scale
     pts = np.array([[10.0, 10.0], [200.0, 30.0], [120.0, 180.0]])
     for s in (0.7, 1.1, 1.6):
-        assert bench_looming.estimate(np.array([s]), 3.0)[0] == pytest.approx(looming_offset(pts * s, pts, 3.0))
+        assert bench_looming.looming_distance(np.array([s]), 3.0)[0] == pytest.approx(looming_offset(pts * s, pts, 3.0))

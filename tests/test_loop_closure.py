@@ -26,7 +26,7 @@ from hippomap.loop_closure import (
     robust_weight,
 )
 from hippomap.loop_pose import align_group, looming_offset, looming_scale
-from hippomap.map_graph import LOOP, MapGraph, _undirected_paths, _undirected_paths_reference, within_hops
+from hippomap.map_graph import LOOP, MapGraph, _undirected_paths, _undirected_paths_reference, hop_distances
 from hippomap.map_reuse import ReuseMap
 from hippomap.mapper import Mapper
 from hippomap.visual_memory import VisualMemory
@@ -392,9 +392,9 @@ def test_undirected_paths_equal_scipys_undirected_dijkstra_bit_for_bit():
         assert _undirected_paths(n, src, dst, length, s).tobytes() == want.tobytes()
 
 
-def test_within_hops_equals_growing_the_window_link_by_link():
+def test_hop_distances_equal_growing_the_window_link_by_link():
     """The local solve's window (nodes within lsq_window_hops links of the changed links' ends)
-    from one breadth-first search equals growing it one pass over the links per hop."""
+    from one breadth-first search (:func:`hop_distances`) equals growing it one pass over the links per hop."""
     rng = np.random.default_rng(7)
     for _ in range(300):
         n = int(rng.integers(2, 60))
@@ -411,7 +411,7 @@ def test_within_hops_equals_growing_the_window_link_by_link():
         for _ in range(hops):
             grow = want[src] | want[dst]
             want[src[grow]] = want[dst[grow]] = True
-        assert np.array_equal(within_hops(n, src, dst, np.concatenate([src[k], dst[k]]), hops), want)
+        assert np.array_equal(hop_distances(n, src, dst, np.concatenate([src[k], dst[k]]), hops) <= hops, want)
 
 
 @pytest.mark.parametrize("drift", ["verified", "graph"])
