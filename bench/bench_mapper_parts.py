@@ -19,7 +19,12 @@ same work reads up to a third apart between runs on a shared machine); every par
 
 Printed: each part's CPU ms per frame over the whole run, its first and last third, and the change
 between them; then the recognitions per outcome with their mean and p95 ms, and the local solves of the
-map's corrections (``map.lsq_window_hops``) with the nodes their windows hold.
+map's corrections (``map.lsq_window_hops``) with the nodes their windows hold. Then the recognitions per
+search (``gated``: the key frames the gate offers; ``global``: the global search, ``mapper.global_search_*``)
+and outcome, with their fixations (median, p95) and CPU ms per fixation: a recognition's cost is its
+fixations times a cost per fixation, and this says which of the two sets a p95. When the run has ground
+truth, a recognition that named none is also counted as *futile* when none of its candidate key frames was
+learned within ``FUTILE_M`` of where the robot truly stands (there was nothing there to recognise).
 
     python -m hippomap simulate loop --out SIM --seed 3 --omega-bias 0.01 --sigma-omega 0.01 --sigma-v 0.02
     python bench/bench_mapper_parts.py SIM [SIM ...] [--config FILE] [--repeats 3]
@@ -28,9 +33,11 @@ map's corrections (``map.lsq_window_hops``) with the nodes their windows hold.
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -41,11 +48,26 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from bench_maps import TimedMapper, warm_up  # noqa: E402
 from hippomap.cli.run import dataset_config, open_dataset  # noqa: E402
 from hippomap.config import HippomapConfig  # noqa: E402
+from hippomap.eval.evaluation import groundtruth_at  # noqa: E402
 from hippomap.inputs import Frame, Odometry  # noqa: E402
 from hippomap.mapper import Mapper  # noqa: E402
 
 #: the timed parts, in the order they are printed (``rest`` and ``total`` are derived)
 PARTS = ("spatial pathway", "map update", "candidates", "recognition", "loop decision", "learning")
+#: a recognition that names none is futile when no candidate key frame was learned within this of the robot (m)
+FUTILE_M = 2.0
+
+
+@dataclass
+class Recognised:
+    """One recognition as the bench saw it."""
+
+    frame: int  # index of the camera frame it ran on
+    seconds: float  # CPU
+    named: bool  # named a key frame
+    fixations: int
+    search: str  # "gated" or "global"
+    truth_m: float  # how far the nearest candidate key frame was learned from the robot's true position (nan: unknown)
 
 
 class PartTimer:
@@ -55,8 +77,10 @@ class PartTimer:
         self.acc = dict.fromkeys(PARTS, 0.0)
         self.rows: list[dict[str, float]] = []  # per frame: cumulative seconds per part and in total
         self.total = 0.0
-        self.recognitions: list[tuple[int, float, bool]] = []  # (frame index, seconds, named a key frame)
+        self.recognitions: list[Recognised] = []
         self.windows: list[tuple[int, int]] = []  # (frame index, nodes) of each local solve's window
+        self.search = "gated"  # the search of the recognition under way (set by :meth:`wrap_search`)
+        self.truth_m: Callable[[Any], float] = lambda candidates: math.nan  # see :meth:`wrap_truth`
 
     def wrap(self, obj: Any, name: str, part: str) -> None:
         """Time every call of ``obj.name`` as ``part`` (an instance attribute shadows the method)."""
@@ -76,15 +100,50 @@ class PartTimer:
         """Time ``memory.recognise`` as ``recognition`` and keep each call's outcome."""
         f = memory.recognise
 
-        def timed(*a: Any, **k: Any) -> Any:
+        def timed(image: Any, candidates: Any = None) -> Any:
             c = time.process_time()
-            r = f(*a, **k)
+            r = f(image, candidates=candidates)
             dt = time.process_time() - c
             self.acc["recognition"] += dt
-            self.recognitions.append((len(self.rows), dt, r.frame is not None))
+            named = r.frame is not None
+            truth = math.nan if named or candidates is None else self.truth_m(candidates)
+            self.recognitions.append(Recognised(len(self.rows), dt, named, r.n_fixations, self.search, truth))
             return r
 
         memory.recognise = timed
+
+    def wrap_search(self, mapper: Mapper) -> None:
+        """Tell the recognitions of ``mapper``'s gated searches from those of its global searches."""
+        f = mapper._recognise
+
+        def tagged(*a: Any, search: str = "gated") -> Any:
+            self.search = search
+            return f(*a, search=search)
+
+        mapper._recognise = tagged  # type: ignore[method-assign]
+
+    def wrap_truth(self, mapper: Mapper, gt: tuple[np.ndarray, np.ndarray]) -> None:
+        """With ground truth ``gt``: note where each key frame was learned (the robot's true position) so that
+        a recognition can say how far its nearest candidate key frame is from where the robot truly stands."""
+        learned: dict[int, np.ndarray] = {}
+        learn = mapper.memory.learn
+
+        def dated(image: Any) -> Any:
+            fid = learn(image)
+            at = groundtruth_at(gt, mapper.last_frame_t)
+            if fid is not None and at is not None:
+                learned[int(fid)] = np.asarray(at[:2], float)
+            return fid
+
+        def nearest(candidates: Any) -> float:
+            now = groundtruth_at(gt, mapper.last_frame_t)
+            where = [learned[int(c)] for c in candidates if int(c) in learned]
+            if now is None or not where:
+                return math.nan
+            return float(np.min(np.hypot(*(np.array(where) - np.asarray(now[:2], float)).T)))
+
+        mapper.memory.learn = dated
+        self.truth_m = nearest
 
     def wrap_windows(self, cmap: Any) -> None:
         """Keep the size of every local solve's window (``CognitiveMap._local_window``: None for a whole solve)."""
@@ -120,6 +179,9 @@ def run(folder: Path, config: HippomapConfig | None) -> tuple[PartTimer, Mapper]
     timer.wrap(m.cmap, "propose_loop", "loop decision")
     timer.wrap(m.memory, "learn", "learning")
     timer.wrap_recognise(m.memory)
+    timer.wrap_search(m)
+    if dataset.groundtruth is not None:
+        timer.wrap_truth(m, dataset.groundtruth)
     timer.wrap_windows(m.cmap)
     for e in events:
         if isinstance(e, Odometry):
@@ -159,7 +221,7 @@ def report(name: str, timers: list[PartTimer]) -> None:
     for p in (*PARTS, "rest", "total"):
         print(f"{p:18s} {whole[p]:7.3f} {first[p]:8.3f} {last[p]:9.3f} {last[p] - first[p]:+9.3f}")
     print(f"last third / first third: {last['total'] / first['total']:.2f}")
-    r = np.concatenate([np.array(x.recognitions, dtype=float).reshape(-1, 3) for x in timers])
+    r = np.array([(x.frame, x.seconds, x.named) for t_ in timers for x in t_.recognitions], dtype=float).reshape(-1, 3)
     for label, lo, hi in (("first third", 0, a), ("middle", a, n - a), ("last third", n - a, n), ("run", 0, n)):
         sel = r[(r[:, 0] >= lo) & (r[:, 0] < hi)]
         parts = []
@@ -170,10 +232,39 @@ def report(name: str, timers: list[PartTimer]) -> None:
                 parts.append(f"{outcome} {count} (mean {s.mean():.1f}, p95 {np.percentile(s, 95):.1f} ms)")
         p95 = f"p95 of all {np.percentile(sel[:, 1] * 1e3, 95):.1f} ms; " if len(sel) else ""
         print(f"recognitions, {label}: {p95}{'; '.join(parts) or 'none'}")
+    searches(t.recognitions, timers, a, n)
     w = np.array(t.windows, dtype=float).reshape(-1, 2)
     for label, lo, hi in (("first third", 0, a), ("middle", a, n - a), ("last third", n - a, n)):
         sel = w[(w[:, 0] >= lo) & (w[:, 0] < hi), 1]
         print(f"local solves, {label}: {len(sel)}" + (f", {sel.mean():.0f} nodes each (mean)" if len(sel) else ""))
+
+
+def searches(recognitions: list[Recognised], timers: list[PartTimer], a: int, n: int) -> None:
+    """Print the recognitions per third, search and outcome: count, fixations (median, p95), CPU ms per fixation
+    (over all repeats), and of those that named none, the futile ones (ground truth only)."""
+    ms_per_fix = {}  # (frame, search, named) -> list of ms per fixation over the repeats
+    for t_ in timers:
+        for x in t_.recognitions:
+            if x.fixations:
+                ms_per_fix.setdefault((x.frame, x.search, x.named), []).append(x.seconds * 1e3 / x.fixations)
+    for label, lo, hi in (("first third", 0, a), ("middle", a, n - a), ("last third", n - a, n)):
+        parts = []
+        for search in ("gated", "global"):
+            for named in (True, False):
+                sel = [x for x in recognitions if lo <= x.frame < hi and x.search == search and x.named == named]
+                if not sel:
+                    continue
+                fix = np.array([x.fixations for x in sel], float)
+                per = [v for x in sel for v in ms_per_fix.get((x.frame, x.search, x.named), [])]
+                text = (
+                    f"{search} {'named' if named else 'none'} {len(sel)}: fixations {np.median(fix):.0f} / "
+                    f"p95 {np.percentile(fix, 95):.0f}, {np.median(per) if per else math.nan:.2f} ms each"
+                )
+                truth = np.array([x.truth_m for x in sel])
+                if not named and np.isfinite(truth).any():
+                    text += f", futile {int((truth > FUTILE_M).sum())}"
+                parts.append(text)
+        print(f"recognitions by search, {label}: {'; '.join(parts) or 'none'}")
 
 
 def main(argv: list[str] | None = None) -> int:

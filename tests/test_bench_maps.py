@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
+import re
 import sys
 from pathlib import Path
 
@@ -345,7 +347,19 @@ def test_mapper_parts_add_up_to_the_whole_and_see_every_recognition(short_run):
     # every recognition the mapper made was timed, with its outcome
     assert len(timer.recognitions) == len(m.recognitions) > 0
     named = sum(r["frame_id"] is not None for r in m.recognitions)
-    assert sum(ok for _, _, ok in timer.recognitions) == named > 0
+    assert sum(x.named for x in timer.recognitions) == named > 0
+    # each record has the recognition's own fixations and outcome, and the search that made it
+    assert [x.fixations for x in timer.recognitions] == [r["n_fixations"] for r in m.recognitions]
+    assert [x.named for x in timer.recognitions] == [r["frame_id"] is not None for r in m.recognitions]
+    assert {x.search for x in timer.recognitions} <= {"gated", "global"}
+    assert any(x.search == "gated" for x in timer.recognitions)
+    # with ground truth, one that named none says how far from the robot its nearest candidate was learned:
+    # inside the loop world (16 x 10 m), never for one that named a key frame; at this speed and size some are
+    # made where a candidate was learned nearby and some where none was (futile)
+    none = [x.truth_m for x in timer.recognitions if not x.named]
+    assert none and all(0 <= d < math.hypot(16.0 + 2.5, 10.0 + 2.5) for d in none)
+    assert min(none) <= bench_mapper_parts.FUTILE_M < max(none)
+    assert all(np.isnan(x.truth_m) for x in timer.recognitions if x.named)
     n = len(timer.rows)
     whole = bench_mapper_parts.per_frame(timer.rows, 0, n)
     assert all(whole[p] >= 0 for p in bench_mapper_parts.PARTS) and whole["total"] > 0
@@ -358,6 +372,22 @@ def test_mapper_parts_add_up_to_the_whole_and_see_every_recognition(short_run):
     first, mid, last = (bench_mapper_parts.per_frame(timer.rows, lo, hi) for lo, hi in ((0, a), (a, n - a), (n - a, n)))
     mean = (first["total"] * a + mid["total"] * (n - 2 * a) + last["total"] * a) / n
     assert mean == pytest.approx(whole["total"])
+
+
+def test_mapper_parts_report_prints_the_recognitions_per_search(short_run, capsys):
+    import bench_mapper_parts
+
+    timer, _ = bench_mapper_parts.run(short_run, None)
+    bench_mapper_parts.report("short", [timer])
+    out = capsys.readouterr().out
+    lines = [ln for ln in out.splitlines() if ln.startswith("recognitions by search")]
+    assert len(lines) == 3  # one per third
+    gated = sum(x.search == "gated" for x in timer.recognitions)
+    counts = [int(c) for ln in lines for c in re.findall(r"gated (?:named|none) (\d+):", ln)]
+    assert sum(counts) == gated > 0  # every gated recognition is counted once
+    # the run has ground truth: the futile recognitions are those that named none far from every candidate
+    futile = [int(c) for ln in lines for c in re.findall(r"futile (\d+)", ln)]
+    assert sum(futile) == sum(not x.named and x.truth_m > bench_mapper_parts.FUTILE_M for x in timer.recognitions) > 0
 
 
 def test_looming_bench_scores_named_recognitions_against_ground_truth(short_run):

@@ -50,7 +50,7 @@ SAFE_RANGES: dict[tuple[str, str], tuple[float, float]] = {
     ("visual", "max_survivors"): (0, 10_000),  # [5]
     ("visual", "tolerance_px"): (0, 512),  # [8]
     ("visual", "max_prediction_errors"): (0, 1000),  # [2]
-    ("visual", "max_resets"): (0, 100),  # [10] recognition attempts per frame
+    ("visual", "max_resets"): (0, 100),  # [7] recognition attempts per frame
     ("visual", "max_saccades"): (1, 200),  # [18] saccades per attempt
     ("visual", "corner_block"): (3, 63),  # [3]
     ("visual", "min_distance"): (0, 2048),  # [0]
