@@ -385,8 +385,9 @@ def test_recognise_then_learn_the_same_frame_equals_the_reference():
 
 def test_a_point_fixated_again_reuses_its_drive(monkeypatch):
     """A saccade that lands on a point fixated before in the same recognition gets the drive
-    remembered there (read only), not a second gather; the results equal the reference (above)."""
-    fast, ref = _pair(VisualConfig())
+    remembered there (read only), not a second gather; the results equal the reference (above).
+    [BBc]'s 10 resets: enough attempts on this never-learned scene for one to fixate a point again."""
+    fast, ref = _pair(VisualConfig(max_resets=10))
     calls = {"sense": 0, "drive": 0}
     sense, drive = vm.VisualMemory._sense, vm.VisualMemory._drive_rows
 
