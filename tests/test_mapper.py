@@ -27,7 +27,7 @@ def inputs():
         seed=1,
         odometry_noise=sim.OdometryNoise(sigma_v=0.02, sigma_omega=0.01, omega_bias=0.01),
     )
-    n = min(len(run), 260)
+    n = min(len(run), 340)  # on past the first lap: the revisit closes the loop more than once
     out = []
     for i in range(n):
         t, v, w = run.odometry[i]
