@@ -80,7 +80,11 @@ class PartTimer:
         self.recognitions: list[Recognised] = []
         self.windows: list[tuple[int, int]] = []  # (frame index, nodes) of each local solve's window
         self.search = "gated"  # the search of the recognition under way (set by :meth:`wrap_search`)
-        self.truth_m: Callable[[Any], float] = lambda candidates: math.nan  # see :meth:`wrap_truth`
+        # with ground truth (:meth:`wrap_truth`): the mapper's clock, when each key frame was learned, and each
+        # recognition that named none with its time and candidates, dated after the run (:meth:`date_truth`)
+        self.clock: Callable[[], float] | None = None
+        self._learned_t: dict[int, float] = {}
+        self._asked: list[tuple[int, float, tuple[int, ...]]] = []
 
     def wrap(self, obj: Any, name: str, part: str) -> None:
         """Time every call of ``obj.name`` as ``part`` (an instance attribute shadows the method)."""
@@ -106,8 +110,9 @@ class PartTimer:
             dt = time.process_time() - c
             self.acc["recognition"] += dt
             named = r.frame is not None
-            truth = math.nan if named or candidates is None else self.truth_m(candidates)
-            self.recognitions.append(Recognised(len(self.rows), dt, named, r.n_fixations, self.search, truth))
+            if not named and candidates is not None and self.clock is not None:
+                self._asked.append((len(self.recognitions), self.clock(), tuple(int(c) for c in candidates)))
+            self.recognitions.append(Recognised(len(self.rows), dt, named, r.n_fixations, self.search, math.nan))
             return r
 
         memory.recognise = timed
@@ -122,28 +127,31 @@ class PartTimer:
 
         mapper._recognise = tagged  # type: ignore[method-assign]
 
-    def wrap_truth(self, mapper: Mapper, gt: tuple[np.ndarray, np.ndarray]) -> None:
-        """With ground truth ``gt``: note where each key frame was learned (the robot's true position) so that
-        a recognition can say how far its nearest candidate key frame is from where the robot truly stands."""
-        learned: dict[int, np.ndarray] = {}
+    def wrap_truth(self, mapper: Mapper) -> None:
+        """Note when each key frame was learned and when each recognition that named none was made, so that
+        :meth:`date_truth` can say, after the run, how far its nearest candidate key frame was learned from where
+        the robot truly stood. Only times are noted during the run: the frames' CPU times (``TimedMapper``) hold
+        the mapper's work, not the ground-truth look-ups."""
         learn = mapper.memory.learn
 
-        def dated(image: Any) -> Any:
+        def noted(image: Any) -> Any:
             fid = learn(image)
-            at = groundtruth_at(gt, mapper.last_frame_t)
-            if fid is not None and at is not None:
-                learned[int(fid)] = np.asarray(at[:2], float)
+            if fid is not None:
+                self._learned_t[int(fid)] = mapper.last_frame_t
             return fid
 
-        def nearest(candidates: Any) -> float:
-            now = groundtruth_at(gt, mapper.last_frame_t)
-            where = [learned[int(c)] for c in candidates if int(c) in learned]
-            if now is None or not where:
-                return math.nan
-            return float(np.min(np.hypot(*(np.array(where) - np.asarray(now[:2], float)).T)))
+        mapper.memory.learn = noted
+        self.clock = lambda: mapper.last_frame_t
 
-        mapper.memory.learn = dated
-        self.truth_m = nearest
+    def date_truth(self, gt: tuple[np.ndarray, np.ndarray]) -> None:
+        """Set ``truth_m`` of the recognitions noted by :meth:`wrap_truth` from the ground truth ``gt``."""
+        learned = {f: groundtruth_at(gt, t) for f, t in self._learned_t.items()}
+        for i, t, candidates in self._asked:
+            now = groundtruth_at(gt, t)
+            where = [learned[c][:2] for c in candidates if learned.get(c) is not None]
+            if now is not None and where:
+                d = np.asarray(where, float) - np.asarray(now[:2], float)
+                self.recognitions[i].truth_m = float(np.min(np.hypot(*d.T)))
 
     def wrap_windows(self, cmap: Any) -> None:
         """Keep the size of every local solve's window (``CognitiveMap._local_window``: None for a whole solve)."""
@@ -181,7 +189,7 @@ def run(folder: Path, config: HippomapConfig | None) -> tuple[PartTimer, Mapper]
     timer.wrap_recognise(m.memory)
     timer.wrap_search(m)
     if dataset.groundtruth is not None:
-        timer.wrap_truth(m, dataset.groundtruth)
+        timer.wrap_truth(m)
     timer.wrap_windows(m.cmap)
     for e in events:
         if isinstance(e, Odometry):
@@ -189,6 +197,8 @@ def run(folder: Path, config: HippomapConfig | None) -> tuple[PartTimer, Mapper]
         else:
             m.observe(e)
             timer.mark(m.frame_cpu_seconds[-1])
+    if dataset.groundtruth is not None:
+        timer.date_truth(dataset.groundtruth)
     return timer, m
 
 
@@ -242,11 +252,6 @@ def report(name: str, timers: list[PartTimer]) -> None:
 def searches(recognitions: list[Recognised], timers: list[PartTimer], a: int, n: int) -> None:
     """Print the recognitions per third, search and outcome: count, fixations (median, p95), CPU ms per fixation
     (over all repeats), and of those that named none, the futile ones (ground truth only)."""
-    ms_per_fix = {}  # (frame, search, named) -> list of ms per fixation over the repeats
-    for t_ in timers:
-        for x in t_.recognitions:
-            if x.fixations:
-                ms_per_fix.setdefault((x.frame, x.search, x.named), []).append(x.seconds * 1e3 / x.fixations)
     for label, lo, hi in (("first third", 0, a), ("middle", a, n - a), ("last third", n - a, n)):
         parts = []
         for search in ("gated", "global"):
@@ -255,7 +260,12 @@ def searches(recognitions: list[Recognised], timers: list[PartTimer], a: int, n:
                 if not sel:
                     continue
                 fix = np.array([x.fixations for x in sel], float)
-                per = [v for x in sel for v in ms_per_fix.get((x.frame, x.search, x.named), [])]
+                per = [
+                    y.seconds * 1e3 / y.fixations
+                    for t_ in timers
+                    for y in t_.recognitions
+                    if lo <= y.frame < hi and y.search == search and y.named == named and y.fixations
+                ]
                 text = (
                     f"{search} {'named' if named else 'none'} {len(sel)}: fixations {np.median(fix):.0f} / "
                     f"p95 {np.percentile(fix, 95):.0f}, {np.median(per) if per else math.nan:.2f} ms each"
