@@ -218,12 +218,17 @@ def thirds(rows: list[dict[str, float]]) -> tuple[dict[str, float], dict[str, fl
     return per_frame(rows, 0, n), per_frame(rows, 0, a), per_frame(rows, n - a, n)
 
 
+def spans(n: int) -> tuple[tuple[str, int, int], ...]:
+    """The named frame spans of a run of ``n`` frames: its first third, middle and last third."""
+    a = max(1, n // 3)
+    return (("first third", 0, a), ("middle", a, n - a), ("last third", n - a, n))
+
+
 def report(name: str, timers: list[PartTimer]) -> None:
     """Print the parts of one run measured ``len(timers)`` times: the median of each figure over the
     repeats, and the recognitions' times of all repeats together (the same recognitions each time)."""
     t = timers[0]
     n = len(t.rows)
-    a = max(1, n // 3)
     each = [thirds(x.rows) for x in timers]
     whole, first, last = ({k: float(np.median([e[i][k] for e in each])) for k in each[0][i]} for i in range(3))
     print(f"\n{name}: {n} frames, {len(t.recognitions)} recognitions; CPU ms per frame, median of {len(timers)} runs")
@@ -232,7 +237,7 @@ def report(name: str, timers: list[PartTimer]) -> None:
         print(f"{p:18s} {whole[p]:7.3f} {first[p]:8.3f} {last[p]:9.3f} {last[p] - first[p]:+9.3f}")
     print(f"last third / first third: {last['total'] / first['total']:.2f}")
     r = np.array([(x.frame, x.seconds, x.named) for t_ in timers for x in t_.recognitions], dtype=float).reshape(-1, 3)
-    for label, lo, hi in (("first third", 0, a), ("middle", a, n - a), ("last third", n - a, n), ("run", 0, n)):
+    for label, lo, hi in (*spans(n), ("run", 0, n)):
         sel = r[(r[:, 0] >= lo) & (r[:, 0] < hi)]
         parts = []
         for outcome, keep in (("named a key frame", 1.0), ("named none", 0.0)):
@@ -242,17 +247,17 @@ def report(name: str, timers: list[PartTimer]) -> None:
                 parts.append(f"{outcome} {count} (mean {s.mean():.1f}, p95 {np.percentile(s, 95):.1f} ms)")
         p95 = f"p95 of all {np.percentile(sel[:, 1] * 1e3, 95):.1f} ms; " if len(sel) else ""
         print(f"recognitions, {label}: {p95}{'; '.join(parts) or 'none'}")
-    searches(t.recognitions, timers, a, n)
+    searches(t.recognitions, timers, n)
     w = np.array(t.windows, dtype=float).reshape(-1, 2)
-    for label, lo, hi in (("first third", 0, a), ("middle", a, n - a), ("last third", n - a, n)):
+    for label, lo, hi in spans(n):
         sel = w[(w[:, 0] >= lo) & (w[:, 0] < hi), 1]
         print(f"local solves, {label}: {len(sel)}" + (f", {sel.mean():.0f} nodes each (mean)" if len(sel) else ""))
 
 
-def searches(recognitions: list[Recognised], timers: list[PartTimer], a: int, n: int) -> None:
+def searches(recognitions: list[Recognised], timers: list[PartTimer], n: int) -> None:
     """Print the recognitions per third, search and outcome: count, fixations (median, p95), CPU ms per fixation
     (over all repeats), and of those that named none, the futile ones (ground truth only)."""
-    for label, lo, hi in (("first third", 0, a), ("middle", a, n - a), ("last third", n - a, n)):
+    for label, lo, hi in spans(n):
         parts = []
         for search in ("gated", "global"):
             for named in (True, False):
