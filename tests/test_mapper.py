@@ -163,6 +163,42 @@ def test_loops_close_when_the_light_changes_between_laps(tmp_path):
     assert changed > 0.5 * len(used)
 
 
+@pytest.mark.parametrize("seed", [40, 42])
+def test_a_drift_no_gate_covers_is_closed_by_global_searches(tmp_path, seed):
+    """A corridor driven out, back and out again with three times the gyro bias of the other runs: by the
+    third pass the map has drifted so far that the gate never offers the old key frames, and only the
+    global searches (default config: from 40 m without a verified closure, one every 2 m) find the return.
+    With the default config a group of global recognitions closes it and the map ends near ground truth;
+    with the searches off no closure is made and the map keeps the odometry's error."""
+    from hippomap.cli import main
+
+    world = sim.corridor_world(seed=seed, passes=3)
+    noise = sim.OdometryNoise(sigma_v=0.04, sigma_omega=0.02, omega_bias=0.03)
+    run = sim.simulate(
+        world, None, rate_hz=5.0, seed=seed, odometry_noise=noise, camera=sim.Camera(width=160, height=120)
+    )
+    run.write(tmp_path / "data")
+    off = tmp_path / "off.json"
+    off.write_text(json.dumps({"mapper": {"global_search_after_m": None}}))
+    found = {}
+    for name, extra in (("default", []), ("off", ["--config", str(off)])):
+        out = tmp_path / name
+        assert main(["run", str(tmp_path / "data"), "--out", str(out), "--no-progress", *extra]) == 0
+        metrics = json.loads((out / "metrics.json").read_text())
+        closures = json.loads((out / "loop_closures.json").read_text())
+        found[name] = metrics, [c for c in closures if c["status"] == "accepted"]
+    metrics, accepted = found["default"]
+    odometry_ate = metrics["odometry"]["ate"]["rmse"]
+    assert odometry_ate > 10.0  # the drift is real: metres, far beyond the gate's few metres
+    groups = [c for c in accepted if c["hypothesis"]["meta"].get("search") == "global"]
+    assert len(groups) >= 3  # the return was closed by a consistent group of global recognitions
+    assert metrics["loop_closures"]["used_false"] == 0 and metrics["loop_closures"]["revisits"]["closed"] == 1
+    assert metrics["map"]["ate"]["rmse"] < 0.05 * odometry_ate
+    metrics, accepted = found["off"]
+    assert accepted == [] and metrics["loop_closures"]["revisits"]["closed"] == 0
+    assert metrics["map"]["ate"]["rmse"] > 0.5 * odometry_ate
+
+
 def _recognised_path_gaps(cfg: HippomapConfig, inputs) -> list[float]:
     """Path travelled between learning each recognised key frame and recognising it."""
     m = Mapper(cfg)
