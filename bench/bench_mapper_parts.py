@@ -211,17 +211,17 @@ def per_frame(rows: list[dict[str, float]], lo: int, hi: int) -> dict[str, float
     return out
 
 
-def thirds(rows: list[dict[str, float]]) -> tuple[dict[str, float], dict[str, float], dict[str, float]]:
-    """:func:`per_frame` over the whole run, its first third and its last third."""
-    n = len(rows)
-    a = max(1, n // 3)
-    return per_frame(rows, 0, n), per_frame(rows, 0, a), per_frame(rows, n - a, n)
-
-
 def spans(n: int) -> tuple[tuple[str, int, int], ...]:
     """The named frame spans of a run of ``n`` frames: its first third, middle and last third."""
     a = max(1, n // 3)
     return (("first third", 0, a), ("middle", a, n - a), ("last third", n - a, n))
+
+
+def thirds(rows: list[dict[str, float]]) -> tuple[dict[str, float], dict[str, float], dict[str, float]]:
+    """:func:`per_frame` over the whole run, its first third and its last third (:func:`spans`)."""
+    n = len(rows)
+    (_, lo1, hi1), _, (_, lo3, hi3) = spans(n)
+    return per_frame(rows, 0, n), per_frame(rows, lo1, hi1), per_frame(rows, lo3, hi3)
 
 
 def report(name: str, timers: list[PartTimer]) -> None:
