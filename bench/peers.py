@@ -219,18 +219,71 @@ class ORSResult:
     link_check: dict[str, int] | None = None
 
 
+def _read_times(path: Path, columns: tuple[str, ...]) -> np.ndarray:
+    """The named float columns of a CSV with a header, as an (N, len(columns)) array."""
+    with open(path, newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    return np.array([[float(r[c]) for c in columns] for r in rows], dtype=float).reshape(-1, len(columns))
+
+
+def per_frame_odometry(data_dir: Path) -> np.ndarray:
+    """``(t, v, omega)`` per camera frame of a data folder: the mean velocities over each frame's interval.
+
+    The OpenRatSLAM driver takes one odometry row per frame (row i driven from frame i-1 to frame i),
+    as its ROS nodes see odometry at the camera's rate. A folder with frames at every odometry step
+    already has that; one with fewer frames (``hippomap simulate --frame-every N``) has N readings per
+    frame, and pairing them row by row would drive the peer along the first N-th of the route. So each
+    frame gets the path and the turn of the readings since the previous frame (each reading's
+    velocities hold from the reading before it to its own time), divided by the interval: what a robot
+    publishing odometry at the frame rate would report. The first frame's velocities are 0 (the driver
+    skips them)."""
+    odo = _read_times(Path(data_dir) / "odometry.csv", ("t", "v", "omega"))
+    tf = _read_times(Path(data_dir) / "frames.csv", ("t",))[:, 0]
+    t = odo[:, 0]
+    dt = np.diff(t, prepend=t[0])
+    dist = np.cumsum(odo[:, 1] * dt)  # path and turn at each reading's time, linear in between
+    turn = np.cumsum(odo[:, 2] * dt)
+    d, a = np.interp(tf, t, dist), np.interp(tf, t, turn)
+    span = np.diff(tf, prepend=tf[0])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        v = np.where(span > 0, np.diff(d, prepend=d[0]) / span, 0.0)
+        w = np.where(span > 0, np.diff(a, prepend=a[0]) / span, 0.0)
+    return np.column_stack([tf, v, w])
+
+
+def ors_odometry_file(data_dir: Path, work: Path) -> Path:
+    """The odometry CSV the driver gets: the folder's own when it has one reading per frame, else
+    :func:`per_frame_odometry` written into ``work``."""
+    own = Path(data_dir) / "odometry.csv"
+    with open(own) as fh:
+        n_odo = sum(1 for _ in fh) - 1
+    with open(Path(data_dir) / "frames.csv") as fh:
+        n_frames = sum(1 for _ in fh) - 1
+    if n_odo == n_frames:
+        return own
+    out = work / "ors_odometry.csv"
+    rows = per_frame_odometry(data_dir)
+    with open(out, "w", newline="") as fh:
+        fh.write("t,v,omega\n")
+        for t, v, w in rows.tolist():
+            fh.write(f"{t:.6f},{v!r},{w!r}\n")
+    return out
+
+
 def run_ors(
     exe: Path, peer_dir: Path, data_dir: Path, width: int, height: int, threshold: float | None, work: Path
 ) -> ORSResult:
-    """Run the OpenRatSLAM driver on a data folder (one odometry row per frame)."""
+    """Run the OpenRatSLAM driver on a data folder, with one odometry row per frame
+    (:func:`ors_odometry_file`)."""
     work.mkdir(parents=True, exist_ok=True)
     tag = "stock" if threshold is None else f"vt{threshold:g}"
     ini = work / f"ors_{tag}.ini"
     ini.write_text(ors_config_text(peer_dir, width, height, threshold))
     prefix = work / f"ors_{tag}"
+    odometry = ors_odometry_file(data_dir, work)
     t0 = time.perf_counter()
     r = subprocess.run(
-        [str(exe), str(ini), str(data_dir), str(Path(data_dir) / "odometry.csv"), str(prefix)],
+        [str(exe), str(ini), str(data_dir), str(odometry), str(prefix)],
         capture_output=True,
         text=True,
     )

@@ -402,3 +402,38 @@ def test_looming_bench_scores_named_recognitions_against_ground_truth(short_run)
     pts = np.array([[10.0, 10.0], [200.0, 30.0], [120.0, 180.0]])
     for s in (0.7, 1.1, 1.6):
         assert bench_looming.looming_distance(np.array([s]), 3.0)[0] == pytest.approx(looming_offset(pts * s, pts, 3.0))
+
+
+def _odometry_folder(tmp_path: Path, every: int) -> tuple[Path, np.ndarray]:
+    """A data folder's CSVs (no images): readings every 0.2 s, a frame at every ``every``-th reading."""
+    rng = np.random.default_rng(7)
+    t = np.round(np.arange(31) * 0.2, 6)
+    odo = np.column_stack([t, rng.uniform(0.0, 1.0, t.size), rng.uniform(-0.5, 0.5, t.size)])
+    d = tmp_path / f"every{every}"
+    d.mkdir()
+    (d / "odometry.csv").write_text("t,v,omega\n" + "".join(f"{a:.6f},{b!r},{c!r}\n" for a, b, c in odo.tolist()))
+    frames = "".join(f"{x:.6f},frames/{i:06d}.png\n" for i, x in enumerate(t[::every].tolist()))
+    (d / "frames.csv").write_text("t,file\n" + frames)
+    return d, odo
+
+
+def test_the_peer_gets_one_odometry_row_per_frame_when_frames_are_sparse(tmp_path):
+    """With a frame every third reading the driver's rows are the frames' times, each with the path and the
+    turn of the readings since the previous frame over its interval; with a frame per reading it gets the
+    folder's own file."""
+    d, odo = _odometry_folder(tmp_path, 3)
+    rows = peers.per_frame_odometry(d)
+    assert rows.shape == (11, 3)
+    np.testing.assert_allclose(rows[:, 0], odo[::3, 0])
+    assert rows[0, 1] == rows[0, 2] == 0.0
+    for i in range(1, 11):
+        k = slice(3 * i - 2, 3 * i + 1)  # the readings driven from frame i-1 to frame i
+        span = rows[i, 0] - rows[i - 1, 0]
+        assert rows[i, 1] * span == pytest.approx(float(np.sum(odo[k, 1] * 0.2)))
+        assert rows[i, 2] * span == pytest.approx(float(np.sum(odo[k, 2] * 0.2)))
+    written = peers.ors_odometry_file(d, tmp_path)
+    assert written == tmp_path / "ors_odometry.csv"
+    back = np.loadtxt(written, delimiter=",", skiprows=1)
+    np.testing.assert_allclose(back, rows, rtol=0, atol=1e-6)
+    dense, _ = _odometry_folder(tmp_path, 1)
+    assert peers.ors_odometry_file(dense, tmp_path) == dense / "odometry.csv"
