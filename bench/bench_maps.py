@@ -422,8 +422,10 @@ def score_ors(res: peers.ORSResult, gt: tuple[np.ndarray, np.ndarray]) -> dict[s
 def run_ors_sweep(
     exe: Path, peer_dir: Path, data: Path, size: tuple[int, int], thresholds: list[float], work: Path, gt
 ) -> dict[str, Any]:
-    stock = score_ors(peers.run_ors(exe, peer_dir, data, *size, None, work), gt)
-    sweep = [score_ors(peers.run_ors(exe, peer_dir, data, *size, th, work), gt) for th in thresholds]
+    work.mkdir(parents=True, exist_ok=True)
+    odometry = peers.ors_odometry_file(data, work)  # the same rows for every threshold
+    stock = score_ors(peers.run_ors(exe, peer_dir, data, *size, None, work, odometry), gt)
+    sweep = [score_ors(peers.run_ors(exe, peer_dir, data, *size, th, work, odometry), gt) for th in thresholds]
     best = min([stock, *sweep], key=lambda r: r["ate"])
     return {"stock": stock, "best": best, "sweep": sweep}
 

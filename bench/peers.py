@@ -21,6 +21,8 @@ from typing import Any
 
 import numpy as np
 
+from hippomap.io.datasets import read_folder_odometry
+
 # OpenRatSLAM's PosecellNetwork::PosecellAction (posecell_network.h)
 ORS_NO_ACTION, ORS_CREATE_NODE, ORS_CREATE_EDGE, ORS_SET_NODE = 0, 1, 2, 3
 
@@ -219,11 +221,10 @@ class ORSResult:
     link_check: dict[str, int] | None = None
 
 
-def _read_times(path: Path, columns: tuple[str, ...]) -> np.ndarray:
-    """The named float columns of a CSV with a header, as an (N, len(columns)) array."""
-    with open(path, newline="") as fh:
-        rows = list(csv.DictReader(fh))
-    return np.array([[float(r[c]) for c in columns] for r in rows], dtype=float).reshape(-1, len(columns))
+def _frame_times(data_dir: Path) -> np.ndarray:
+    """The ``t`` column of a data folder's ``frames.csv`` (the images themselves are not needed)."""
+    with open(Path(data_dir) / "frames.csv", newline="") as fh:
+        return np.array([float(r["t"]) for r in csv.DictReader(fh)], dtype=float)
 
 
 def per_frame_odometry(data_dir: Path) -> np.ndarray:
@@ -236,9 +237,13 @@ def per_frame_odometry(data_dir: Path) -> np.ndarray:
     frame gets the path and the turn of the readings since the previous frame (each reading's
     velocities hold from the reading before it to its own time), divided by the interval: what a robot
     publishing odometry at the frame rate would report. The first frame's velocities are 0 (the driver
-    skips them)."""
-    odo = _read_times(Path(data_dir) / "odometry.csv", ("t", "v", "omega"))
-    tf = _read_times(Path(data_dir) / "frames.csv", ("t",))[:, 0]
+    skips them). The readings are read by hippomap's own reader (:func:`read_folder_odometry`); the
+    driver needs velocities, so a folder of pose increments is refused."""
+    readings = read_folder_odometry(Path(data_dir) / "odometry.csv")
+    if any(o.v is None for o in readings):
+        raise ValueError(f"{data_dir}: the OpenRatSLAM driver needs odometry velocities (t,v,omega), not increments")
+    odo = np.array([(o.t, o.v, o.omega) for o in readings], dtype=float).reshape(-1, 3)
+    tf = _frame_times(data_dir)
     t = odo[:, 0]
     dt = np.diff(t, prepend=t[0])
     dist = np.cumsum(odo[:, 1] * dt)  # path and turn at each reading's time, linear in between
@@ -271,16 +276,24 @@ def ors_odometry_file(data_dir: Path, work: Path) -> Path:
 
 
 def run_ors(
-    exe: Path, peer_dir: Path, data_dir: Path, width: int, height: int, threshold: float | None, work: Path
+    exe: Path,
+    peer_dir: Path,
+    data_dir: Path,
+    width: int,
+    height: int,
+    threshold: float | None,
+    work: Path,
+    odometry: Path | None = None,
 ) -> ORSResult:
-    """Run the OpenRatSLAM driver on a data folder, with one odometry row per frame
-    (:func:`ors_odometry_file`)."""
+    """Run the OpenRatSLAM driver on a data folder, with one odometry row per frame: ``odometry``, or
+    :func:`ors_odometry_file` when None (a sweep of thresholds makes that file once and passes it)."""
     work.mkdir(parents=True, exist_ok=True)
     tag = "stock" if threshold is None else f"vt{threshold:g}"
     ini = work / f"ors_{tag}.ini"
     ini.write_text(ors_config_text(peer_dir, width, height, threshold))
     prefix = work / f"ors_{tag}"
-    odometry = ors_odometry_file(data_dir, work)
+    if odometry is None:
+        odometry = ors_odometry_file(data_dir, work)
     t0 = time.perf_counter()
     r = subprocess.run(
         [str(exe), str(ini), str(data_dir), str(odometry), str(prefix)],
