@@ -99,7 +99,7 @@ class FixationSensing(FeatureStore):
         if z is None:
             if len(self._phase_codes) >= _DECODE_CACHE:
                 self._phase_codes.clear()
-            z = self.grid._project(self.grid.encode(p))
+            z = self.grid._phase_code_one(p)
             z.flags.writeable = False
             self._phase_codes[key] = z
         return z

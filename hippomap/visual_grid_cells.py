@@ -31,6 +31,7 @@ Range: the coarsest module (825 px spacing) disambiguates displacements with
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -105,7 +106,14 @@ class VisualGridCells:
         # the coarse modules' rows of a phase difference: a slice (a view, no gather) when they are the
         # first ones, as with frequencies in increasing order; the same values either way
         self._co_rows: slice | np.ndarray = slice(0, co.size) if np.array_equal(co, np.arange(co.size)) else co
-        self._steps = ((self._co_rows, self._F_co, self._w_coarse), (slice(None), self._F_col, self._w_all))
+        # the phase offsets F_m b_j . v of the 9 lattice alternatives over the coarse modules and of the 3 x 3
+        # polish neighbourhood over all modules: a pair's costs add only its own base phase to them
+        self._alt_phase = self._F_co[None] * (self._lattice_shifts @ self._bT)[:, None, :]  # (9, 4, 3)
+        self._polish_phase = self._F_col[None] * (self._polish @ self._bT)[:, None, :]  # (9, M, 3)
+        self._F_c0 = float(self.F[self._c0])
+        self._F_list = self.F.tolist()
+        self._b_rows = self.b.tolist()
+        self._scalar_steps = ((co.tolist(), self._w_coarse), (list(range(self.n_modules)), self._w_all))
 
     # -- encoding ---------------------------------------------------------------------
     def encode(self, x: Any) -> np.ndarray:
@@ -120,6 +128,14 @@ class VisualGridCells:
         s = np.cos(phi) @ self._cos_bo - np.sin(phi) @ self._sin_bo  # (..., M, C)
         r = np.maximum(0.0, s) / 3.0
         return r.reshape(x.shape[:-1] + (self.n_cells,))
+
+    def _phase_code_one(self, x: np.ndarray) -> np.ndarray:
+        """``_project(encode(x))`` of one finite point ``x`` (2,) float: the module phasors (M, 3) by the
+        same operations on the same operands, without the checks and reshapes of the two public steps (the
+        saccade loop calls it with whole-pixel points it made itself)."""
+        phi = self._F_col * (x @ self._bT)  # (M, 3)
+        s = np.cos(phi) @ self._cos_bo - np.sin(phi) @ self._sin_bo  # (M, C)
+        return (np.maximum(0.0, s) / 3.0) @ self._proj
 
     # -- decoding ---------------------------------------------------------------------
     def phases(self, g: Any) -> np.ndarray:
@@ -186,27 +202,42 @@ class VisualGridCells:
         return out.astype(np.int64)
 
     def _decode_one(self, delta: np.ndarray) -> np.ndarray:
-        """:meth:`decode_phase_difference` of one pair (``delta`` (M, 3)): the same operations on the same
-        operands in the same order (each product, matrix product and reduction has the shapes it has
-        in the batched expressions with no leading axis), without the batch indexing: the winning
-        alternative and candidate are read by their index rather than ``take_along_axis``, and the
-        constant slices of ``F`` are taken once (:meth:`__init__`). The same result bit for bit."""
-        c = self._c0
-        z = _wrap(delta[c])
-        z2 = z[1] - z[0] + _wrap(z[2] - (z[1] - z[0]))
-        z = np.array([z[0], z[1], z2])
-        d0 = (2.0 / 3.0) * (z @ self.b) / self.F[c]
-        alt = d0 + self._lattice_shifts  # (9, 2)
-        proj = alt @ self._bT  # (9, 3)
-        cost = np.add.reduce(1.0 - np.cos(self._F_co * proj[:, None, :] - delta[self._co_rows]), axis=(-1, -2))
-        d = alt[int(cost.argmin())]
-        for mods, Fm, wsum in self._steps:
-            pred = Fm * (d @ self._bT)
-            r = _wrap(delta[mods] - pred)
-            d = d + (np.add.reduce(Fm * r, axis=-2) @ self.b) / wsum
-        cand = np.rint(d) + self._polish  # (9, 2)
-        cost = np.add.reduce(1.0 - np.cos(self._F_col * (cand @ self._bT)[:, None, :] - delta), axis=(-1, -2))
-        return cand[int(cost.argmin())].astype(np.int64)
+        """:meth:`decode_phase_difference` of one pair (``delta`` (M, 3)): the same steps with fewer numpy
+        calls, since a call costs more than its few dozen numbers. The coarsest module's three phases and
+        the two least-squares steps are a handful of scalars, done on Python floats; the Eq. 5 costs of the
+        9 lattice alternatives and of the 3 x 3 polish are one cosine each over the phase offsets of the
+        alternatives and of the neighbourhood, taken once (:meth:`__init__`), plus this pair's base phase;
+        the lowest cost is the largest sum of cosines. The integer vector is the batched expressions' (a
+        property test compares them); intermediate floats may differ from them in the last bits."""
+        rows = delta.tolist()
+        (b00, b01), (b10, b11), (b20, b21) = self._b_rows
+        pi, two_pi = math.pi, 2.0 * math.pi
+        z0, z1, z2 = rows[self._c0]
+        z0 = (z0 + pi) % two_pi - pi
+        z1 = (z1 + pi) % two_pi - pi
+        e = z1 - z0  # the third phase made consistent with the first two (b_2 = b_1 - b_0)
+        z2 = e + ((((z2 + pi) % two_pi - pi) - e + pi) % two_pi - pi)
+        k = (2.0 / 3.0) / self._F_c0
+        d0 = np.array([(z0 * b00 + z1 * b10 + z2 * b20) * k, (z0 * b01 + z1 * b11 + z2 * b21) * k])
+        base = self._F_co * (d0 @ self._bT) - delta[self._co_rows]  # (4, 3)
+        i = int(np.add.reduce(np.cos(self._alt_phase + base), axis=(1, 2)).argmax())
+        x, y = (d0 + self._lattice_shifts[i]).tolist()
+        F = self._F_list
+        for mods, wsum in self._scalar_steps:  # coarse modules, then all: least squares on wrapped residuals
+            p0, p1, p2 = x * b00 + y * b01, x * b10 + y * b11, x * b20 + y * b21
+            g0 = g1 = g2 = 0.0
+            for m in mods:
+                f = F[m]
+                r0, r1, r2 = rows[m]
+                g0 += f * ((r0 - f * p0 + pi) % two_pi - pi)
+                g1 += f * ((r1 - f * p1 + pi) % two_pi - pi)
+                g2 += f * ((r2 - f * p2 + pi) % two_pi - pi)
+            x += (g0 * b00 + g1 * b10 + g2 * b20) / wsum
+            y += (g0 * b01 + g1 * b11 + g2 * b21) / wsum
+        d = np.array([round(x), round(y)], dtype=float)  # round half to even, as np.rint
+        base = self._F_col * (d @ self._bT) - delta  # (M, 3)
+        j = int(np.add.reduce(np.cos(self._polish_phase + base), axis=(1, 2)).argmax())
+        return (d + self._polish[j]).astype(np.int64)
 
     def _cost(self, cand: np.ndarray, delta: np.ndarray) -> np.ndarray:
         """Eq. 5 mismatch sum_{m,j} 1 - cos(F_m b_j . d - Delta_{m,j}) for candidates (..., K, 2)."""

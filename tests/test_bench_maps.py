@@ -437,3 +437,26 @@ def test_the_peer_gets_one_odometry_row_per_frame_when_frames_are_sparse(tmp_pat
     np.testing.assert_allclose(back, rows, rtol=0, atol=1e-6)
     dense, _ = _odometry_folder(tmp_path, 1)
     assert peers.ors_odometry_file(dense, tmp_path) == dense / "odometry.csv"
+
+
+def test_familiarity_bench_sees_every_recognition_and_compares_gists(short_run):
+    import bench_familiarity as bf
+
+    rows, m = bf.record(short_run)
+    # one row per recognition the mapper made, with its own fixations; a named one is right or wrong, one that
+    # named none futile or missed, as its candidates' ground-truth places say
+    assert len(rows) == len(m.recognitions) > 0
+    assert [r["fixations"] for r in rows] == [r["n_fixations"] for r in m.recognitions]
+    named = [r["frame_id"] is not None for r in m.recognitions]
+    assert [r["kind"] in ("right", "wrong") for r in rows] == named
+    assert any(r["kind"] == "right" for r in rows)
+    # every gist scored for every recognition with candidates, as a correlation
+    keys = set(bf.AREAS) | {bf.GRADIENT}
+    scored = [r["familiarity"] for r in rows if r["familiarity"]]
+    assert scored and all(set(f) == keys and all(-1.0 <= v <= 1.0 + 1e-6 for v in f.values()) for f in scored)
+    # the correlation: 1 for a gist with itself; a gist panned by one cell matches only when shifts are allowed
+    rng = np.random.default_rng(0)
+    a = rng.random((6, 10)).astype(np.float32)
+    b = np.roll(a, 1, axis=1)
+    assert bf.correlation(a, a, 0) == pytest.approx(1.0)
+    assert bf.correlation(a, b, 0) < 0.9 and bf.correlation(b, a, 2) == pytest.approx(1.0)

@@ -459,13 +459,18 @@ def test_trace_step_dict_equals_dataclasses_asdict():
     "freqs", [None, (0.0211, 0.0151, 0.0108, 0.0077, 0.0055, 0.004, 0.0028, 0.002, 0.0014)], ids=["default", "reversed"]
 )
 def test_one_pair_decode_equals_the_batched_expressions(freqs):
-    """The one-pair decode (its own path) gives what the batched expressions give for that pair, for
-    points on and off the working view, and with the coarse modules not first (a gather, not a slice)."""
+    """The one-pair decode (its own path, scalar steps and one cosine per cost) gives what the batched
+    expressions give for that pair, for points on and off the working view, for noisy grid states, and
+    with the coarse modules not first (a gather, not a slice)."""
     grid = VisualGridCells(VisualConfig() if freqs is None else VisualConfig(vgc_frequencies=freqs))
     rng = np.random.default_rng(7)
     a = np.concatenate([rng.integers(16, 304, (3000, 2)), rng.integers(-60, 420, (1000, 2))]).astype(float)
     b = np.concatenate([rng.integers(16, 304, (3000, 2)), rng.integers(-60, 420, (1000, 2))]).astype(float)
-    za, zb = grid._project(grid.encode(a)), grid._project(grid.encode(b))
+    ga, gb = grid.encode(a), grid.encode(b)
+    noisy = slice(0, 1000)  # the first thousand pairs again with sigma 0.1 noise on both grid states
+    ga = np.concatenate([ga, ga[noisy] + rng.normal(0.0, 0.1, ga[noisy].shape)])
+    gb = np.concatenate([gb, gb[noisy] + rng.normal(0.0, 0.1, gb[noisy].shape)])
+    za, zb = grid._project(ga), grid._project(gb)
     deltas = np.angle(zb * np.conj(za))
     for d in deltas:
         assert np.array_equal(grid.decode_phase_difference(d), reference_decode_phase_difference(grid, d))
@@ -580,3 +585,11 @@ def test_candidate_ids_are_checked_like_one_by_one():
     for bad in ([4], [-1, 2], [1, 2.5], [2**70], ["1"]):
         with pytest.raises(InputError):
             mem._candidate_frames(bad)
+
+
+def test_one_point_phase_code_equals_encode_then_project():
+    """The saccade loop's phasors of one point are those of the public encode and projection, bit for bit."""
+    grid = VisualGridCells()
+    rng = np.random.default_rng(11)
+    for p in np.concatenate([rng.integers(-60, 420, (300, 2)), rng.random((100, 2)) * 400]).astype(float):
+        assert np.array_equal(grid._phase_code_one(p), grid._project(grid.encode(p)))
