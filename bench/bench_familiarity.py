@@ -23,7 +23,6 @@ and of the recognitions that named none although a candidate was near.
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 from pathlib import Path
 from typing import Any
@@ -33,7 +32,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench_mapper_parts import FUTILE_M  # noqa: E402
+from bench_mapper_parts import FUTILE_M, nearest_learned_m  # noqa: E402
 from hippomap.cli.run import dataset_config, open_dataset  # noqa: E402
 from hippomap.config import HippomapConfig  # noqa: E402
 from hippomap.eval.evaluation import groundtruth_at  # noqa: E402
@@ -103,16 +102,11 @@ def record(folder: Path) -> tuple[list[dict[str, Any]], Mapper]:
             m.observe(e.load())
     gt = dataset.groundtruth
     where = {f: groundtruth_at(gt, t) for f, (t, _) in learned.items()}
-
-    def away(f: int, now: np.ndarray | None) -> float:
-        p = where.get(f)
-        return math.nan if p is None or now is None else float(np.hypot(*(p[:2] - now[:2])))
-
     rows = []
     for t, g, candidates, named, fixations in asked:
         now = groundtruth_at(gt, t)
         cands = [c for c in candidates if c in learned]
-        near = min((away(c, now) for c in cands), default=math.nan)
+        near = nearest_learned_m(where, cands, now)
         fam = {
             k: max(correlation(g[k], learned[c][1][k], AREAS[k][1] if k in AREAS else 0) for c in cands)
             for k in g
@@ -120,7 +114,7 @@ def record(folder: Path) -> tuple[list[dict[str, Any]], Mapper]:
         }
         kind = "futile" if not near < FUTILE_M else "missed"
         if named is not None:
-            kind = "right" if away(named, now) < FUTILE_M else "wrong"
+            kind = "right" if nearest_learned_m(where, [named], now) < FUTILE_M else "wrong"
         rows.append({"kind": kind, "fixations": fixations, "familiarity": fam})
     return rows, m
 
@@ -136,13 +130,13 @@ def report(name: str, rows: list[dict[str, Any]]) -> None:
         return
     heads = ("threshold", 9), ("futile skipped", 15), ("fixations skipped", 18), ("missed skipped", 15)
     print(f"  {'gist':16s} " + " ".join(f"{h:>{w}s}" for h, w in heads))
+    fut, mis = kinds["futile"], kinds["missed"]
     for k in right[0]["familiarity"]:
         thr = min(r["familiarity"][k] for r in right)
 
         def below(rs: list[dict[str, Any]], k: str = k, thr: float = thr) -> list[dict[str, Any]]:
             return [r for r in rs if r["familiarity"] and r["familiarity"][k] < thr]
 
-        fut, mis = kinds["futile"], kinds["missed"]
         skipped_fix = sum(r["fixations"] for r in below(fut)) / max(fix, 1)
         print(
             f"  {k:16s} {thr:9.3f} {len(below(fut)) / max(len(fut), 1):15.2f} {skipped_fix:18.2f}"

@@ -147,11 +147,7 @@ class PartTimer:
         """Set ``truth_m`` of the recognitions noted by :meth:`wrap_truth` from the ground truth ``gt``."""
         learned = {f: groundtruth_at(gt, t) for f, t in self._learned_t.items()}
         for i, t, candidates in self._asked:
-            now = groundtruth_at(gt, t)
-            where = [learned[c][:2] for c in candidates if learned.get(c) is not None]
-            if now is not None and where:
-                d = np.asarray(where, float) - np.asarray(now[:2], float)
-                self.recognitions[i].truth_m = float(np.min(np.hypot(*d.T)))
+            self.recognitions[i].truth_m = nearest_learned_m(learned, candidates, groundtruth_at(gt, t))
 
     def wrap_windows(self, cmap: Any) -> None:
         """Keep the size of every local solve's window (``CognitiveMap._local_window``: None for a whole solve)."""
@@ -168,6 +164,16 @@ class PartTimer:
     def mark(self, seconds: float) -> None:
         self.total += seconds
         self.rows.append({**self.acc, "total": self.total})
+
+
+def nearest_learned_m(learned_at: dict[int, np.ndarray | None], frames: Any, now: np.ndarray | None) -> float:
+    """How far from the true pose ``now`` the nearest of the key frames ``frames`` was learned, by their true
+    poses ``learned_at`` (frame -> pose, None where the ground truth has a gap); nan when nothing is known."""
+    where = [learned_at[c][:2] for c in frames if learned_at.get(c) is not None]
+    if now is None or not where:
+        return math.nan
+    d = np.asarray(where, float) - np.asarray(now[:2], float)
+    return float(np.min(np.hypot(*d.T)))
 
 
 def run(folder: Path, config: HippomapConfig | None) -> tuple[PartTimer, Mapper]:

@@ -123,19 +123,20 @@ class VisualGridCells:
             raise InputError(f"fixation points must have shape (..., 2), got {x.shape}")
         if not np.all(np.isfinite(x)):
             raise InputError("fixation points must be finite")
+        return self._rates(x).reshape(x.shape[:-1] + (self.n_cells,))
+
+    def _rates(self, x: np.ndarray) -> np.ndarray:
+        """The rates of checked float points ``x`` (..., 2) per module and offset: (..., M, C)."""
         # cos(F b.x + b.o) = cos(F b.x) cos(b.o) - sin(F b.x) sin(b.o): 27 trig calls per point
-        phi = self.F[:, None] * (x @ self.b.T)[..., None, :]  # (..., M, 3)
+        phi = self._F_col * (x @ self._bT)[..., None, :]  # (..., M, 3)
         s = np.cos(phi) @ self._cos_bo - np.sin(phi) @ self._sin_bo  # (..., M, C)
-        r = np.maximum(0.0, s) / 3.0
-        return r.reshape(x.shape[:-1] + (self.n_cells,))
+        return np.maximum(0.0, s) / 3.0
 
     def _phase_code_one(self, x: np.ndarray) -> np.ndarray:
-        """``_project(encode(x))`` of one finite point ``x`` (2,) float: the module phasors (M, 3) by the
-        same operations on the same operands, without the checks and reshapes of the two public steps (the
-        saccade loop calls it with whole-pixel points it made itself)."""
-        phi = self._F_col * (x @ self._bT)  # (M, 3)
-        s = np.cos(phi) @ self._cos_bo - np.sin(phi) @ self._sin_bo  # (M, C)
-        return (np.maximum(0.0, s) / 3.0) @ self._proj
+        """``_project(encode(x))`` of one finite point ``x`` (2,) float: the module phasors (M, 3), from the
+        rates without the checks and reshapes of the two public steps (the saccade loop calls it with
+        whole-pixel points it made itself)."""
+        return self._rates(x) @ self._proj
 
     # -- decoding ---------------------------------------------------------------------
     def phases(self, g: Any) -> np.ndarray:
