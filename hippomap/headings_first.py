@@ -8,11 +8,12 @@ poses a closing link that carries a radian of heading error or more can leave Ga
 settled with that error spread wrongly; from these poses it converges in a few iterations.
 
 * :func:`rotation_first_init` — the re-initialisation, in place, in three named steps: the held
-  nodes (:func:`_held_nodes`), the headings with the odometry's heading bias
-  (:func:`_solve_headings`), the positions (:func:`_solve_positions`).
-* :func:`_laplacian_solve` — the weighted least squares both steps are: ``min Σ_k w_k
+  nodes (:func:`_free_nodes`), the headings with the odometry's heading bias
+  (:func:`_solve_headings`), the positions (:func:`_solve_positions`);
+  :func:`rotation_first_inits` the same from several branches of the wrapped heading residuals.
+* :class:`_Laplacian` — the weighted least squares both steps are: ``min Σ_k w_k
   (u_dst − u_src + extra_k β − b_k)²``, on the fill-reducing orders and the symmetric sparse LU
-  of :mod:`hippomap.least_squares`.
+  of :mod:`hippomap.least_squares`, factorised once for every branch.
 """
 
 from __future__ import annotations
@@ -26,65 +27,88 @@ from .lsq_layout import _spd_factor, group_order
 from .relaxation import _as_graph, _wrap_inplace
 
 
-def _laplacian_solve(
-    n: int,
-    src: np.ndarray,
-    dst: np.ndarray,
-    w: np.ndarray,
-    rhs_links: np.ndarray,
-    keep: np.ndarray,
-    extra: np.ndarray | None = None,
-    extra_prior: float = 0.0,
-    extra_start: float = 0.0,
-    order: np.ndarray | None = None,
-):
-    """Weighted least squares ``min Σ_k w_k (u_dst − u_src + extra_k β − b_k)²`` over the nodes in
-    ``keep`` (the others held at 0), for one or more right-hand sides ``b`` (M, C). With ``extra``
-    (M,), one more unknown β shared by all links: the change of a parameter now at ``extra_start``
-    with a zero-mean prior of information ``extra_prior`` (one right-hand side only). ``order``:
-    the kept unknowns (β is unknown ``n``) in a fill-reducing elimination order, as
-    :func:`~hippomap.lsq_layout.group_order` returns it (computed here when None). Returns
-    (N, C), and β (0 without ``extra``)."""
-    m = len(src)
-    rows = np.concatenate([np.arange(m)] * 2)
-    cols = np.concatenate([src, dst])
-    vals = np.concatenate([-np.ones(m), np.ones(m)])
-    nv = n
-    keep = np.asarray(keep, dtype=bool)
-    if extra is not None:
-        rows, cols, vals = np.concatenate([rows, np.arange(m)]), np.append(cols, np.full(m, n)), np.append(vals, extra)
-        nv = n + 1
-        keep = np.append(keep, True)
-    if order is None:
-        ga, gb = src, dst
+class _Laplacian:
+    """The weighted least squares ``min Σ_k w_k (u_dst − u_src + extra_k β − b_k)²`` over the nodes in
+    ``keep`` (the others held at 0), assembled and factorised once for any number of right-hand sides
+    ``b`` (:meth:`solve`). With ``extra`` (M,), one more unknown β shared by all links: the change of a
+    parameter with a zero-mean prior of information ``extra_prior``. ``order``: the kept unknowns (β
+    is unknown ``n``) in a fill-reducing elimination order, as :func:`~hippomap.lsq_layout.group_order`
+    returns it (computed here when None).
+
+    The branches of :func:`rotation_first_inits` differ only in their right-hand sides: one factor
+    serves them all, and each solve is the one a factor of its own would give (the same matrix, the
+    same factor, the same single-column solve)."""
+
+    def __init__(
+        self,
+        n: int,
+        src: np.ndarray,
+        dst: np.ndarray,
+        w: np.ndarray,
+        keep: np.ndarray,
+        extra: np.ndarray | None = None,
+        extra_prior: float = 0.0,
+        order: np.ndarray | None = None,
+    ):
+        m = len(src)
+        rows = np.concatenate([np.arange(m)] * 2)
+        cols = np.concatenate([src, dst])
+        vals = np.concatenate([-np.ones(m), np.ones(m)])
+        nv = n
+        keep = np.asarray(keep, dtype=bool)
         if extra is not None:
-            on = np.flatnonzero(extra != 0)
-            ga, gb = np.concatenate([src, src[on], dst[on]]), np.concatenate([dst, np.full(2 * len(on), n)])
-        order = group_order(nv, ga, gb, keep)
-    col = np.full(nv, -1, dtype=np.int64)
-    col[order] = np.arange(len(order))
-    # the held unknowns are 0: their columns drop out; the others are placed in elimination order
-    ok = col[cols] >= 0
-    A = sp.csr_matrix((vals[ok], (rows[ok], col[cols[ok]])), shape=(m, len(order)))
-    AW = A.T.multiply(w[None, :]).tocsr()
-    deg = np.bincount(src, minlength=nv) + np.bincount(dst, minlength=nv)
-    diag = np.where(deg > 0, 0.0, 1.0)
-    if extra is not None:
-        diag[n] = extra_prior if extra_prior > 0 else 1e-9
-    L = (AW @ A + sp.diags(diag[order])).tocsc()
-    rhs = AW @ rhs_links
-    if extra is not None:
-        rhs[col[n]] -= extra_prior * extra_start
-    out = np.zeros((nv, rhs_links.shape[1]))
-    try:
-        out[order] = _spd_factor(L).solve(rhs)
-    except RuntimeError:  # an exactly zero pivot without pivoting (the dense bias row): pivot, a hair damped
-        reg = sp.diags(np.full(L.shape[0], 1e-9 * max(float(abs(L).max()), 1.0)))
-        out[order] = spla.splu((L + reg).tocsc()).solve(rhs)
-    return out[:n], (float(out[n, 0]) if extra is not None else 0.0)
+            rows = np.concatenate([rows, np.arange(m)])
+            cols, vals = np.append(cols, np.full(m, n)), np.append(vals, extra)
+            nv = n + 1
+            keep = np.append(keep, True)
+        if order is None:
+            ga, gb = src, dst
+            if extra is not None:
+                on = np.flatnonzero(extra != 0)
+                ga, gb = np.concatenate([src, src[on], dst[on]]), np.concatenate([dst, np.full(2 * len(on), n)])
+            order = group_order(nv, ga, gb, keep)
+        col = np.full(nv, -1, dtype=np.int64)
+        col[order] = np.arange(len(order))
+        # the held unknowns are 0: their columns drop out; the others are placed in elimination order
+        ok = col[cols] >= 0
+        A = sp.csr_matrix((vals[ok], (rows[ok], col[cols[ok]])), shape=(m, len(order)))
+        self._AW = AW = A.T.multiply(w[None, :]).tocsr()
+        deg = np.bincount(src, minlength=nv) + np.bincount(dst, minlength=nv)
+        diag = np.where(deg > 0, 0.0, 1.0)
+        if extra is not None:
+            diag[n] = extra_prior if extra_prior > 0 else 1e-9
+        L = (AW @ A + sp.diags(diag[order])).tocsc()
+        try:
+            self._lu = _spd_factor(L)
+        except RuntimeError:  # an exactly zero pivot without pivoting (the dense bias row): pivot, a hair damped
+            reg = sp.diags(np.full(L.shape[0], 1e-9 * max(float(abs(L).max()), 1.0)))
+            self._lu = spla.splu((L + reg).tocsc())
+        self._n, self._nv, self._order, self._col = n, nv, order, col
+        self._extra, self._extra_prior = extra is not None, extra_prior
+
+    def solve(self, rhs_links: np.ndarray, extra_start: float = 0.0) -> tuple[np.ndarray, float]:
+        """The unknowns for the right-hand sides ``rhs_links`` (M, C): (N, C), and β (0 without
+        ``extra``; with it, one right-hand side only, its parameter now at ``extra_start``)."""
+        n = self._n
+        rhs = self._AW @ rhs_links
+        if self._extra:
+            rhs[self._col[n]] -= self._extra_prior * extra_start
+        out = np.zeros((self._nv, rhs_links.shape[1]))
+        out[self._order] = self._lu.solve(rhs)
+        return out[:n], (float(out[n, 0]) if self._extra else 0.0)
 
 
-def rotation_first_init(
+def rotation_first_init(poses: np.ndarray, src, dst, transforms, heading_turns=None, **options) -> tuple[float, float]:
+    """:func:`rotation_first_inits` of one branch (``heading_turns``, None for the wrapped reading), the
+    poses re-initialised **in place**: returns the largest position change and the bias. ``options``:
+    ``information``, ``anchor``, ``fixed``, ``bias_dt``, ``bias``, ``bias_information``, as there."""
+    P, src, dst, T = _as_graph(poses, src, dst, transforms, inplace=True)
+    ((Q, shift, new_bias),) = rotation_first_inits(P, src, dst, T, branches=[heading_turns], **options)
+    P[:] = Q
+    return shift, new_bias
+
+
+def rotation_first_inits(
     poses: np.ndarray,
     src,
     dst,
@@ -95,10 +119,11 @@ def rotation_first_init(
     bias_dt=None,
     bias: float = 0.0,
     bias_information: float = 0.0,
-    heading_turns=None,
-) -> tuple[float, float]:
-    """Re-initialise the poses of a pose graph **in place**, headings first (the LAGO idea of
-    Carlone et al., 2014), and return the largest position change.
+    branches=(None,),
+) -> list[tuple[np.ndarray, float, float]]:
+    """Re-initialise the poses of a pose graph headings first (the LAGO idea of Carlone et al., 2014),
+    from the same poses for each of ``branches``: per branch ``(poses, largest position change,
+    bias)``, the poses a new array (``poses`` is left as it is).
 
     Gauss–Newton linearises the rotations; after a long loop the closing link can carry a heading
     error of a radian or more, and from the odometric poses the solve can settle with that error
@@ -110,26 +135,38 @@ def rotation_first_init(
     anchor and ``fixed`` nodes keep their poses; nodes without links keep theirs. Weights:
     ``information`` (M, 3) diagonals (x/y mean for positions), unit when None. With ``bias_dt``
     the odometry's heading bias is solved with the headings (as in
-    :func:`~hippomap.least_squares.solve_lsq`, from ``bias``). ``heading_turns`` (M,): whole turns
-    added to each link's wrapped heading residual, another branch of the wrap (a loop that drifted
-    more than π reads as the opposite drift). Returns the largest position change and the bias.
+    :func:`~hippomap.least_squares.solve_lsq`, from ``bias``).
+
+    A branch is None (each link's heading residual wrapped into (−π, π]) or ``heading_turns`` (M,):
+    whole turns added to each link's wrapped residual, another branch of the wrap (a loop that
+    drifted more than π reads as the opposite drift). The branches share the graph, its weights and
+    its held nodes, so each of the two Laplacians (headings, positions) is assembled and factorised
+    once for all of them (:class:`_Laplacian`); every branch's poses are those a call of
+    :func:`rotation_first_init` of its own gives.
     """
-    P, src, dst, T = _as_graph(poses, src, dst, transforms, inplace=True)
-    n, m = len(P), len(src)
+    P0, src, dst, T = _as_graph(poses, src, dst, transforms)
+    n, m = len(P0), len(src)
     if m == 0:
-        return 0.0, float(bias)
+        return [(P0.copy(), 0.0, float(bias)) for _ in branches]
     info = np.ones((m, 3)) if information is None else np.asarray(information, dtype=float)
     _sqrt_information(info, m)  # checked
     keep = _free_nodes(n, src, anchor, fixed)
     bdt = None if bias_dt is None else np.asarray(bias_dt, dtype=float).reshape(m)
     order = group_order(n, src, dst, keep)  # the node graph's order, for both solves
-    turns = None if heading_turns is None else np.asarray(heading_turns, dtype=float).reshape(m)
-    th, new_bias = _solve_headings(P, src, dst, T, info[:, 2], keep, order, bdt, float(bias), bias_information, turns)
-    dxy = _solve_positions(P, src, dst, T, th, 0.5 * (info[:, 0] + info[:, 1]), keep, order)
-    P[:, :2] += dxy
-    P[:, 2] = th
-    _wrap_inplace(P[:, 2])
-    return float(np.sqrt(np.max(np.sum(dxy * dxy, axis=1)))), new_bias
+    # the bias couples every odometric link, so the headings' order is then computed with it
+    headings = _Laplacian(n, src, dst, info[:, 2], keep, bdt, bias_information, None if bdt is not None else order)
+    positions = _Laplacian(n, src, dst, 0.5 * (info[:, 0] + info[:, 1]), keep, order=order)
+    out = []
+    for heading_turns in branches:
+        P = P0.copy()
+        turns = None if heading_turns is None else np.asarray(heading_turns, dtype=float).reshape(m)
+        th, new_bias = _solve_headings(P, src, dst, T, headings, bdt, float(bias), turns)
+        dxy = _solve_positions(P, src, dst, T, th, positions)
+        P[:, :2] += dxy
+        P[:, 2] = th
+        _wrap_inplace(P[:, 2])
+        out.append((P, float(np.sqrt(np.max(np.sum(dxy * dxy, axis=1)))), new_bias))
+    return out
 
 
 def _free_nodes(n: int, src: np.ndarray, anchor: int | None, fixed) -> np.ndarray:
@@ -151,36 +188,21 @@ def _solve_headings(
     src: np.ndarray,
     dst: np.ndarray,
     T: np.ndarray,
-    w: np.ndarray,
-    keep: np.ndarray,
-    order: np.ndarray,
+    lap: _Laplacian,
     bdt: np.ndarray | None,
     bias: float,
-    bias_information: float,
     turns: np.ndarray | None = None,
 ) -> tuple[np.ndarray, float]:
     """The headings alone: the heading changes that make every link's wrapped heading residual,
-    taken on the current poses ``P``, agree in the least squares with weights ``w`` (M,). With
-    ``bdt`` (M,) the odometry's heading bias (now ``bias``, prior information
-    ``bias_information``) is solved with them; the bias couples every odometric link, so the
-    order is then computed with it rather than the node graph's ``order``. Returns the new
-    headings (N,, unwrapped) and the new bias."""
+    taken on the current poses ``P``, agree in the least squares of ``lap`` (the links' heading
+    weights; with ``bdt`` (M,) the odometry's heading bias, now ``bias``, is solved with them).
+    ``turns`` (M,): whole turns added to the wrapped residuals. Returns the new headings (N,,
+    unwrapped) and the new bias."""
     T_th = T[:, 2] if bdt is None else T[:, 2] - bias * bdt
     e_th = _wrap_inplace(P[dst, 2] - P[src, 2] - T_th)
     if turns is not None:  # another branch of the wrapped residuals: whole turns added
         e_th += 2.0 * np.pi * turns
-    sol, dbias = _laplacian_solve(
-        len(P),
-        src,
-        dst,
-        w,
-        -e_th[:, None],
-        keep,
-        extra=bdt,
-        extra_prior=bias_information,
-        extra_start=bias,
-        order=None if bdt is not None else order,
-    )
+    sol, dbias = lap.solve(-e_th[:, None], extra_start=bias)
     return P[:, 2] + sol[:, 0], bias + dbias
 
 
@@ -190,14 +212,12 @@ def _solve_positions(
     dst: np.ndarray,
     T: np.ndarray,
     th: np.ndarray,
-    w: np.ndarray,
-    keep: np.ndarray,
-    order: np.ndarray,
+    lap: _Laplacian,
 ) -> np.ndarray:
     """The positions once the headings ``th`` are known, linear: the change (N, 2) of the
-    positions ``P[:, :2]`` that minimises ``Σ w |p_j − p_i − R(θ_i) t_xy|²`` with the held nodes
-    where they are."""
+    positions ``P[:, :2]`` that minimises ``Σ w |p_j − p_i − R(θ_i) t_xy|²`` (the least squares of
+    ``lap``) with the held nodes where they are."""
     c, s = np.cos(th[src]), np.sin(th[src])
     b = np.column_stack([c * T[:, 0] - s * T[:, 1], s * T[:, 0] + c * T[:, 1]])
     r = P[dst, :2] - P[src, :2] - b
-    return _laplacian_solve(len(P), src, dst, w, -r, keep, order=order)[0]
+    return lap.solve(-r)[0]

@@ -49,7 +49,7 @@ def _group_order(n_groups: int, a: np.ndarray, b: np.ndarray, keep: np.ndarray) 
     unknowns, a ninth of the entries) orders them with about the fill of an order of the unknowns
     (measured: the same on a 407-node simulated loop map). The order is computed once per solve and
     reused by every factorisation of the solve (the Gauss–Newton iterations and their damped
-    retries, the two Laplacian solves of :func:`~hippomap.headings_first.rotation_first_init`) instead of once per
+    retries, the two Laplacian solves of :func:`~hippomap.headings_first.rotation_first_inits`) instead of once per
     factorisation, where SuperLU's ordering cost more than the factorisation itself.
     Returns the ids of the kept groups in elimination order."""
     kept = np.flatnonzero(keep)

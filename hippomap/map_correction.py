@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from .headings_first import rotation_first_init
+from .headings_first import rotation_first_inits
 from .least_squares import bias_sigma, graph_cost, solve_lsq
 from .loop_closure import USED_WEIGHT, link_errors
 from .map_events import MapEvent, MapRelaxed
@@ -274,9 +274,9 @@ class MapCorrection(MapGraph):
         b0 = float(bias.get("bias", 0.0))
         coupling = self._lcoup[: self._m]
         best_cost, best = graph_cost(P, src, dst, tr, info, coupling=coupling, **bias), None
-        for turns in self._heading_branches(P):
-            Q = P.copy()
-            _, b = rotation_first_init(Q, src, dst, tr, info, anchor=0, heading_turns=turns, **bias)
+        branches = self._heading_branches(P)
+        inits = rotation_first_inits(P, src, dst, tr, info, anchor=0, branches=branches, **bias)
+        for turns, (Q, _, b) in zip(branches, inits):
             cost = graph_cost(Q, src, dst, tr, info, coupling=coupling, **{**bias, "bias": b})
             # another branch must explain the map clearly better than the wrapped reading, at an ordinary rate
             if turns is None:

@@ -5,9 +5,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from hippomap import headings_first
 from hippomap.errors import InputError
 from hippomap.geometry import between, compose, integrate
-from hippomap.headings_first import rotation_first_init
+from hippomap.headings_first import rotation_first_init, rotation_first_inits
 from hippomap.least_squares import graph_cost, solve_lsq
 from hippomap.relaxation import (
     MAX_COLOURS,
@@ -372,6 +373,42 @@ def test_rotation_first_init_takes_a_loop_past_half_a_turn_the_way_it_is_told():
     same = odo.copy()
     rotation_first_init(same, src, dst, T, information=info, heading_turns=np.zeros(len(src)), **bias)
     np.testing.assert_array_equal(same, wrapped)  # no turns: the wrapped reading
+
+
+@pytest.mark.parametrize("with_bias", [False, True])
+def test_branches_share_one_factor_and_give_each_call_s_own_poses(with_bias, monkeypatch):
+    """``rotation_first_inits`` factorises the two Laplacians once for every branch: each branch's
+    poses, shift and bias are bit for bit those of a ``rotation_first_init`` call of its own, and the
+    poses it starts from are left alone."""
+    side = 60
+    gt, _, src, dst, T = square_loop(side_nodes=side, spacing=0.2, bias=0.0)
+    n = len(gt)
+    T = T.copy()
+    T[:-1, 2] += 4.0 / (n - 1)
+    odo = integrate(T[:-1])
+    info = np.tile([1810.0, 1810.0, 900.0], (len(src), 1))
+    bias = {"bias_dt": np.append(np.ones(n - 1), 0.0), "bias_information": 1.0 / 0.02**2} if with_bias else {}
+    branches = [None]
+    for k in (-2, -1, 1, 2):
+        turns = np.zeros(len(src))
+        turns[-1] = k
+        branches.append(turns)
+    factored = []
+    factor = headings_first._spd_factor
+    monkeypatch.setattr(headings_first, "_spd_factor", lambda L: factored.append(L.shape) or factor(L))
+    start = odo.copy()
+    inits = rotation_first_inits(start, src, dst, T, info, anchor=0, branches=branches, **bias)
+    np.testing.assert_array_equal(start, odo)
+    assert len(factored) == 2  # headings and positions, once for the five branches
+    monkeypatch.undo()
+    assert len(inits) == len(branches)
+    for turns, (Q, shift, b) in zip(branches, inits):
+        one = odo.copy()
+        shift1, b1 = rotation_first_init(one, src, dst, T, information=info, heading_turns=turns, **bias)
+        np.testing.assert_array_equal(Q, one)
+        assert (shift, b) == (shift1, b1)
+    # the branches differ: a whole turn more on the closing link is another map
+    assert not np.array_equal(inits[0][0], inits[1][0])
 
 
 @settings(max_examples=25, deadline=None)
