@@ -30,7 +30,7 @@ from server.runtime.mapper_host import InProcessHost
 from server.settings import ServerSettings
 from server.storage.sqlite import SQLiteStore
 from tests.support.live import ROOT, LiveServer, stream_items
-from tests.support.ray_head import local_ray_head, ray_test_env
+from tests.support.ray_head import local_ray_head, ray_auth_env, ray_test_env
 from tests.support.reference import offline_reference, session_state
 from tests.support.synthetic import synthetic_inputs
 from tests.worker_harness import assert_host_matches_inprocess, run_worker
@@ -43,24 +43,18 @@ ITEMS = synthetic_inputs(n_odometry=400, frame_every=3)  # 1.6 laps: loops are c
 def ray_driver():
     """This test process joined to the test run's Ray head (as a server would)."""
     head = local_ray_head()
-    saved = {k: os.environ.get(k) for k in head.env}
-    os.environ.update(head.env)  # before Ray is imported: it reads its auth mode then
-    import ray
+    with ray_auth_env(head):  # Ray may have been imported by an earlier test of this process
+        import ray
 
-    from server.runtime.ray_backend import RayBackend
+        from server.runtime.ray_backend import RayBackend
 
-    backend = RayBackend(ServerSettings(backend="ray", ray_address=head.address, ray_max_batch=8))
-    backend.start()
-    try:
-        yield backend
-    finally:
-        backend.shutdown()
-        assert not ray.is_initialized()
-        for k, v in saved.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
+        backend = RayBackend(ServerSettings(backend="ray", ray_address=head.address, ray_max_batch=8))
+        backend.start()
+        try:
+            yield backend
+        finally:
+            backend.shutdown()
+            assert not ray.is_initialized()
 
 
 def test_inprocess_and_ray_hosts_give_identical_results(ray_driver):

@@ -1,16 +1,19 @@
 """Ray for tests and benchmarks: a private Ray head on loopback that the test servers join.
 
 :func:`local_ray_head` starts one :class:`LocalRayHead` per test run (stopped at exit);
-:func:`ray_test_env` is the environment a Ray-backed test server needs to join it.
+:func:`ray_test_env` is the environment a Ray-backed test server needs to join it, and
+:func:`ray_auth_env` puts the same authentication into this process for a test that joins it in process.
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import subprocess
 import sys
 import threading
+from collections.abc import Iterator
 from pathlib import Path
 
 from .live import ROOT
@@ -167,6 +170,38 @@ def local_ray_head() -> LocalRayHead:
         if _RAY_HEAD is None or _RAY_HEAD.proc is None:
             _RAY_HEAD = LocalRayHead().start()
         return _RAY_HEAD
+
+
+def _reload_ray_auth() -> None:
+    """Make an already imported Ray read its authentication settings from the environment again.
+
+    Ray reads ``RAY_AUTH_MODE`` and the token once and caches them. A test process that imported Ray
+    before the variables were set (another test file run earlier in the same process) would otherwise
+    join the head without its token and be refused. Nothing to do when Ray is not imported yet: it
+    reads the environment when it is. Ray's own tests reload it this way."""
+    if "ray" in sys.modules:
+        from ray._private.authentication_test_utils import reset_auth_token_state
+
+        reset_auth_token_state()
+
+
+@contextlib.contextmanager
+def ray_auth_env(head: LocalRayHead) -> Iterator[None]:
+    """This process's environment with the head's token authentication (``head.env``), as a server
+    that joins it has: for a test that joins the head in process. The environment and Ray's
+    authentication state are restored on the way out."""
+    saved = {k: os.environ.get(k) for k in head.env}
+    os.environ.update(head.env)
+    _reload_ray_auth()
+    try:
+        yield
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+        _reload_ray_auth()
 
 
 def ray_test_env(data_dir: Path) -> dict[str, str]:
