@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -22,16 +21,12 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from hippomap.visual_grid_cells import VisualGridCells  # noqa: E402
+from timing import timings  # noqa: E402
 
 
 def best_us(fn: Callable[[], object], n: int, repeats: int) -> float:
     """Best of ``repeats`` timings of ``fn`` (which does ``n`` items), in microseconds per item."""
-    best = float("inf")
-    for _ in range(repeats):
-        t = time.perf_counter()
-        fn()
-        best = min(best, time.perf_counter() - t)
-    return best / n * 1e6
+    return float(timings(fn, repeats).min()) / n * 1e6
 
 
 def main() -> int:

@@ -37,6 +37,7 @@ from hippomap.relaxation import (  # noqa: E402
     relax_jacobi,
     relax_ors_reference,
 )
+from timing import timings  # noqa: E402
 
 
 def chain_with_loops(n: int, seed: int = 0):
@@ -64,15 +65,6 @@ def chain_with_loops(n: int, seed: int = 0):
     return start, src, dst, T
 
 
-def timeit(fn, repeats: int) -> np.ndarray:
-    out = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        out.append(time.perf_counter() - t0)
-    return np.array(out)
-
-
 def ms(a: np.ndarray) -> str:
     return f"median {np.median(a) * 1e3:8.2f} ms  p95 {np.percentile(a, 95) * 1e3:8.2f} ms"
 
@@ -84,10 +76,10 @@ def sweep_costs(sizes, repeats):
         colours = edge_colouring(src, dst, n)
         groups = ColourGroups(src, dst, T, colours, n)
         P = P0.copy()
-        t_relax = timeit(lambda: relax(P, src, dst, T, 1, groups=groups), repeats)
-        t_groups = timeit(lambda: ColourGroups(src, dst, T, colours, n, check=False), max(3, repeats // 4))
+        t_relax = timings(lambda: relax(P, src, dst, T, 1, groups=groups), repeats)
+        t_groups = timings(lambda: ColourGroups(src, dst, T, colours, n, check=False), max(3, repeats // 4))
         P = P0.copy()
-        t_jac = timeit(lambda: relax_jacobi(P, src, dst, T, 1), repeats)
+        t_jac = timings(lambda: relax_jacobi(P, src, dst, T, 1), repeats)
         print(f"  N={n:>7,} nodes, {len(src):>7,} links, {colours.max() + 1} colours")
         print(
             f"    relax (vectorised ORS)   {ms(t_relax)}   (+ grouping by colour once per change: "
@@ -96,7 +88,7 @@ def sweep_costs(sizes, repeats):
         print(f"    relax_jacobi             {ms(t_jac)}")
         if n <= 10_000:
             P = P0.copy()
-            t_ref = timeit(lambda: relax_ors_reference(P, src, dst, T, 1), max(3, repeats // 5))
+            t_ref = timings(lambda: relax_ors_reference(P, src, dst, T, 1), max(3, repeats // 5))
             print(
                 f"    ORS reference (Python)   {ms(t_ref)}   "
                 f"ratio ref/relax {np.median(t_ref) / np.median(t_relax):6.1f}x"
@@ -114,7 +106,7 @@ def lsq_costs(sizes, repeats):
             P = P0.copy()
             its.append(solve_lsq(P, src, dst, T, iterations=10).iterations)
 
-        t = timeit(run, repeats if n < 100_000 else max(2, repeats // 5))
+        t = timings(run, repeats if n < 100_000 else max(2, repeats // 5))
         print(
             f"  N={n:>7,} nodes, {len(src):>7,} links: {ms(t)}   GN iterations {int(np.median(its))}"
             f"   per iteration {np.median(t) / np.median(its) * 1e3:.1f} ms"

@@ -15,7 +15,6 @@ from __future__ import annotations
 import argparse
 import math
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -26,18 +25,14 @@ from hippomap.cognitive_map import LINK_KINDS  # noqa: E402
 from hippomap.config import SpatialConfig  # noqa: E402
 from hippomap.spatial_pathway import SpatialPathway  # noqa: E402
 from hippomap.viz.place_field_figure import place_field_figure  # noqa: E402
+from timing import timings  # noqa: E402
 from web.scene.camera_fit import fit_camera  # noqa: E402
 from web.scene.replay import replay_at  # noqa: E402
 from web.snapshot import MapSnapshot  # noqa: E402
 
 
 def _best(fn, repeat: int) -> float:
-    out = []
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        fn()
-        out.append(time.perf_counter() - t0)
-    return min(out)
+    return float(timings(fn, repeat).min())
 
 
 def _synthetic_map(n: int, rng: np.random.Generator) -> tuple[MapSnapshot, np.ndarray]:

@@ -44,7 +44,7 @@ class MapCorrection(MapGraph):
         correction agreed with the poses, as a new node's odometric link does): between loop
         closures the cost per step does not grow with the map. After a closure, 'relax' runs
         ``relax_loops`` sweeps per step until the largest shift of a sweep falls below
-        ``relax_tolerance_m``; 'lsq' and 'gtsam' solve at once. Once converged, the loop links'
+        ``relax_tolerance_m``; 'lsq' solves at once. Once converged, the loop links'
         robust weights are revised (:meth:`_reweight`); a change of weight starts it again.
         """
         m, n = self._m, self._n

@@ -460,3 +460,37 @@ def test_familiarity_bench_sees_every_recognition_and_compares_gists(short_run):
     b = np.roll(a, 1, axis=1)
     assert bf.correlation(a, a, 0) == pytest.approx(1.0)
     assert bf.correlation(a, b, 0) < 0.9 and bf.correlation(b, a, 2) == pytest.approx(1.0)
+
+
+def test_solver_bench_records_the_maps_whole_solves_and_feeds_each_link_once(short_run):
+    import bench_solvers
+    from hippomap.least_squares import graph_cost, solve_lsq
+    from hippomap.map_correction import MapCorrection
+
+    whole, optimise = MapCorrection._whole_solve, MapCorrection._optimise
+    problems, calls = bench_solvers.record_run(short_run, None)
+    # the map's own methods are back once the run is recorded
+    assert (MapCorrection._whole_solve, MapCorrection._optimise) == (whole, optimise)
+    assert problems and calls and all(s >= 0 for _, s in calls)
+    for p in problems:
+        n, m = len(p.poses), len(p.src)
+        assert p.poses.shape == (n, 3) and p.transforms.shape == p.information.shape == (m, 3)
+        assert max(p.src.max(), p.dst.max()) < n and np.all(p.information > 0)
+    # the map grows between its whole solves, and each one holds at least the nodes' chain
+    assert [len(p.poses) for p in problems] == sorted(len(p.poses) for p in problems)
+    last = problems[-1]
+    n = len(last.poses)
+    assert len(last.src) >= n - 1
+    batches = bench_solvers.incremental_batches(last.src, last.dst, n)
+    # every link once, at the node that completes it, in link order within a node
+    assert len(batches) == n
+    assert sorted(np.concatenate(batches).tolist()) == list(range(len(last.src)))
+    for k, b in enumerate(batches):
+        assert np.all(np.maximum(last.src[b], last.dst[b]) == k) and np.all(np.diff(b) > 0)
+    # a recorded problem is the map's pose graph: hippomap's solve lowers its cost
+    rows = bench_solvers.thirds_by_node(np.array([c[0] for c in calls]), np.array([c[1] for c in calls]), n)
+    assert rows[0] >= rows[1] + rows[2] - 1e-12
+    before = graph_cost(last.poses, last.src, last.dst, last.transforms, information=last.information)
+    q = last.poses.copy()
+    solve_lsq(q, last.src, last.dst, last.transforms, 10, 0, 1e-4, information=last.information)
+    assert graph_cost(q, last.src, last.dst, last.transforms, information=last.information) <= before
