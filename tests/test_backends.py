@@ -13,6 +13,7 @@
 from __future__ import annotations
 
 import asyncio
+import logging
 import os
 import signal
 import subprocess
@@ -224,6 +225,33 @@ def test_missing_ray_is_a_clear_error(monkeypatch, tmp_path, capsys):
         RayBackend(ServerSettings(backend="ray"))
     assert cli.main(["--backend", "ray", "--port", "0", "--data-dir", str(tmp_path)]) == 2
     assert 'pip install "hippomap[ray]"' in capsys.readouterr().err
+
+
+def test_ray_imported_before_the_backend_is_named_when_a_token_is_at_hand(monkeypatch, caplog):
+    """Ray reads its authentication mode once, on import: when something imported it before the backend
+    could ask for token authentication, the backend says so instead of leaving an invalid-token error."""
+    import types
+
+    from server.runtime.ray_backend import require_ray
+
+    fake = types.ModuleType("ray")
+    monkeypatch.setitem(sys.modules, "ray", fake)  # imported earlier in this process
+    monkeypatch.delenv("RAY_AUTH_MODE", raising=False)
+    monkeypatch.setenv("RAY_AUTH_TOKEN", "a" * 32)
+    with caplog.at_level(logging.WARNING, logger="hippomap.server"):
+        assert require_ray() is fake
+    assert "RAY_AUTH_MODE=token" in caplog.text and "imported" in caplog.text
+    assert "RAY_AUTH_MODE" not in os.environ  # the backend does not pretend to fix it
+    caplog.clear()
+    monkeypatch.setenv("RAY_AUTH_MODE", "token")  # asked for before the import: nothing to say
+    with caplog.at_level(logging.WARNING, logger="hippomap.server"):
+        require_ray()
+    monkeypatch.delenv("RAY_AUTH_MODE")
+    monkeypatch.delenv("RAY_AUTH_TOKEN")
+    monkeypatch.setenv("RAY_AUTH_TOKEN_PATH", "/nonexistent/ray-token")  # no token at hand: nothing to say
+    with caplog.at_level(logging.WARNING, logger="hippomap.server"):
+        require_ray()
+    assert caplog.text == ""
 
 
 def test_bad_backend_is_refused(monkeypatch, capsys):

@@ -49,21 +49,38 @@ RAY_MISSING = 'the Ray backend needs Ray, which is not installed: pip install "h
 ACTOR_CONCURRENCY = 4  # a query may run while the actor processes a batch (between two inputs)
 
 
+def _token_unset() -> bool:
+    """A Ray token is at hand (``RAY_AUTH_TOKEN``, or the file of ``RAY_AUTH_TOKEN_PATH`` or Ray's
+    default path) but ``RAY_AUTH_MODE`` does not say to use it."""
+    return "RAY_AUTH_MODE" not in os.environ and bool(
+        os.environ.get("RAY_AUTH_TOKEN")
+        or Path(os.environ.get("RAY_AUTH_TOKEN_PATH") or "~/.ray/auth_token").expanduser().is_file()
+    )
+
+
 def _ray_env() -> None:
     """Environment Ray reads when it is first imported: no usage statistics; token authentication
     when a token is at hand (Ray does so by itself only for a Ray it starts, not for one it joins)."""
     os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
-    if "RAY_AUTH_MODE" not in os.environ and (
-        os.environ.get("RAY_AUTH_TOKEN")
-        or Path(os.environ.get("RAY_AUTH_TOKEN_PATH") or "~/.ray/auth_token").expanduser().is_file()
-    ):
+    if _token_unset():
         os.environ["RAY_AUTH_MODE"] = "token"
 
 
 def require_ray() -> Any:
-    """The ``ray`` module, or a RuntimeError that says how to install it."""
+    """The ``ray`` module, or a RuntimeError that says how to install it.
+
+    Ray reads its authentication mode once, when it is first imported. When something else in this
+    process imported Ray before the backend could set token authentication for a token at hand, Ray
+    will join a cluster without it, and a cluster that requires its token refuses the connection
+    with an error about an invalid token: the warning logged here names the cause."""
     if "ray" not in sys.modules:
         _ray_env()
+    elif _token_unset():
+        log.warning(
+            "Ray was imported before the Ray backend could set RAY_AUTH_MODE=token for the Ray token at hand: "
+            "a cluster that requires its token will refuse this process. Set RAY_AUTH_MODE=token before "
+            "anything imports Ray."
+        )
     try:
         import ray
     except ImportError as exc:
