@@ -527,6 +527,15 @@ class MapConfig(_Frozen):
     lsq_window_residual_m: float = Field(
         0.5, gt=0, description="largest residual of a changed link that still counts as a local correction [ours]"
     )
+    lsq_window_iterations: int | None = Field(
+        1,
+        ge=1,
+        description="Gauss-Newton iterations of a local solve (a re-localisation whose changed links all agree "
+        "with the map within lsq_window_residual_m): the problem is nearly linear at the current poses, so one "
+        "linear solve is its solution to a few mm, as iSAM2 applies one linear update per step and relinearises "
+        "later; the next local solve and the whole solves take up what is left. None = lsq_iterations "
+        "[ours, docs/MODEL.md item 64]",
+    )
     lsq_window_max_fraction: float = Field(
         0.9,
         gt=0,

@@ -136,7 +136,7 @@ class MapCorrection(MapGraph):
                 local[src[links]],
                 local[dst[links]],
                 tr[links],
-                iterations=cfg.lsq_iterations,
+                iterations=cfg.lsq_window_iterations or cfg.lsq_iterations,
                 tol=cfg.lsq_step_tolerance,
                 anchor=None,
                 information=info[links],

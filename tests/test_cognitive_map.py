@@ -1,6 +1,7 @@
 """The cognitive map: node creation (Eq. 12-13), online and batch pruning (Eq. 15), loop closure
 through propose_loop, relaxation after each action, state round trip and input validation."""
 
+import dataclasses
 import json
 import math
 
@@ -713,6 +714,42 @@ def test_the_step_tolerance_saves_solves_not_accuracy():
     assert n_loose < n_tight, (n_loose, n_tight)
     assert rms_xy(loose, tight) < 1e-3
     assert rms_xy(loose, gt) < rms_xy(tight, gt) + 1e-3
+
+
+def test_a_local_solve_takes_one_linear_step():
+    """lsq_window_iterations 1: a re-localisation's local solve (every changed link agrees with the map
+    within lsq_window_residual_m) is one Gauss-Newton step, nearly exact on such a small change; over
+    three laps of re-localisation the map's solves take fewer linear solves and end on the map that
+    solving each local window to convergence gives, within a centimetre."""
+    inc, gt, noisy, first_lap = biased_square(side=8.0, laps=3)
+    exact = true_loops(gt, first_lap)
+
+    def measured(k, cmap, node_at, off):  # each closure measured with a few centimetres of error, as a view's
+        hyps = exact(k, cmap, node_at, off)
+        err = np.random.default_rng(k).normal(0.0, [0.05, 0.05, 0.02])
+        return [dataclasses.replace(h, transform=tuple(np.asarray(h.transform) + err)) for h in hyps]
+
+    runs = {}
+    for cap in (None, 1):
+        cmap = CognitiveMap(MapConfig(prune_online=False, loop_transform_radius_m=3.0, lsq_window_iterations=cap))
+        steps: list[int] = []
+        original = cmap._solve_lsq
+
+        def spy(window, rotation_init=True, original=original, steps=steps):
+            res, converged = original(window, rotation_init)
+            if window is not None:
+                steps.append(res.iterations)
+            return res, converged
+
+        cmap._solve_lsq = spy
+        node_at, off, _ = drive(cmap, noisy, hypotheses=measured)
+        runs[cap] = (corrected(cmap, node_at, off), steps)
+    (full, full_steps), (one, one_steps) = runs[None], runs[1]
+    assert full_steps and one_steps, "no correction was solved locally"
+    assert max(one_steps) == 1 and max(full_steps) > 1
+    assert sum(one_steps) < sum(full_steps)
+    assert rms_xy(one, full) < 0.01
+    assert rms_xy(one, gt) < rms_xy(full, gt) + 0.01
 
 
 def test_lsq_holds_fixed_nodes():
