@@ -469,7 +469,7 @@ def test_solver_bench_records_the_maps_whole_solves_and_feeds_each_link_once(sho
 
     whole, optimise = MapCorrection._whole_solve, MapCorrection._optimise
     problems, calls = bench_solvers.record_run(short_run, None)
-    # the map's own methods are back once the run is recorded
+    # the recorder shadows the methods of its own map only: the class is left as it is
     assert (MapCorrection._whole_solve, MapCorrection._optimise) == (whole, optimise)
     assert problems and calls and all(s >= 0 for _, s in calls)
     for p in problems:
