@@ -30,9 +30,11 @@ other: a burst of load on a shared machine then falls on both alike.
 from __future__ import annotations
 
 import argparse
+import atexit
 import importlib
 import io
 import math
+import shutil
 import subprocess
 import sys
 import tarfile
@@ -55,12 +57,16 @@ import hippomap.mapper  # noqa: E402
 
 
 def load_revision(rev: str) -> ModuleType:
-    """Import the ``hippomap`` package as it is at git revision ``rev`` under a private name."""
+    """Import the ``hippomap`` package as it is at git revision ``rev`` under a private name.
+
+    The copy lives in a temporary directory that is removed when the process exits (not before: a module
+    of the old package may still be imported on first use during the run)."""
     sha = subprocess.run(
         ["git", "-C", str(ROOT), "rev-parse", "--short", rev], check=True, capture_output=True, text=True
     ).stdout.strip()
     blob = subprocess.run(["git", "-C", str(ROOT), "archive", sha, "hippomap"], check=True, capture_output=True).stdout
     tmp = Path(tempfile.mkdtemp(prefix="hippomap-rev-"))
+    atexit.register(shutil.rmtree, tmp, ignore_errors=True)
     with tarfile.open(fileobj=io.BytesIO(blob)) as tar:
         tar.extractall(tmp, filter="data")
     name = f"hippomap_rev_{sha}"

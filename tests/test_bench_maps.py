@@ -494,3 +494,28 @@ def test_solver_bench_records_the_maps_whole_solves_and_feeds_each_link_once(sho
     q = last.poses.copy()
     solve_lsq(q, last.src, last.dst, last.transforms, 10, 0, 1e-4, information=last.information)
     assert graph_cost(q, last.src, last.dst, last.transforms, information=last.information) <= before
+
+
+def test_the_old_revision_is_imported_apart_and_its_copy_removed_at_exit(tmp_path):
+    """bench_mapper_vs imports the package as it is at a git revision from a temporary copy under a private
+    name, beside the working tree's; the copy is removed when the process exits (runs used to leave one per
+    run behind)."""
+    import os
+    import subprocess
+
+    root = Path(__file__).resolve().parents[1]
+    if not (root / ".git").exists():
+        pytest.skip("needs the git checkout (bench_mapper_vs reads the old code with git archive)")
+    code = (
+        "import sys; sys.path.insert(0, 'bench'); import bench_mapper_vs as b, hippomap.mapper\n"
+        "old = b.load_revision('HEAD')\n"
+        "print(old.__file__)\n"
+        "print(old.mapper.Mapper is not hippomap.mapper.Mapper, old.__name__.startswith('hippomap_rev_'))\n"
+    )
+    env = {**os.environ, "TMPDIR": str(tmp_path)}
+    out = subprocess.run([sys.executable, "-c", code], cwd=root, env=env, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr[-3000:]
+    where, flags = out.stdout.splitlines()[-2:]
+    assert Path(where).resolve().is_relative_to(tmp_path.resolve())  # the copy was made where TMPDIR says
+    assert flags == "True True"
+    assert not list(tmp_path.glob("hippomap-rev-*")), "the old revision's copy was left behind"
