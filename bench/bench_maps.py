@@ -215,6 +215,7 @@ def simulate(
     pairs = zip(drive_args[::2], drive_args[1::2])
     drive = "".join(f"-{flag[2] if flag in ('--speed', '--rate') else flag[2:]}{v}" for flag, v in pairs)
     folder = cache / "sim" / f"{world}-s{seed}-{size[0]}x{size[1]}-{tname}{drive}-{key}"
+    remove_stale_renders(folder)
     if (folder / "done").is_file():
         return folder, None
     tmp = folder.with_name(folder.name + f".tmp{os.getpid()}")
@@ -235,6 +236,32 @@ def simulate(
             shutil.rmtree(folder, ignore_errors=True)
             tmp.rename(folder)
     return folder, time.perf_counter() - t0
+
+
+def remove_stale_renders(folder: Path) -> list[Path]:
+    """Remove the unfinished renders of ``folder`` (``<name>.tmp<pid>``) whose process is gone: a run stopped
+    while rendering leaves one behind (three found in one cache held about 165 MB each), and nothing
+    else would ever remove it. A render whose process is still running (another job of this run, or another
+    run) is left alone. Returns the folders removed."""
+    gone = []
+    for tmp in sorted(folder.parent.glob(folder.name + ".tmp*")):
+        pid = tmp.name[len(folder.name) + 4 :]
+        if not pid.isdigit() or _process_alive(int(pid)):
+            continue
+        shutil.rmtree(tmp, ignore_errors=True)
+        gone.append(tmp)
+    return gone
+
+
+def _process_alive(pid: int) -> bool:
+    """Whether a process ``pid`` exists (signal 0 checks without sending anything)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # it exists, under another user
+        return True
+    return True
 
 
 # --------------------------------------------------------------------------------------

@@ -7,6 +7,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import re
 import sys
 from pathlib import Path
@@ -519,3 +520,22 @@ def test_the_old_revision_is_imported_apart_and_its_copy_removed_at_exit(tmp_pat
     assert Path(where).resolve().is_relative_to(tmp_path.resolve())  # the copy was made where TMPDIR says
     assert flags == "True True"
     assert not list(tmp_path.glob("hippomap-rev-*")), "the old revision's copy was left behind"
+
+
+def test_unfinished_renders_of_stopped_runs_are_removed_and_running_ones_kept(tmp_path):
+    """A run stopped while rendering leaves ``<name>.tmp<pid>`` in the render cache; the next render of the
+    same folder removes it when that process is gone, and leaves a render whose process still runs."""
+    import subprocess
+
+    folder = tmp_path / "sim" / "loop-s1-320x240-procedural-abc"
+    folder.parent.mkdir()
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()  # a pid whose process has exited (and been reaped)
+    stale = folder.with_name(folder.name + f".tmp{dead.pid}")
+    running = folder.with_name(folder.name + f".tmp{os.getppid()}")
+    other = tmp_path / "sim" / ("loop-s2-320x240-procedural-abc" + f".tmp{dead.pid}")  # another render's
+    for d in (stale, running, other):
+        (d / "frames").mkdir(parents=True)
+        (d / "frames" / "000000.png").write_bytes(b"x")
+    assert bench_maps.remove_stale_renders(folder) == [stale]
+    assert not stale.exists() and running.exists() and other.exists()
