@@ -9,6 +9,7 @@ import json
 import math
 import os
 import re
+import subprocess
 import sys
 from pathlib import Path
 
@@ -501,9 +502,6 @@ def test_the_old_revision_is_imported_apart_and_its_copy_removed_at_exit(tmp_pat
     """bench_mapper_vs imports the package as it is at a git revision from a temporary copy under a private
     name, beside the working tree's; the copy is removed when the process exits (runs used to leave one per
     run behind)."""
-    import os
-    import subprocess
-
     root = Path(__file__).resolve().parents[1]
     if not (root / ".git").exists():
         pytest.skip("needs the git checkout (bench_mapper_vs reads the old code with git archive)")
@@ -525,8 +523,6 @@ def test_the_old_revision_is_imported_apart_and_its_copy_removed_at_exit(tmp_pat
 def test_unfinished_renders_of_stopped_runs_are_removed_and_running_ones_kept(tmp_path):
     """A run stopped while rendering leaves ``<name>.tmp<pid>`` in the render cache; the next render of the
     same folder removes it when that process is gone, and leaves a render whose process still runs."""
-    import subprocess
-
     folder = tmp_path / "sim" / "loop-s1-320x240-procedural-abc"
     folder.parent.mkdir()
     dead = subprocess.Popen([sys.executable, "-c", "pass"])
