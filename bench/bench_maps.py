@@ -79,6 +79,7 @@ from hippomap.geometry import between, wrap_angle  # noqa: E402
 from hippomap.inputs import Frame, Odometry  # noqa: E402
 from hippomap.mapper import Mapper  # noqa: E402
 from hippomap.sim.cli import WORLDS  # noqa: E402
+from tests.support.live import pid_alive  # noqa: E402
 
 #: odometry noise of every simulated run (the issue's reference setting)
 NOISE = {"omega_bias": 0.01, "sigma_omega": 0.01, "sigma_v": 0.02}
@@ -246,22 +247,11 @@ def remove_stale_renders(folder: Path) -> list[Path]:
     gone = []
     for tmp in sorted(folder.parent.glob(folder.name + ".tmp*")):
         pid = tmp.name[len(folder.name) + 4 :]
-        if not pid.isdigit() or _process_alive(int(pid)):
+        if not pid.isdigit() or pid_alive(int(pid)):
             continue
         shutil.rmtree(tmp, ignore_errors=True)
         gone.append(tmp)
     return gone
-
-
-def _process_alive(pid: int) -> bool:
-    """Whether a process ``pid`` exists (signal 0 checks without sending anything)."""
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # it exists, under another user
-        return True
-    return True
 
 
 # --------------------------------------------------------------------------------------

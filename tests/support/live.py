@@ -98,6 +98,18 @@ class LiveServer:
         self.stop()
 
 
+def pid_alive(pid: int) -> bool:
+    """Whether a process ``pid`` exists (signal 0 checks without sending anything); one of another user's
+    counts as alive. Used to tell the leftovers of a stopped run from those of one still going."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
 def free_port() -> int:
     """A TCP port on 127.0.0.1 that was free a moment ago (the OS's choice)."""
     import socket

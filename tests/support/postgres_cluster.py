@@ -13,7 +13,7 @@ import subprocess
 import threading
 from pathlib import Path
 
-from .live import free_port
+from .live import free_port, pid_alive
 
 #: set to a URL of a role allowed to CREATE DATABASE (``.ci/postgres`` prints one) to use that server;
 #: unset, the tests start a private cluster of their own
@@ -41,16 +41,6 @@ def postgres_bin_dir() -> Path:
         "(`apt-get install -y postgresql`) or point " + POSTGRES_URL_ENV + " at a server "
         '(`eval "$(bash .ci/postgres)"` does both)'
     )
-
-
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
 
 
 class PostgresCluster:
@@ -89,7 +79,7 @@ class PostgresCluster:
                 pid = int(pidfile.read_text())
             except (OSError, ValueError):
                 continue
-            if _pid_alive(pid):
+            if pid_alive(pid):
                 continue
             root = pidfile.parent
             try:

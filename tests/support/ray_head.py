@@ -16,7 +16,7 @@ import threading
 from collections.abc import Iterator
 from pathlib import Path
 
-from .live import ROOT
+from .live import ROOT, pid_alive
 
 _RAY_LOCK = threading.Lock()
 _RAY_HEAD: "LocalRayHead | None" = None
@@ -48,13 +48,8 @@ class LocalRayHead:
                 creator, pgid = (int(v) for v in pidfile.read_text().split())
             except (OSError, ValueError):
                 continue
-            try:
-                os.kill(creator, 0)
-                continue  # its test run is still going
-            except ProcessLookupError:
-                pass
-            except PermissionError:
-                continue
+            if pid_alive(creator):
+                continue  # its test run is still going (or another user's)
             try:
                 os.killpg(pgid, signal.SIGKILL)
             except (ProcessLookupError, PermissionError):
