@@ -25,14 +25,27 @@ per cell the argsort of its levels (int32) and the cumulative level histogram (i
 are built lazily, read-only, and shared by every ``GridCells`` with the same geometry and seed
 (a server's sessions share one copy). Memory at the defaults (32 cells, 801^2):
 levels 41 MB + argsort 82 MB + histogram 8.4 MB = 132 MB (``RateTables.nbytes``).
+
+**Across processes** (a Ray actor or a mapper process per session, a command per run), each process would
+build its own copy: about 1.4 s of CPU and 132 MB at the defaults. When the environment variable
+``HIPPOMAP_TABLE_CACHE`` names a folder, tables of at least :data:`DISK_CACHE_MIN_ENTRIES` are kept there as
+``.npy`` files (written once, atomically) and read back memory-mapped and read-only: the processes of one
+machine then share one copy in the page cache, and a new one has its tables in milliseconds. The files are
+named after everything the tables depend on (geometry, seed, :data:`LEVELS`, numpy's version); the
+:data:`DISK_CACHE_KEEP` most recently used sets are kept. A file that cannot be read or written is
+rebuilt in memory, as without the cache (with a warning).
 """
 
 from __future__ import annotations
 
+import hashlib
+import os
 import threading
+import warnings
 import weakref
 from collections import deque
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -40,6 +53,14 @@ from .config import SpatialConfig
 
 #: number of quantisation steps of a rate matrix: levels 0 ... LEVELS map to 0 ... g_max
 LEVELS = 65535
+#: the environment variable naming the folder of the tables' disk cache (unset, empty or "off": none)
+TABLE_CACHE_ENV = "HIPPOMAP_TABLE_CACHE"
+#: tables of fewer rate-matrix entries (cells x grid points) than this are built in memory, never written:
+#: they cost less to build than to write (the defaults have 32 x 801^2 = 20.5 million, 1.4 s to build)
+DISK_CACHE_MIN_ENTRIES = 2_000_000
+#: table sets kept in the disk cache (the least recently used beyond this are deleted)
+DISK_CACHE_KEEP = 4
+_DISK_FORMAT = 1  # bump when the files' layout or the tables' computation changes
 
 
 def wave_number(spacing):
@@ -97,6 +118,20 @@ class RateTables:
 _CACHE_LOCK = threading.Lock()
 _CACHE: "weakref.WeakValueDictionary[tuple, RateTables]" = weakref.WeakValueDictionary()
 _RECENT: deque = deque(maxlen=1)  # keeps the latest tables alive while no instance holds them
+
+
+def table_key(cfg: SpatialConfig) -> tuple:
+    """Everything the rate tables depend on: two configs with the same key share one copy (in memory, in
+    the disk cache, and in a token's memory quota)."""
+    return (
+        cfg.area_size_m,
+        cfg.resolution_m,
+        cfg.n_modules,
+        cfg.cells_per_module,
+        cfg.spacing_min_m,
+        cfg.spacing_max_m,
+        cfg.seed,
+    )
 
 
 def matrix_size(cfg: SpatialConfig) -> int:
@@ -164,24 +199,38 @@ class GridCells:
     def tables(self) -> RateTables:
         """The quantised rate matrices and their indexes, built on first use and shared (see module doc)."""
         if self._tables is None:
-            cfg = self.cfg
-            key = (
-                cfg.area_size_m,
-                cfg.resolution_m,
-                cfg.n_modules,
-                cfg.cells_per_module,
-                cfg.spacing_min_m,
-                cfg.spacing_max_m,
-                cfg.seed,
-            )
+            key = table_key(self.cfg)
             with _CACHE_LOCK:
                 tables = _CACHE.get(key)
                 if tables is None:
-                    tables = RateTables.from_levels(self._compute_levels(), cfg.resolution_m)
+                    tables = self._disk_or_build(key)
                     _CACHE[key] = tables
                 _RECENT.append(tables)
             self._tables = tables
         return self._tables
+
+    def _build(self) -> RateTables:
+        return RateTables.from_levels(self._compute_levels(), self.cfg.resolution_m)
+
+    def _disk_or_build(self, key: tuple) -> RateTables:
+        """The tables from the disk cache of :data:`TABLE_CACHE_ENV` (written there first if missing), or
+        built in memory when no cache is set, the tables are small, or the folder cannot be used."""
+        folder = os.environ.get(TABLE_CACHE_ENV)
+        n = self.n_cells
+        if not folder or folder == "off" or n * self.size * self.size < DISK_CACHE_MIN_ENTRIES:
+            return self._build()
+        stem = Path(folder) / f"grid-tables-{_disk_key(key)}"
+        try:
+            tables = _read_tables(stem, n, self.size, self.resolution)
+        except (OSError, ValueError) as exc:
+            if not isinstance(exc, (FileNotFoundError, NotADirectoryError)):  # not there: written below
+                warnings.warn(f"grid-cell table cache {stem}: unreadable ({exc}); rebuilding it", stacklevel=3)
+            tables = self._build()
+            try:
+                _write_tables(stem, tables)
+            except OSError as werr:
+                warnings.warn(f"grid-cell table cache {stem}: cannot write ({werr}); kept in memory", stacklevel=3)
+        return tables
 
     def _compute_levels(self) -> np.ndarray:
         """Quantised Eq. 6 on the matrix grid, (n_cells, N, N) uint16.
@@ -212,3 +261,72 @@ class GridCells:
         """Cell n's discharge rate matrix M(X, Y) (rows = y, columns = x), float32 in rate units (a copy)."""
         t = self.tables
         return (t.levels[n].reshape(t.shape).astype(np.float32)) * np.float32(self.cfg.g_max / LEVELS)
+
+
+# -- the disk cache (see the module doc) ------------------------------------------------------------------
+
+
+def use_table_cache(folder: str | os.PathLike | None) -> None:
+    """Keep this process's grid-cell tables in ``folder`` (see the module doc), and those of the processes it
+    starts afterwards (the setting is the environment variable :data:`TABLE_CACHE_ENV`); None leaves the
+    setting as it is. For a process that runs mappers, e.g. a server's mapper process or Ray actor."""
+    if folder is not None:
+        os.environ[TABLE_CACHE_ENV] = os.fspath(folder)
+
+
+_PARTS = ("levels", "order", "cum")
+
+
+def _disk_key(key: tuple) -> str:
+    """A file-name-safe digest of everything the tables depend on."""
+    text = repr((_DISK_FORMAT, LEVELS, np.__version__, tuple(float(v) for v in key)))
+    return hashlib.sha256(text.encode()).hexdigest()[:20]
+
+
+def _read_tables(stem: Path, n_cells: int, size: int, resolution: float) -> RateTables:
+    """The tables of the files ``stem.<part>.npy``, memory-mapped read-only; ValueError if one does not hold
+    what the tables must (shape, dtype), FileNotFoundError if one is missing."""
+    want = {
+        "levels": ((n_cells, size * size), np.uint16),
+        "order": ((n_cells, size * size), np.int32),
+        "cum": ((n_cells, LEVELS + 2), np.int32),
+    }
+    arrays = {}
+    for part in _PARTS:
+        a = np.load(stem.with_name(f"{stem.name}.{part}.npy"), mmap_mode="r", allow_pickle=False)
+        shape, dtype = want[part]
+        if a.shape != shape or a.dtype != dtype:
+            raise ValueError(f"{part} holds {a.dtype} {a.shape}, not {np.dtype(dtype)} {shape}")
+        arrays[part] = np.asarray(a)  # a plain read-only array on the mapped file (no copy)
+    os.utime(stem.with_name(f"{stem.name}.levels.npy"))  # used now: the eviction keeps it
+    return RateTables(size=size, resolution=float(resolution), **arrays)
+
+
+def _write_tables(stem: Path, tables: RateTables) -> None:
+    """Write the tables as ``stem.<part>.npy``, each to a temporary file first and then renamed (a reader
+    never sees a partial file); then delete the least recently used sets beyond :data:`DISK_CACHE_KEEP`."""
+    stem.parent.mkdir(parents=True, exist_ok=True)
+    for part in _PARTS:
+        final = stem.with_name(f"{stem.name}.{part}.npy")
+        tmp = final.with_name(f"{final.name}.tmp{os.getpid()}")
+        try:
+            with open(tmp, "wb") as f:
+                np.save(f, getattr(tables, part), allow_pickle=False)
+            os.replace(tmp, final)
+        finally:
+            tmp.unlink(missing_ok=True)
+    mine = stem.with_name(f"{stem.name}.levels.npy")
+    others = [p for p in stem.parent.glob("grid-tables-*.levels.npy") if p != mine]
+    others.sort(key=_mtime, reverse=True)
+    for old in others[DISK_CACHE_KEEP - 1 :]:  # the set just written stays, whatever the clock's resolution
+        base = old.name[: -len(".levels.npy")]
+        for part in _PARTS:
+            old.with_name(f"{base}.{part}.npy").unlink(missing_ok=True)
+
+
+def _mtime(path: Path) -> float:
+    """When ``path`` was last written or read from the cache; 0 for a file another process just deleted."""
+    try:
+        return path.stat().st_mtime
+    except OSError:
+        return 0.0

@@ -1,13 +1,20 @@
 """Grid cells (Eq. 6 with |k| = 4 pi / (sqrt 3 lambda)): the lattice spacing really is lambda, rate
-matrices agree with Eq. 6, parameters follow SpatialConfig, tables are shared and consistent."""
+matrices agree with Eq. 6, parameters follow SpatialConfig, tables are shared and consistent, in one
+process and, through the files of ``HIPPOMAP_TABLE_CACHE``, between processes."""
 
 from __future__ import annotations
+
+import mmap
+import os
+import subprocess
+import sys
 
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from hippomap import grid_cells
 from hippomap.config import SpatialConfig
 from hippomap.grid_cells import LEVELS, GridCells, RateTables
 
@@ -140,3 +147,131 @@ def test_tables_are_consistent_and_shared_between_identical_configs():
 def test_tables_from_levels_validates_shape():
     with pytest.raises(ValueError):
         RateTables.from_levels(np.zeros((2, 3, 4), np.uint16), 0.001)
+
+
+# -- the disk cache of HIPPOMAP_TABLE_CACHE -------------------------------------------------------------
+
+
+def _fresh(cfg: SpatialConfig) -> RateTables:
+    """The tables of ``cfg`` read as a new process would: not from this process's shared copy."""
+    grid_cells._CACHE.clear()
+    grid_cells._RECENT.clear()
+    return GridCells(cfg).tables
+
+
+def _mapped(a: np.ndarray) -> bool:
+    """Whether ``a``'s memory is a mapped file (a view's base chain ends in an mmap)."""
+    while isinstance(a, np.ndarray):
+        a = a.base
+    return isinstance(a, mmap.mmap)
+
+
+def _same(a: RateTables, b: RateTables) -> bool:
+    return all(np.array_equal(getattr(a, k), getattr(b, k)) for k in ("levels", "order", "cum"))
+
+
+@pytest.fixture()
+def disk_cache(tmp_path, monkeypatch):
+    """A table cache folder in force, with every table big enough to be written to it."""
+    folder = tmp_path / "tables"
+    monkeypatch.setenv(grid_cells.TABLE_CACHE_ENV, str(folder))
+    monkeypatch.setattr(grid_cells, "DISK_CACHE_MIN_ENTRIES", 0)
+    yield folder
+    grid_cells._CACHE.clear()
+    grid_cells._RECENT.clear()
+
+
+def test_tables_are_written_once_and_read_back_mapped_and_equal(disk_cache, monkeypatch):
+    cfg = SpatialConfig(**SMALL, seed=21)
+    monkeypatch.delenv(grid_cells.TABLE_CACHE_ENV)
+    built = _fresh(cfg)  # no cache: built in memory, nothing written
+    assert not _mapped(built.levels) and not disk_cache.exists()
+    monkeypatch.setenv(grid_cells.TABLE_CACHE_ENV, str(disk_cache))
+    first = _fresh(cfg)  # built and written
+    assert sorted(p.name.split(".", 1)[1] for p in disk_cache.iterdir()) == ["cum.npy", "levels.npy", "order.npy"]
+    monkeypatch.setattr(GridCells, "_compute_levels", lambda self: pytest.fail("built again, not read"))
+    again = _fresh(cfg)  # read back
+    assert _same(built, first) and _same(built, again)
+    assert all(_mapped(getattr(again, k)) and not getattr(again, k).flags.writeable for k in ("levels", "order", "cum"))
+    # another seed is another set of files
+    monkeypatch.undo()
+    monkeypatch.setenv(grid_cells.TABLE_CACHE_ENV, str(disk_cache))
+    monkeypatch.setattr(grid_cells, "DISK_CACHE_MIN_ENTRIES", 0)
+    assert not _same(_fresh(cfg.model_copy(update={"seed": 22})), built)
+    assert len(list(disk_cache.glob("*.levels.npy"))) == 2
+
+
+def test_off_means_no_cache(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv(grid_cells.TABLE_CACHE_ENV, "off")  # the server setting's word for none
+    monkeypatch.setattr(grid_cells, "DISK_CACHE_MIN_ENTRIES", 0)
+    assert not _mapped(_fresh(SpatialConfig(**SMALL, seed=27)).levels) and not list(tmp_path.iterdir())
+    grid_cells._CACHE.clear()
+
+
+def test_small_tables_are_not_written(tmp_path, monkeypatch):
+    monkeypatch.setenv(grid_cells.TABLE_CACHE_ENV, str(tmp_path / "tables"))
+    cfg = SpatialConfig(**SMALL, n_modules=1, cells_per_module=3, seed=23)
+    t = _fresh(cfg)
+    assert t.levels.size < grid_cells.DISK_CACHE_MIN_ENTRIES
+    assert not (tmp_path / "tables").exists()
+
+
+def test_a_damaged_file_is_rebuilt_with_a_warning(disk_cache):
+    cfg = SpatialConfig(**SMALL, seed=24)
+    good = _fresh(cfg)
+    (order,) = disk_cache.glob("*.order.npy")
+    np.save(order, np.zeros((3, 4), np.int32))  # a readable file with the wrong shape
+    with pytest.warns(UserWarning, match="unreadable"):
+        again = _fresh(cfg)
+    assert _same(good, again)
+    assert _same(good, _fresh(cfg))  # the file was written again: read back without a warning
+    order.write_bytes(b"not a numpy file")
+    with pytest.warns(UserWarning, match="unreadable"):
+        assert _same(good, _fresh(cfg))
+
+
+def test_an_unusable_folder_keeps_the_tables_in_memory(tmp_path, monkeypatch):
+    blocker = tmp_path / "a-file"
+    blocker.write_text("")
+    monkeypatch.setenv(grid_cells.TABLE_CACHE_ENV, str(blocker / "tables"))  # below a file: cannot exist
+    monkeypatch.setattr(grid_cells, "DISK_CACHE_MIN_ENTRIES", 0)
+    cfg = SpatialConfig(**SMALL, seed=25)
+    with pytest.warns(UserWarning, match="cannot write"):
+        t = _fresh(cfg)
+    monkeypatch.delenv(grid_cells.TABLE_CACHE_ENV)
+    assert _same(t, _fresh(cfg)) and not _mapped(t.levels)
+    grid_cells._CACHE.clear()
+
+
+def test_the_least_recently_used_sets_are_deleted(disk_cache):
+    keep = grid_cells.DISK_CACHE_KEEP
+    seeds = list(range(30, 30 + keep + 2))
+    for i, seed in enumerate(seeds):
+        _fresh(SpatialConfig(**SMALL, seed=seed))
+        for p in disk_cache.glob("*.npy"):  # distinct ages whatever the file system's clock resolution
+            if p.stat().st_mtime_ns > 10**9 * (1000 + i):
+                os.utime(p, (1000 + i, 1000 + i))
+    names = {p.name.split(".")[0] for p in disk_cache.glob("*.npy")}
+    assert len(names) == keep and len(list(disk_cache.glob("*.npy"))) == 3 * keep
+    assert not list(disk_cache.glob("*.tmp*"))
+    written = {grid_cells._disk_key(grid_cells.table_key(SpatialConfig(**SMALL, seed=s))) for s in seeds[-keep:]}
+    assert names == {f"grid-tables-{k}" for k in written}  # the newest ones
+
+
+def test_another_process_reads_the_tables_without_building_them(disk_cache):
+    cfg = SpatialConfig(**SMALL, seed=26)
+    here = _fresh(cfg)
+    code = (
+        "import sys, numpy as np\n"
+        "from hippomap import grid_cells\n"
+        "from hippomap.config import SpatialConfig\n"
+        "grid_cells.DISK_CACHE_MIN_ENTRIES = 0\n"
+        "grid_cells.GridCells._compute_levels = lambda self: sys.exit('built, not read')\n"
+        f"t = grid_cells.GridCells(SpatialConfig(**{SMALL!r}, seed=26)).tables\n"
+        "sys.stdout.write(str(int(t.levels.astype(np.int64).sum())))\n"
+    )
+    env = {**os.environ, grid_cells.TABLE_CACHE_ENV: str(disk_cache)}
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert int(r.stdout) == int(here.levels.astype(np.int64).sum())

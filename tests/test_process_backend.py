@@ -26,6 +26,7 @@ from hippomap.errors import InputError
 from server.runtime import model
 from server.runtime.mapper_host import HostDied, InProcessHost
 from server.runtime.process_host import ProcessBackend
+from server.settings import ServerSettings
 from tests.support.live import LiveServer
 from tests.support.reference import offline_reference, session_state
 from tests.support.synthetic import decoded, synthetic_inputs
@@ -54,6 +55,41 @@ def test_process_and_inprocess_hosts_give_identical_results(backend):
         assert remote.query(model.queries.Stats()) == local.query(model.queries.Stats())  # the host goes on
     finally:
         remote.close()
+
+
+def test_mapper_processes_share_the_grid_cell_tables_through_the_table_cache(tmp_path, monkeypatch):
+    """``table_cache``: the first mapper process writes the tables of a session's config into the folder; a
+    later one (another server's, or a restarted one) reads them instead of building them again; the
+    setting's default is ``<data_dir>/grid-tables``, ``off`` turns it off, and a Ray actor is handed it."""
+    settings = ServerSettings(data_dir=tmp_path / "data")
+    assert settings.table_cache_dir == str((tmp_path / "data" / "grid-tables").resolve())
+    assert ServerSettings(table_cache="off").table_cache_dir is None
+    monkeypatch.setenv("HIPPOMAP_TABLE_CACHE", str(tmp_path / "elsewhere"))
+    assert ServerSettings.from_env().table_cache_dir == str(tmp_path / "elsewhere")
+    monkeypatch.delenv("HIPPOMAP_TABLE_CACHE")
+
+    folder = tmp_path / "tables"
+    config = model.effective_config({})  # the default tables: 32 cells of 801 x 801
+    written = None
+    for _ in range(2):
+        b = ProcessBackend(workers=1, table_cache=str(folder))
+        b.start()
+        host = b.factory("s")
+        try:
+            host.restore(None, config)
+            host.process(list(enumerate(decoded(ITEMS[:20]))))
+        finally:
+            host.close()
+            b.shutdown()
+        files = {p.name: (p.stat().st_ino, p.stat().st_size) for p in folder.glob("grid-tables-*.npy")}
+        assert len(files) == 3 and sum(size for _, size in files.values()) > 100e6
+        assert written is None or files == written  # the second process read them: nothing written again
+        written = files
+
+    from server.runtime.ray_backend import MapperActor  # the class alone: no Ray needed
+
+    MapperActor(str(folder))
+    assert os.environ["HIPPOMAP_TABLE_CACHE"] == str(folder)
 
 
 def test_process_backend_answers_queries_without_cloudpickle(tmp_path):

@@ -3,8 +3,9 @@
 Why: a mapper step is mostly Python, so in-process mappers (:class:`~server.runtime.mapper_host.InProcessHost`,
 threads) share the server's GIL with the event loop that reads, stores and acknowledges every
 input; past about a dozen robots on two cores the loop queues for the GIL behind the mappers.
-Here the mappers run in ``workers`` child processes (each with its own GIL, and its one copy of
-the grid-cell tables shared by its sessions); the server keeps everything about durability, as
+Here the mappers run in ``workers`` child processes (each with its own GIL; its sessions share its
+grid-cell tables, mapped from the ``table_cache`` folder that all children share); the server keeps
+everything about durability, as
 with Ray (:mod:`server.runtime.ray_backend`), and hands each session's durable inputs to its child in
 batches (``host.max_batch``) over a pipe.
 
@@ -28,6 +29,7 @@ import threading
 from typing import Any, TypeVar
 
 from hippomap.config import HippomapConfig
+from hippomap.grid_cells import use_table_cache
 
 from .mapper_host import HostDied, InProcessHost, MapperHost, RemoteHost
 
@@ -36,10 +38,12 @@ T = TypeVar("T")
 log = logging.getLogger("hippomap.server")
 
 
-def _child_main(conn: Any) -> None:
-    """A child's loop: ``(op, session, args)`` requests in, ``("ok", result)`` / ``("err", exc)`` out."""
+def _child_main(conn: Any, table_cache: str | None = None) -> None:
+    """A child's loop: ``(op, session, args)`` requests in, ``("ok", result)`` / ``("err", exc)`` out.
+    ``table_cache``: the folder of the grid-cell tables shared with the other mapper processes."""
     import signal
 
+    use_table_cache(table_cache)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the server ends its children (Ctrl-C reaches the whole group)
     hosts: dict[str, InProcessHost] = {}
     host: InProcessHost | None
@@ -84,9 +88,9 @@ def _child_main(conn: Any) -> None:
 class _Child:
     """One child process and the pipe to it; one request at a time."""
 
-    def __init__(self, ctx: Any) -> None:
+    def __init__(self, ctx: Any, table_cache: str | None = None) -> None:
         parent, child = ctx.Pipe()
-        self.proc = ctx.Process(target=_child_main, args=(child,), name="hippomap-mappers", daemon=True)
+        self.proc = ctx.Process(target=_child_main, args=(child, table_cache), name="hippomap-mappers", daemon=True)
         self.proc.start()
         child.close()
         self.conn = parent
@@ -153,11 +157,12 @@ class ProcessHost(RemoteHost):
 class ProcessBackend:
     """One per server: ``workers`` child processes; sessions are spread over them in turn."""
 
-    def __init__(self, workers: int = 1, max_batch: int = 32) -> None:
+    def __init__(self, workers: int = 1, max_batch: int = 32, table_cache: str | None = None) -> None:
         if workers < 1:
             raise ValueError(f"workers must be >= 1, got {workers}")
         self.workers = workers
         self.max_batch = max_batch
+        self.table_cache = table_cache
         self._ctx = mp.get_context("spawn")  # never fork a threaded server
         self._children: list[_Child | None] = [None] * workers
         self._lock = threading.Lock()
@@ -166,7 +171,7 @@ class ProcessBackend:
     def start(self) -> None:
         with self._lock:
             for i in range(self.workers):
-                self._children[i] = _Child(self._ctx)
+                self._children[i] = _Child(self._ctx, self.table_cache)
 
     def _child(self) -> _Child:
         with self._lock:
@@ -177,7 +182,7 @@ class ProcessBackend:
                 if child is not None:
                     log.warning("mapper process %s stopped; starting a new one", child.proc.pid)
                     child.dead = True
-                child = self._children[i] = _Child(self._ctx)
+                child = self._children[i] = _Child(self._ctx, self.table_cache)
             return child
 
     def factory(self, session_id: str) -> MapperHost:

@@ -35,6 +35,7 @@ from pathlib import Path
 from typing import Any, Iterator, TypeVar
 
 from hippomap.config import HippomapConfig
+from hippomap.grid_cells import use_table_cache
 from hippomap.inputs import Frame, Odometry
 
 from ..settings import ServerSettings
@@ -93,7 +94,8 @@ class MapperActor:
     :class:`~server.runtime.mapper_host.MapperHost` (called in order by the session's worker; queries
     from any thread of the server, run under the host's lock)."""
 
-    def __init__(self) -> None:
+    def __init__(self, table_cache: str | None = None) -> None:
+        use_table_cache(table_cache)  # the grid-cell tables of this node's earlier actors, if any
         self.host = InProcessHost()
 
     def restore(self, snapshot: bytes | None, config: HippomapConfig) -> dict[str, Any]:
@@ -123,7 +125,7 @@ class RayHost(RemoteHost):
         self.max_batch = backend.settings.ray_max_batch
         self.actor = backend.actor_class.options(
             num_cpus=backend.settings.ray_actor_cpus, max_concurrency=ACTOR_CONCURRENCY, scheduling_strategy="SPREAD"
-        ).remote()
+        ).remote(backend.settings.table_cache_dir)
         self._info: dict[str, Any] = {"kind": "ray"}
         self._closed = False
 

@@ -153,7 +153,7 @@ class SessionManager:
         elif self.settings.backend == "process":
             from .process_host import ProcessBackend
 
-            self.backend = ProcessBackend(self.settings.process_workers)
+            self.backend = ProcessBackend(self.settings.process_workers, table_cache=self.settings.table_cache_dir)
             self.backend.start()
             self.host_factory = self.backend.factory
         for rec in self.store.list_sessions():

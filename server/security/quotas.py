@@ -28,6 +28,7 @@ import math
 from typing import Any, Iterable
 
 from hippomap.config import HippomapConfig, SpatialConfig
+from hippomap.grid_cells import table_key
 
 from ..settings import ServerSettings
 
@@ -81,19 +82,6 @@ class ConfigRejected(ValueError):
         super().__init__(detail)
         self.status = status
         self.detail = detail
-
-
-def grid_table_key(spatial: SpatialConfig) -> tuple:
-    """What makes two sessions' grid-cell tables the same array (``GridCells.tables``' cache key)."""
-    return (
-        spatial.area_size_m,
-        spatial.resolution_m,
-        spatial.n_modules,
-        spatial.cells_per_module,
-        spatial.spacing_min_m,
-        spatial.spacing_max_m,
-        spatial.seed,
-    )
 
 
 def grid_table_bytes(spatial: SpatialConfig) -> int:
@@ -161,9 +149,9 @@ def check_config(config: HippomapConfig, settings: ServerSettings) -> None:
 def check_token_quota(config: HippomapConfig, owned: list[HippomapConfig], settings: ServerSettings) -> None:
     """Refuse a new session whose grid-cell tables would take the token's live sessions (``owned``)
     past ``max_token_grid_bytes`` (403); tables shared by several sessions count once."""
-    tables = {grid_table_key(c.spatial): grid_table_bytes(c.spatial) for c in owned}
+    tables = {table_key(c.spatial): grid_table_bytes(c.spatial) for c in owned}
     before = sum(tables.values())
-    tables.setdefault(grid_table_key(config.spatial), grid_table_bytes(config.spatial))
+    tables.setdefault(table_key(config.spatial), grid_table_bytes(config.spatial))
     after = sum(tables.values())
     if after > settings.max_token_grid_bytes:
         raise ConfigRejected(
