@@ -41,15 +41,16 @@ ITEMS = synthetic_inputs(n_odometry=400, frame_every=3)  # 1.6 laps: loops are c
 
 
 @pytest.fixture(scope="module")
-def ray_driver():
+def ray_driver(tmp_path_factory):
     """This test process joined to the test run's Ray head (as a server would)."""
     head = local_ray_head()
+    data = tmp_path_factory.mktemp("ray-driver")  # its actors' table cache: <data_dir>/grid-tables
     with ray_auth_env(head):  # Ray may have been imported by an earlier test of this process
         import ray
 
         from server.runtime.ray_backend import RayBackend
 
-        backend = RayBackend(ServerSettings(backend="ray", ray_address=head.address, ray_max_batch=8))
+        backend = RayBackend(ServerSettings(data_dir=data, backend="ray", ray_address=head.address, ray_max_batch=8))
         backend.start()
         try:
             yield backend
