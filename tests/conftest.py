@@ -1,5 +1,5 @@
 """Shared test setup: the project root on sys.path so tests run from a clean checkout; one grid-cell table
-cache for the whole run."""
+cache and one Ray head for the whole run."""
 
 import os
 import shutil
@@ -14,6 +14,7 @@ if str(ROOT) not in sys.path:
 
 import pytest  # noqa: E402
 
+from tests.support.ray_head import SHARED_DIR_ENV, SHARED_OWNER_ENV, stop_shared_head  # noqa: E402
 from tests.support.variants import SERVICE_VARIANTS  # noqa: E402
 
 
@@ -27,16 +28,31 @@ _TABLE_CACHE = "HIPPOMAP_TABLE_CACHE"
 
 
 def pytest_configure(config):
-    """One grid-cell table cache folder for the run (``hippomap.grid_cells``): the servers, mapper processes,
-    Ray actors and commands the tests start read the default tables from it instead of each building its own
-    (1.4 s of CPU each). Set here, in the process that starts the test workers, so that they and everything
-    they start inherit it; a folder set from outside is used as it is."""
-    if _TABLE_CACHE not in os.environ and not hasattr(config, "workerinput"):
+    """Set in the process that starts the test workers, so that they and everything they start inherit it:
+
+    * one grid-cell table cache folder for the run (``hippomap.grid_cells``): the servers, mapper processes,
+      Ray actors and commands the tests start read the default tables from it instead of each building
+      its own (1.4 s of CPU each); a folder set from outside is used as it is;
+    * one Ray head for the run's workers (``tests.support.ray_head``), started by the first that needs it
+      and stopped here at the end."""
+    if hasattr(config, "workerinput"):
+        return
+    if _TABLE_CACHE not in os.environ:
         config._hippomap_table_cache = tempfile.mkdtemp(prefix="hippomap-tables-")
         os.environ[_TABLE_CACHE] = config._hippomap_table_cache
+    if SHARED_DIR_ENV not in os.environ:
+        config._hippomap_ray_dir = tempfile.mkdtemp(prefix="hippomap-test-ray-")
+        os.environ[SHARED_DIR_ENV] = config._hippomap_ray_dir
+        os.environ[SHARED_OWNER_ENV] = str(os.getpid())
 
 
 def pytest_unconfigure(config):
+    folder = getattr(config, "_hippomap_ray_dir", None)
+    if folder is not None:
+        stop_shared_head(Path(folder))
+        shutil.rmtree(folder, ignore_errors=True)
+        os.environ.pop(SHARED_DIR_ENV, None)
+        os.environ.pop(SHARED_OWNER_ENV, None)
     folder = getattr(config, "_hippomap_table_cache", None)
     if folder is not None:
         shutil.rmtree(folder, ignore_errors=True)

@@ -1,6 +1,9 @@
 """Ray for tests and benchmarks: a private Ray head on loopback that the test servers join.
 
-:func:`local_ray_head` starts one :class:`LocalRayHead` per test run (stopped at exit);
+:func:`local_ray_head` starts one :class:`LocalRayHead` per test run (stopped at exit). With
+``HIPPOMAP_TEST_RAY_DIR`` set (``tests/conftest.py`` sets it in the process that starts the test workers),
+the workers share one head: the first that needs it starts it and notes it in that folder, the others join
+it, and :func:`stop_shared_head` ends it when the run ends (an idle head costs a few per cent of a core);
 :func:`ray_test_env` is the environment a Ray-backed test server needs to join it, and
 :func:`ray_auth_env` puts the same authentication into this process for a test that joins it in process.
 """
@@ -56,7 +59,9 @@ class LocalRayHead:
                 pass
             shutil.rmtree(pidfile.parent, ignore_errors=True)
 
-    def start(self, timeout: float = 120.0) -> "LocalRayHead":
+    def start(self, timeout: float = 120.0, owner: int | None = None) -> "LocalRayHead":
+        """Start the head; ``owner``: the process whose end makes it stale for :meth:`remove_stale` (this
+        one by default, which then also stops it at exit; another one stops it itself)."""
         import atexit
         import socket
         import tempfile
@@ -101,8 +106,9 @@ class LocalRayHead:
             stderr=subprocess.STDOUT,
             start_new_session=True,
         )
-        (self.root / "creator.pid").write_text(f"{os.getpid()} {self.proc.pid}")
-        atexit.register(self.stop)
+        (self.root / "creator.pid").write_text(f"{owner or os.getpid()} {self.proc.pid}")
+        if owner is None:
+            atexit.register(self.stop)
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
             text = (self.root / "head.log").read_text()
@@ -158,13 +164,66 @@ def ray_group_alive(pgid: int) -> bool:
     return bool(ray_group_pids(pgid))
 
 
+SHARED_DIR_ENV = "HIPPOMAP_TEST_RAY_DIR"  # a folder of the test run: its workers share one head
+SHARED_OWNER_ENV = "HIPPOMAP_TEST_RAY_OWNER"  # the pid of the process that stops the shared head
+
+
 def local_ray_head() -> LocalRayHead:
-    """The Ray head of this test run: started on first use, stopped at exit."""
+    """The Ray head of this test run: started on first use, stopped at exit (shared by the run's workers
+    when ``HIPPOMAP_TEST_RAY_DIR`` is set)."""
     global _RAY_HEAD
     with _RAY_LOCK:
-        if _RAY_HEAD is None or _RAY_HEAD.proc is None:
-            _RAY_HEAD = LocalRayHead().start()
+        if _RAY_HEAD is None or (_RAY_HEAD.proc is None and not _RAY_HEAD.address):
+            shared = os.environ.get(SHARED_DIR_ENV)
+            _RAY_HEAD = _shared_head(Path(shared)) if shared else LocalRayHead().start()
         return _RAY_HEAD
+
+
+def _shared_head(folder: Path) -> LocalRayHead:
+    """The head noted in ``folder`` if it is alive, else a new one noted there (one process at a time)."""
+    import fcntl
+    import json
+
+    folder.mkdir(parents=True, exist_ok=True)
+    with open(folder / "lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        note = folder / "head.json"
+        if note.exists():
+            d = json.loads(note.read_text())
+            if ray_group_alive(d["pgid"]):
+                head = LocalRayHead()
+                head.address, head.env = d["address"], d["env"]
+                return head  # joined: no process or folder of its own to stop
+        owner = int(os.environ.get(SHARED_OWNER_ENV) or os.getppid())
+        head = LocalRayHead().start(owner=owner)
+        assert head.proc is not None and head.root is not None
+        d = {"address": head.address, "env": head.env, "pgid": head.proc.pid, "root": str(head.root)}
+        note.write_text(json.dumps(d))
+        return head
+
+
+def stop_shared_head(folder: Path) -> None:
+    """End the head noted in ``folder`` (its whole process group) and remove its files."""
+    import json
+    import shutil
+    import time
+
+    note = folder / "head.json"
+    if not note.exists():
+        return
+    d = json.loads(note.read_text())
+    for sig, wait_s in ((signal.SIGTERM, 5.0), (signal.SIGKILL, 10.0)):
+        try:
+            os.killpg(d["pgid"], sig)
+        except ProcessLookupError:
+            break
+        deadline = time.monotonic() + wait_s
+        while time.monotonic() < deadline and ray_group_alive(d["pgid"]):
+            time.sleep(0.1)
+        if not ray_group_alive(d["pgid"]):
+            break
+    shutil.rmtree(d["root"], ignore_errors=True)
+    note.unlink(missing_ok=True)
 
 
 def _reload_ray_auth() -> None:
