@@ -209,10 +209,11 @@ class ServerSettings(BaseModel):
         return Path(self.database) if self.database else Path(self.data_dir) / "hippomap.sqlite3"
 
     @property
-    def table_cache_dir(self) -> str | None:
-        """The grid-cell table cache folder the mapper processes use (absolute), or None when it is off."""
+    def table_cache_dir(self) -> str:
+        """The grid-cell table cache folder the mapper processes use (absolute), or ``"off"``: handed to them
+        as it is, so that "off" also overrides a folder their own environment may name."""
         if self.table_cache == "off":
-            return None
+            return "off"
         return str(Path(self.table_cache or Path(self.data_dir) / "grid-tables").resolve())
 
     @property
