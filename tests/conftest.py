@@ -14,6 +14,7 @@ if str(ROOT) not in sys.path:
 
 import pytest  # noqa: E402
 
+from hippomap.grid_cells import TABLE_CACHE_ENV  # noqa: E402
 from tests.support.ray_head import SHARED_DIR_ENV, SHARED_OWNER_ENV, stop_shared_head  # noqa: E402
 from tests.support.variants import SERVICE_VARIANTS  # noqa: E402
 
@@ -22,9 +23,6 @@ from tests.support.variants import SERVICE_VARIANTS  # noqa: E402
 def variant(request):
     """The service under test: each backend x store of ``tests.support.variants.SERVICE_VARIANTS``."""
     return request.param
-
-
-_TABLE_CACHE = "HIPPOMAP_TABLE_CACHE"
 
 
 def pytest_configure(config):
@@ -37,9 +35,9 @@ def pytest_configure(config):
       and stopped here at the end."""
     if hasattr(config, "workerinput"):
         return
-    if _TABLE_CACHE not in os.environ:
+    if TABLE_CACHE_ENV not in os.environ:
         config._hippomap_table_cache = tempfile.mkdtemp(prefix="hippomap-tables-")
-        os.environ[_TABLE_CACHE] = config._hippomap_table_cache
+        os.environ[TABLE_CACHE_ENV] = config._hippomap_table_cache
     if SHARED_DIR_ENV not in os.environ:
         config._hippomap_ray_dir = tempfile.mkdtemp(prefix="hippomap-test-ray-")
         os.environ[SHARED_DIR_ENV] = config._hippomap_ray_dir
@@ -56,4 +54,4 @@ def pytest_unconfigure(config):
     folder = getattr(config, "_hippomap_table_cache", None)
     if folder is not None:
         shutil.rmtree(folder, ignore_errors=True)
-        os.environ.pop(_TABLE_CACHE, None)
+        os.environ.pop(TABLE_CACHE_ENV, None)

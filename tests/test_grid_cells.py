@@ -152,10 +152,15 @@ def test_tables_from_levels_validates_shape():
 # -- the disk cache of HIPPOMAP_TABLE_CACHE -------------------------------------------------------------
 
 
-def _fresh(cfg: SpatialConfig) -> RateTables:
-    """The tables of ``cfg`` read as a new process would: not from this process's shared copy."""
+def _forget() -> None:
+    """Drop this process's shared copies of the tables."""
     grid_cells._CACHE.clear()
     grid_cells._RECENT.clear()
+
+
+def _fresh(cfg: SpatialConfig) -> RateTables:
+    """The tables of ``cfg`` read as a new process would: not from this process's shared copy."""
+    _forget()
     return GridCells(cfg).tables
 
 
@@ -171,14 +176,19 @@ def _same(a: RateTables, b: RateTables) -> bool:
 
 
 @pytest.fixture()
-def disk_cache(tmp_path, monkeypatch):
+def forget_tables():
+    """This process's shared copies are dropped after the test (they may be read from a removed folder)."""
+    yield
+    _forget()
+
+
+@pytest.fixture()
+def disk_cache(tmp_path, monkeypatch, forget_tables):
     """A table cache folder in force, with every table big enough to be written to it."""
     folder = tmp_path / "tables"
     monkeypatch.setenv(grid_cells.TABLE_CACHE_ENV, str(folder))
     monkeypatch.setattr(grid_cells, "DISK_CACHE_MIN_ENTRIES", 0)
-    yield folder
-    grid_cells._CACHE.clear()
-    grid_cells._RECENT.clear()
+    return folder
 
 
 def test_tables_are_written_once_and_read_back_mapped_and_equal(disk_cache, monkeypatch):
@@ -189,27 +199,24 @@ def test_tables_are_written_once_and_read_back_mapped_and_equal(disk_cache, monk
     monkeypatch.setenv(grid_cells.TABLE_CACHE_ENV, str(disk_cache))
     first = _fresh(cfg)  # built and written
     assert sorted(p.name.split(".", 1)[1] for p in disk_cache.iterdir()) == ["cum.npy", "levels.npy", "order.npy"]
-    monkeypatch.setattr(GridCells, "_compute_levels", lambda self: pytest.fail("built again, not read"))
-    again = _fresh(cfg)  # read back
+    with monkeypatch.context() as m:
+        m.setattr(GridCells, "_compute_levels", lambda self: pytest.fail("built again, not read"))
+        again = _fresh(cfg)  # read back
     assert _same(built, first) and _same(built, again)
     assert all(_mapped(getattr(again, k)) and not getattr(again, k).flags.writeable for k in ("levels", "order", "cum"))
     # another seed is another set of files
-    monkeypatch.undo()
-    monkeypatch.setenv(grid_cells.TABLE_CACHE_ENV, str(disk_cache))
-    monkeypatch.setattr(grid_cells, "DISK_CACHE_MIN_ENTRIES", 0)
     assert not _same(_fresh(cfg.model_copy(update={"seed": 22})), built)
     assert len(list(disk_cache.glob("*.levels.npy"))) == 2
 
 
-def test_off_means_no_cache(tmp_path, monkeypatch):
+def test_off_means_no_cache(tmp_path, monkeypatch, forget_tables):
     monkeypatch.chdir(tmp_path)
     monkeypatch.setenv(grid_cells.TABLE_CACHE_ENV, "off")  # the server setting's word for none
     monkeypatch.setattr(grid_cells, "DISK_CACHE_MIN_ENTRIES", 0)
     assert not _mapped(_fresh(SpatialConfig(**SMALL, seed=27)).levels) and not list(tmp_path.iterdir())
-    grid_cells._CACHE.clear()
 
 
-def test_small_tables_are_not_written(tmp_path, monkeypatch):
+def test_small_tables_are_not_written(tmp_path, monkeypatch, forget_tables):
     monkeypatch.setenv(grid_cells.TABLE_CACHE_ENV, str(tmp_path / "tables"))
     cfg = SpatialConfig(**SMALL, n_modules=1, cells_per_module=3, seed=23)
     t = _fresh(cfg)
@@ -231,7 +238,7 @@ def test_a_damaged_file_is_rebuilt_with_a_warning(disk_cache):
         assert _same(good, _fresh(cfg))
 
 
-def test_an_unusable_folder_keeps_the_tables_in_memory(tmp_path, monkeypatch):
+def test_an_unusable_folder_keeps_the_tables_in_memory(tmp_path, monkeypatch, forget_tables):
     blocker = tmp_path / "a-file"
     blocker.write_text("")
     monkeypatch.setenv(grid_cells.TABLE_CACHE_ENV, str(blocker / "tables"))  # below a file: cannot exist
@@ -241,7 +248,6 @@ def test_an_unusable_folder_keeps_the_tables_in_memory(tmp_path, monkeypatch):
         t = _fresh(cfg)
     monkeypatch.delenv(grid_cells.TABLE_CACHE_ENV)
     assert _same(t, _fresh(cfg)) and not _mapped(t.levels)
-    grid_cells._CACHE.clear()
 
 
 def test_the_least_recently_used_sets_are_deleted(disk_cache):

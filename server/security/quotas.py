@@ -28,7 +28,7 @@ import math
 from typing import Any, Iterable
 
 from hippomap.config import HippomapConfig, SpatialConfig
-from hippomap.grid_cells import table_key
+from hippomap.grid_cells import matrix_size, table_key
 
 from ..settings import ServerSettings
 
@@ -86,7 +86,7 @@ class ConfigRejected(ValueError):
 
 def grid_table_bytes(spatial: SpatialConfig) -> int:
     """Bytes of the grid-cell rate tables of ``spatial`` (``RateTables.nbytes``), without building them."""
-    size = int(round(spatial.area_size_m / spatial.resolution_m)) + 1
+    size = matrix_size(spatial)
     n_cells = spatial.n_modules * spatial.cells_per_module
     return n_cells * (6 * size * size + 4 * _HIST_COLUMNS)
 
@@ -94,7 +94,7 @@ def grid_table_bytes(spatial: SpatialConfig) -> int:
 def session_memory(config: HippomapConfig) -> dict[str, int]:
     """The config-driven memory of one session, bytes: ``grid_tables`` (shared by sessions with the
     same spatial geometry and seed) and ``grid_tables_build_peak`` (extra while they are built)."""
-    size = int(round(config.spatial.area_size_m / config.spatial.resolution_m)) + 1
+    size = matrix_size(config.spatial)
     n_cells = config.spatial.n_modules * config.spatial.cells_per_module
     return {"grid_tables": grid_table_bytes(config.spatial), "grid_tables_build_peak": 2 * size * size * n_cells}
 

@@ -125,26 +125,34 @@ class LocalRayHead:
     def stop(self) -> None:
         """SIGTERM to the head's process group, SIGKILL to what is left after a few seconds."""
         import shutil
-        import time
 
         proc, root, self.proc, self.root = self.proc, self.root, None, None
         if proc is not None:
-            for sig, wait_s in ((signal.SIGTERM, 5.0), (signal.SIGKILL, 10.0)):
-                try:
-                    os.killpg(proc.pid, sig)
-                except ProcessLookupError:
-                    break
-                try:
-                    proc.wait(wait_s)
-                except subprocess.TimeoutExpired:
-                    pass
-                deadline = time.monotonic() + wait_s
-                while time.monotonic() < deadline and ray_group_alive(proc.pid):
-                    time.sleep(0.1)
-                if not ray_group_alive(proc.pid):
-                    break
+            end_group(proc.pid, proc)
         if root is not None:
             shutil.rmtree(root, ignore_errors=True)
+
+
+def end_group(pgid: int, proc: subprocess.Popen | None = None) -> None:
+    """SIGTERM to process group ``pgid``, SIGKILL to what is left after a few seconds; ``proc``, the
+    group's leader if this process started it, is reaped on the way."""
+    import time
+
+    for sig, wait_s in ((signal.SIGTERM, 5.0), (signal.SIGKILL, 10.0)):
+        try:
+            os.killpg(pgid, sig)
+        except ProcessLookupError:
+            break
+        if proc is not None:
+            try:
+                proc.wait(wait_s)
+            except subprocess.TimeoutExpired:
+                pass
+        deadline = time.monotonic() + wait_s
+        while time.monotonic() < deadline and ray_group_alive(pgid):
+            time.sleep(0.1)
+        if not ray_group_alive(pgid):
+            break
 
 
 def ray_group_pids(pgid: int) -> list[int]:
@@ -206,22 +214,12 @@ def stop_shared_head(folder: Path) -> None:
     """End the head noted in ``folder`` (its whole process group) and remove its files."""
     import json
     import shutil
-    import time
 
     note = folder / "head.json"
     if not note.exists():
         return
     d = json.loads(note.read_text())
-    for sig, wait_s in ((signal.SIGTERM, 5.0), (signal.SIGKILL, 10.0)):
-        try:
-            os.killpg(d["pgid"], sig)
-        except ProcessLookupError:
-            break
-        deadline = time.monotonic() + wait_s
-        while time.monotonic() < deadline and ray_group_alive(d["pgid"]):
-            time.sleep(0.1)
-        if not ray_group_alive(d["pgid"]):
-            break
+    end_group(d["pgid"])
     shutil.rmtree(d["root"], ignore_errors=True)
     note.unlink(missing_ok=True)
 
