@@ -45,8 +45,11 @@ ground-truth separation.
 Options pick worlds, seeds, sizes, textures (``procedural``, ``rtabmap`` = the
 rtabmap_samples photos, ``corridor`` = the corridor reference photos, or a folder),
 ``--config`` for hippomap, ``--thresholds`` for the OpenRatSLAM sweep, ``--jobs`` for
-parallel runs (timings are only comparable with ``--jobs 1``). A markdown summary is
-printed at the end and every row is written as JSON to ``--out``.
+parallel runs (timings are only comparable with ``--jobs 1``), ``--time-pairs N`` to time
+hippomap and the peer's best threshold again N times side by side on each case
+(:func:`paired_timing`: the median of the pairs' ratios, steadier than the sweep's one ratio
+on a shared machine). A markdown summary is printed at the end and every row is written as
+JSON to ``--out``.
 """
 
 from __future__ import annotations
@@ -444,7 +447,49 @@ def run_ors_sweep(
     stock = score_ors(peers.run_ors(exe, peer_dir, data, *size, None, work, odometry), gt)
     sweep = [score_ors(peers.run_ors(exe, peer_dir, data, *size, th, work, odometry), gt) for th in thresholds]
     best = min([stock, *sweep], key=lambda r: r["ate"])
-    return {"stock": stock, "best": best, "sweep": sweep}
+    return {"stock": stock, "best": best, "sweep": sweep, "best_is_stock": best is stock}
+
+
+def paired_timing(
+    data: Path,
+    config_file: str | None,
+    exe: Path,
+    peer_dir: Path,
+    size: tuple[int, int],
+    threshold: float | None,
+    work: Path,
+    pairs: int,
+) -> dict[str, Any]:
+    """hippomap's and the peer's cost per frame on ``data``, timed again ``pairs`` times side by side.
+
+    The sweep times hippomap once and the peer's best threshold minutes later, so a slow spell of a shared
+    machine can fall on one side only: the loop's ratio read 1.20 and 1.08 in two runs of the same maps.
+    Here each pair runs both on the same frames back to back (which goes first alternates) and its ratio
+    is hippomap's mean over the peer's; the median of the pairs is the figure to compare. hippomap runs
+    its default mapper again (the same map: the mapper is deterministic), timing only; the peer runs at
+    ``threshold`` (None: its stock config)."""
+    dataset = open_dataset(data)
+    cfg = dataset_config(dataset, HippomapConfig.from_file(config_file) if config_file else HippomapConfig())
+    odometry = peers.ors_odometry_file(data, work)
+
+    def hippomap_ms() -> float:
+        m = TimedMapper(cfg)
+        run_dataset(dataset, cfg, mapper=m)
+        return float(np.mean(m.frame_seconds)) * 1e3
+
+    def peer_ms() -> float:
+        return float(peers.run_ors(exe, peer_dir, data, *size, threshold, work, odometry).core_ms["mean"])
+
+    hm, ors = [], []
+    for i in range(pairs):
+        if i % 2 == 0:
+            hm.append(hippomap_ms())
+            ors.append(peer_ms())
+        else:
+            ors.append(peer_ms())
+            hm.append(hippomap_ms())
+    ratios = [a / max(b, 1e-12) for a, b in zip(hm, ors)]
+    return {"hippomap_ms": hm, "ors_ms": ors, "ratios": ratios, "ratio_median": float(np.median(ratios))}
 
 
 # --------------------------------------------------------------------------------------
@@ -476,9 +521,20 @@ def sim_case(case: dict[str, Any]) -> dict[str, Any]:
             row["hippomap"] = run_hippomap(data, case["config"], work / "hippomap")
             if case["ors_exe"]:
                 gt = open_dataset(data).groundtruth
-                row["ors"] = run_ors_sweep(
+                row["ors"] = ors = run_ors_sweep(
                     Path(case["ors_exe"]), Path(case["peer_dir"]), data, size, case["thresholds"], work, gt
                 )
+                if case.get("time_pairs"):
+                    row["paired_timing"] = paired_timing(
+                        data,
+                        case["config"],
+                        Path(case["ors_exe"]),
+                        Path(case["peer_dir"]),
+                        size,
+                        None if ors["best_is_stock"] else ors["best"]["threshold"],
+                        work,
+                        case["time_pairs"],
+                    )
         finally:
             if not case["keep"]:
                 peers.remove_tree(work)
@@ -705,7 +761,11 @@ def sim_table(rows: list[dict[str, Any]]) -> list[str]:
         cells.append(f"{f2(c['mean'])} ({f2(c['first_third'])}/{f2(c['last_third'])})")
         if ors:
             bc = b["core_ms"]
-            cells += [f"{f2(bc['mean'])} ({f2(bc['first_third'])}/{f2(bc['last_third'])})", f2(r["ms_ratio_vs_best"])]
+            pt = r.get("paired_timing")
+            ratio = f2(r["ms_ratio_vs_best"])
+            if pt:
+                ratio += f"; paired {f2(pt['ratio_median'])} ({f2(min(pt['ratios']))}–{f2(max(pt['ratios']))})"
+            cells += [f"{f2(bc['mean'])} ({f2(bc['first_third'])}/{f2(bc['last_third'])})", ratio]
         else:
             cells += ["n/a", "n/a"]
         out.append("| " + " | ".join(cells) + " |")
@@ -827,6 +887,13 @@ def sim_targets(rows: list[dict[str, Any]]) -> list[str]:
             f"- core ms ratio hippomap / ORS best: median {np.median(ms):.2f}, max {ms.max():.2f}; "
             f"runs meeting <= 1: {int((ms <= 1).sum())}/{len(ms)}"
         )
+        paired = [r for r in with_ors if r.get("paired_timing")]
+        if paired:
+            pm = np.array([r["paired_timing"]["ratio_median"] for r in paired])
+            lines.append(
+                f"- the same timed in pairs (--time-pairs): median {np.median(pm):.2f}, max {pm.max():.2f}; "
+                f"runs meeting <= 1: {int((pm <= 1).sum())}/{len(pm)}"
+            )
     growth = np.array([r["hippomap"]["core_ms"]["last_third"] / r["hippomap"]["core_ms"]["first_third"] for r in ok])
     lines.append(
         f"- hippomap last third / first third cost: median {np.median(growth):.2f}, max {growth.max():.2f}; "
@@ -1021,6 +1088,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--skip-ors", action="store_true")
     ap.add_argument("--skip-gtsam", action="store_true")
     ap.add_argument("--jobs", type=int, default=1, help="parallel cases (timings comparable only with 1)")
+    ap.add_argument(
+        "--time-pairs",
+        type=int,
+        default=0,
+        metavar="N",
+        help="time hippomap and the peer's best threshold again N times side by side per case (paired_timing)",
+    )
     ap.add_argument("--keep", action="store_true", help="keep each case's output folders in the cache")
     ap.add_argument("--render-only", action="store_true", help="only render (and cache) the simulated runs")
     ap.add_argument(
@@ -1126,6 +1200,7 @@ def main(argv: list[str] | None = None) -> int:
                 "peer_dir": str(peer_dir),
                 "thresholds": thresholds,
                 "keep": args.keep,
+                "time_pairs": args.time_pairs,
             }
             for s in args.seeds
             for tx in args.textures
@@ -1155,6 +1230,9 @@ def main(argv: list[str] | None = None) -> int:
                     f"at vt {r['ors']['best']['threshold']:g} "
                     f"({r['ors']['best']['core_ms']['mean']:.2f} ms/frame)"
                 )
+            if "paired_timing" in r:
+                pt = r["paired_timing"]
+                line += f"; ms ratio in {len(pt['ratios'])} pairs: median {pt['ratio_median']:.2f}"
             render = f"render {r['render_s']:.0f} s, " if r.get("render_s") else ""
             print(f"{line} [{render}case {r['case_s']:.0f} s]", flush=True)
 

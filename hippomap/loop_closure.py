@@ -81,7 +81,11 @@ def jsonable(x: Any) -> Any:
 
 
 def vec3(value: Any, name: str) -> tuple[float, float, float]:
-    """A finite (x, y, θ) triple from a sequence (or an object with x, y, theta), else InputError."""
+    """A finite (x, y, θ) triple from a sequence (or an object with x, y, theta), else InputError. A tuple
+    of three finite Python floats (the mapper's, every step) is returned as it is: the floats the array
+    route gives, without its round trip (7 us, more than the rest of a step's map bookkeeping)."""
+    if type(value) is tuple and len(value) == 3 and all(type(v) is float and math.isfinite(v) for v in value):
+        return value
     if hasattr(value, "x") and hasattr(value, "y") and hasattr(value, "theta"):
         value = (value.x, value.y, value.theta)
     try:

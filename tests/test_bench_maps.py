@@ -533,3 +533,46 @@ def test_unfinished_renders_of_stopped_runs_are_removed_and_running_ones_kept(tm
         (d / "frames" / "000000.png").write_bytes(b"x")
     assert bench_maps.remove_stale_renders(folder) == [stale]
     assert not stale.exists() and running.exists() and other.exists()
+
+
+def test_paired_timing_alternates_the_two_sides_and_takes_the_median_ratio(short_run, tmp_path, monkeypatch):
+    """--time-pairs: each pair times hippomap (the real mapper on the same frames) and the peer at the threshold
+    asked, which goes first alternating, and reports every pair's ratio and their median; the sweep keeps which
+    of its runs was the stock config, so that the stock one is run again as stock."""
+    calls: list[str] = []
+    peer_ms = iter([4.0, 1e-3, 2.0])  # a fast, a slow and a middling peer: the median must be the middle pair
+
+    def fake_run_ors(exe, peer_dir, data, width, height, threshold, work, odometry=None):
+        calls.append(f"ors {threshold}")
+        return argparse.Namespace(core_ms={"mean": next(peer_ms)})
+
+    def counted_run(dataset, cfg, mapper):  # the real mapper on the run's first readings and frames (a short test)
+        calls.append("hippomap")
+        for item, _ in zip(dataset.events(), range(12)):
+            mapper.step(item) if isinstance(item, Odometry) else mapper.observe(Frame(item.t, item.load().image))
+        return mapper, {}
+
+    monkeypatch.setattr(peers, "run_ors", fake_run_ors)
+    monkeypatch.setattr(bench_maps, "run_dataset", counted_run)
+    pt = bench_maps.paired_timing(short_run, None, Path("ors"), Path("peer"), (96, 72), 0.03, tmp_path, 3)
+    assert calls == ["hippomap", "ors 0.03", "ors 0.03", "hippomap", "hippomap", "ors 0.03"]
+    hm = pt["hippomap_ms"]
+    assert len(hm) == 3 and all(0 < x < 1e3 for x in hm)
+    assert pt["ors_ms"] == [4.0, 1e-3, 2.0]
+    assert pt["ratios"] == pytest.approx([hm[0] / 4.0, hm[1] / 1e-3, hm[2] / 2.0])
+    assert pt["ratio_median"] == pytest.approx(sorted(pt["ratios"])[1])
+
+    def fake_score(res, gt):
+        return {"ate": res.ate, "threshold": res.threshold}
+
+    ates = {None: 0.5, 0.02: 0.9, 0.03: 0.7}
+    monkeypatch.setattr(bench_maps, "score_ors", fake_score)
+    monkeypatch.setattr(
+        peers, "run_ors", lambda exe, pd, data, w, h, th, work, odo=None: argparse.Namespace(ate=ates[th], threshold=th)
+    )
+    monkeypatch.setattr(peers, "ors_odometry_file", lambda data, work: work / "odo.csv")
+    sweep = bench_maps.run_ors_sweep(Path("ors"), Path("peer"), short_run, (96, 72), [0.02, 0.03], tmp_path, None)
+    assert sweep["best_is_stock"] and sweep["best"]["ate"] == 0.5
+    ates[0.03] = 0.1
+    sweep = bench_maps.run_ors_sweep(Path("ors"), Path("peer"), short_run, (96, 72), [0.02, 0.03], tmp_path, None)
+    assert not sweep["best_is_stock"] and sweep["best"]["threshold"] == 0.03

@@ -24,6 +24,7 @@ from hippomap.loop_closure import (
     link_errors,
     link_info3,
     robust_weight,
+    vec3,
 )
 from hippomap.loop_pose import align_group, looming_offset, looming_scale
 from hippomap.map_graph import LOOP, MapGraph, _undirected_paths, _undirected_paths_reference, hop_distances
@@ -783,3 +784,35 @@ def test_a_hypothesis_is_judged_on_the_graph_without_its_own_link(accept):
     assert rows[3]["support"] == []  # nothing vouches for the leg back to the eastbound pass
     assert rows[3]["status"] == ("accepted" if accept == "robust" else "pending")
     assert "verified" not in rows[3]["reason"]
+
+
+@settings(max_examples=200, deadline=None)
+@given(xyz=st.tuples(*[st.floats(allow_nan=True, allow_infinity=True) | st.sampled_from([0.0, -0.0, 1e308])] * 3))
+def test_a_tuple_of_floats_checks_as_its_array_does(xyz):
+    """vec3's tuple-of-floats route gives the same three floats (bit for bit, -0.0 kept) as the
+    array route a list of the same values takes, and names the same non-finite value."""
+    as_list = list(xyz)
+    try:
+        expect = vec3(as_list, "odometry increment")
+    except InputError as exc:
+        with pytest.raises(InputError, match="odometry increment must be finite") as got:
+            vec3(xyz, "odometry increment")
+        assert str(got.value).split(", got ")[0] == str(exc).split(", got ")[0]
+        return
+    out = vec3(xyz, "odometry increment")
+    assert all(type(v) is float for v in out)
+    assert [math.copysign(1.0, v) for v in out] == [math.copysign(1.0, v) for v in expect]
+    assert list(out) == list(expect)
+
+
+def test_vec3_names_what_is_not_a_finite_triple():
+    """Anything but three finite numbers is an InputError naming the value; numpy floats and
+    objects with x, y, theta take the array route."""
+    assert vec3((np.float64(1.5), 2.0, 3.0), "p") == (1.5, 2.0, 3.0)
+    assert vec3(np.array([1.0, 2.0, 3.0]), "p") == (1.0, 2.0, 3.0)
+    with pytest.raises(InputError, match=r"place code must be finite, got \(1\.0, nan, 0\.0\)"):
+        vec3((1.0, float("nan"), 0.0), "place code")
+    with pytest.raises(InputError, match="must be three numbers"):
+        vec3((1.0, 2.0), "p")
+    with pytest.raises(InputError, match="must be three numbers"):
+        vec3((1.0, "a", 2.0), "p")
