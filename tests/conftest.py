@@ -18,34 +18,6 @@ from hippomap.grid_cells import TABLE_CACHE_ENV  # noqa: E402
 from tests.support.ray_head import SHARED_DIR_ENV, SHARED_OWNER_ENV, stop_shared_head  # noqa: E402
 from tests.support.variants import SERVICE_VARIANTS  # noqa: E402
 
-#: The test files that take longest (30-180 s each on two workers; ``pytest -n 2 --dist loadfile --durations=0``),
-#: longest first. xdist gives a worker a whole file when it runs out of work, by default in the order of the
-#: files' test counts, which put three files with one or two long tests (53, 31 and 20 s) at the end: one
-#: worker ran them while the other had finished. Starting the long files first lets the short ones fill in.
-#: A stale entry only changes how evenly the workers finish, never which tests run.
-LONG_FILES = (
-    "test_server_live.py",
-    "test_server_crash.py",
-    "test_cli.py",
-    "test_mapper.py",
-    "test_backends.py",
-    "test_server_schema.py",
-    "test_client_replay.py",
-    "test_viewer_readable.py",
-    "test_viewer_browser.py",
-    "test_replicas.py",
-    "test_cognitive_map.py",
-    "test_map_reuse.py",
-    "test_bench_maps.py",
-)
-
-
-def pytest_collection_modifyitems(config, items):
-    """The files of :data:`LONG_FILES` first, in its order; the others after them in collection order. A
-    stable sort on the file alone keeps every file's tests together and in their own order."""
-    rank = {name: i for i, name in enumerate(LONG_FILES)}
-    items.sort(key=lambda item: rank.get(item.path.name, len(LONG_FILES)))
-
 
 @pytest.fixture(scope="module", params=SERVICE_VARIANTS, ids=lambda v: v.name)
 def variant(request):
@@ -60,12 +32,9 @@ def pytest_configure(config):
       Ray actors and commands the tests start read the default tables from it instead of each building
       its own (1.4 s of CPU each); a folder set from outside is used as it is;
     * one Ray head for the run's workers (``tests.support.ray_head``), started by the first that needs it
-      and stopped here at the end;
-    * xdist's files handed out in the order :func:`pytest_collection_modifyitems` gives them."""
+      and stopped here at the end."""
     if hasattr(config, "workerinput"):
         return
-    if hasattr(config.option, "loadscopereorder"):  # xdist: hand out files in the order above, not by test count
-        config.option.loadscopereorder = False
     if TABLE_CACHE_ENV not in os.environ:
         config._hippomap_table_cache = tempfile.mkdtemp(prefix="hippomap-tables-")
         os.environ[TABLE_CACHE_ENV] = config._hippomap_table_cache

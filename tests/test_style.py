@@ -233,24 +233,3 @@ def test_the_architecture_module_map_names_every_module():
     assert len(documented) > 50
     assert not actual - documented, f"modules missing from the module map: {sorted(actual - documented)}"
     assert not documented - actual, f"the module map names modules that do not exist: {sorted(documented - actual)}"
-
-
-def test_the_long_test_files_run_first_and_exist():
-    """Every file the conftest starts first exists (a renamed one would silently go back to the end), and
-    its ordering puts them first, in that order, keeping each file's tests together and in their order."""
-    from types import SimpleNamespace
-
-    from tests.conftest import LONG_FILES, pytest_collection_modifyitems
-
-    missing = [name for name in LONG_FILES if not (ROOT / "tests" / name).is_file()]
-    assert not missing, f"tests/conftest.py LONG_FILES names files that do not exist: {missing}"
-    names = ["test_a.py", LONG_FILES[2], "test_b.py", LONG_FILES[0], LONG_FILES[2]]
-    items = [SimpleNamespace(path=ROOT / "tests" / name, n=i) for i, name in enumerate(names)]
-    pytest_collection_modifyitems(None, items)
-    assert [(item.path.name, item.n) for item in items] == [
-        (LONG_FILES[0], 3),
-        (LONG_FILES[2], 1),
-        (LONG_FILES[2], 4),
-        ("test_a.py", 0),
-        ("test_b.py", 2),
-    ]
