@@ -466,8 +466,10 @@ def paired_timing(
     machine can fall on one side only: the loop's ratio read 1.20 and 1.08 in two runs of the same maps.
     Here each pair runs both on the same frames back to back (which goes first alternates) and its ratio
     is hippomap's mean over the peer's; the median of the pairs is the figure to compare. hippomap runs
-    its default mapper again (the same map: the mapper is deterministic), timing only; the peer runs at
-    ``threshold`` (None: its stock config)."""
+    again with the case's config (the same map: the mapper is deterministic), timing only; the peer runs
+    at ``threshold`` (None: its stock config)."""
+    if pairs < 1:
+        raise ValueError(f"pairs must be at least 1, got {pairs}")
     dataset = open_dataset(data)
     cfg = dataset_config(dataset, HippomapConfig.from_file(config_file) if config_file else HippomapConfig())
     odometry = peers.ors_odometry_file(data, work)
@@ -1108,6 +1110,8 @@ def main(argv: list[str] | None = None) -> int:
         help="run nothing: print the tables of earlier --out files (rows merged)",
     )
     args = ap.parse_args(argv)
+    if args.time_pairs < 0:
+        ap.error(f"--time-pairs {args.time_pairs}: give a number of pairs, 0 for none")
     if args.from_json:
         sim_rows, bic_rows = [], []
         for f in args.from_json:

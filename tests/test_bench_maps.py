@@ -561,6 +561,10 @@ def test_paired_timing_alternates_the_two_sides_and_takes_the_median_ratio(short
     assert pt["ors_ms"] == [4.0, 1e-3, 2.0]
     assert pt["ratios"] == pytest.approx([hm[0] / 4.0, hm[1] / 1e-3, hm[2] / 2.0])
     assert pt["ratio_median"] == pytest.approx(sorted(pt["ratios"])[1])
+    with pytest.raises(ValueError, match="pairs must be at least 1, got 0"):
+        bench_maps.paired_timing(short_run, None, Path("ors"), Path("peer"), (96, 72), 0.03, tmp_path, 0)
+    with pytest.raises(SystemExit):
+        bench_maps.main(["--time-pairs", "-1", "--skip-sim", "--skip-bicocca"])
 
     def fake_score(res, gt):
         return {"ate": res.ate, "threshold": res.threshold}
