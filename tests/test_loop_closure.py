@@ -2,6 +2,7 @@
 group of visual hypotheses, heading-free consistency, robust weights that let a false closure
 fade while true ones are applied, and key frames that mean the same at any frame rate."""
 
+import argparse
 import math
 
 import numpy as np
@@ -810,6 +811,7 @@ def test_vec3_names_what_is_not_a_finite_triple():
     objects with x, y, theta take the array route."""
     assert vec3((np.float64(1.5), 2.0, 3.0), "p") == (1.5, 2.0, 3.0)
     assert vec3(np.array([1.0, 2.0, 3.0]), "p") == (1.0, 2.0, 3.0)
+    assert vec3(argparse.Namespace(x=1.0, y=2.0, theta=3.0), "p") == (1.0, 2.0, 3.0)
     with pytest.raises(InputError, match=r"place code must be finite, got \(1\.0, nan, 0\.0\)"):
         vec3((1.0, float("nan"), 0.0), "place code")
     with pytest.raises(InputError, match="must be three numbers"):
