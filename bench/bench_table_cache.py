@@ -31,9 +31,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from tests.support.live import LiveServer  # noqa: E402
-
-ENV = "HIPPOMAP_TABLE_CACHE"
+from hippomap.grid_cells import TABLE_CACHE_ENV as ENV  # noqa: E402
+from tests.support.live import LiveServer, anonymous_bytes  # noqa: E402
 
 CHILD = """
 import json, sys, time
@@ -47,13 +46,8 @@ print(json.dumps({"cpu_s": cpu, "anonymous_mb": __import__("bench_table_cache").
 
 
 def anonymous_mb(pid: int | None) -> float:
-    """Anonymous memory (MB) of process ``pid`` (None: this one): its pages that no file backs, which every
-    process holds for itself (pages of a mapped file are the page cache's, one copy for all processes)."""
-    with open(f"/proc/{pid or 'self'}/smaps_rollup") as f:
-        for line in f:
-            if line.startswith("Anonymous:"):
-                return int(line.split()[1]) / 1024
-    raise RuntimeError("no Anonymous line in smaps_rollup")
+    """:func:`tests.support.live.anonymous_bytes` of process ``pid`` (None: this one), in MB."""
+    return anonymous_bytes(pid) / 2**20
 
 
 def one_process(cache: str | None) -> dict:

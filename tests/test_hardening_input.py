@@ -38,6 +38,7 @@ from server.runtime import sessions as sessions_module
 from server.security.quotas import SAFE_RANGES, check_config, grid_table_bytes
 from server.settings import ServerSettings
 from server.storage.store import InputRecord, StoreDead
+from tests.support.live import anonymous_bytes
 
 TOKEN = "hm_hardening_admin_token"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}  # websocket_connect adds to the dict it gets: pass it dict(AUTH)
@@ -540,15 +541,6 @@ def test_corrupt_jpeg_is_refused_over_http_and_websocket(tmp_path):
 
 
 # ----------------------------------------------------------------- the mapper queue, in bytes
-def _rss() -> int:
-    """This process's resident anonymous memory (bytes): where decoded frames live. File-backed pages are left
-    out: the grid-cell tables a mapper maps from the run's table cache, or a library's code paged in on first
-    use, are not memory a session keeps (and they count or not depending on what the process ran before)."""
-    with open("/proc/self/status") as f:
-        kb = next(line for line in f if line.startswith("RssAnon:")).split()[1]
-    return int(kb) * 1024
-
-
 def _big_frame(w: int = 2000, h: int = 1000) -> bytes:
     """Small as a JPEG, large decoded (a smooth gradient): 2 MB a frame once decoded."""
     x = np.linspace(0, 255, w, dtype=np.float32)[None, :] + np.linspace(0, 60, h, dtype=np.float32)[:, None]
@@ -573,7 +565,7 @@ def test_mapper_queue_is_bounded_in_bytes_and_memory_returns_on_delete(tmp_path,
     try:
         with TestClient(app) as c:
             sid = _session(c)
-            base = _rss()
+            base = anonymous_bytes()
             headers = {**AUTH, "Content-Type": "image/jpeg"}
             accepted = 0
             for k in range(80):
@@ -587,11 +579,11 @@ def test_mapper_queue_is_bounded_in_bytes_and_memory_returns_on_delete(tmp_path,
             assert accepted == 64
             live = app.state.manager.sessions[sid]
             assert live.pending_bytes == limit
-            grown = _rss() - base
+            grown = anonymous_bytes() - base
             assert grown > 0.6 * limit, grown  # the queue really holds the decoded frames
             gate.set()
             assert c.delete(f"/sessions/{sid}", headers=AUTH).status_code == 204
-            after = _rss() - base
+            after = anonymous_bytes() - base
             assert after < 0.25 * limit, (grown, after)  # returned, not kept by the deleted session
     finally:
         gate.set()

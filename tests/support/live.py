@@ -110,6 +110,18 @@ def pid_alive(pid: int) -> bool:
     return True
 
 
+def anonymous_bytes(pid: int | None = None) -> int:
+    """Resident anonymous memory of process ``pid`` (None: this one), bytes: its pages that no file backs,
+    which every process holds for itself (decoded frames, built tables). Pages of a mapped file (the
+    grid-cell table cache, a library's code) are the page cache's, one copy for all processes, and count or
+    not depending on what the process touched before, so they are left out."""
+    with open(f"/proc/{pid or 'self'}/smaps_rollup") as f:
+        for line in f:
+            if line.startswith("Anonymous:"):
+                return int(line.split()[1]) * 1024
+    raise RuntimeError("no Anonymous line in smaps_rollup")
+
+
 def free_port() -> int:
     """A TCP port on 127.0.0.1 that was free a moment ago (the OS's choice)."""
     import socket
