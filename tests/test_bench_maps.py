@@ -166,6 +166,45 @@ def test_revisit_lines_total_the_runs_and_name_the_episodes_missed():
     assert bench_maps.revisit_lines([{**row(3, 1, 0), "hippomap": {}}]) == []  # rows from before it was measured
 
 
+def test_recognition_lines_count_the_runs_meeting_the_p95_target():
+    def row(p95_ms, cpu_p95_ms, n=40):
+        return {
+            "hippomap": {
+                "recognition_ms": {"n": n, "mean": p95_ms / 2, "p95": p95_ms},
+                "recognition_cpu_ms": {"n": n, "mean": cpu_p95_ms / 2, "p95": cpu_p95_ms},
+            }
+        }
+
+    lines = bench_maps.recognition_lines([row(12.0, 11.0), row(18.0, 14.0), row(0.0, 0.0, n=0), {"hippomap": {}}])
+    # runs without recognitions (or measured before the field) are left out of the count
+    assert lines[0] == (
+        "- hippomap recognition p95 (wall clock): median 15.0 ms, max 18.0 ms; runs meeting <= 15 ms: 1/2"
+    )
+    assert lines[1] == "- hippomap recognition p95 (CPU): median 12.5 ms, max 14.0 ms; runs meeting <= 15 ms: 2/2"
+    assert bench_maps.recognition_summary([]) == {"n": 0, "mean": None, "p95": None}
+    assert bench_maps.recognition_summary([0.001, 0.003])["mean"] == pytest.approx(2.0)
+
+
+def test_sim_table_rows_have_the_header_s_columns():
+    thirds = {"mean": 2.0, "first_third": 1.0, "last_third": 3.0}
+    hm = {
+        "odometry_ate": 5.0,
+        "ate": 0.2,
+        "rpe": 0.1,
+        "closures_accepted": 9,
+        "closures_false": 0,
+        "revisits": {"episodes": 2, "closed": 2, "missed": []},
+        "links": {"loop": {"mean_m": 0.1}},
+        "core_ms": thirds,
+        "recognition_ms": {"n": 30, "mean": 6.0, "p95": 13.0},
+    }
+    base = {"world": "loop", "seed": 3, "size": "320x240", "texture": "procedural"}
+    table = bench_maps.sim_table([{**base, "hippomap": hm}, {**base, "error": "render failed"}])
+    n = table[0].count("|")
+    assert all(line.count("|") == n for line in table)
+    assert "| 6.00 / 13.00 |" in table[2]  # mean / p95 of the recognitions
+
+
 def test_closure_counts():
     dist = [0.5, 3.0, 7.0, None, 1.0]
     used = [True, True, True, True, False]
@@ -362,6 +401,12 @@ def test_mapper_parts_add_up_to_the_whole_and_see_every_recognition(short_run):
     assert none and all(0 <= d < math.hypot(16.0 + 2.5, 10.0 + 2.5) for d in none)
     assert min(none) <= bench_mapper_parts.FUTILE_M < max(none)
     assert all(np.isnan(x.truth_m) for x in timer.recognitions if x.named)
+    # bench_maps' own mapper times each recognition too (inside the part timer's wrapper: never longer)
+    assert len(m.recognition_seconds) == len(m.recognition_cpu_seconds) == len(m.recognitions)
+    assert all(inner <= x.seconds + 1e-9 for inner, x in zip(m.recognition_cpu_seconds, timer.recognitions))
+    rec = bench_maps.recognition_summary(m.recognition_seconds)
+    assert rec["n"] == len(m.recognitions)
+    assert rec["p95"] == pytest.approx(1e3 * np.percentile(m.recognition_seconds, 95))
     n = len(timer.rows)
     whole = bench_mapper_parts.per_frame(timer.rows, 0, n)
     assert all(whole[p] >= 0 for p in bench_mapper_parts.PARTS) and whole["total"] > 0
