@@ -751,11 +751,12 @@ def sim_table(rows: list[dict[str, Any]]) -> list[str]:
         "hm recognition ms mean / p95 | ORS best ms (1st/last third) | ms ratio |",
         "|---|---:|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
+    n_cols = out[0].count("|") - 1  # an error row fills the header's columns after its five cells
     for r in rows:
         if "error" in r and "hippomap" not in r:
             out.append(
                 f"| {world_label(r)} | {r['seed']} | {r['size']} | {r['texture']} | error: {r['error'][:80]} "
-                + "| " * 12
+                + "| " * (n_cols - 5)
                 + "|"
             )
             continue
