@@ -185,6 +185,43 @@ def test_recognition_lines_count_the_runs_meeting_the_p95_target():
     assert bench_maps.recognition_summary([0.001, 0.003])["mean"] == pytest.approx(2.0)
 
 
+def test_growth_lines_put_the_peer_s_own_third_ratios_beside_the_target():
+    def thirds(first, last):
+        return {"mean": (first + last) / 2, "first_third": first, "last_third": last}
+
+    def row(hm, hm_cpu, best, stock=(1.0, 1.0)):
+        r = {"hippomap": {"core_ms": thirds(*hm)}}
+        if hm_cpu is not None:
+            r["hippomap"]["core_cpu_ms"] = thirds(*hm_cpu)
+        if best is not None:
+            r["ors"] = {"best": {"core_ms": thirds(*best)}, "stock": {"core_ms": thirds(*stock)}}
+        return r
+
+    lines = bench_maps.growth_lines(
+        [
+            row((1.0, 1.1), (1.0, 1.5), (1.0, 2.0)),
+            row((1.0, 2.0), (1.0, 1.1), (0.5, 1.0), (1.0, 1.3)),
+            row((2.0, 3.0), None, None),
+        ]
+    )
+    assert lines[0] == "- hippomap last third / first third cost: median 1.50, max 2.00; runs meeting <= 1.2: 1/3"
+    # CPU times only where they were measured
+    assert lines[1] == "- the same on CPU time (less load-dependent): median 1.30, max 1.50; runs meeting <= 1.2: 1/2"
+    # the peer's figures on the runs it ran: its own thirds, and hippomap's last third against the best's
+    assert (
+        lines[2]
+        == "- for comparison, ORS best's own last third / first third: median 2.00, max 2.00; runs meeting <= 1.2: 0/2"
+    )
+    assert (
+        lines[3]
+        == "- for comparison, ORS stock's own last third / first third: median 1.15, max 1.30; runs meeting <= 1.2: 1/2"
+    )
+    assert lines[4] == "- hippomap's last third / ORS best's last third: median 1.27, max 2.00; runs <= 1: 1/2"
+    assert len(lines) == 5
+    # without the peer, only hippomap's lines
+    assert len(bench_maps.growth_lines([row((1.0, 1.1), None, None)])) == 1
+
+
 def test_sim_table_rows_have_the_header_s_columns():
     thirds = {"mean": 2.0, "first_third": 1.0, "last_third": 3.0}
     hm = {
