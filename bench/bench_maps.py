@@ -901,6 +901,14 @@ def sim_summary(rows: list[dict[str, Any]]) -> list[str]:
     return out
 
 
+def meeting(values: np.ndarray, limit: float, digits: int = 2, unit: str = "") -> str:
+    """A target line's figures: the values' median and max, and how many runs are within ``limit``."""
+    return (
+        f"median {np.median(values):.{digits}f}{unit}, max {values.max():.{digits}f}{unit}; "
+        f"runs meeting <= {limit:g}{unit}: {int((values <= limit).sum())}/{len(values)}"
+    )
+
+
 def sim_targets(rows: list[dict[str, Any]]) -> list[str]:
     ok = [r for r in rows if "hippomap" in r]
     if not ok:
@@ -912,22 +920,13 @@ def sim_targets(rows: list[dict[str, Any]]) -> list[str]:
         for w in worlds:
             rs = [r for r in with_ors if r["world"] == w]
             ratios = np.array([r["ate_ratio_vs_best"] for r in rs])
-            lines.append(
-                f"- {w}: ATE ratio hippomap / ORS best over {len(rs)} runs: median {np.median(ratios):.2f}, "
-                f"max {ratios.max():.2f}; runs meeting <= 0.8: {int((ratios <= 0.8).sum())}/{len(rs)}"
-            )
+            lines.append(f"- {w}: ATE ratio hippomap / ORS best over {len(rs)} runs: {meeting(ratios, 0.8)}")
         ms = np.array([r["ms_ratio_vs_best"] for r in with_ors])
-        lines.append(
-            f"- core ms ratio hippomap / ORS best: median {np.median(ms):.2f}, max {ms.max():.2f}; "
-            f"runs meeting <= 1: {int((ms <= 1).sum())}/{len(ms)}"
-        )
+        lines.append(f"- core ms ratio hippomap / ORS best: {meeting(ms, 1)}")
         paired = [r for r in with_ors if r.get("paired_timing")]
         if paired:
             pm = np.array([r["paired_timing"]["ratio_median"] for r in paired])
-            lines.append(
-                f"- the same timed in pairs (--time-pairs): median {np.median(pm):.2f}, max {pm.max():.2f}; "
-                f"runs meeting <= 1: {int((pm <= 1).sum())}/{len(pm)}"
-            )
+            lines.append(f"- the same timed in pairs (--time-pairs): {meeting(pm, 1)}")
     lines += growth_lines(ok)
     lines += recognition_lines(ok)
     lines += revisit_lines(ok)
@@ -949,24 +948,17 @@ def growth_lines(ok: list[dict[str, Any]]) -> list[str]:
     def third_ratio(c: dict[str, Any]) -> float:
         return c["last_third"] / c["first_third"]
 
-    def summary(g: np.ndarray) -> str:
-        return (
-            f"median {np.median(g):.2f}, max {g.max():.2f}; "
-            f"runs meeting <= {GROWTH_MAX:g}: {int((g <= GROWTH_MAX).sum())}/{len(g)}"
-        )
-
     growth = np.array([third_ratio(r["hippomap"]["core_ms"]) for r in ok])
-    lines = [f"- hippomap last third / first third cost: {summary(growth)}"]
+    lines = [f"- hippomap last third / first third cost: {meeting(growth, GROWTH_MAX)}"]
     cpu = [r["hippomap"]["core_cpu_ms"] for r in ok if "core_cpu_ms" in r["hippomap"]]
     if cpu:
-        lines.append(
-            f"- the same on CPU time (less load-dependent): {summary(np.array([third_ratio(c) for c in cpu]))}"
-        )
+        g = np.array([third_ratio(c) for c in cpu])
+        lines.append(f"- the same on CPU time (less load-dependent): {meeting(g, GROWTH_MAX)}")
     with_ors = [r for r in ok if "ors" in r]
     for config in ("best", "stock"):
         g = np.array([third_ratio(r["ors"][config]["core_ms"]) for r in with_ors])
         if g.size:
-            lines.append(f"- for comparison, ORS {config}'s own last third / first third: {summary(g)}")
+            lines.append(f"- for comparison, ORS {config}'s own last third / first third: {meeting(g, GROWTH_MAX)}")
     if with_ors:
         last = np.array(
             [r["hippomap"]["core_ms"]["last_third"] / r["ors"]["best"]["core_ms"]["last_third"] for r in with_ors]
@@ -985,8 +977,7 @@ def recognition_lines(ok: list[dict[str, Any]]) -> list[str]:
         p95 = np.array([r["hippomap"][key]["p95"] for r in ok if r["hippomap"].get(key, {}).get("n")])
         if p95.size:
             lines.append(
-                f"- hippomap recognition p95 ({what}): median {np.median(p95):.1f} ms, max {p95.max():.1f} ms; "
-                f"runs meeting <= {RECOGNITION_P95_MS:g} ms: {int((p95 <= RECOGNITION_P95_MS).sum())}/{p95.size}"
+                f"- hippomap recognition p95 ({what}): {meeting(p95, RECOGNITION_P95_MS, digits=1, unit=' ms')}"
             )
     return lines
 
