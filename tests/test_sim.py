@@ -341,6 +341,42 @@ def test_figure8_world_drives_round_both_blocks_and_through_its_junctions():
         sim.figure8_world(block=(2.0, 7.0))
 
 
+def test_grid_world_is_a_random_walk_of_its_seed_along_the_grid_lines():
+    """The grid world: a random walk over the junctions of a grid of blocks, its own for each seed; every leg
+    runs along one grid line between neighbouring junctions, never straight back the way it came; the walk is
+    ``laps`` times the grid's corridors long; the route driven keeps to the corridors (walls never within
+    half a metre either side) and passes a four-way junction in more than two directions."""
+    bx, by = 8.0, 6.0
+    ways = [sim.grid_walk(seed, (2, 2), (bx, by), 84.0) for seed in range(6)]
+    assert len({tuple(w) for w in ways}) == 6
+    for way in ways:
+        w = np.asarray(way)
+        assert tuple(w[0]) == (bx / 2, 0.0) and tuple(w[1]) == (bx, 0.0)
+        assert np.all(np.isin(w[1:, 0], [0.0, bx, 2 * bx])) and np.all(np.isin(w[1:, 1], [0.0, by, 2 * by]))
+        leg = np.diff(w, axis=0)
+        assert np.all((leg == 0).sum(axis=1) == 1)  # along x or along y
+        assert np.all(np.isin(np.abs(leg).max(axis=1), [bx / 2, bx, by]))  # to a neighbouring junction
+        assert np.all(np.any(w[2:] != w[:-2], axis=1))  # never straight back
+        length = np.abs(leg).sum()
+        assert 84.0 <= length < 84.0 + max(bx, by)
+    world = sim.grid_world(seed=4, blocks=(2, 2), block=(bx, by), laps=1)
+    run = sim.simulate(world, rate_hz=2.0, odometry_noise=sim.OdometryNoise())
+    gt = run.groundtruth
+    assert float(np.hypot(*np.diff(gt[:, :2], axis=0).T).sum()) == pytest.approx(84.0, rel=0.1)
+    cam = sim.Camera(width=9, hfov_deg=2)
+    for p in gt[::4]:
+        for side in (np.pi / 2, -np.pi / 2):
+            assert sim.raycast(world, (p[0], p[1], p[2] + side), cam).depth.min() > 0.5
+    walk = sim.simulate(sim.grid_world(seed=4, block=(bx, by)), rate_hz=2.0, odometry_noise=sim.OdometryNoise())
+    long = walk.groundtruth
+    centre = np.hypot(long[:, 0] - bx, long[:, 1] - by)
+    leaving = long[(centre > 1.5) & (centre < 2.0), 2]
+    assert len({int(np.rint(wrap_angle(a) / (np.pi / 2))) % 4 for a in leaving}) >= 3
+    for bad, match in (({"blocks": (0, 2)}, "blocks"), ({"block": (2.0, 6.0)}, "block"), ({"laps": 0}, "laps")):
+        with pytest.raises(InputError, match=match):
+            sim.grid_world(**bad)
+
+
 # --------------------------------------------------------------------------- output
 
 
@@ -511,6 +547,8 @@ def test_command_line_writes_a_run(tmp_path, capsys):
     assert "width" in capsys.readouterr().err
     assert main(["figure8", "--out", str(tmp_path / "f"), "--laps", "1", "--frame-every", "100", "--no-progress"]) == 0
     assert json.loads((tmp_path / "f" / "sim.json").read_text())["world"] == "figure8"
+    assert main(["grid", "--out", str(tmp_path / "g"), "--laps", "1", "--frame-every", "100", "--no-progress"]) == 0
+    assert json.loads((tmp_path / "g" / "sim.json").read_text())["world"] == "grid"
 
 
 def test_command_line_drives_the_route_at_the_speed_asked(tmp_path, capsys):

@@ -44,7 +44,7 @@ def _arguments(p: argparse.ArgumentParser) -> None:
 
 
 #: the worlds ``hippomap simulate`` renders (bench/bench_maps.py reports them in this order)
-WORLDS = ("loop", "corridor", "figure8", "bicocca")
+WORLDS = ("loop", "corridor", "figure8", "grid", "bicocca")
 
 
 def _world_arguments(p: argparse.ArgumentParser) -> None:
@@ -54,6 +54,7 @@ def _world_arguments(p: argparse.ArgumentParser) -> None:
         choices=WORLDS,
         help="loop: a 16 m x 10 m corridor loop; corridor: a straight corridor driven out and back; "
         "figure8: corridors round two 10 m x 7 m blocks driven as a figure of eight; "
+        "grid: corridors round a 2 x 2 grid of 8 m x 6 m blocks driven as a random walk of the seed; "
         "bicocca: walls along the real Bicocca run, driven as recorded",
     )
     p.add_argument("--out", required=True, help="output folder")
@@ -68,7 +69,8 @@ def _world_arguments(p: argparse.ArgumentParser) -> None:
         "--laps",
         type=int,
         default=3,
-        help="loop and figure8: laps, corridor: passes (default 3; the bicocca world drives the recorded run once)",
+        help="loop and figure8: laps, corridor: passes, grid: the walk's length in lengths of the grid's corridors "
+        "(default 3; the bicocca world drives the recorded run once)",
     )
     p.add_argument(
         "--rate",
@@ -80,7 +82,7 @@ def _world_arguments(p: argparse.ArgumentParser) -> None:
         "--speed",
         type=float,
         default=None,
-        help="loop, corridor and figure8: the route's mean speed in m/s (default 0.4); the bicocca world drives "
+        help="loop, corridor, figure8 and grid: the route's mean speed in m/s (default 0.4); the bicocca world drives "
         "the recorded run at its recorded speed",
     )
 
@@ -168,6 +170,8 @@ def run_command(args) -> int:
         world = worlds.corridor_world(seed=args.seed, passes=args.laps, texture=tex, **speed)
     elif args.world == "figure8":
         world = worlds.figure8_world(seed=args.seed, laps=args.laps, texture=tex, **speed)
+    elif args.world == "grid":
+        world = worlds.grid_world(seed=args.seed, laps=args.laps, texture=tex, **speed)
     elif speed:
         raise InputError("--speed: the bicocca world drives the recorded run at its recorded speed")
     else:

@@ -1,6 +1,6 @@
 """Ready-made worlds: a rectangular corridor loop, a straight corridor, a figure of eight
-of corridors round two blocks, and the Bicocca 2009-02-25b run (real odometry, ground-truth
-camera path, walls built around it)."""
+of corridors round two blocks, a grid of blocks driven as a random walk, and the Bicocca
+2009-02-25b run (real odometry, ground-truth camera path, walls built around it)."""
 
 from __future__ import annotations
 
@@ -104,16 +104,75 @@ def figure8_world(
         (2 * bx, 0.0),
         (bx, 0.0),
     ]
+    return _route_world(way, "figure8", True, laps, speed_mps, corridor_width, seed, texture)
+
+
+def grid_walk(
+    seed: int, blocks: tuple[int, int], block: tuple[float, float], length_m: float
+) -> list[tuple[float, float]]:
+    """Waypoints of a seeded random walk along the lines of a ``blocks`` grid of ``block``-sized blocks
+    (junctions ``(i bx, j by)``, ``0 <= i <= nx``, ``0 <= j <= ny``): from ``(bx / 2, 0)`` east to the
+    junction ``(bx, 0)``, then at every junction on to a neighbour chosen uniformly among all but the one
+    it came from (never straight back), until the walk is at least ``length_m`` long."""
+    nx, ny = blocks
+    bx, by = block
+    rng = np.random.default_rng([seed, 3])
+    prev, cur = (0, 0), (1, 0)
+    way = [(bx / 2, 0.0), (bx, 0.0)]
+    walked = bx / 2
+    while walked < length_m:
+        i, j = cur
+        steps = [(i + di, j + dj) for di, dj in ((1, 0), (0, 1), (-1, 0), (0, -1))]
+        steps = [n for n in steps if 0 <= n[0] <= nx and 0 <= n[1] <= ny and n != prev]
+        prev, cur = cur, steps[int(rng.integers(len(steps)))]
+        way.append((cur[0] * bx, cur[1] * by))
+        walked += bx if cur[1] == prev[1] else by
+    return way
+
+
+def grid_world(
+    seed: int = 0,
+    blocks: tuple[int, int] = (2, 2),
+    block: tuple[float, float] = (8.0, 6.0),
+    corridor_width: float = 2.5,
+    laps: int = 3,
+    speed_mps: float = 0.4,
+    texture: TextureParams | None = None,
+) -> World:
+    """Corridors along the lines of a ``blocks`` grid of ``block``-sized blocks (centre lines on
+    ``x = i bx``, ``y = j by``): four-way junctions inside, T-junctions on the sides. The default route is
+    a random walk over the junctions (:func:`grid_walk`) as long as ``laps`` times the grid's corridors
+    together, so, unlike the other worlds' fixed routes, each seed drives its own route, and corridors
+    are revisited in both directions after irregular stretches. Walls are built round the walk
+    (:func:`path_world`): a corridor the walk never takes is not there."""
+    nx, ny = blocks
+    bx, by = block
+    if not (isinstance(nx, int) and isinstance(ny, int) and nx >= 1 and ny >= 1):
+        raise InputError(f"grid blocks {blocks} must be two integers >= 1")
+    if not (bx > corridor_width and by > corridor_width and corridor_width > 0):
+        raise InputError(f"grid block {block} must exceed the corridor width {corridor_width} in both directions")
+    if not (isinstance(laps, int) and laps >= 1):
+        raise InputError(f"grid laps {laps!r} must be an integer >= 1")
+    network_m = nx * (ny + 1) * bx + (nx + 1) * ny * by
+    way = grid_walk(seed, (nx, ny), (bx, by), laps * network_m)
+    return _route_world(way, "grid", False, 1, speed_mps, corridor_width, seed, texture)
+
+
+def _route_world(
+    way: list, name: str, closed: bool, laps: int, speed_mps: float, corridor_width: float, seed: int, texture
+) -> World:
+    """A corridor ``corridor_width`` wide round the waypoints ``way`` (walls by :func:`path_world` round the
+    centre line), with the route along them as the world's default, wandering a little each lap."""
     route = RoutePlan(
         tuple(way),
-        closed=True,
+        closed=closed,
         laps=laps,
         speed_mps=speed_mps,
         lateral_jitter_m=min(0.12, 0.1 * corridor_width),
         seed=seed,
     )
-    centre = RoutePlan(tuple(way), closed=True, lateral_jitter_m=0.0).path(0.05)
-    return path_world(centre, half_width_m=corridor_width / 2, seed=seed, texture=texture, route=route, name="figure8")
+    centre = RoutePlan(tuple(way), closed=closed, lateral_jitter_m=0.0).path(0.05)
+    return path_world(centre, half_width_m=corridor_width / 2, seed=seed, texture=texture, route=route, name=name)
 
 
 def interpolate_poses(t_query, t, poses) -> np.ndarray:
