@@ -132,7 +132,8 @@ def sim_source_hash() -> str:
 
 
 #: ``hippomap simulate`` options a run may set beside the speed and rate (``--sim-option NAME=VALUE``):
-#: the odometry's errors, the camera's noise and field of view, frames rarer than odometry steps, light that changes
+#: the odometry's errors, the camera's noise and field of view, frames rarer than odometry steps, light that changes,
+#: the grid world's size
 SIM_OPTIONS = (
     "omega-bias",
     "sigma-omega",
@@ -146,6 +147,7 @@ SIM_OPTIONS = (
     "light-swing",
     "light-period",
     "directional",
+    "blocks",
 )
 
 

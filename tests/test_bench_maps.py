@@ -325,6 +325,7 @@ def test_sim_options_are_checked_by_name_and_number(bad):
     assert bench_maps.parse_sim_option("pixel-noise=8") == ("pixel-noise", 8.0)
     assert bench_maps.parse_sim_option("exposure-change=0.3") == ("exposure-change", 0.3)
     assert bench_maps.motion_args({"exposure-change": 0.3}) == ["--exposure-change", "0.3"]
+    assert bench_maps.motion_args({"blocks": bench_maps.parse_sim_option("blocks=3")[1]}) == ["--blocks", "3"]
 
 
 def test_scale_corrected_ates_are_reported_for_runs_with_a_scale_error():

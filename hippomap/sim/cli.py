@@ -73,6 +73,12 @@ def _world_arguments(p: argparse.ArgumentParser) -> None:
         "(default 3; the bicocca world drives the recorded run once)",
     )
     p.add_argument(
+        "--blocks",
+        type=int,
+        default=None,
+        help="grid: blocks along each side of the grid (default 2); the walk's length grows with its corridors",
+    )
+    p.add_argument(
         "--rate",
         type=float,
         default=5.0,
@@ -162,6 +168,8 @@ def run_command(args) -> int:
     from . import worlds
     from .run import simulate
 
+    if args.blocks is not None and args.world != "grid":
+        raise InputError(f"--blocks: only the grid world has blocks, not the {args.world} world")
     tex = TextureParams(source=args.texture)
     speed = {} if args.speed is None else {"speed_mps": args.speed}
     if args.world == "loop":
@@ -171,7 +179,8 @@ def run_command(args) -> int:
     elif args.world == "figure8":
         world = worlds.figure8_world(seed=args.seed, laps=args.laps, texture=tex, **speed)
     elif args.world == "grid":
-        world = worlds.grid_world(seed=args.seed, laps=args.laps, texture=tex, **speed)
+        n = 2 if args.blocks is None else args.blocks
+        world = worlds.grid_world(seed=args.seed, laps=args.laps, blocks=(n, n), texture=tex, **speed)
     elif speed:
         raise InputError("--speed: the bicocca world drives the recorded run at its recorded speed")
     else:
