@@ -551,7 +551,7 @@ def test_command_line_writes_a_run(tmp_path, capsys):
     assert json.loads((tmp_path / "g" / "sim.json").read_text())["world"] == "grid"
     assert main(["grid", "--out", str(tmp_path / "g3"), "--blocks", "3", "--laps", "1", "--frame-every", "100"]) == 0
     gt = np.loadtxt(tmp_path / "g3" / "groundtruth.csv", delimiter=",", skiprows=1)
-    assert float(np.hypot(*np.diff(gt[:, 1:3], axis=0).T).sum()) > 3 * 8 * 4  # 168 m of corridors, not 84
+    assert float(np.hypot(*np.diff(gt[:, 1:3], axis=0).T).sum()) > 150  # a 3 x 3 grid: 168 m of corridors (2 x 2: 84)
     capsys.readouterr()
     assert main(["loop", "--out", str(tmp_path / "b"), "--blocks", "3"]) == 2
     assert "--blocks" in capsys.readouterr().err

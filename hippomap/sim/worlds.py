@@ -159,7 +159,14 @@ def grid_world(
 
 
 def _route_world(
-    way: list, name: str, closed: bool, laps: int, speed_mps: float, corridor_width: float, seed: int, texture
+    way: list[tuple[float, float]],
+    name: str,
+    closed: bool,
+    laps: int,
+    speed_mps: float,
+    corridor_width: float,
+    seed: int,
+    texture: TextureParams | None,
 ) -> World:
     """A corridor ``corridor_width`` wide round the waypoints ``way`` (walls by :func:`path_world` round the
     centre line), with the route along them as the world's default, wandering a little each lap."""
