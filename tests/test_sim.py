@@ -311,6 +311,15 @@ def test_drive_plan_circle_closes():
     np.testing.assert_allclose(radius, 0.5 / w, atol=1e-9)
 
 
+def assert_walls_clear(world, poses, margin_m: float) -> None:
+    """No wall of ``world`` within ``margin_m`` either side of the camera at ``poses`` (a thin ray-cast fan
+    to the left and to the right)."""
+    cam = sim.Camera(width=9, hfov_deg=2)
+    for p in poses:
+        for side in (np.pi / 2, -np.pi / 2):
+            assert sim.raycast(world, (p[0], p[1], p[2] + side), cam).depth.min() > margin_m
+
+
 def test_figure8_world_drives_round_both_blocks_and_through_its_junctions():
     """The figure8 world: ``laps`` figures of eight round two blocks; the shared middle corridor is driven
     twice a lap, northwards both times; the junction at its foot is left eastwards, northwards and westwards
@@ -331,10 +340,7 @@ def test_figure8_world_drives_round_both_blocks_and_through_its_junctions():
     leaving = gt[foot & (np.hypot(gt[:, 0] - bx, gt[:, 1]) > 1.5), 2]
     directions = {int(np.rint(wrap_angle(a) / (np.pi / 2))) % 4 for a in leaving}
     assert {0, 1, 2} <= directions
-    cam = sim.Camera(width=9, hfov_deg=2)
-    for p in gt[::4]:
-        for side in (np.pi / 2, -np.pi / 2):
-            assert sim.raycast(world, (p[0], p[1], p[2] + side), cam).depth.min() > 0.5
+    assert_walls_clear(world, gt[::4], 0.5)
     frame = run.frame(run.n_frames // 3)
     assert frame.shape == (240, 320) and frame.std() > 10
     with pytest.raises(InputError, match="block"):
@@ -363,10 +369,7 @@ def test_grid_world_is_a_random_walk_of_its_seed_along_the_grid_lines():
     run = sim.simulate(world, rate_hz=2.0, odometry_noise=sim.OdometryNoise())
     gt = run.groundtruth
     assert float(np.hypot(*np.diff(gt[:, :2], axis=0).T).sum()) == pytest.approx(84.0, rel=0.1)
-    cam = sim.Camera(width=9, hfov_deg=2)
-    for p in gt[::4]:
-        for side in (np.pi / 2, -np.pi / 2):
-            assert sim.raycast(world, (p[0], p[1], p[2] + side), cam).depth.min() > 0.5
+    assert_walls_clear(world, gt[::4], 0.5)
     walk = sim.simulate(sim.grid_world(seed=4, block=(bx, by)), rate_hz=2.0, odometry_noise=sim.OdometryNoise())
     long = walk.groundtruth
     centre = np.hypot(long[:, 0] - bx, long[:, 1] - by)

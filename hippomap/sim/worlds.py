@@ -20,6 +20,13 @@ def _rect(x0, y0, x1, y1) -> np.ndarray:
     return np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1], [x0, y0]], dtype=float)
 
 
+def _check_wider(what: str, size: tuple[float, float], corridor_width: float) -> None:
+    """Raise :class:`InputError` unless ``size`` (a loop's or a block's sides) exceeds a positive corridor width
+    in both directions, so that walls on either side of a corridor never cross."""
+    if not (size[0] > corridor_width and size[1] > corridor_width and corridor_width > 0):
+        raise InputError(f"{what} {size} must exceed the corridor width {corridor_width} in both directions")
+
+
 def loop_world(
     seed: int = 0,
     size: tuple[float, float] = (16.0, 10.0),
@@ -34,8 +41,7 @@ def loop_world(
     facing +x, each lap wandering slightly so revisits are near, not identical."""
     sx, sy = size
     h = corridor_width / 2
-    if not (sx > corridor_width and sy > corridor_width and h > 0):
-        raise InputError(f"loop size {size} must exceed the corridor width {corridor_width} in both directions")
+    _check_wider("loop size", size, corridor_width)
     outer = _rect(-h, -h, sx + h, sy + h)
     inner = _rect(h, h, sx - h, sy - h)
     way = [(sx / 2, 0.0), (sx, 0.0), (sx, sy), (0.0, sy), (0.0, 0.0)]
@@ -90,8 +96,7 @@ def figure8_world(
     corridor again and round the right block clockwise. Junctions are passed in three directions,
     unlike the single loop's corners (walls built round the route, as for Bicocca: :func:`path_world`)."""
     bx, by = block
-    if not (bx > corridor_width and by > corridor_width and corridor_width > 0):
-        raise InputError(f"figure8 block {block} must exceed the corridor width {corridor_width} in both directions")
+    _check_wider("figure8 block", block, corridor_width)
     way = [
         (bx / 2, 0.0),
         (bx, 0.0),
@@ -149,8 +154,7 @@ def grid_world(
     bx, by = block
     if not (isinstance(nx, int) and isinstance(ny, int) and nx >= 1 and ny >= 1):
         raise InputError(f"grid blocks {blocks} must be two integers >= 1")
-    if not (bx > corridor_width and by > corridor_width and corridor_width > 0):
-        raise InputError(f"grid block {block} must exceed the corridor width {corridor_width} in both directions")
+    _check_wider("grid block", block, corridor_width)
     if not (isinstance(laps, int) and laps >= 1):
         raise InputError(f"grid laps {laps!r} must be an integer >= 1")
     network_m = nx * (ny + 1) * bx + (nx + 1) * ny * by
