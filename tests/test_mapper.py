@@ -4,6 +4,7 @@ uninterrupted run, and rejected input never changes its state."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -98,6 +99,14 @@ def test_keyframes_by_distance(inputs):
     assert abs(m.stats()["keyframes"] - (1 + travelled // 2.0)) <= 1
 
 
+def run_command(data: Path, out: Path, *extra: str) -> dict:
+    """``hippomap run DATA --out OUT [extra]`` through the command line (no progress bar); its ``metrics.json``."""
+    from hippomap.cli import main
+
+    assert main(["run", str(data), "--out", str(out), "--no-progress", *extra]) == 0
+    return json.loads((out / "metrics.json").read_text())
+
+
 def test_run_command_on_a_simulated_folder(tmp_path, capsys):
     from hippomap.cli import main
 
@@ -106,10 +115,9 @@ def test_run_command_on_a_simulated_folder(tmp_path, capsys):
     data = tmp_path / "data"
     run.write(data)
     out = tmp_path / "out"
-    assert main(["run", str(data), "--out", str(out), "--no-progress"]) == 0  # the default config
+    metrics = run_command(data, out)  # the default config
     printed = capsys.readouterr().out
     assert "ATE rmse odometry" in printed and "with the scale corrected" in printed
-    metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["stats"]["odometry_steps"] == len(run)
     # a similarity alignment fits at least as well as a rigid one
     assert metrics["map"]["ate_scaled"]["rmse"] <= metrics["map"]["ate"]["rmse"] + 1e-9
@@ -130,8 +138,6 @@ def test_loops_close_when_the_light_changes_between_laps(tmp_path):
     light's direction by up to 90 degrees, walls facing away from it 60 % darker), the default config
     still closes the loop with no false closure used, and most closures join two views lit differently
     (a gain ratio above 1.2 or the light turned by more than 30 degrees between them)."""
-    from hippomap.cli import main
-
     world = sim.loop_world(seed=5, size=(8.0, 5.0), laps=2)
     camera = sim.Camera(exposure_change=0.4, exposure_period_s=40.0)
     shading = sim.Shading(directional=0.6, light_swing_deg=90.0, light_period_s=53.0)
@@ -146,8 +152,7 @@ def test_loops_close_when_the_light_changes_between_laps(tmp_path):
     )
     run.write(tmp_path / "data")
     out = tmp_path / "out"
-    assert main(["run", str(tmp_path / "data"), "--out", str(out), "--no-progress"]) == 0
-    metrics = json.loads((out / "metrics.json").read_text())
+    metrics = run_command(tmp_path / "data", out)
     assert metrics["loop_closures"]["used"] >= 20 and metrics["loop_closures"]["used_false"] == 0
     assert metrics["map"]["ate"]["rmse"] < 0.25 * metrics["odometry"]["ate"]["rmse"]
     node_time = [n["t"] for n in json.loads((out / "map.json").read_text())["nodes"]]
@@ -168,13 +173,9 @@ def test_the_grid_world_no_default_saw_is_mapped_with_the_defaults(tmp_path):
     at twice the routes' usual speed, 320x240, noisy odometry. The default config closes loops with no false
     closure used, the map ends within a tenth of the odometry's error, and the only revisits it misses are
     short grazes of a junction (under 3 m shared with the earlier pass)."""
-    from hippomap.cli import main
-
     run = sim.simulate(sim.grid_world(seed=5, laps=2, speed_mps=0.8), None, rate_hz=5.0, seed=5)
     run.write(tmp_path / "data")
-    out = tmp_path / "out"
-    assert main(["run", str(tmp_path / "data"), "--out", str(out), "--no-progress"]) == 0
-    metrics = json.loads((out / "metrics.json").read_text())
+    metrics = run_command(tmp_path / "data", tmp_path / "out")
     closures = metrics["loop_closures"]
     assert closures["used"] >= 20 and closures["used_false"] == 0
     assert metrics["map"]["ate"]["rmse"] < 0.1 * metrics["odometry"]["ate"]["rmse"]
@@ -189,8 +190,6 @@ def test_a_drift_no_gate_covers_is_closed_by_global_searches(tmp_path, seed):
     global searches (default config: from 40 m without a verified closure, one every 2 m) find the return.
     With the default config a group of global recognitions closes it and the map ends near ground truth;
     with the searches off no closure is made and the map keeps the odometry's error."""
-    from hippomap.cli import main
-
     world = sim.corridor_world(seed=seed, passes=3)
     noise = sim.OdometryNoise(sigma_v=0.04, sigma_omega=0.02, omega_bias=0.03)
     run = sim.simulate(
@@ -202,8 +201,7 @@ def test_a_drift_no_gate_covers_is_closed_by_global_searches(tmp_path, seed):
     found = {}
     for name, extra in (("default", []), ("off", ["--config", str(off)])):
         out = tmp_path / name
-        assert main(["run", str(tmp_path / "data"), "--out", str(out), "--no-progress", *extra]) == 0
-        metrics = json.loads((out / "metrics.json").read_text())
+        metrics = run_command(tmp_path / "data", out, *extra)
         closures = json.loads((out / "loop_closures.json").read_text())
         found[name] = metrics, [c for c in closures if c["status"] == "accepted"]
     metrics, accepted = found["default"]
