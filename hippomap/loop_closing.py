@@ -21,18 +21,12 @@ import numpy as np
 
 from .errors import InputError
 from .geometry import se2_between, se2_compose, se2_inverse
-from .loop_closure import (
-    USED_WEIGHT,
-    Candidate,
-    LoopDecision,
-    LoopHypothesis,
-    consistent,
-    link_info3,
-)
+from .loop_closure import Candidate, LoopDecision, LoopHypothesis, consistent, link_info3
 from .loop_pose import fit_group
 from .map_correction import MapCorrection
 from .map_events import LoopAccepted, LoopPending, LoopRejected, MapEvent
 from .map_graph import LOOP, PRUNE
+from .robust_kernel import is_used
 
 __all__ = ["LoopClosing"]
 
@@ -343,8 +337,8 @@ class LoopClosing(MapCorrection):
 
     def _accept_robust(self, cand: Candidate, t: float) -> LoopDecision:
         """``loop_accept = 'robust'``: a hypothesis that passed the gate becomes a loop link at
-        once, with the kernel weight of its residual (:func:`~hippomap.loop_closure.kernel_weights`), revised as the map
-        converges. Cycle consistency no longer decides whether a link exists, only whether it is
+        once, with the kernel weight of its residual (:func:`~hippomap.robust_kernel.kernel_weights`), revised as
+        the map converges. Cycle consistency no longer decides whether a link exists, only whether it is
         *verified*: a verified group has its relative pose fitted, its weights set to 1 and
         relocalises the robot; unverified links can only pull as far as their weight lets them."""
         cfg, book = self.cfg, self._loops
@@ -476,15 +470,24 @@ class LoopClosing(MapCorrection):
         out, self._events = self._events, []
         return out
 
+    def loop_weights(self) -> np.ndarray:
+        """The current robust weight of each loop decision's link, indexed by decision id (float64; NaN
+        for a decision without a link: pending, rejected, or accepted without one)."""
+        w = self._w[: self._m]
+        link = np.fromiter((d.link for d in self._loops.decisions), np.int64, len(self._loops.decisions))
+        has = (link >= 0) & (link < len(w))
+        out = np.full(len(link), np.nan)
+        out[has] = w[link[has]]
+        return out
+
     def loop_rows(self) -> list[dict[str, Any]]:
         """Every loop decision as a JSON-ready dict, with the current robust ``weight`` of its
-        link (absent without a link) and ``used``: accepted with weight >= ``USED_WEIGHT``."""
-        w = self._w[: self._m]
+        link (absent without a link) and ``used`` (:func:`~hippomap.robust_kernel.is_used`)."""
         rows = []
-        for d in self._loops.decisions:
+        for d, w in zip(self._loops.decisions, self.loop_weights().tolist()):
             row = d.to_dict()
-            if 0 <= d.link < len(w):
-                row["weight"] = float(w[d.link])
-            row["used"] = d.status == "accepted" and row.get("weight", 1.0) >= USED_WEIGHT
+            if not math.isnan(w):
+                row["weight"] = w
+            row["used"] = is_used(d.status, w)
             rows.append(row)
         return rows

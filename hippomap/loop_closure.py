@@ -1,4 +1,4 @@
-"""Loop-closure data and maths: hypotheses, verification and robust weighting.
+"""Loop-closure data and maths: hypotheses and their verification.
 
 The cognitive map (:mod:`hippomap.cognitive_map`) keeps nodes, links, relaxation and pruning, and
 decides on loop hypotheses in :mod:`hippomap.loop_closing`; this module holds the data and the
@@ -19,10 +19,8 @@ an image's looming, is :mod:`hippomap.loop_pose`):
 * :func:`cycle_errors` / :func:`consistent` — geometric verification: two hypotheses made at
   different times and the odometry between them form a cycle through the map, which must
   compose to identity.
-* :func:`robust_weight` / :func:`kernel_weights` — the Cauchy weight of a loop link from its whitened residual
-  (:func:`link_errors`: in the link's source frame, where its information is given), which
-  the map revises as the map converges (iteratively reweighted relaxation), so a true closure
-  is applied fully and a false one fades.
+* :func:`link_info3` — a loop link's information in its source frame, which the robust kernel
+  (:mod:`hippomap.robust_kernel`) whitens its residual (:func:`link_errors`) by.
 * :class:`LoopBook` — the decisions, pending and recently accepted candidates, and their
   serialisation.
 """
@@ -43,7 +41,6 @@ from .least_squares import couple, link_errors
 _Pose = tuple[float, float, float]  # (x, y, theta): the fixed length the type checker needs
 
 __all__ = [
-    "USED_WEIGHT",
     "LoopHypothesis",
     "LoopDecision",
     "Candidate",
@@ -52,8 +49,6 @@ __all__ = [
     "bias_drift",
     "cycle_errors",
     "consistent",
-    "robust_weight",
-    "kernel_weights",
     "couple",
     "link_errors",
     "link_info3",
@@ -61,10 +56,6 @@ __all__ = [
     "node_id",
     "jsonable",
 ]
-
-
-#: a loop link whose robust weight is at least this counts as used (applied); below, it has faded
-USED_WEIGHT = 0.5
 
 
 def jsonable(x: Any) -> Any:
@@ -414,20 +405,7 @@ def consistent(cfg: MapConfig, older: list[Candidate], b: Candidate, P: np.ndarr
     return ok
 
 
-# --------------------------------------------------------------------------- robust weighting
-def robust_weight(whitened_sq, kernel: str = "cauchy"):
-    """Weight of a link from its squared whitened residual χ² (IRLS): ``cauchy`` 1 / (1 + χ²),
-    ``dcs`` min(1, 2Φ / (Φ + χ²)) with Φ = 1, ``none`` 1."""
-    r2 = np.asarray(whitened_sq, dtype=float)
-    if kernel == "cauchy":
-        return 1.0 / (1.0 + r2)
-    if kernel == "dcs":
-        return np.minimum(1.0, 2.0 / (1.0 + r2))
-    if kernel == "none":
-        return np.ones_like(r2)
-    raise InputError(f"unknown robust kernel {kernel!r}")
-
-
+# --------------------------------------------------------------------------- link information
 def link_info3(info: Any) -> tuple[float, float, float]:
     """A loop link's diagonal information as (x, y, heading) in its source node's frame: a pair
     (x/y, heading) is isotropic in position; a triple gives x (along the robot's heading at the
@@ -438,14 +416,6 @@ def link_info3(info: Any) -> tuple[float, float, float]:
     if len(v) != 3:
         raise InputError(f"loop-link information must be (x/y, heading) or (x, y, heading), got {len(v)} values")
     return cast("tuple[float, float, float]", v)
-
-
-def kernel_weights(e: np.ndarray, info: np.ndarray, width: np.ndarray, kernel: str = "cauchy") -> np.ndarray:
-    """Kernel weights of loop links with residuals ``e`` (K, 3) in their source frames,
-    information ``info`` (K, 3: x, y, heading) and kernel widths ``width`` (K,): whitened by
-    both, floored so that no link is divided away entirely."""
-    chi2 = (e[:, 0] ** 2 * info[:, 0] + e[:, 1] ** 2 * info[:, 1] + e[:, 2] ** 2 * info[:, 2]) / width**2
-    return np.maximum(robust_weight(chi2, kernel), 1e-4)
 
 
 # --------------------------------------------------------------------------- bookkeeping

@@ -5,7 +5,7 @@ The layer of :class:`~hippomap.cognitive_map.CognitiveMap` above its graph
 ``MapConfig.solver`` (the algorithms are in :mod:`hippomap.relaxation`): nothing is done while the
 map agrees with itself; a local window or the whole map is solved otherwise; once converged, the
 robust weights of the loop links are revised from their residuals (iteratively reweighted
-relaxation, :func:`~hippomap.loop_closure.kernel_weights`), which starts the correction again when
+relaxation, :func:`~hippomap.robust_kernel.kernel_weights`), which starts the correction again when
 a weight changed. This layer also gives each link its information (the weighted solver's and the
 g2o export's weights) and estimates the odometry's heading bias with the whole solves.
 """
@@ -18,10 +18,11 @@ import numpy as np
 
 from .headings_first import rotation_first_inits
 from .least_squares import bias_sigma, graph_cost, solve_lsq
-from .loop_closure import USED_WEIGHT, link_errors
+from .loop_closure import link_errors
 from .map_events import MapEvent, MapRelaxed
 from .map_graph import LOOP, ODOMETRY, MapGraph, hop_distances
 from .relaxation import ColourGroups, RelaxResult, _link_residuals, relax, relax_jacobi
+from .robust_kernel import USED_WEIGHT
 
 __all__ = ["MapCorrection"]
 

@@ -31,20 +31,10 @@ from scipy.sparse.csgraph import dijkstra
 from .config import MapConfig
 from .errors import InputError, finite
 from .geometry import se2_between, se2_compose, se2_inverse
-from .loop_closure import (
-    USED_WEIGHT,
-    LoopBook,
-    bias_drift,
-    drift_path,
-    gate_limit,
-    kernel_weights,
-    link_errors,
-    link_info3,
-    node_id,
-    vec3,
-)
+from .loop_closure import LoopBook, bias_drift, drift_path, gate_limit, link_errors, link_info3, node_id, vec3
 from .map_events import FrameAssigned, MapEvent
 from .relaxation import ColourGroups, colour_link, edge_colouring
+from .robust_kernel import USED_WEIGHT, kernel_weights
 
 __all__ = ["LINK_KINDS", "ODOMETRY", "LOOP", "PRUNE", "MapGraph", "hop_distances"]
 

@@ -48,6 +48,7 @@ from .loop_pose import looming_offset
 from .map_events import KeyframeLearned, LoopDecided, MapEvent, RecognitionMade
 from .map_reuse import ReuseMap
 from .mapper_state import config_over, join_arrays, pack, split_arrays, unpack
+from .robust_kernel import is_used
 from .spatial_pathway import PlaceCode, SpatialPathway
 from .visual_memory import VisualMemory
 
@@ -368,6 +369,7 @@ class Mapper(KeyFrames):
 
     def stats(self) -> dict[str, Any]:
         decisions = [d.status for d in self.cmap.loop_decisions]
+        used = sum(map(is_used, decisions, self.cmap.loop_weights().tolist()))
         return {
             "odometry_steps": int(self._traj.n),
             "frames": int(self.frames_seen),
@@ -380,6 +382,7 @@ class Mapper(KeyFrames):
             "base_nodes": int(self.base_nodes),
             "loop_closures_accepted": decisions.count("accepted"),
             "loop_closures_rejected": decisions.count("rejected"),
+            "loop_closures_used": int(used),
             "distance_m": float(self.distance),
             "last_t": self.last_t,
         }

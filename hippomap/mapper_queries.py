@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING, Any, ClassVar, Generic, Literal, TypeVar
 import numpy as np
 
 from .errors import InputError
+from .robust_kernel import is_used
 
 if TYPE_CHECKING:
     from .config import HippomapConfig, SpatialConfig
@@ -35,6 +36,7 @@ __all__ = [
     "GraphArrays",
     "Trajectory",
     "LoopDecisions",
+    "LoopReport",
     "Recognitions",
     "RecognitionById",
     "ViewerState",
@@ -124,13 +126,30 @@ class Trajectory(Query[tuple[np.ndarray, np.ndarray]]):
 
 
 @dataclass(frozen=True)
-class LoopDecisions(Query[tuple["LoopDecision", ...]]):
-    """Every loop decision, latest status (immutable records: the map replaces, never mutates them)."""
+class LoopReport:
+    """Every loop decision with its link's robust weight now, read at one instant.
+
+    A decision is an immutable record (the map replaces, never mutates it), but the robust kernel
+    revises its link's weight whenever the map is solved: an accepted closure the map no longer
+    agrees with fades without its decision changing. So the weights come with the decisions."""
+
+    decisions: tuple["LoopDecision", ...]
+    weights: np.ndarray  # (len(decisions),) float64: robust weight of each decision's link, NaN without one
+
+    def used(self) -> list[bool]:
+        """Per decision, whether the map uses it (:func:`~hippomap.robust_kernel.is_used`)."""
+        return [is_used(d.status, w) for d, w in zip(self.decisions, self.weights.tolist())]
+
+
+@dataclass(frozen=True)
+class LoopDecisions(Query[LoopReport]):
+    """Every loop decision, latest status, with its link's robust weight (:class:`LoopReport`)."""
 
     op: ClassVar[str] = "loop_decisions"
 
-    def run(self, mapper: "Mapper") -> tuple["LoopDecision", ...]:
-        return tuple(mapper.cmap.loop_decisions)
+    def run(self, mapper: "Mapper") -> LoopReport:
+        cm = mapper.cmap
+        return LoopReport(tuple(cm.loop_decisions), cm.loop_weights())
 
 
 @dataclass(frozen=True)
@@ -174,11 +193,13 @@ class MapView:
     link_source: np.ndarray  # (M,) int64
     link_target: np.ndarray  # (M,) int64
     link_kind: np.ndarray  # (M,) int8 codes of hippomap.cognitive_map.LINK_KINDS
+    link_weight: np.ndarray  # (M,) robust weight: 1 for odometric links, the kernel's for loop links
     trajectory_start: int  # index of the first row of ``trajectory``
     trajectory: np.ndarray  # (K, 8) rows from trajectory_start: t, raw x y theta, node, offset x y theta
     current_node: int
     robot_pose: np.ndarray  # (3,) the robot on the map
     decisions: tuple["LoopDecision", ...]
+    loop_weights: np.ndarray  # (len(decisions),) robust weight of each decision's link, NaN without one
     recognition_count: int
     last_recognition: dict[str, Any] | None  # the newest recognition record
     place_code: "PlaceCode | None"  # the current step's place code (its field), if it has one
@@ -216,11 +237,13 @@ class ViewerState(Query[MapView]):
             link_source=np.array(links["source"], dtype=np.int64),
             link_target=np.array(links["target"], dtype=np.int64),
             link_kind=np.array(links["kind_code"], dtype=np.int8),
+            link_weight=cm.link_weights(),
             trajectory_start=start,
             trajectory=np.asarray(rows, dtype=float),
             current_node=int(cm.current),
             robot_pose=np.array(cm.robot_pose, dtype=float),
             decisions=tuple(cm.loop_decisions),
+            loop_weights=cm.loop_weights(),
             recognition_count=len(recs),
             last_recognition=recs[-1] if recs else None,
             place_code=code if code is not None and code.field is not None else None,

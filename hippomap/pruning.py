@@ -16,9 +16,10 @@ import numpy as np
 
 from .geometry import between, compose, se2_between, se2_compose, se2_inverse
 from .loop_closing import LoopClosing
-from .loop_closure import USED_WEIGHT, Candidate
+from .loop_closure import Candidate
 from .map_events import NodesPruned
 from .map_graph import LOOP
+from .robust_kernel import USED_WEIGHT
 
 __all__ = ["Pruning", "block_representatives", "merged_frames", "merged_links"]
 

@@ -21,7 +21,7 @@ LEGEND_LABELS = (
     "map trajectory",
     "ground truth",
     "raw odometry",
-    "loop closures (accepted)",
+    "loop closures (used)",
     "place field",
 )
 

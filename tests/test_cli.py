@@ -288,8 +288,10 @@ def test_readme_python_client_example_runs_against_a_live_server(tmp_path):
         with srv.client() as c:
             accepted = c.loop_closures(sid, status="accepted")
             assert c.stats(sid)["rejected"] == {}
+    used = [lc for lc in accepted if lc["used"]]
     assert len(printed) >= 1
-    assert [tuple(map(int, p)) for p in printed] == [tuple(lc["nodes"]) for lc in accepted]
+    assert [tuple(map(int, p)) for p in printed] == [tuple(lc["nodes"]) for lc in used]
+    assert all(lc["weight"] is None or lc["weight"] >= 0.5 for lc in used)
 
 
 def test_client_exports_its_public_types():

@@ -86,6 +86,13 @@ def test_replay_folder_dataset_matches_offline(server, tmp_path):
     assert "all acknowledged" in out and "nodes" in out
     check_viewer_url(server, out, sid)
     with server.client() as c:
+        m = c.stats(sid)["mapper"]
+        printed = re.search(r"loop closures accepted (\d+) \(used (\d+)\) / rejected (\d+)", out)
+        assert printed and tuple(map(int, printed.groups())) == (
+            m["loop_closures_accepted"],
+            m["loop_closures_used"],
+            m["loop_closures_rejected"],
+        )
         stored = c.all_inputs(sid)
         assert len(stored) == len(ITEMS)
         frame_seq = next(r["seq"] for r in stored if r["kind"] == "frame")

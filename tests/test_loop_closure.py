@@ -16,21 +16,13 @@ from hippomap.config import HippomapConfig, MapConfig, VisualConfig
 from hippomap.errors import InputError
 from hippomap.geometry import between, compose, integrate, wrap_angle
 from hippomap.inputs import Frame, Odometry
-from hippomap.loop_closure import (
-    USED_WEIGHT,
-    Candidate,
-    LoopHypothesis,
-    consistent,
-    kernel_weights,
-    link_errors,
-    link_info3,
-    robust_weight,
-    vec3,
-)
+from hippomap.loop_closure import Candidate, LoopHypothesis, consistent, link_errors, link_info3, vec3
 from hippomap.loop_pose import align_group, looming_offset, looming_scale
 from hippomap.map_graph import LOOP, MapGraph, _undirected_paths, _undirected_paths_reference, hop_distances
 from hippomap.map_reuse import ReuseMap
 from hippomap.mapper import Mapper
+from hippomap.mapper_queries import LoopDecisions, ViewerState
+from hippomap.robust_kernel import USED_WEIGHT, kernel_weights, robust_weight
 from hippomap.visual_memory import VisualMemory
 from tests.test_cognitive_map import (
     back_and_forth,
@@ -97,8 +89,10 @@ def test_robust_weight_kernels():
     assert np.all(robust_weight(r2, "none") == 1.0)
 
 
-@pytest.mark.parametrize("solver", ["lsq", "relax"])
-def test_a_false_closure_fades_while_true_ones_are_applied(solver):
+def square_with_a_false_closure(cmap):
+    """Drive ``cmap`` two laps of a square with a heading drift of 0.005 rad/m, true closures on the
+    second lap and one false closure inside the gate (the start, but 1.5 m off); returns
+    ``(node_at, off, gt, odo)`` of :func:`drive` and the true and odometric poses."""
     inc = square_increments()
     gt = integrate(inc)
     noisy = inc.copy()
@@ -120,9 +114,15 @@ def test_a_false_closure_fades_while_true_ones_are_applied(solver):
             )
         return out
 
-    cmap = CognitiveMap(MapConfig(solver=solver, prune_online=False, relax_loops=200))
     node_at, off, _ = drive(cmap, noisy, hypotheses=hyps)
     cmap.finish(iterations=3000)
+    return node_at, off, gt, odo
+
+
+@pytest.mark.parametrize("solver", ["lsq", "relax"])
+def test_a_false_closure_fades_while_true_ones_are_applied(solver):
+    cmap = CognitiveMap(MapConfig(solver=solver, prune_online=False, relax_loops=200))
+    node_at, off, gt, odo = square_with_a_false_closure(cmap)
     rows = cmap.loop_rows()
     false = [r for r in rows if r["hypothesis"]["source"] == "false"]
     true = [r for r in rows if r["hypothesis"]["source"] == "test"]
@@ -130,6 +130,34 @@ def test_a_false_closure_fades_while_true_ones_are_applied(solver):
     assert false[0]["weight"] < 0.2 < USED_WEIGHT
     assert sum(r["used"] for r in true) > 0.8 * len(true)
     assert rms_xy(corrected(cmap, node_at, off), gt) < 0.25 * rms_xy(odo, gt)
+
+
+def test_the_mapper_reports_which_closures_it_uses():
+    """The reads a service makes (``LoopDecisions``, ``ViewerState``, ``stats``) carry each closure's
+    robust weight now: the false closure is accepted but faded, so it is not counted as used."""
+    m = Mapper(HippomapConfig.with_overrides({"map": {"prune_online": False, "relax_loops": 200}}))
+    square_with_a_false_closure(m.cmap)
+    report = m.answer(LoopDecisions())
+    rows = m.cmap.loop_rows()
+    assert [d.to_dict() for d in report.decisions] == [
+        {k: v for k, v in r.items() if k not in ("weight", "used")} for r in rows
+    ]
+    assert len(report.weights) == len(rows) and report.used() == [r["used"] for r in rows]
+    for d, w, r in zip(report.decisions, report.weights.tolist(), rows):
+        assert math.isnan(w) == ("weight" not in r) == (d.link < 0)
+        assert math.isnan(w) or w == r["weight"]
+    false = [i for i, d in enumerate(report.decisions) if d.hypothesis.source == "false"]
+    assert false and all(report.decisions[i].status == "accepted" and not report.used()[i] for i in false)
+    assert all(report.weights[i] < USED_WEIGHT for i in false)
+    stats = m.stats()
+    assert stats["loop_closures_used"] == sum(report.used())
+    assert 0 < stats["loop_closures_used"] <= stats["loop_closures_accepted"] - len(false)
+    view = m.answer(ViewerState())
+    np.testing.assert_array_equal(view.loop_weights, report.weights)
+    np.testing.assert_array_equal(view.link_weight, m.cmap.link_weights())
+    assert [view.link_weight[d.link] for d in report.decisions if d.link >= 0] == [
+        w for w in report.weights.tolist() if not math.isnan(w)
+    ]
 
 
 def test_relaxation_stops_between_closures():

@@ -120,6 +120,15 @@ def test_queries_serve_the_session_state(server, client):
     # loop closures (accepted and rejected) and recognitions with their saccade traces
     loops = client.loop_closures(sid)
     assert [r["decision"] for r in loops] == ref["loop_closures"]
+    # each with its link's robust weight now, and whether the map uses it (accepted, weight >= 0.5)
+    assert [[r["weight"], r["used"]] for r in loops] == ref["loop_weights"]
+    for r in loops:
+        assert (r["weight"] is None) == (r["decision"]["link"] < 0)
+        assert r["used"] == (r["status"] == "accepted" and (r["weight"] is None or r["weight"] >= 0.5))
+    used = client.loop_closures(sid, used=True)
+    assert used and [r["id"] for r in used] == [r["id"] for r in loops if r["used"]]
+    assert [r["id"] for r in client.loop_closures(sid, used=False)] == [r["id"] for r in loops if not r["used"]]
+    assert len(used) == st["mapper"]["loop_closures_used"]
     statuses = {r["status"] for r in loops}
     assert {"accepted", "rejected"} <= statuses, statuses
     recs = client.recognitions(sid)

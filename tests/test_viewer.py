@@ -288,6 +288,15 @@ def fed_session():
     return session, run, half
 
 
+def _faded_links(m) -> int:
+    """Loop links of ``m``'s map whose robust weight has fallen below ``USED_WEIGHT``."""
+    from hippomap.cognitive_map import LOOP
+    from hippomap.robust_kernel import USED_WEIGHT
+
+    kinds = m.cmap.links["kind_code"]
+    return int(((kinds == LOOP) & (m.cmap.link_weights() < USED_WEIGHT)).sum())
+
+
 def test_viewer_mirrors_the_mapper_and_sends_only_changes(fed_session):
     session, run, half = fed_session
     viewer = SessionViewer(session, ViewerSettings(chunk_size=32, tail_size=8), start=False)
@@ -296,7 +305,7 @@ def test_viewer_mirrors_the_mapper_and_sends_only_changes(fed_session):
         up = viewer.last_update
         assert up is not None
         assert viewer.map.nodes.tracker.n == m.cmap.node_count > 10
-        assert viewer.map.links.tracker.n + viewer.map.loop_links.tracker.n == m.cmap.link_count
+        assert viewer.map.links.tracker.n + viewer.map.loop_links.tracker.n == m.cmap.link_count - _faded_links(m)
         assert up.map.nodes.chunks == tuple(chunk_layout(m.cmap.node_count, 32, 8))
         # nothing changed: nothing is sent
         again = viewer.update_graph()
@@ -305,19 +314,22 @@ def test_viewer_mirrors_the_mapper_and_sends_only_changes(fed_session):
         session.feed(sim_inputs(run, half))
         up = viewer.update_graph()
         assert viewer.map.nodes.tracker.n == m.cmap.node_count
-        accepted = [d for d in m.cmap.loop_decisions if d.status == "accepted"]
-        rejected = [d for d in m.cmap.loop_decisions if d.status == "rejected"]
-        assert accepted, "the simulated loop should close"
-        assert viewer.loops.accepted.tracker.n == len(accepted)
+        rows = m.cmap.loop_rows()
+        used = [r for r in rows if r["used"]]
+        faded = [r for r in rows if r["status"] == "accepted" and not r["used"]]
+        rejected = [r for r in rows if r["status"] == "rejected"]
+        assert used, "the simulated loop should close"
+        assert viewer.loops.accepted.tracker.n == len(used)
+        assert viewer.loops.faded.tracker.n == len(faded)
         assert viewer.loops.rejected.tracker.n == len(rejected)
-        # the shared scene holds both; each browser hides the rejected ones by default (web.panels.layers)
-        assert viewer.loops.rejected.visible and viewer.loops.accepted.visible
+        # the shared scene holds all; each browser hides the faded and rejected ones by default (web.panels.layers)
+        assert viewer.loops.rejected.visible and viewer.loops.accepted.visible and viewer.loops.faded.visible
         defaults = {sp.key: sp.visible for sp in viewer.layer_specs}
-        assert defaults["rejected"] is False and defaults["accepted"] is True
+        assert defaults["rejected"] is False and defaults["faded"] is False and defaults["accepted"] is True
         # loop closures are thin lines; their end dots are smaller than nodes
         assert viewer.loops.accepted.style == viewer.loops.rejected.style == "thin"
         assert viewer.loops.accepted_ends.point_size <= viewer.map.nodes.point_size
-        assert viewer.loops.accepted_ends.tracker.n == 2 * len(accepted)
+        assert viewer.loops.accepted_ends.tracker.n == 2 * len(used)
         # trajectories: one sample per spacing of raw path, raw and corrected alike
         n_samples = len(viewer.trajectories.sampler.samples)
         assert viewer.trajectories.odometry.tracker.n == n_samples - 1
@@ -360,6 +372,45 @@ def test_viewer_panels_show_camera_recognition_and_loops(fed_session):
         assert "accepted" in viewer.loop_list.details.content
         img = viewer.loop_list.image.image
         assert img.shape[1] == 2 * viewer.settings.thumbnail_width + 4
+    finally:
+        viewer.close()
+
+
+def test_a_faded_closure_is_drawn_apart_from_the_used_ones():
+    """A closure the robust kernel has faded is still an accepted decision, but the viewer draws it in
+    its own layer (hidden by default), not as a used closure nor as a loop link of the map, and its
+    details say so with its weight."""
+    from hippomap.mapper import Mapper
+    from tests.test_loop_closure import square_with_a_false_closure
+
+    m = Mapper(HippomapConfig.with_overrides({"map": {"prune_online": False, "relax_loops": 200}}))
+    square_with_a_false_closure(m.cmap)
+    rows = m.cmap.loop_rows()
+    used = [r for r in rows if r["used"]]
+    faded = [r for r in rows if r["status"] == "accepted" and not r["used"]]
+    assert used and [r["hypothesis"]["source"] for r in faded] == ["false"]
+    viewer = SessionViewer(LocalSession("faded", mapper=m), ViewerSettings(), start=False)
+    try:
+        assert viewer.loops.accepted.tracker.n == len(used) and viewer.loops.faded.tracker.n == 1
+        assert viewer.map.loop_links.tracker.n == len(used) and _faded_links(m) == 1
+        # the faded closure's segment is where its two nodes are on the map
+        poses = m.cmap.poses
+        d = faded[0]
+        ends = [poses[d["from_node"], :2], poses[d["hypothesis"]["node"], :2]]
+        np.testing.assert_allclose(viewer.loops.faded.tracker._geom[0].reshape(2, 3)[:, :2], ends, atol=1e-4)
+        assert f"{len(used)} used of {len(used) + 1} accepted" in viewer.stats.markdown.content
+        viewer._show_loop(d["id"])
+        text = viewer.loop_list.details.content
+        assert "accepted, faded" in text and f"robust weight {d['weight']:.3f}" in text
+        assert viewer.loops._selected_key is not None and viewer.loops._selected_key[:3] == (d["id"], "accepted", False)
+        viewer._show_loop(used[-1]["id"])
+        assert "accepted, used" in viewer.loop_list.details.content
+        # the time slider's replay draws the same: the used closures and loop links, not the faded one
+        # (the map was driven without odometry inputs: one trajectory row at its last node stands for them)
+        last = np.array([[0.0, 0.0, 0.0, 0.0, m.cmap.node_count - 1, 0.0, 0.0, 0.0]])
+        end = replay_at(viewer._snapshot, last, None, 1e9)
+        assert end.n_nodes == m.cmap.node_count
+        assert len(end.accepted) == len(end.loop_links) == len(used)
     finally:
         viewer.close()
 
@@ -615,7 +666,7 @@ def test_replay_cuts_the_map_back_in_time(fed_session):
         counts = [fr.n_nodes for fr in frames]
         assert counts == sorted(counts) and counts[-1] == len(snap.node_poses) and counts[0] < counts[-1]
         n_links = [len(fr.links) + len(fr.loop_links) for fr in frames]
-        assert n_links == sorted(n_links) and n_links[-1] == len(snap.link_source)
+        assert n_links == sorted(n_links) and n_links[-1] == len(snap.link_source) - _faded_links(session.mapper)
         mid = frames[1]
         # every drawn link joins two drawn nodes
         drawn = {tuple(np.round(p[:2], 4)) for p in mid.nodes}
@@ -644,14 +695,16 @@ def test_layer_toggles_shadow_groups_for_one_browser_only():
     specs = layer_specs(ViewerSettings())
     a, b = _Client(), _Client()
     la, lb = ClientLayers(a, specs), ClientLayers(b, specs)
-    # rejected loop closures start hidden in every browser, nothing else
-    assert set(a.scene.nodes) == {"/loops/rejected"} and not a.scene.nodes["/loops/rejected"].visible
+    # faded and rejected loop closures start hidden in every browser, nothing else
+    hidden = {"/loops/rejected", "/loops/faded"}
+    assert set(a.scene.nodes) == hidden and not any(a.scene.nodes[g].visible for g in hidden)
     la.set("ground_truth", False)
     la.set("links", False)
     assert {"/ground_truth", "/map/links", "/map/loop_links"} <= set(a.scene.nodes)
-    assert set(b.scene.nodes) == {"/loops/rejected"}  # the other browser is untouched
+    assert set(b.scene.nodes) == hidden  # the other browser is untouched
     la.set("rejected", True)
-    assert "/loops/rejected" not in a.scene.nodes
+    la.set("faded", True)
+    assert not hidden & set(a.scene.nodes)
     # the replay hides every live layer, and afterwards each is back as toggled
     la.set_replaying(True)
     groups = {g for sp in specs for g in sp.groups}

@@ -105,7 +105,8 @@ def test_ten_laps_stay_readable_in_chromium(ten_laps, tmp_path):
             assert state["/loops/accepted/0"] == "MeshMessage"  # a wireframe mesh: 1-pixel GL lines, no discs
             assert viewer.loops.accepted.style == "thin"
             assert viewer.loops.accepted_ends.point_size <= viewer.map.nodes.point_size
-            assert viewer.loops.accepted.tracker.n == stats["loop_closures_accepted"]
+            assert viewer.loops.accepted.tracker.n == stats["loop_closures_used"]
+            assert viewer.loops.faded.tracker.n == stats["loop_closures_accepted"] - stats["loop_closures_used"]
             # ground truth: in the scene, in the map frame, starting where the map starts
             gt = viewer.ground_truth.samples
             assert len(gt) > 100

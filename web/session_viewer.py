@@ -116,7 +116,7 @@ def require_key(server: viser.ViserServer, key: str) -> None:
 _NOTHING = ChunkUpdate((), 0)
 _NO_MAP = MapUpdate(_NOTHING, _NOTHING, _NOTHING)
 _NO_TRAJECTORY = TrajectoryUpdate(_NOTHING, _NOTHING)
-_NO_LOOPS = LoopUpdate(_NOTHING, _NOTHING)
+_NO_LOOPS = LoopUpdate(_NOTHING, _NOTHING, _NOTHING)
 
 
 @dataclass(frozen=True)
@@ -293,7 +293,10 @@ class SessionViewer:
                 self.place_cells.request()
             selected = self.loop_list.selected_id
             if selected is not None and selected < len(snap.decisions):
-                self.loops.select(snap.decisions[selected], snap.node_poses)
+                weight = float(snap.loop_weights[selected])
+                self.loops.select(snap.decisions[selected], snap.node_poses, weight)
+                with self.server.atomic():
+                    self.loop_list.refresh(snap.decisions[selected], weight)
             update = GraphUpdate(mu, tu, lu, pf, t1 - t0, time.perf_counter() - t1)
             self.last_update = update
             self.updates += 1
@@ -370,9 +373,10 @@ class SessionViewer:
             image = pair_panel(query, rec, key, w)
         else:
             image = placeholder(2 * w + 4, w * 3 // 4, f"{d.hypothesis.source} hypothesis: no images")
+        weight = float(snap.loop_weights[decision_id])
         with self.server.atomic():
-            self.loop_list.show(d, image)
-            self.loops.select(d, snap.node_poses)
+            self.loop_list.show(d, image, weight)
+            self.loops.select(d, snap.node_poses, weight)
 
     def _run(self) -> None:
         s = self.settings

@@ -57,6 +57,8 @@ class ViewerSettings:
     color_ground_truth: RGB = (0, 165, 165)
     color_loop_accepted: RGB = (0, 200, 70)
     color_loop_rejected: RGB = (220, 40, 40)
+    color_loop_faded: RGB = (230, 160, 0)
+    """Accepted loop closures the robust kernel has faded (weight below 0.5): amber, between used and rejected."""
     color_robot: RGB = (200, 0, 160)
     show_odometry: bool = True
     """Whether the raw odometry layer starts shown (each viewer can toggle it)."""

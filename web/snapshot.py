@@ -66,12 +66,14 @@ class MapSnapshot:
     link_source: np.ndarray  # (M,) int64
     link_target: np.ndarray  # (M,) int64
     link_kind: np.ndarray  # (M,) int8 codes of hippomap.cognitive_map.LINK_KINDS
+    link_weight: np.ndarray  # (M,) robust weight: 1 for odometric links, the kernel's for loop links
     trajectory_start: int  # index of the first row of ``trajectory``
     trajectory: np.ndarray  # (K, 8) new rows: t, raw x y theta, node, offset x y theta
     trajectory_total: int
     current_node: int
     robot_pose: np.ndarray  # (3,) the robot in the map: l_current (+) offset
     decisions: tuple[LoopDecision, ...]
+    loop_weights: np.ndarray  # (len(decisions),) robust weight of each decision's link, NaN without one
     recognition_count: int
     last_recognition: dict[str, Any] | None  # the newest recognition (Mapper.recognitions[-1])
     place_field: PlaceFieldView | None
@@ -85,7 +87,7 @@ class MapSnapshot:
     def same_scene_as(self, prev: "MapSnapshot | None") -> bool:
         """True if nothing the 3D scene draws changed since ``prev`` (the snapshot before this one):
         no new trajectory rows or recognitions, the same decisions, place code and robot pose, and
-        node poses, key frames and links identical. Lets an idle session cost ~nothing."""
+        node poses, key frames, links and robust weights identical. Lets an idle session cost ~nothing."""
         if prev is None or len(self.trajectory) or self.recognition_count != prev.recognition_count:
             return False
         if len(self.decisions) != len(prev.decisions):
@@ -101,6 +103,8 @@ class MapSnapshot:
             and np.array_equal(self.node_frames, prev.node_frames)
             and np.array_equal(self.link_source, prev.link_source)
             and np.array_equal(self.link_target, prev.link_target)
+            and np.array_equal(self.link_weight, prev.link_weight)
+            and np.array_equal(self.loop_weights, prev.loop_weights, equal_nan=True)
         )
 
 
@@ -123,12 +127,14 @@ def from_view(view: MapView) -> MapSnapshot:
         link_source=view.link_source,
         link_target=view.link_target,
         link_kind=view.link_kind,
+        link_weight=view.link_weight,
         trajectory_start=view.trajectory_start,
         trajectory=view.trajectory,
         trajectory_total=view.trajectory_start + len(view.trajectory),
         current_node=view.current_node,
         robot_pose=view.robot_pose,
         decisions=view.decisions,
+        loop_weights=view.loop_weights,
         recognition_count=view.recognition_count,
         last_recognition=view.last_recognition,
         place_field=place,

@@ -231,11 +231,15 @@ class Client:
         t_max: float | None = None,
         status: str | None = None,
         limit: int = 1000,
+        used: bool | None = None,
     ) -> list[dict[str, Any]]:
+        """Loop decisions with an id above ``since_id``, oldest first; ``status`` ('accepted', 'rejected',
+        'pending') and ``used`` (the map applies it: accepted and not faded by the robust kernel) filter
+        them. Each row holds its link's robust ``weight`` now."""
         return self._json(
             "GET",
             f"/sessions/{session_id}/loop-closures",
-            params=self._params(since_id=since_id, t_min=t_min, t_max=t_max, status=status, limit=limit),
+            params=self._params(since_id=since_id, t_min=t_min, t_max=t_max, status=status, limit=limit, used=used),
         )
 
     def recognitions(self, session_id: str, since_id: int = -1, limit: int = 1000) -> list[dict[str, Any]]:

@@ -236,7 +236,8 @@ def _cmd(args: argparse.Namespace) -> int:
             m = st["mapper"]
             print(
                 f"mapper: {m.get('nodes')} nodes, {m.get('links')} links, loop closures accepted "
-                f"{m.get('loop_closures_accepted')} / rejected {m.get('loop_closures_rejected')}",
+                f"{m.get('loop_closures_accepted')} (used {m.get('loop_closures_used')}) / rejected "
+                f"{m.get('loop_closures_rejected')}",
                 flush=True,
             )
     return 0

@@ -116,13 +116,17 @@ async def get_loop_closures(
     t_max: TMax = None,
     limit: Limit = 1000,
     status: Literal["accepted", "rejected", "pending"] | None = None,
+    used: Annotated[
+        bool | None,
+        Query(description="only closures the map uses (true) or does not use (false: faded, rejected, pending)"),
+    ] = None,
 ) -> Any:
-    decisions = await _query(live, mq.LoopDecisions())
-    rows = model.loop_closures(decisions) if decisions is not None else []
+    report = await _query(live, mq.LoopDecisions())
+    rows = model.loop_closures(report) if report is not None else []
     base = str(request.base_url).rstrip("/") + f"/sessions/{live.id}/saccades/"
     out = []
     for r in rows:
-        if r["id"] <= since_id or (status and r["status"] != status):
+        if r["id"] <= since_id or (status and r["status"] != status) or (used is not None and r["used"] != used):
             continue
         if (t_min is not None and (r["t"] is None or r["t"] < t_min)) or (
             t_max is not None and (r["t"] is None or r["t"] > t_max)

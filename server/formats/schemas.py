@@ -200,7 +200,12 @@ class LoopClosure(BaseModel):
 
     id: int = Field(description="event id (use since_id to page)")
     t: float | None = Field(description="time of the hypothesis")
-    status: str
+    status: str = Field(description="'accepted', 'rejected' or 'pending'")
+    weight: float | None = Field(
+        description="the robust weight of its loop link now (0-1; None without a link): the kernel revises it "
+        "whenever the map is solved, so a closure the map no longer agrees with fades"
+    )
+    used: bool = Field(description="accepted and its weight at least 0.5: the map applies it (else it has faded)")
     nodes: list[int | None] = Field(description="[current node, matched node]")
     evidence: float | None
     source: str | None = Field(description="what proposed it, e.g. 'visual'")

@@ -21,7 +21,6 @@ from hippomap import inputs
 from hippomap import mapper_queries as queries
 from hippomap.config import HippomapConfig
 from hippomap.inputs import Frame, Odometry
-from hippomap.loop_closure import LoopDecision
 from hippomap.map_events import MapEvent
 
 if TYPE_CHECKING:
@@ -116,10 +115,12 @@ def graph(arrays: dict[str, np.ndarray]) -> dict[str, Any]:
     return g
 
 
-def loop_closures(decisions: tuple[LoopDecision, ...]) -> list[dict[str, Any]]:
-    """Every loop decision of a ``LoopDecisions`` answer, JSON-ready, with the recognition behind it."""
+def loop_closures(report: queries.LoopReport) -> list[dict[str, Any]]:
+    """Every loop decision of a ``LoopDecisions`` answer, JSON-ready, with the recognition behind it and
+    its link's robust ``weight`` now (None without a link) and whether the map ``used`` it: an accepted
+    closure the robust kernel has faded stays accepted but is not used."""
     out = []
-    for d in decisions:
+    for d, w, used in zip(report.decisions, report.weights.tolist(), report.used()):
         row = _finite(d.to_dict())
         h = row["hypothesis"]
         meta = h.get("meta") or {}
@@ -128,6 +129,8 @@ def loop_closures(decisions: tuple[LoopDecision, ...]) -> list[dict[str, Any]]:
                 "id": row["id"],
                 "t": h.get("time"),
                 "status": row["status"],
+                "weight": None if math.isnan(w) else w,
+                "used": used,
                 "nodes": [row.get("from_node"), h.get("node")],
                 "evidence": h.get("evidence"),
                 "source": h.get("source"),

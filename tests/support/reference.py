@@ -28,17 +28,20 @@ def offline_reference(items: tuple, overrides: dict[str, Any] | None = None) -> 
         "map": model.graph(m.answer(q.GraphArrays())),
         "stats": m.answer(q.Stats()),
         "loop_closures": [r["decision"] for r in model.loop_closures(m.answer(q.LoopDecisions()))],
+        "loop_weights": [[r["weight"], r["used"]] for r in model.loop_closures(m.answer(q.LoopDecisions()))],
         "recognitions": m.answer(q.Recognitions(-1, 10**9)),
     }
     return json.loads(json.dumps(model.json_safe(out)))
 
 
 def session_state(client: Any, session_id: str) -> dict[str, Any]:
-    """The same four things, as the server reports them (after it has processed everything)."""
+    """The same things, as the server reports them (after it has processed everything)."""
     client.wait_processed(session_id)
+    loops = client.loop_closures(session_id, limit=10_000)
     return {
         "map": client.map(session_id),
         "stats": client.stats(session_id)["mapper"],
-        "loop_closures": [r["decision"] for r in client.loop_closures(session_id, limit=10_000)],
+        "loop_closures": [r["decision"] for r in loops],
+        "loop_weights": [[r["weight"], r["used"]] for r in loops],
         "recognitions": [client.saccades(session_id, r["id"]) for r in client.recognitions(session_id, limit=10_000)],
     }

@@ -5,7 +5,7 @@ not hide it in another. The shared scene keeps every layer shown; a browser that
 a client-scoped, invisible frame with the layer group's name, which shadows the shared group for
 that browser only (viser 1.1 renders a client's own variant of a node name in place of the shared
 one, and the shared group's chunks hang below it, including chunks added later), and removes it to
-show the layer again. Layers hidden by default (rejected loop closures) are shadowed on connect.
+show the layer again. Layers hidden by default (faded and rejected loop closures) are shadowed on connect.
 
 The legend (:func:`legend_html`) is drawn on the canvas in a floating panel, always visible: one
 swatch per layer in the layer's own colour and shape, and the place field's colour scale.
@@ -40,7 +40,8 @@ def layer_specs(s: ViewerSettings) -> list[LayerSpec]:
         LayerSpec("corrected", "map trajectory", True, ("/trajectories/map",), s.color_corrected, "bar"),
         LayerSpec("ground_truth", "ground truth", True, ("/ground_truth",), s.color_ground_truth, "bar"),
         LayerSpec("odometry", "raw odometry", s.show_odometry, ("/trajectories/odometry",), s.color_odometry),
-        LayerSpec("accepted", "loop closures (accepted)", True, ("/loops/accepted",), s.color_loop_accepted),
+        LayerSpec("accepted", "loop closures (used)", True, ("/loops/accepted",), s.color_loop_accepted),
+        LayerSpec("faded", "loop closures (faded by the robust kernel)", False, ("/loops/faded",), s.color_loop_faded),
         LayerSpec("rejected", "loop closures (rejected)", False, ("/loops/rejected",), s.color_loop_rejected),
         LayerSpec("place_field", "place field", True, ("/place_field",), None, "none"),
         LayerSpec("robot", "robot", True, ("/robot",), s.color_robot, "dot"),

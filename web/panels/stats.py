@@ -40,7 +40,8 @@ def stats_markdown(stats: Mapping[str, Any], fps: float, odometry_hz: float, lag
         ("links", stats.get("links", 0)),
         (
             "loop closures",
-            f"{stats.get('loop_closures_accepted', 0)} accepted / {stats.get('loop_closures_rejected', 0)} rejected",
+            f"{stats.get('loop_closures_used', 0)} used of {stats.get('loop_closures_accepted', 0)} accepted"
+            f" / {stats.get('loop_closures_rejected', 0)} rejected",
         ),
         ("key frames", stats.get("keyframes", 0)),
         ("recognitions", stats.get("recognitions", 0)),

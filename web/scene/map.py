@@ -2,7 +2,9 @@
 
 Nodes are drawn at their map poses ``l_i`` (after relaxation); nodes that hold a key frame
 (``V_i >= 0``) are coloured differently. Links are drawn thin (native GL lines, cheap for 50k
-links), loop links in their own colour (:data:`hippomap.cognitive_map.LINK_KINDS`). All layers
+links), loop links in their own colour (:data:`hippomap.cognitive_map.LINK_KINDS`), and only those the
+map uses: a loop link the robust kernel has faded (weight below ``USED_WEIGHT``) shapes no part of the
+map, so it is not drawn as one (:mod:`web.scene.loops` shows its closure on demand). All layers
 are chunked (:mod:`web.scene.chunks`): appended nodes and links cost only their own chunk; a relaxation
 resends just the chunks it moved.
 """
@@ -15,6 +17,7 @@ from typing import Any
 import numpy as np
 
 from hippomap.cognitive_map import LOOP
+from hippomap.robust_kernel import USED_WEIGHT
 
 from ..settings import ViewerSettings
 from ..snapshot import MapSnapshot
@@ -41,7 +44,7 @@ class MapUpdate:
 
 class MapGraphLayer:
     """Scene nodes ``/map/nodes/<k>``, ``/map/links/<k>`` (odometry and prune links, thin grey) and
-    ``/map/loop_links/<k>`` (loop links, thin green)."""
+    ``/map/loop_links/<k>`` (the loop links the map uses, thin green)."""
 
     def __init__(self, scene: Any, settings: ViewerSettings) -> None:
         s = settings
@@ -89,7 +92,7 @@ class MapGraphLayer:
             seg = np.empty((0, 2, 3), np.float32)
         loop = snap.link_kind == LOOP
         links = self.links.update(seg[~loop])
-        loops = self.loop_links.update(seg[loop])
+        loops = self.loop_links.update(seg[loop & (snap.link_weight >= USED_WEIGHT)])
         return MapUpdate(nodes, links, loops)
 
     def set_visible(self, nodes: bool | None = None, links: bool | None = None) -> None:

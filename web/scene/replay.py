@@ -4,8 +4,9 @@
 nodes created by then (node ids are appended in creation order, so they are the nodes up to the
 highest id the robot had reached by ``t``, and all of a saved map the run started in), the links
 among those nodes, the loop closures accepted among them for hypotheses made by ``t``, and the
-ground truth up to ``t``. Nodes keep their current (relaxed) positions: the replay shows how the
-map grew, not how relaxation moved it. The trajectories, the robot and the loop closures follow
+ground truth up to ``t``. Nodes keep their current (relaxed) positions and loop closures their
+current robust weights (as the live layers, only the ones the map uses are drawn): the replay shows
+how the map grew, not how relaxation moved it. The trajectories, the robot and the loop closures follow
 the live layers' placement rule for a run in a saved map (:mod:`web.scene.placement`): nothing of the
 run's path before its placement, its raw odometry re-anchored there; so the replay at a time
 after the placement draws what the live layers drew then (up to relaxation since).
@@ -22,11 +23,12 @@ from typing import Any
 import numpy as np
 
 from hippomap.cognitive_map import LOOP
+from hippomap.robust_kernel import USED_WEIGHT
 
 from ..settings import ViewerSettings
 from ..snapshot import TRAJ_NODE, MapSnapshot
 from .ground_truth import GROUND_TRUTH_Z
-from .loops import loop_segments
+from .loops import loop_segments, used_flags
 from .map import LINK_Z, NODE_Z, node_points
 from .placement import drawn_trajectories, placement
 from .trajectories import MAP_Z, ODOMETRY_Z, polyline_segments
@@ -44,7 +46,7 @@ class ReplayFrame:
     keyframe: np.ndarray  # (n,) bool
     links: np.ndarray  # (m, 2, 3) segments
     loop_links: np.ndarray
-    accepted: np.ndarray  # (k, 2, 3) accepted loop closures among the nodes
+    accepted: np.ndarray  # (k, 2, 3) the loop closures among the nodes that the map uses
     corrected: np.ndarray  # (s, 2, 3) map trajectory up to t
     odometry: np.ndarray
     ground_truth: np.ndarray
@@ -86,8 +88,11 @@ def replay_at(
     )
     seg[:, :, 2] = LINK_Z
     loop = snap.link_kind[inside] == LOOP
-    made = [d for d in snap.decisions if float(d.hypothesis.time) <= t]
-    acc = loop_segments(made, snap.node_poses[:k], "accepted", placed.hides_lost_decisions)
+    faded = snap.link_weight[inside] < USED_WEIGHT
+    made = [i for i, d in enumerate(snap.decisions) if float(d.hypothesis.time) <= t]
+    decided = [snap.decisions[i] for i in made]
+    used = used_flags(decided, snap.loop_weights[made])
+    acc = loop_segments(decided, snap.node_poses[:k], "accepted", placed.hides_lost_decisions, used)
     raw, on_map = drawn_trajectories(rows, snap.node_poses, placed)
     corrected = polyline_segments(on_map[:, :2], MAP_Z)
     odometry = polyline_segments(raw[:, :2], ODOMETRY_Z)
@@ -105,7 +110,7 @@ def replay_at(
         nodes=nodes,
         keyframe=keyframe,
         links=seg[~loop],
-        loop_links=seg[loop],
+        loop_links=seg[loop & ~faded],
         accepted=acc,
         corrected=corrected,
         odometry=odometry,
