@@ -269,6 +269,22 @@ def test_timed_mapper_records_one_time_per_frame():
     assert len(m.trajectory_times) >= n
 
 
+def test_timed_mapper_keeps_each_closure_s_highest_weight(short_run):
+    """The peak robust weight of every loop decision's link after any input: at least its weight now, NaN
+    only for a decision that never had a link, and the benchmark counts the false closures that were used on
+    the way from it."""
+    from hippomap.cli.run import open_dataset, run_dataset
+
+    m, _ = run_dataset(open_dataset(short_run), None, mapper=bench_maps.TimedMapper())
+    peak, now = m.peak_loop_weights, m.cmap.loop_weights()
+    assert len(peak) == len(now) == len(m.cmap.loop_decisions) > 0
+    assert np.array_equal(np.isnan(peak), np.isnan(now))  # a decision's link stays once made
+    linked = ~np.isnan(now)
+    assert linked.any() and np.all(peak[linked] >= now[linked])
+    # a closure the kernel revised down was, on the way, weighted more than it is now
+    assert np.any(peak[linked] > now[linked])
+
+
 def test_parse_size_rejects_garbage():
     assert bench_maps.parse_size("640x480") == (640, 480)
     with pytest.raises(argparse.ArgumentTypeError, match="expected WIDTHxHEIGHT"):
