@@ -78,10 +78,11 @@ def test_a_token_sees_its_sessions_with_viewer_links_and_statistics(service):
     assert list(rows) == [mine]  # the writer's session is not the admin's
     assert f"href='/viewer/{mine}/'" in r.text and "admin lap" in rows[mine][0]
     stats = c.get(f"/sessions/{mine}/stats", headers=_bearer(ADMIN)).json()
-    nodes, accepted, rejected, inputs, pending = rows[mine][2:]
+    nodes, used, accepted, rejected, inputs, pending = rows[mine][2:]
     assert int(inputs) == stats["inputs_stored"] == 60 and int(pending) == 0
     assert int(nodes) == stats["mapper"]["nodes"] >= 1
-    assert (int(accepted), int(rejected)) == (
+    assert (int(used), int(accepted), int(rejected)) == (
+        stats["mapper"]["loop_closures_used"],
         stats["mapper"]["loop_closures_accepted"],
         stats["mapper"]["loop_closures_rejected"],
     )

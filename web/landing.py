@@ -91,13 +91,14 @@ def session_rows(entries: list[dict[str, Any]]) -> str:
             f"<tr data-session='{sid}'><td>{html.escape(e['name'] or e['id'])}<br><span class='d'>{sid}</span>{where}"
             f"{error}</td><td><a href='{link}'>viewer</a></td>"
             f"<td class='n'>{_number(st, 'mapper', 'nodes')}</td>"
+            f"<td class='n'>{_number(st, 'mapper', 'loop_closures_used')}</td>"
             f"<td class='n'>{_number(st, 'mapper', 'loop_closures_accepted')}</td>"
             f"<td class='n'>{_number(st, 'mapper', 'loop_closures_rejected')}</td>"
             f"<td class='n'>{_number(st, 'inputs_stored')}</td><td class='n'>{_number(st, 'pending')}</td></tr>"
         )
     return (
-        "<table id='sessions'><thead><tr><th>session</th><th></th><th>nodes</th><th>loop closures</th>"
-        "<th>rejected closures</th><th>inputs</th><th>pending</th></tr></thead><tbody>"
+        "<table id='sessions'><thead><tr><th>session</th><th></th><th>nodes</th><th>loop closures used</th>"
+        "<th>accepted</th><th>rejected</th><th>inputs</th><th>pending</th></tr></thead><tbody>"
         + "".join(rows)
         + "</tbody></table>"
     )
