@@ -149,6 +149,8 @@ SIM_OPTIONS = (
     "light-period",
     "directional",
     "blocks",
+    "stop-every",
+    "stop-seconds",
 )
 
 

@@ -183,6 +183,21 @@ def test_the_grid_world_no_default_saw_is_mapped_with_the_defaults(tmp_path):
     assert revisits["closed"] >= 1 and all(e["length_m"] < 3.0 for e in revisits["missed"])
 
 
+def test_a_robot_that_stops_and_waits_is_mapped_with_the_defaults(tmp_path):
+    """The small loop with a 30 s stop every 10 m of path: standing still, the gyro's bias keeps turning
+    the odometry (0.3 rad a stop) while the camera sees the same view. The default config still closes the
+    loops with no false closure used and ends within a tenth of the odometry's error."""
+    world = sim.loop_world(seed=5, size=(8.0, 5.0))
+    run = sim.simulate(world, None, rate_hz=5.0, seed=2, stop_every_m=10.0, stop_s=30.0)
+    assert np.count_nonzero((np.diff(run.groundtruth, axis=0) == 0).all(axis=1)) >= 4 * 150  # four stops or more
+    run.write(tmp_path / "data")
+    metrics = run_command(tmp_path / "data", tmp_path / "out")
+    closures = metrics["loop_closures"]
+    assert closures["used"] >= 10 and closures["used_false"] == 0
+    assert metrics["map"]["ate"]["rmse"] < 0.1 * metrics["odometry"]["ate"]["rmse"]
+    assert closures["revisits"]["closed"] == closures["revisits"]["episodes"] >= 1
+
+
 @pytest.mark.parametrize("seed", [40, 42])
 def test_a_drift_no_gate_covers_is_closed_by_global_searches(tmp_path, seed):
     """A corridor driven out, back and out again with three times the gyro bias of the other runs: by the

@@ -265,6 +265,47 @@ def test_omega_bias_shows_up_as_heading_drift(loop):
     assert err[-1] > 1.0 > err[50]
 
 
+@settings(max_examples=40, deadline=None)
+@given(every=st.floats(0.3, 3.0), seconds=st.floats(0.2, 5.0), rate=st.sampled_from([2.0, 5.0, 10.0]))
+def test_stops_hold_the_pose_for_their_seconds_at_each_mark_of_path(every, seconds, rate):
+    """A run with stops is the same path, with the robot standing still (zero true velocities) for
+    ``seconds`` (whole steps) each time another ``every`` metres have been driven; the clock keeps its step."""
+    plan = sim.DrivePlan(((6.0, 0.5, 0.2), (4.0, 0.3, -0.4)))
+    tr = plan.sample(rate)
+    s = sim.with_stops(tr, every, seconds)
+    n = max(1, int(round(seconds / float(np.median(np.diff(tr.times))))))  # whole steps, at least one
+    path = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(tr.poses[:, :2], axis=0).T))])
+    marks = np.unique(np.searchsorted(path, np.arange(every, path[-1], every)))
+    marks = marks[(marks > 0) & (marks < len(tr) - 1)]
+    assert len(s) == len(tr) + n * len(marks)
+    np.testing.assert_allclose(np.diff(s.times), 1.0 / rate, atol=1e-9)
+    still = s.velocities[:, 0] == 0
+    assert still.sum() == n * len(marks)
+    # each stop is n steps at the pose of the first step at or past its mark; the path itself is unchanged
+    starts = np.flatnonzero(np.diff(np.r_[False, still].astype(int)) == 1)
+    assert [int(np.flatnonzero((s.poses == tr.poses[m]).all(axis=1))[0]) for m in marks] == starts.tolist()
+    np.testing.assert_array_equal(s.poses[np.r_[True, ~still]], tr.poses)
+    np.testing.assert_array_equal(s.velocities[~still], tr.velocities)
+
+
+def test_a_gyro_bias_turns_the_odometry_while_the_robot_stands_still(loop):
+    """Stops through :func:`simulate` (``stop_every_m``, ``stop_s``): the ground truth stands still and the
+    odometry's heading drifts by the bias over each stop, as a real gyro's does."""
+    bias = 0.01
+    run = sim.simulate(
+        loop, rate_hz=5.0, odometry_noise=sim.OdometryNoise(omega_bias=bias), stop_every_m=10.0, stop_s=20.0
+    )
+    still = (run.odometry[1:, 1] == 0) & (np.diff(run.groundtruth, axis=0) == 0).all(axis=1)
+    assert still.sum() >= 100 * 3  # at least three stops of 100 steps on the loop's laps
+    est = integrate(run.increments, run.groundtruth[0])
+    turn = np.diff(np.unwrap(est[:, 2]))
+    np.testing.assert_allclose(turn[still], bias * 0.2, atol=1e-12)
+    with pytest.raises(InputError, match="stop_s"):
+        sim.simulate(loop, stop_every_m=10.0)
+    with pytest.raises(InputError, match="stop_every_m"):
+        sim.simulate(loop, stop_every_m=-1.0, stop_s=5.0)
+
+
 def test_odometry_noise_statistics_match_config(loop):
     noise = sim.OdometryNoise(sigma_v=0.02, sigma_omega=0.05, omega_bias=0.01, scale_error=0.1)
     clean = sim.simulate(loop, rate_hz=10.0, odometry_noise=sim.OdometryNoise())
@@ -582,6 +623,15 @@ def test_command_line_drives_the_route_at_the_speed_asked(tmp_path, capsys):
     assert "--speed" in capsys.readouterr().err
     assert main(["loop", "--out", str(tmp_path / "z"), "--speed", "0"]) == 2
     assert "speed_mps" in capsys.readouterr().err
+    # --stop-every / --stop-seconds: the robot stands still (its true speed 0) for that long each time
+    out = tmp_path / "stops"
+    args = ["corridor", "--out", str(out), "--laps", "1", "--frame-every", "50", "--no-noise", "--no-progress"]
+    assert main(args + ["--stop-every", "5", "--stop-seconds", "4"]) == 0
+    v = np.array([float(r["v"]) for r in csv.DictReader((out / "odometry.csv").open())])
+    assert len(v) == len(slow) + 20 * np.count_nonzero(np.diff((v[1:] == 0).astype(int)) == 1)
+    assert 4 <= np.count_nonzero(np.diff((v[1:] == 0).astype(int)) == 1) and np.count_nonzero(v[1:] == 0) % 20 == 0
+    assert main(["loop", "--out", str(tmp_path / "y"), "--stop-every", "5", "--stop-seconds", "0"]) == 2
+    assert "stop_s" in capsys.readouterr().err
 
 
 def test_a_slow_robot_turns_round_at_a_corridor_end_and_drives_on():

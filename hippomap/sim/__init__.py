@@ -15,7 +15,15 @@ These are simulator parameters, not model parameters: they live in
 :mod:`hippomap.sim.params`, not in ``hippomap/config.py``.
 """
 
-from .motion import DrivePlan, RoutePlan, Trajectory, arc_increments, measure_odometry, velocities_from_increments
+from .motion import (
+    DrivePlan,
+    RoutePlan,
+    Trajectory,
+    arc_increments,
+    measure_odometry,
+    velocities_from_increments,
+    with_stops,
+)
 from .params import Camera, OdometryNoise, Shading, SimConfig, TextureParams
 from .render import Hits, raycast, render
 from .run import SimRun, simulate
@@ -66,4 +74,5 @@ __all__ = [
     "simulate",
     "velocities_from_increments",
     "walls_around_path",
+    "with_stops",
 ]

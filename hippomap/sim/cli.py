@@ -91,6 +91,15 @@ def _world_arguments(p: argparse.ArgumentParser) -> None:
         help="loop, corridor, figure8 and grid: the route's mean speed in m/s (default 0.4); the bicocca world drives "
         "the recorded run at its recorded speed",
     )
+    p.add_argument(
+        "--stop-every",
+        type=float,
+        default=0.0,
+        help="the robot stands still each time it has driven this many more metres (default 0: it never stops)",
+    )
+    p.add_argument(
+        "--stop-seconds", type=float, default=30.0, help="how long each stop of --stop-every lasts (default 30 s)"
+    )
 
 
 def _camera_arguments(p: argparse.ArgumentParser) -> None:
@@ -202,6 +211,8 @@ def run_command(args) -> int:
         frame_every=args.frame_every,
         seed=args.seed,
         image_format=args.format,
+        stop_every_m=args.stop_every,
+        stop_s=args.stop_seconds,
     )
     run = simulate(world, config=config)
     out = run.write(args.out, progress=progress_enabled(args))

@@ -269,6 +269,48 @@ class RoutePlan:
         return Trajectory(np.arange(len(poses)) * dt, poses, velocities=np.stack([v_arr, w_arr], axis=1))
 
 
+def with_stops(traj: Trajectory, every_m: float, seconds: float) -> Trajectory:
+    """``traj`` with the robot standing still for ``seconds`` each time it has driven another ``every_m``
+    of path (none at the very end), as a robot waits at a door or for people to pass. The stops are
+    whole odometry steps of the trajectory's own period (its median step; at least one); the times after
+    a stop are shifted by its length. Standing still, the true velocities (or measured increments) are zero, so a
+    gyro's bias still turns the odometry's heading (:func:`measure_odometry`)."""
+    if not (np.isfinite(every_m) and every_m > 0 and np.isfinite(seconds) and seconds > 0):
+        raise InputError(f"stops need every_m > 0 and seconds > 0, got {every_m!r} and {seconds!r}")
+    t, p = traj.times, traj.poses
+    dt = float(np.median(np.diff(t))) if len(t) > 1 else 0.0
+    n = max(1, int(round(seconds / dt))) if dt > 0 else 0
+    path = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(p[:, :2], axis=0).T))])
+    at = np.searchsorted(path, np.arange(every_m, path[-1], every_m))  # the first step at or past each mark
+    at = np.unique(at[(at > 0) & (at < len(t) - 1)])
+    if n == 0 or not len(at):
+        return traj
+    # step i of the new run copies step src[i] of the old one; a stop repeats its step's pose n more times
+    reps = np.ones(len(t), np.int64)
+    reps[at] += n
+    src = np.repeat(np.arange(len(t)), reps)
+    times = t[src] + dt * _stop_offsets(reps, at, n)
+    moving = np.ones(len(src) - 1, bool)  # a step between two copies of one pose is a standstill
+    moving[src[1:] == src[:-1]] = False
+    out = {}
+    for name in ("velocities", "odometry"):
+        a = getattr(traj, name)
+        if a is not None:
+            b = np.zeros((len(src) - 1, a.shape[1]))
+            b[moving] = a
+            out[name] = b
+    return Trajectory(times, p[src], **out)
+
+
+def _stop_offsets(reps: np.ndarray, at: np.ndarray, n: int) -> np.ndarray:
+    """Per step of the run with stops (``reps`` copies of each old step; ``n`` extra at each of ``at``), the
+    seconds added to its old time in steps: the stops already made before it, plus its place within its own."""
+    k = np.repeat(np.arange(len(reps)), reps)
+    before = np.searchsorted(at, k) * n  # stops completed at steps before this one
+    within = np.arange(len(k)) - np.repeat(np.cumsum(reps) - reps, reps)  # 0 for the first copy, then 1..n
+    return before + within
+
+
 def measure_odometry(traj: Trajectory, noise: OdometryNoise, rng: np.random.Generator):
     """Wheel odometry of a trajectory: per step (v, ω) as measured and the increments
     they integrate to. Source motion: the plan's true velocities if known, else the

@@ -213,7 +213,9 @@ class SimConfig:
 
     ``rate_hz`` is the odometry rate used to sample drive plans (5 Hz, the paper's 0.2 s
     sampling period); a given :class:`~hippomap.sim.motion.Trajectory` keeps its own
-    times. A camera frame is rendered every ``frame_every`` odometry steps.
+    times. A camera frame is rendered every ``frame_every`` odometry steps. With
+    ``stop_every_m`` > 0 the robot stands still for ``stop_s`` seconds each time it has
+    driven that much further (:func:`~hippomap.sim.motion.with_stops`).
     """
 
     camera: Camera = field(default_factory=Camera)
@@ -224,6 +226,8 @@ class SimConfig:
     frame_every: int = 1
     seed: int = 0
     image_format: str = "png"
+    stop_every_m: float = 0.0
+    stop_s: float = 0.0
 
     def __post_init__(self):
         _finite(self)
@@ -233,3 +237,5 @@ class SimConfig:
         _check(self, "frame_every", isinstance(self.frame_every, int) and self.frame_every >= 1, "integer >= 1")
         _check(self, "seed", isinstance(self.seed, int), "must be an integer")
         _check(self, "image_format", self.image_format in ("png", "jpg"), "'png' or 'jpg'")
+        _check(self, "stop_every_m", self.stop_every_m >= 0, "must be >= 0 (0: no stops)")
+        _check(self, "stop_s", self.stop_s > 0 or self.stop_every_m == 0, "must be > 0 when the robot stops")

@@ -23,7 +23,7 @@ import cv2
 import numpy as np
 
 from ..errors import InputError
-from .motion import Trajectory, measure_odometry
+from .motion import Trajectory, measure_odometry, with_stops
 from .params import SimConfig
 from .render import render
 from .world import World
@@ -128,7 +128,7 @@ def simulate(world: World, trajectory=None, config: SimConfig | None = None, **o
     """Simulate a run in ``world`` along ``trajectory`` (a ``Trajectory``, ``DrivePlan``
     or ``RoutePlan``; default: the world's own route). Keyword overrides replace fields
     of ``config`` (``rate_hz``, ``frame_every``, ``odometry_noise``, ``camera``,
-    ``shading``, ``seed``, ``image_format``). Deterministic for a given seed."""
+    ``shading``, ``seed``, ``image_format``, ``stop_every_m``, ``stop_s``). Deterministic for a given seed."""
     config = config or SimConfig()
     if overrides:
         names = {f.name for f in fields(SimConfig)}
@@ -142,6 +142,8 @@ def simulate(world: World, trajectory=None, config: SimConfig | None = None, **o
     if not hasattr(plan, "sample"):
         raise InputError(f"trajectory must be a Trajectory, DrivePlan or RoutePlan, got {type(plan).__name__}")
     traj: Trajectory = cast(Any, plan).sample(config.rate_hz)  # any plan with .sample (checked above)
+    if config.stop_every_m > 0:
+        traj = with_stops(traj, config.stop_every_m, config.stop_s)
     rng = np.random.default_rng([config.seed, 3])
     v, w, inc = measure_odometry(traj, config.odometry_noise, rng)
     odo = np.zeros((len(traj), 3))
