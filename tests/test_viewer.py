@@ -403,6 +403,10 @@ def test_a_faded_closure_is_drawn_apart_from_the_used_ones():
         text = viewer.loop_list.details.content
         assert "accepted, faded" in text and f"robust weight {d['weight']:.3f}" in text
         assert viewer.loops._selected_key is not None and viewer.loops._selected_key[:3] == (d["id"], "accepted", False)
+        # the details follow the weight as the kernel revises it (a refresh on each update of the chosen loop)
+        viewer.loop_list.refresh(m.cmap.loop_decisions[d["id"]], 0.9)
+        refreshed = viewer.loop_list.details.content
+        assert "accepted, used" in refreshed and "robust weight 0.900" in refreshed
         viewer._show_loop(used[-1]["id"])
         assert "accepted, used" in viewer.loop_list.details.content
         # the time slider's replay draws the same: the used closures and loop links, not the faded one
