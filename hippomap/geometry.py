@@ -54,6 +54,11 @@ def integrate(increments, start=(0.0, 0.0, 0.0)):
     return out
 
 
+def path_lengths(xy):
+    """The path length (m) at each of the positions ``xy`` (N, 2), from 0."""
+    return np.concatenate(([0.0], np.cumsum(np.hypot(*np.diff(xy, axis=0).T))))
+
+
 def _wrap(a: float) -> float:
     """One angle wrapped to [-pi, pi), plain float."""
     return (a + math.pi) % (2.0 * math.pi) - math.pi

@@ -48,7 +48,7 @@ from .loop_pose import looming_offset
 from .map_events import KeyframeLearned, LoopDecided, MapEvent, RecognitionMade
 from .map_reuse import ReuseMap
 from .mapper_state import config_over, join_arrays, pack, split_arrays, unpack
-from .robust_kernel import is_used
+from .robust_kernel import used_flags
 from .spatial_pathway import PlaceCode, SpatialPathway
 from .visual_memory import VisualMemory
 
@@ -369,7 +369,7 @@ class Mapper(KeyFrames):
 
     def stats(self) -> dict[str, Any]:
         decisions = [d.status for d in self.cmap.loop_decisions]
-        used = sum(map(is_used, decisions, self.cmap.loop_weights().tolist()))
+        used = sum(used_flags(self.cmap.loop_decisions, self.cmap.loop_weights()))
         return {
             "odometry_steps": int(self._traj.n),
             "frames": int(self.frames_seen),

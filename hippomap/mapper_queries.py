@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING, Any, ClassVar, Generic, Literal, TypeVar
 import numpy as np
 
 from .errors import InputError
-from .robust_kernel import is_used
+from .robust_kernel import used_flags
 
 if TYPE_CHECKING:
     from .config import HippomapConfig, SpatialConfig
@@ -137,8 +137,8 @@ class LoopReport:
     weights: np.ndarray  # (len(decisions),) float64: robust weight of each decision's link, NaN without one
 
     def used(self) -> list[bool]:
-        """Per decision, whether the map uses it (:func:`~hippomap.robust_kernel.is_used`)."""
-        return [is_used(d.status, w) for d, w in zip(self.decisions, self.weights.tolist())]
+        """Per decision, whether the map uses it (:func:`~hippomap.robust_kernel.used_flags`)."""
+        return used_flags(self.decisions, self.weights)
 
 
 @dataclass(frozen=True)

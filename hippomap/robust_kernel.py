@@ -12,12 +12,14 @@ every report, the service and the viewer count as a closure the map applies.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
 from .errors import InputError
 
-__all__ = ["USED_WEIGHT", "is_used", "robust_weight", "kernel_weights"]
+__all__ = ["USED_WEIGHT", "is_used", "used_flags", "robust_weight", "kernel_weights"]
 
 #: a loop link whose robust weight is at least this counts as used (applied); below, it has faded
 USED_WEIGHT = 0.5
@@ -28,6 +30,12 @@ def is_used(status: str, weight: float) -> bool:
     no link, e.g. a closure that only relocalised the robot) at least ``USED_WEIGHT``. An accepted
     closure below it has *faded*: the robust kernel has taken it out of the map's solution."""
     return status == "accepted" and (math.isnan(weight) or weight >= USED_WEIGHT)
+
+
+def used_flags(decisions: Sequence[Any], weights: np.ndarray) -> list[bool]:
+    """Per loop decision (anything with a ``status``), whether the map uses it (:func:`is_used` of its status
+    and ``weights``' entry, its link's robust weight; NaN: no link)."""
+    return [is_used(d.status, w) for d, w in zip(decisions, weights.tolist())]
 
 
 def robust_weight(whitened_sq, kernel: str = "cauchy"):

@@ -21,6 +21,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..errors import InputError
+from ..geometry import path_lengths
 
 #: within this of an earlier place, the robot revisits it [ours]
 REVISIT_RADIUS_M = 1.5
@@ -46,11 +47,6 @@ class Revisit:
     path_m: float
     length_m: float
     earlier_t: float
-
-
-def path_lengths(xy: np.ndarray) -> np.ndarray:
-    """The path length (m) at each of the positions ``xy`` (N, 2), from 0."""
-    return np.concatenate(([0.0], np.cumsum(np.hypot(*np.diff(xy, axis=0).T))))
 
 
 def revisit_episodes(

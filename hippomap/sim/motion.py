@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import InputError
-from ..geometry import between, integrate, wrap_angle
+from ..geometry import between, integrate, path_lengths, wrap_angle
 from .params import OdometryNoise
 
 
@@ -280,16 +280,17 @@ def with_stops(traj: Trajectory, every_m: float, seconds: float) -> Trajectory:
     t, p = traj.times, traj.poses
     dt = float(np.median(np.diff(t))) if len(t) > 1 else 0.0
     n = max(1, int(round(seconds / dt))) if dt > 0 else 0
-    path = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(p[:, :2], axis=0).T))])
+    path = path_lengths(p[:, :2])
     at = np.searchsorted(path, np.arange(every_m, path[-1], every_m))  # the first step at or past each mark
     at = np.unique(at[(at > 0) & (at < len(t) - 1)])
     if n == 0 or not len(at):
         return traj
-    # step i of the new run copies step src[i] of the old one; a stop repeats its step's pose n more times
+    # step i of the new run copies step src[i] of the old one; a stop repeats its step's pose n more times,
+    # so i - src[i] steps of standing still come before step i: its time is shifted by that many periods
     reps = np.ones(len(t), np.int64)
     reps[at] += n
     src = np.repeat(np.arange(len(t)), reps)
-    times = t[src] + dt * _stop_offsets(reps, at, n)
+    times = t[src] + dt * (np.arange(len(src)) - src)
     moving = np.ones(len(src) - 1, bool)  # a step between two copies of one pose is a standstill
     moving[src[1:] == src[:-1]] = False
     out = {}
@@ -300,15 +301,6 @@ def with_stops(traj: Trajectory, every_m: float, seconds: float) -> Trajectory:
             b[moving] = a
             out[name] = b
     return Trajectory(times, p[src], **out)
-
-
-def _stop_offsets(reps: np.ndarray, at: np.ndarray, n: int) -> np.ndarray:
-    """Per step of the run with stops (``reps`` copies of each old step; ``n`` extra at each of ``at``), the
-    seconds added to its old time in steps: the stops already made before it, plus its place within its own."""
-    k = np.repeat(np.arange(len(reps)), reps)
-    before = np.searchsorted(at, k) * n  # stops completed at steps before this one
-    within = np.arange(len(k)) - np.repeat(np.cumsum(reps) - reps, reps)  # 0 for the first copy, then 1..n
-    return before + within
 
 
 def measure_odometry(traj: Trajectory, noise: OdometryNoise, rng: np.random.Generator):

@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from hippomap.cognitive_map import LoopDecision
-from hippomap.robust_kernel import is_used
+from hippomap.robust_kernel import is_used, used_flags
 
 from ..settings import RGB, ViewerSettings
 from ..snapshot import MapSnapshot
@@ -57,12 +57,6 @@ def loop_segments(
     seg[:, :, :2] = poses[pairs][:, :, :2]
     seg[:, :, 2] = LOOP_Z
     return seg
-
-
-def used_flags(decisions: tuple[LoopDecision, ...] | list[LoopDecision], weights: np.ndarray) -> list[bool]:
-    """Per decision, whether the map uses it (:func:`~hippomap.robust_kernel.is_used` of its status and
-    its link's robust weight; NaN: no link)."""
-    return [is_used(d.status, w) for d, w in zip(decisions, weights.tolist())]
 
 
 @dataclass(frozen=True)

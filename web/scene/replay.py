@@ -23,12 +23,12 @@ from typing import Any
 import numpy as np
 
 from hippomap.cognitive_map import LOOP
-from hippomap.robust_kernel import USED_WEIGHT
+from hippomap.robust_kernel import USED_WEIGHT, used_flags
 
 from ..settings import ViewerSettings
 from ..snapshot import TRAJ_NODE, MapSnapshot
 from .ground_truth import GROUND_TRUTH_Z
-from .loops import loop_segments, used_flags
+from .loops import loop_segments
 from .map import LINK_Z, NODE_Z, node_points
 from .placement import drawn_trajectories, placement
 from .trajectories import MAP_Z, ODOMETRY_Z, polyline_segments
