@@ -2,7 +2,7 @@
 
 For each map size a real :class:`hippomap.mapper.Mapper` is given a large synthetic cognitive map
 (a spiral of nodes 0.25 m apart, odometry links along it, a loop link every 50 nodes to the ring
-inside, 4 trajectory rows per node; built through ``CognitiveMap.from_state``), a
+inside, 4 trajectory rows per node; built through ``ReuseMap.from_state``, the mapper's own map), a
 :class:`web.session_viewer.SessionViewer` is opened on it and headless Chromium (Debian's, software
 WebGL) loads the page straight from the viewer's viser server. Then these updates are timed,
 ``--repeat`` times each:
@@ -41,8 +41,8 @@ import viser  # noqa: E402
 import websockets  # noqa: E402
 import zstandard  # noqa: E402
 
-from hippomap.cognitive_map import CognitiveMap  # noqa: E402
 from hippomap.inputs import Odometry  # noqa: E402
+from hippomap.map_reuse import ReuseMap  # noqa: E402
 from tests.support.chromium import launch  # noqa: E402
 from web.scene.chunks import chunk_layout  # noqa: E402
 from web.session_viewer import SessionViewer  # noqa: E402
@@ -99,13 +99,14 @@ def big_state(template: dict, n: int) -> dict:
 
 
 def trajectory_rows(P: np.ndarray, start_t: float, per_node: int = 4) -> np.ndarray:
-    """Trajectory rows (t, raw pose, node, offset): ``per_node`` steps between consecutive nodes."""
+    """Trajectory rows (t, raw pose, node, offset, seconds at the node): ``per_node`` steps between consecutive
+    nodes."""
     n = len(P)
     k = np.repeat(np.arange(n), per_node)
     f = np.tile(np.arange(per_node) / per_node, n)
     nxt = np.minimum(k + 1, n - 1)
     raw = P[k] + f[:, None] * (P[nxt] - P[k])
-    rows = np.zeros((len(k), 8))
+    rows = np.zeros((len(k), 9))
     rows[:, 0] = start_t + np.arange(len(k)) * 0.05
     rows[:, 1:4] = raw
     rows[:, 4] = k
@@ -136,7 +137,8 @@ class BigSession(LocalSession):
         state["nodes"]["pose"] = P[:n]
         with self.lock:
             m = self.mapper
-            m.cmap = CognitiveMap.from_state(m.config.map, state)
+            m.cmap = ReuseMap.from_state(m.config.map, state)
+            m.cmap.configure(m.localise_only, False)
             rows = trajectory_rows(P[:n], 10.0)
             old = m._traj.n
             if old > len(rows):

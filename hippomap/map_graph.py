@@ -30,7 +30,7 @@ from scipy.sparse.csgraph import dijkstra
 
 from .config import MapConfig
 from .errors import InputError, finite
-from .geometry import se2_between, se2_compose, se2_inverse
+from .geometry import se2_between, se2_compose, se2_inverse, wrap_angle
 from .loop_closure import LoopBook, bias_drift, drift_path, gate_limit, link_errors, link_info3, node_id, vec3
 from .map_events import FrameAssigned, MapEvent
 from .relaxation import ColourGroups, colour_link, edge_colouring
@@ -135,6 +135,37 @@ class MapGraph:
     def robot_pose(self) -> np.ndarray:
         """The robot's pose in the map: ``l_current ⊕ Δ``."""
         return np.array(_compose3(self._P[self._cur], self._delta))
+
+    @property
+    def time_at_node(self) -> float:
+        """Seconds since the robot arrived at its current node (``t − t_arrive``): the time over which
+        the odometry's heading bias has turned Δ (see :meth:`debiased`)."""
+        return 0.0 if self._t is None else self._t - self._t_arrive
+
+    @property
+    def odometry_bias(self) -> float:
+        """The odometry's heading bias (rad/s) the last whole solve kept; 0 while none is kept."""
+        return self._bias
+
+    def debiased(self, offsets: np.ndarray, times: np.ndarray) -> np.ndarray:
+        """(K, 3) robot offsets from their nodes with the estimated heading bias taken off over the
+        ``times`` (K,) since the robot arrived at each node: ``Δθ − b τ``, as a new node's pose is
+        placed (:meth:`~hippomap.cognitive_map.CognitiveMap._create_or_merge`). The offsets are kept
+        as the odometry measured them, because the links made from them are charged the bias by the
+        solves; a robot that stands or turns on the spot makes no node, so its raw offset turns at the
+        gyro's bias for as long as it stays (docs/MODEL.md)."""
+        out = np.array(offsets, dtype=float, copy=True).reshape(-1, 3)
+        if self._bias:
+            out[:, 2] = wrap_angle(out[:, 2] - self._bias * np.asarray(times, dtype=float))
+        return out
+
+    @property
+    def robot_pose_estimate(self) -> np.ndarray:
+        """The robot's pose on the map with the estimated bias taken off its offset (:meth:`debiased`):
+        what the service and the viewer show. :attr:`robot_pose` keeps the raw offset, the frame the
+        loop hypotheses are made in."""
+        off = self.debiased(np.array(self._delta), np.array([self.time_at_node]))[0]
+        return np.array(_compose3(self._P[self._cur], tuple(off.tolist())))
 
     def robot_map_pose(self) -> tuple[float, float, float]:
         """The robot's pose on the map: the current node's pose composed with the offset."""

@@ -58,6 +58,11 @@ if TYPE_CHECKING:
 T = TypeVar("T")
 
 
+#: columns of the per-step trajectory store: t, raw odometric pose (x, y, theta), current node, the robot's
+#: offset from it as the odometry measured it (dx, dy, dtheta), and the seconds since it arrived at the node
+_TRAJ_COLUMNS = 9
+
+
 class _Grow:
     """Append-only float array of fixed row width with amortised doubling."""
 
@@ -112,7 +117,7 @@ class Mapper(KeyFrames):
         self.place: tuple[float, float, float] | None = None  # latest place code p
         self.place_field: PlaceCode | None = None  # latest PlaceCode with its field (not persisted)
         # per odometry step: t, raw odometric pose, current node, robot offset from it
-        self._traj = _Grow(8)
+        self._traj = _Grow(_TRAJ_COLUMNS)
 
     @property
     def localise_only(self) -> bool:
@@ -165,7 +170,7 @@ class Mapper(KeyFrames):
         m.recognitions = []
         m.place = None
         m.place_field = None
-        m._traj = _Grow(8)
+        m._traj = _Grow(_TRAJ_COLUMNS)
         m.base_nodes = int(m.cmap.node_count)
         m.cmap.configure(m.localise_only, False)
         m.cmap.start_run(cfg.map.initial_pose)
@@ -200,7 +205,8 @@ class Mapper(KeyFrames):
             self.place = (code.x, code.y, code.theta)
             self.place_field = code
         pose = self.pathway.pose
-        self._traj.append([t, pose[0], pose[1], pose[2], self.cmap.current, *self.cmap.robot_offset])
+        cm = self.cmap
+        self._traj.append([t, pose[0], pose[1], pose[2], cm.current, *cm.robot_offset, cm.time_at_node])
         return events
 
     def observe(self, frame: Frame) -> list[MapEvent]:
@@ -355,17 +361,22 @@ class Mapper(KeyFrames):
         return self._traj.view[:, 1:4].copy()
 
     def corrected_trajectory(self) -> np.ndarray:
-        """(N, 3) the same steps placed on the current (relaxed) map."""
-        v = self._traj.view
-        if not len(v):
+        """(N, 3) the same steps placed on the current (relaxed) map, each offset from its node
+        with the odometry's estimated heading bias taken off (:meth:`CognitiveMap.debiased`)."""
+        rows = self.trajectory_rows()
+        if not len(rows):
             return np.empty((0, 3))
-        return compose(self.cmap.poses[v[:, 4].astype(np.int64)], v[:, 5:8])
+        return compose(self.cmap.poses[rows[:, 4].astype(np.int64)], rows[:, 5:8])
 
     def trajectory_rows(self, start: int = 0) -> np.ndarray:
         """Per-step rows from ``start`` on: ``t, x, y, theta`` (raw odometric pose), current
-        node, and the robot's offset from it (``dx, dy, dtheta``). Append-only, so a viewer
-        copies only what is new."""
-        return self._traj.view[start:].copy()
+        node, and the robot's offset from it (``dx, dy, dtheta``; its heading with the bias the map
+        estimates now taken off over the time the robot had been at the node). Append-only, so a
+        viewer copies only what is new."""
+        v = self._traj.view[start:]
+        rows = v[:, :8].copy()
+        rows[:, 5:8] = self.cmap.debiased(v[:, 5:8], v[:, 8])
+        return rows
 
     def stats(self) -> dict[str, Any]:
         decisions = [d.status for d in self.cmap.loop_decisions]
@@ -466,5 +477,8 @@ class Mapper(KeyFrames):
         self.recognitions = meta["recognitions"]
         self.place = None if meta["place"] is None else tuple(meta["place"])
         self.place_field = None
-        self._traj = _Grow.of(arrays["traj"])
+        traj = arrays["traj"]
+        if traj.shape[1] == _TRAJ_COLUMNS - 1:  # a snapshot from before the time at the node was kept: none
+            traj = np.column_stack([traj, np.zeros(len(traj))])
+        self._traj = _Grow.of(traj)
         return self

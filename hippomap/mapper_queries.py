@@ -241,7 +241,7 @@ class ViewerState(Query[MapView]):
             trajectory_start=start,
             trajectory=np.asarray(rows, dtype=float),
             current_node=int(cm.current),
-            robot_pose=np.array(cm.robot_pose, dtype=float),
+            robot_pose=np.array(cm.robot_pose_estimate, dtype=float),
             decisions=tuple(cm.loop_decisions),
             loop_weights=cm.loop_weights(),
             recognition_count=len(recs),

@@ -10,10 +10,12 @@ import numpy as np
 import pytest
 
 from hippomap import sim
+from hippomap.cli.run import dataset_config, open_dataset, run_dataset
 from hippomap.config import HippomapConfig
 from hippomap.errors import InputError
 from hippomap.inputs import Frame, Odometry
 from hippomap.mapper import Mapper
+from hippomap.mapper_state import pack, unpack
 
 CONFIG = HippomapConfig.with_overrides({"mapper": {"keyframe_interval": 5}})
 
@@ -61,6 +63,23 @@ def test_save_restore_continue_is_identical(inputs):
     np.testing.assert_array_equal(restored.odometry_trajectory(), whole.odometry_trajectory())
     assert restored.stats() == whole.stats()
     assert restored.to_bytes() == whole.to_bytes()
+
+
+def test_a_snapshot_from_before_the_time_at_the_node_still_restores(inputs):
+    """Snapshots stored before each step kept its time at the node hold 8 trajectory columns: they restore
+    with no time at the node (the offsets as measured), carry on like the snapshot's mapper, and save in the
+    new layout."""
+    m = Mapper(CONFIG)
+    feed(m, inputs[:200])
+    meta, arrays = unpack(m.to_bytes())
+    assert arrays["traj"].shape[1] == 9
+    arrays["traj"] = arrays["traj"][:, :8]
+    old = Mapper.from_bytes(pack(meta, arrays))
+    rows = old.trajectory_rows()
+    np.testing.assert_array_equal(rows[:, :5], m.trajectory_rows()[:, :5])
+    np.testing.assert_array_equal(rows[:, 5:8], arrays["traj"][:, 5:8])  # no time at the node: as measured
+    assert feed(old, inputs[200:]) == feed(m, inputs[200:])
+    assert unpack(old.to_bytes())[1]["traj"].shape[1] == 9
 
 
 def test_rejected_input_leaves_state_untouched(inputs):
@@ -196,6 +215,33 @@ def test_a_robot_that_stops_and_waits_is_mapped_with_the_defaults(tmp_path):
     assert closures["used"] >= 10 and closures["used_false"] == 0
     assert metrics["map"]["ate"]["rmse"] < 0.1 * metrics["odometry"]["ate"]["rmse"]
     assert closures["revisits"]["closed"] == closures["revisits"]["episodes"] >= 1
+
+
+def test_standing_still_the_robot_s_heading_on_the_map_stays_put(tmp_path):
+    """The same stops: the robot's offset from its node keeps the odometry as measured, so over a 30 s stop
+    it turns with the gyro's bias (0.3 rad), and a robot standing still makes no node to hold it. The map
+    takes the bias it estimates off each step's offset over the time spent at its node, as it does for a
+    new node's pose: on the corrected trajectory the heading holds through every stop within what the gyro's
+    noise turns it by (0.02-0.05 rad here; 0.29 rad without the bias taken off), and every step's heading is
+    within 0.1 rad of the ground truth's (0.29 rad without)."""
+    world = sim.loop_world(seed=5, size=(8.0, 5.0))
+    run = sim.simulate(world, None, rate_hz=5.0, seed=2, stop_every_m=10.0, stop_s=30.0)
+    run.write(tmp_path / "data")
+    dataset = open_dataset(tmp_path / "data")
+    m, _ = run_dataset(dataset, dataset_config(dataset, None))
+    t, gt = run.times, run.groundtruth
+    np.testing.assert_allclose(m.trajectory_times, t, atol=1e-6)
+    heading = np.unwrap(m.corrected_trajectory()[:, 2])
+    odometry = np.unwrap(m.odometry_trajectory()[:, 2])
+    still = np.flatnonzero((np.diff(gt, axis=0) == 0).all(axis=1)) + 1  # steps that end where they began
+    stops = np.split(still, np.flatnonzero(np.diff(still) > 1) + 1)
+    assert len(stops) >= 4
+    for k in stops:
+        span = np.r_[k[0] - 1, k]
+        assert np.ptp(odometry[span]) > 0.25  # the gyro's bias turns the odometry by 0.3 rad a stop
+        assert np.ptp(heading[span]) < 0.08, np.ptp(heading[span])  # the gyro's noise alone: 0.02-0.05 rad
+    err = np.angle(np.exp(1j * (heading - np.unwrap(gt[:, 2]))))
+    assert np.max(np.abs(err - np.median(err))) < 0.1
 
 
 @pytest.mark.parametrize("seed", [40, 42])

@@ -1,7 +1,8 @@
 """The robot's current pose on the map: a frame with axes and a small camera frustum.
 
-The pose is the map pose ``l_current (+) offset`` (:attr:`hippomap.cognitive_map.CognitiveMap.robot_pose`):
-where the corrected trajectory ends. The frustum looks along the robot's heading (+x), like the
+The pose is the map pose ``l_current (+) offset``, the offset's heading with the odometry's estimated
+bias taken off (:attr:`hippomap.cognitive_map.CognitiveMap.robot_pose_estimate`): where the corrected
+trajectory ends. The frustum looks along the robot's heading (+x), like the
 camera whose frames the panel shows.
 """
 
