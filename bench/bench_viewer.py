@@ -45,7 +45,7 @@ from hippomap.inputs import Odometry  # noqa: E402
 from hippomap.map_reuse import ReuseMap  # noqa: E402
 from tests.support.chromium import launch  # noqa: E402
 from web.scene.chunks import chunk_layout  # noqa: E402
-from web.session_viewer import SessionViewer  # noqa: E402
+from web.session_viewer import KEY_HEADER, SessionViewer  # noqa: E402
 from web.settings import ViewerSettings  # noqa: E402
 from web.source import LocalSession  # noqa: E402
 
@@ -154,8 +154,9 @@ class BigSession(LocalSession):
 class Wire:
     """A raw websocket client of the viser server: bytes received, and marker names seen."""
 
-    def __init__(self, port: int) -> None:
+    def __init__(self, port: int, key: str) -> None:
         self.port = port
+        self.key = key
         self.bytes = 0
         self.seen: dict[str, tuple[float, int]] = {}
         self._zstd = zstandard.ZstdDecompressor()
@@ -167,7 +168,11 @@ class Wire:
 
     async def _run(self) -> None:
         async with websockets.connect(
-            f"ws://127.0.0.1:{self.port}", subprotocols=[f"viser-v{viser.__version__}"], max_size=None, compression=None
+            f"ws://127.0.0.1:{self.port}",
+            subprotocols=[f"viser-v{viser.__version__}"],
+            max_size=None,
+            compression=None,
+            additional_headers={KEY_HEADER: self.key},  # the viewer's loopback server refuses any other client
         ) as ws:
             self._ready.set()
             async for frame in ws:
@@ -207,7 +212,8 @@ def orbit_fps(page, seconds: float = 4.0) -> float:
 def run_size(n: int, repeat: int, page) -> dict:
     session = BigSession(n)
     viewer = SessionViewer(session, ViewerSettings(), start=False)
-    wire = Wire(viewer.port)
+    wire = Wire(viewer.port, viewer.access_key)
+    page.set_extra_http_headers({KEY_HEADER: viewer.access_key})  # what the service's proxy adds
     marks = 0
 
     def push(label: str) -> tuple[float, float, float, int, float]:
