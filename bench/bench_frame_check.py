@@ -10,6 +10,7 @@ the ratio; the loop closures accepted must be the same both ways.
 
 from __future__ import annotations
 
+import argparse
 import sys
 import time
 from pathlib import Path
@@ -23,10 +24,9 @@ from hippomap.mapper import Mapper  # noqa: E402
 
 
 def main() -> int:
-    if len(sys.argv) != 2:
-        print(__doc__)
-        return 2
-    ds = open_dataset(sys.argv[1])
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("data_dir", help="a hippomap data folder, e.g. from `hippomap simulate`")
+    ds = open_dataset(ap.parse_args().data_dir)
     items = list(ds.events())
     frames = {id(i): i.load() for i in items if not isinstance(i, Odometry)}
     checks_only = vm.VisualMemory.check_image
