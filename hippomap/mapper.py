@@ -116,7 +116,7 @@ class Mapper(KeyFrames):
         self.recognitions: list[dict[str, Any]] = []
         self.place: tuple[float, float, float] | None = None  # latest place code p
         self.place_field: PlaceCode | None = None  # latest PlaceCode with its field (not persisted)
-        # per odometry step: t, raw odometric pose, current node, robot offset from it
+        # per odometry step: t, raw odometric pose, current node, robot offset from it, seconds at the node
         self._traj = _Grow(_TRAJ_COLUMNS)
 
     @property
