@@ -142,11 +142,6 @@ class MapGraph:
         the odometry's heading bias has turned Δ (see :meth:`debiased`)."""
         return 0.0 if self._t is None else self._t - self._t_arrive
 
-    @property
-    def odometry_bias(self) -> float:
-        """The odometry's heading bias (rad/s) the last whole solve kept; 0 while none is kept."""
-        return self._bias
-
     def debiased(self, offsets: np.ndarray, times: np.ndarray) -> np.ndarray:
         """(K, 3) robot offsets from their nodes with the estimated heading bias taken off over the
         ``times`` (K,) since the robot arrived at each node: ``Δθ − b τ``, as a new node's pose is
