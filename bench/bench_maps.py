@@ -277,11 +277,15 @@ class TimedMapper(Mapper):
     """A Mapper that records, per camera frame, the time of its ``observe`` plus the
     ``step`` calls since the previous frame (image decoding is outside both), and, outside the
     timing, the highest robust weight each loop decision's link has had after any input
-    (``peak_loop_weights``): whether a closure that ends faded was ever used on the way."""
+    (``peak_loop_weights``): whether a closure that ends faded was ever used on the way; and for how
+    long (``used_seconds``: the data time from each input after which the link was used to the next input)."""
 
     def __init__(self, config: HippomapConfig | None = None) -> None:
         super().__init__(config)
         self.peak_loop_weights = np.zeros(0)  # by decision id; NaN while it has no link
+        self.used_seconds = np.zeros(0)  # by decision id: seconds of data time during which it was used
+        self._used_now = np.zeros(0, bool)  # by decision id: used after the last input
+        self._last_t: float | None = None
         self._pending = 0.0
         self._pending_cpu = 0.0
         self.frame_seconds: list[float] = []  # wall clock (as OpenRatSLAM's core_us)
@@ -305,7 +309,7 @@ class TimedMapper(Mapper):
         out = super().step(odometry)
         self._pending += time.perf_counter() - t0
         self._pending_cpu += time.process_time() - c0
-        self._track_weights()
+        self._track_weights(odometry.t)
         return out
 
     def observe(self, frame: Frame):  # type: ignore[override]
@@ -314,14 +318,22 @@ class TimedMapper(Mapper):
         self.frame_seconds.append(self._pending + time.perf_counter() - t0)
         self.frame_cpu_seconds.append(self._pending_cpu + time.process_time() - c0)
         self._pending = self._pending_cpu = 0.0
-        self._track_weights()
+        self._track_weights(frame.t)
         return out
 
-    def _track_weights(self) -> None:
+    def _track_weights(self, t: float) -> None:
         w = self.cmap.loop_weights()
         peak = np.full(len(w), np.nan)
         peak[: len(self.peak_loop_weights)] = self.peak_loop_weights
         self.peak_loop_weights = np.fmax(peak, w)  # NaN (no link yet) gives way to any weight
+        seconds = np.zeros(len(w))
+        seconds[: len(self.used_seconds)] = self.used_seconds
+        if self._last_t is not None and t > self._last_t:  # the time since the last input, at its weights
+            seconds[: len(self._used_now)] += np.where(self._used_now, t - self._last_t, 0.0)
+        self.used_seconds = seconds
+        with np.errstate(invalid="ignore"):
+            self._used_now = w >= USED_WEIGHT  # NaN (no link): not used
+        self._last_t = t if self._last_t is None else max(self._last_t, t)
 
 
 def warm_up(cfg: HippomapConfig, image: np.ndarray) -> None:
@@ -428,6 +440,17 @@ def run_hippomap(data: Path, config_file: str | None, out_dir: Path) -> dict[str
         "closures_false_ever_used": sum(
             d["groundtruth_distance_m"] > TRUE_M and m.peak_loop_weights[d["id"]] >= USED_WEIGHT for d in judged
         ),
+        # each of those: how far apart its places were, its highest weight, and how long it was used (s)
+        "false_ever_used": [
+            {
+                "id": d["id"],
+                "groundtruth_distance_m": d["groundtruth_distance_m"],
+                "peak_weight": float(m.peak_loop_weights[d["id"]]),
+                "used_s": float(m.used_seconds[d["id"]]),
+            }
+            for d in judged
+            if d["groundtruth_distance_m"] > TRUE_M and m.peak_loop_weights[d["id"]] >= USED_WEIGHT
+        ],
         "closures_unjudged": len(accepted) - len(judged),
         "max_accepted_distance_m": max((d["groundtruth_distance_m"] for d in judged), default=None),
         # error of each accepted loop link against ground truth, as hippomap reports it per
@@ -956,8 +979,19 @@ def sim_targets(rows: list[dict[str, Any]]) -> list[str]:
         f"{sum(_used_false(r['hippomap']) for r in ok)} (of {sum(_used(r['hippomap']) for r in ok)} used); "
         f"accepted {false} (of {sum(r['hippomap']['closures_accepted'] for r in ok)} accepted), of which used "
         f"after any input on the way {sum(r['hippomap'].get('closures_false_ever_used', 0) for r in ok)}"
+        + _ever_used_detail([c for r in ok for c in r["hippomap"].get("false_ever_used", [])])
     )
     return lines
+
+
+def _ever_used_detail(closures: list[dict[str, Any]]) -> str:
+    """`` (X–Y m apart, weight up to W, used A–B s)`` over the false closures used on the way; "" without any."""
+    if not closures:
+        return ""
+    d = [c["groundtruth_distance_m"] for c in closures]
+    sec = [c["used_s"] for c in closures]
+    w = max(c["peak_weight"] for c in closures)
+    return f" ({min(d):.2f}–{max(d):.2f} m apart, weight up to {w:.2f}, used {min(sec):.0f}–{max(sec):.0f} s)"
 
 
 def growth_lines(ok: list[dict[str, Any]]) -> list[str]:

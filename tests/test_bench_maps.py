@@ -283,6 +283,26 @@ def test_timed_mapper_keeps_each_closure_s_highest_weight(short_run):
     assert linked.any() and np.all(peak[linked] >= now[linked])
     # a closure the kernel revised down was, on the way, weighted more than it is now
     assert np.any(peak[linked] > now[linked])
+    # how long each was used: never for one that never reached USED_WEIGHT, never longer than the run after
+    # it was proposed, and for a while by one used now that was proposed well before the run's end
+    sec = m.used_seconds
+    assert len(sec) == len(now) and np.all(sec >= 0)
+    never = ~(peak >= bench_maps.USED_WEIGHT)
+    assert never.any() and np.all(sec[never] == 0)
+    end = float(m.trajectory_times[-1])
+    proposed = np.array([d.hypothesis.time for d in m.cmap.loop_decisions])
+    assert np.all(sec <= end - proposed + 1e-9)
+    early_used = (now >= bench_maps.USED_WEIGHT) & (proposed < end - 5.0)
+    assert early_used.any() and np.all(sec[early_used] > 0)
+
+
+def test_the_false_closures_used_on_the_way_are_summarised_by_distance_weight_and_time():
+    assert bench_maps._ever_used_detail([]) == ""
+    closures = [
+        {"groundtruth_distance_m": 2.95, "peak_weight": 0.57, "used_s": 276.0},
+        {"groundtruth_distance_m": 2.25, "peak_weight": 0.80, "used_s": 368.4},
+    ]
+    assert bench_maps._ever_used_detail(closures) == " (2.25–2.95 m apart, weight up to 0.80, used 276–368 s)"
 
 
 def test_parse_size_rejects_garbage():
