@@ -38,16 +38,20 @@ import hippomap.mapper  # noqa: E402
 import hippomap.visual_memory  # noqa: E402
 from bench_mapper_vs import load_revision  # noqa: E402
 
+Query = tuple[np.ndarray, list[int] | None, dict[str, Any]]
 
-def record(data: str) -> tuple[dict[str, Any], list[tuple[np.ndarray, list[int] | None]]]:
+
+def record(data: str) -> tuple[dict[str, Any], list[Query]]:
     """Run the new mapper on ``data``; return its visual memory's final state and every query it
-    recognised (the gray image and the candidate key frames)."""
+    recognised (the gray image, the candidate key frames, and the other arguments the mapper gave:
+    a global search's give-up bar)."""
     m = hippomap.mapper.Mapper()
-    queries: list[tuple[np.ndarray, list[int] | None]] = []
+    queries: list[Query] = []
     recognise = m.memory.recognise
 
     def spy(image: Any, candidates: Any = None, **kw: Any) -> Any:
-        queries.append((np.array(image), None if candidates is None else list(candidates)))
+        given = {k: v for k, v in kw.items() if v is not None}
+        queries.append((np.array(image), None if candidates is None else list(candidates), given))
         return recognise(image, candidates=candidates, **kw)
 
     m.memory.recognise = spy
@@ -85,11 +89,14 @@ def main() -> int:
     same = True
     labels = ["old", "new"]
     for r in range(args.rounds):
-        for i, (image, candidates) in enumerate(queries):
+        for i, (image, candidates, kw) in enumerate(queries):
             out = {}
             for label in labels if (i + r) % 2 == 0 else labels[::-1]:
                 t0 = time.process_time()
-                rec = mems[label].recognise(image, candidates=candidates)
+                try:
+                    rec = mems[label].recognise(image, candidates=candidates, **kw)
+                except TypeError as exc:  # an old revision without the argument the mapper gave
+                    raise SystemExit(f"revision {old_pkg.revision} cannot replay {sorted(kw)}: {exc}") from None
                 ms[label].append((time.process_time() - t0) * 1e3)
                 fixations[label] += len(rec.steps)
                 out[label] = rec.to_dict()

@@ -693,6 +693,16 @@ class MapperConfig(_Frozen):
         "revisit closed, no false closure used; 5 m, 8 m and none lost a revisit) at 0.85 x the recognitions; "
         "corridors with three times the gyro bias close their return only with searches (docs/MODEL.md item 38) [ours]",
     )
+    global_search_give_up_evidence: float | None = Field(
+        0.9,
+        gt=0,
+        le=1,
+        description="the give-up bar (visual.give_up_evidence) of a global search: against the whole visual memory "
+        "some frame's activity passes the gated search's 0.5 by chance in most attempts, so a search that finds "
+        "nothing ran every attempt. 0.9, the decision threshold: on the 24 simulated tuning runs every global "
+        "search that named a true place had reached it within its first attempts; 23 of the 24 maps stayed the same "
+        "to the last digit, with 3-14 % fewer fixations (docs/MODEL.md item 69). None = visual.give_up_evidence [ours]",
+    )
     learn_recognised: bool = Field(
         False,
         description="also learn a key frame that was recognised: False learns only novel views (as "

@@ -268,7 +268,8 @@ class Mapper(KeyFrames):
     ) -> bool:
         """Recognise ``gray`` among ``candidates``; a match is offered to the map as a loop
         hypothesis. Appends the events; True when the map did not reject the hypothesis."""
-        rec = self.memory.recognise(gray, candidates=candidates)
+        bar = self.config.mapper.global_search_give_up_evidence if search == "global" else None
+        rec = self.memory.recognise(gray, candidates=candidates, give_up_evidence=bar)
         rec_id = len(self.recognitions)
         made = RecognitionMade(rec_id, t, int(self.cmap.current), rec.to_dict())
         self.recognitions.append(made.record())

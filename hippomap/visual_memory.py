@@ -74,6 +74,7 @@ from typing import Any, Iterable
 
 import numpy as np
 
+from .errors import InputError
 from .feature_store import STATE_VERSION, FlcSubset
 from .retina import imadjust as _imadjust  # noqa: F401  (kept importable from here)
 from .visual_drawing import draw_frame_features, draw_trace
@@ -124,6 +125,17 @@ class _Query:
     size: tuple[int, int]
 
 
+def _check_bar(value: Any) -> float:
+    """A give-up bar passed to :meth:`VisualMemory.recognise`: a number in (0, 1], else :class:`InputError`."""
+    try:
+        bar = float(value)
+    except (TypeError, ValueError):
+        raise InputError(f"give_up_evidence must be a number in (0, 1], got {value!r}") from None
+    if not 0.0 < bar <= 1.0:
+        raise InputError(f"give_up_evidence must be in (0, 1], got {value!r}")
+    return bar
+
+
 def _leading(a: np.ndarray, k: int) -> list[tuple[int, float]]:
     """The ``k`` most active frame hypotheses (frame, activity), strongest first."""
     # the same selection as ``nz[np.argsort(-a[nz], kind="stable")[:k]]`` over ``nz = np.flatnonzero(a > 0)``,
@@ -146,11 +158,16 @@ class VisualMemory(FixationSensing):
     """
 
     # -- recognition -------------------------------------------------------------------
-    def recognise(self, image: Any, candidates: Iterable[int] | None = None) -> Recognition:
+    def recognise(
+        self, image: Any, candidates: Iterable[int] | None = None, give_up_evidence: float | None = None
+    ) -> Recognition:
         """Recognise a frame by a saccade sequence (spec §2 recognition; [BBc] main loop).
 
         ``candidates``: restrict the hypotheses to these frame ids (the cognitive map passes
         the frames of nodes near the current place code); ``None`` = all frames.
+        ``give_up_evidence``: the activity bar of the give-up rule for this recognition (``None``:
+        the config's ``give_up_evidence``); a search among more frames can ask more of its first
+        attempts, as chance alone lifts some frame higher there.
 
         Attempts follow each other until one accepts a frame or ``max_resets`` resets have been
         used (or, after ``give_up_attempts`` attempts, while no frame has reached
@@ -163,6 +180,7 @@ class VisualMemory(FixationSensing):
         if isinstance(q, Recognition):
             return q
         cfg = self.config
+        bar = cfg.give_up_evidence if give_up_evidence is None else _check_bar(give_up_evidence)
         a = np.zeros(self._nframes, np.float64)
         steps: list[SaccadeStep] = []
         used_starts: set[int] = set()
@@ -177,8 +195,8 @@ class VisualMemory(FixationSensing):
             steps[-1].event = f"reset: {st.reset_reason}"
             best = float(a.max()) if a.size else 0.0
             peak = max(peak, best)
-            if cfg.give_up_attempts is not None and resets + 1 >= cfg.give_up_attempts and peak < cfg.give_up_evidence:
-                why = f"no frame reached {cfg.give_up_evidence:g} in {resets + 1} attempts"
+            if cfg.give_up_attempts is not None and resets + 1 >= cfg.give_up_attempts and peak < bar:
+                why = f"no frame reached {bar:g} in {resets + 1} attempts"
                 return Recognition(None, best, steps, resets, 0.0, q.size, why)
         why = f"no match after {cfg.max_resets} resets"
         return Recognition(None, best, steps, cfg.max_resets, 0.0, q.size, why)

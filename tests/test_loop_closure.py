@@ -562,6 +562,31 @@ def test_the_global_search_schedule_survives_a_snapshot():
     assert HippomapConfig().mapper.global_search_after_m == 40.0  # the default (docs/MODEL.md item 38)
 
 
+def test_a_global_search_gives_up_at_its_own_bar():
+    """``mapper.global_search_give_up_evidence``: a global search that names nothing stops after
+    ``give_up_attempts`` unless a frame reached that bar; a gated search keeps the visual config's bar."""
+    from tests.test_visual_memory import SCENES, scene
+
+    fixations = {}
+    for bar in (None, 1.0):
+        m = Mapper(HippomapConfig.with_overrides({"mapper": {"global_search_give_up_evidence": bar}}))
+        frames = [m.memory.learn(img) for img in SCENES]
+        for s in (1000, 1001, 1002, 1003, 1004):
+            for search in ("gated", "global"):
+                assert not m._recognise(scene(s), 0.0, frames, [], search=search)
+                fixations[bar, s, search] = len(m.recognitions[-1]["steps"])
+                if bar == 1.0 and search == "global" and fixations[bar, s, search] < fixations[None, s, search]:
+                    assert m.recognitions[-1]["reason"] == "no frame reached 1 in 4 attempts"
+    queries = (1000, 1001, 1002, 1003, 1004)
+    # the gated searches, and the global ones at the visual config's bar, make the same saccades
+    assert all(fixations[bar, s, "gated"] == fixations[None, s, "global"] for bar in (None, 1.0) for s in queries)
+    # held to 1, global searches stop after their first attempts where the config's bar let them go on
+    assert all(fixations[1.0, s, "global"] <= fixations[None, s, "global"] for s in queries)
+    assert any(fixations[1.0, s, "global"] < fixations[None, s, "global"] for s in queries)
+    with pytest.raises(ValueError, match="global_search_give_up_evidence"):
+        HippomapConfig.with_overrides({"mapper": {"global_search_give_up_evidence": 1.5}})
+
+
 def test_kernel_weights_whiten_each_axis_by_its_own_information():
     """A lateral residual is cheap where the lateral information is low, and costs as much as
     along the track when both informations are equal (the pair form (x/y, heading))."""

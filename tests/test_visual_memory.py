@@ -133,6 +133,31 @@ def test_a_recognition_gives_up_early_when_no_frame_builds_up_evidence():
     assert quick.recognise(query).frame_id == memory.recognise(query).frame_id == 4
 
 
+def test_a_recognition_can_ask_more_of_its_first_attempts_than_the_config(memory):
+    """``recognise(..., give_up_evidence=bar)``: the give-up rule with another bar for this call only. With the
+    bar at 1 a search that names nothing stops after ``give_up_attempts`` unless some frame reached 1; a frame
+    the memory has seen is still named, as with the config's bar; a bar outside (0, 1] is refused."""
+    cfg = memory.config
+    assert cfg.give_up_attempts is not None and cfg.give_up_evidence < 1.0
+    stopped = 0
+    for s in (1000, 1001, 1002, 1003, 1004):
+        usual, strict = memory.recognise(scene(s)), memory.recognise(scene(s), give_up_evidence=1.0)
+        assert usual.frame_id is None and strict.frame_id is None
+        peak = max((a for st in strict.steps for _, a in st.evidence), default=0.0)
+        if strict.n_resets == cfg.give_up_attempts - 1 < usual.n_resets:
+            stopped += 1
+            assert peak < 1.0 and strict.reason == f"no frame reached 1 in {cfg.give_up_attempts} attempts"
+            assert strict.steps == usual.steps[: len(strict.steps)]  # the same attempts, cut short
+        else:
+            assert strict.steps == usual.steps
+    assert stopped > 0
+    query = perturb(SCENES[4], seed=104)
+    assert memory.recognise(query, give_up_evidence=1.0).frame_id == memory.recognise(query).frame_id == 4
+    for bad in (0.0, -0.5, 1.5, float("nan"), "high"):
+        with pytest.raises(InputError, match="give_up_evidence"):
+            memory.recognise(query, give_up_evidence=bad)
+
+
 def test_query_at_another_resolution_is_recognised_and_traced_in_its_own_pixels(memory):
     big = cv2.resize(perturb(SCENES[6], seed=3, shift=(0, 0)), (640, 480), interpolation=cv2.INTER_LINEAR)
     big = cv2.cvtColor(big, cv2.COLOR_GRAY2BGR)
