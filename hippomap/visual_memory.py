@@ -176,11 +176,11 @@ class VisualMemory(FixationSensing):
         hypotheses updated (:meth:`_observe`), the decision checked (:meth:`_decide`), and the most
         active frame chooses the next saccade (:meth:`_next_saccade`).
         """
+        cfg = self.config
+        bar = cfg.give_up_evidence if give_up_evidence is None else _check_bar(give_up_evidence)
         q = self._query(image, candidates)
         if isinstance(q, Recognition):
             return q
-        cfg = self.config
-        bar = cfg.give_up_evidence if give_up_evidence is None else _check_bar(give_up_evidence)
         a = np.zeros(self._nframes, np.float64)
         steps: list[SaccadeStep] = []
         used_starts: set[int] = set()

@@ -156,6 +156,8 @@ def test_a_recognition_can_ask_more_of_its_first_attempts_than_the_config(memory
     for bad in (0.0, -0.5, 1.5, float("nan"), "high"):
         with pytest.raises(InputError, match="give_up_evidence"):
             memory.recognise(query, give_up_evidence=bad)
+        with pytest.raises(InputError, match="give_up_evidence"):  # refused before anything else, empty memory too
+            VisualMemory().recognise(query, give_up_evidence=bad)
 
 
 def test_query_at_another_resolution_is_recognised_and_traced_in_its_own_pixels(memory):
