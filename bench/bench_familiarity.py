@@ -86,9 +86,9 @@ def record(folder: Path) -> tuple[list[dict[str, Any]], Mapper]:
             learned[int(fid)] = (m.last_frame_t, g)
         return fid
 
-    def noted_recognise(image: Any, candidates: Any = None, give_up_evidence: Any = None) -> Any:
+    def noted_recognise(image: Any, candidates: Any = None, **kw: Any) -> Any:
         g = gists(m, image)
-        r = recognise(image, candidates=candidates, give_up_evidence=give_up_evidence)
+        r = recognise(image, candidates=candidates, **kw)
         cands = [] if candidates is None else [int(c) for c in candidates]
         asked.append((m.last_frame_t, g, cands, r.frame, r.n_fixations))
         return r

@@ -62,8 +62,8 @@ def record(folder: Path, config: HippomapConfig | None) -> np.ndarray:
             learned_at[int(fid)] = now["t"]
         return fid
 
-    def scored_recognise(image: Any, candidates: Any = None, give_up_evidence: Any = None) -> Any:
-        rec = recognise(image, candidates=candidates, give_up_evidence=give_up_evidence)
+    def scored_recognise(image: Any, candidates: Any = None, **kw: Any) -> Any:
+        rec = recognise(image, candidates=candidates, **kw)
         pairs = rec.correspondences or []
         if rec.frame is None or not pairs:
             return rec

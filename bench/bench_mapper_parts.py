@@ -104,9 +104,9 @@ class PartTimer:
         """Time ``memory.recognise`` as ``recognition`` and keep each call's outcome."""
         f = memory.recognise
 
-        def timed(image: Any, candidates: Any = None, give_up_evidence: Any = None) -> Any:
+        def timed(image: Any, candidates: Any = None, **kw: Any) -> Any:
             c = time.process_time()
-            r = f(image, candidates=candidates, give_up_evidence=give_up_evidence)
+            r = f(image, candidates=candidates, **kw)
             dt = time.process_time() - c
             self.acc["recognition"] += dt
             named = r.frame is not None

@@ -420,6 +420,17 @@ def run_hippomap(data: Path, config_file: str | None, out_dir: Path) -> dict[str
     decisions = json.loads((out_dir / "loop_closures.json").read_text())
     accepted = [d for d in decisions if d.get("status") == "accepted"]
     judged = [d for d in accepted if d.get("groundtruth_distance_m") is not None]
+    # accepted false closures that were used after some input on the way (weight >= USED_WEIGHT), though faded
+    ever_used = [
+        {
+            "id": d["id"],
+            "groundtruth_distance_m": d["groundtruth_distance_m"],
+            "peak_weight": float(m.peak_loop_weights[d["id"]]),
+            "used_s": float(m.used_seconds[d["id"]]),
+        }
+        for d in judged
+        if d["groundtruth_distance_m"] > TRUE_M and m.peak_loop_weights[d["id"]] >= USED_WEIGHT
+    ]
     ms = np.array(m.frame_seconds) * 1e3
     s = metrics.get("stats", {})
     return {
@@ -436,21 +447,9 @@ def run_hippomap(data: Path, config_file: str | None, out_dir: Path) -> dict[str
         # (decisions without the field: every accepted one is used)
         "closures_used": sum(bool(d.get("used", True)) for d in accepted),
         "closures_used_false": sum(d["groundtruth_distance_m"] > TRUE_M for d in judged if d.get("used", True)),
-        # accepted false closures that were used after some input on the way (weight >= USED_WEIGHT), though faded
-        "closures_false_ever_used": sum(
-            d["groundtruth_distance_m"] > TRUE_M and m.peak_loop_weights[d["id"]] >= USED_WEIGHT for d in judged
-        ),
+        "closures_false_ever_used": len(ever_used),
         # each of those: how far apart its places were, its highest weight, and how long it was used (s)
-        "false_ever_used": [
-            {
-                "id": d["id"],
-                "groundtruth_distance_m": d["groundtruth_distance_m"],
-                "peak_weight": float(m.peak_loop_weights[d["id"]]),
-                "used_s": float(m.used_seconds[d["id"]]),
-            }
-            for d in judged
-            if d["groundtruth_distance_m"] > TRUE_M and m.peak_loop_weights[d["id"]] >= USED_WEIGHT
-        ],
+        "false_ever_used": ever_used,
         "closures_unjudged": len(accepted) - len(judged),
         "max_accepted_distance_m": max((d["groundtruth_distance_m"] for d in judged), default=None),
         # error of each accepted loop link against ground truth, as hippomap reports it per

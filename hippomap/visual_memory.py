@@ -74,7 +74,7 @@ from typing import Any, Iterable
 
 import numpy as np
 
-from .errors import InputError
+from .errors import InputError, finite
 from .feature_store import STATE_VERSION, FlcSubset
 from .retina import imadjust as _imadjust  # noqa: F401  (kept importable from here)
 from .visual_drawing import draw_frame_features, draw_trace
@@ -127,10 +127,7 @@ class _Query:
 
 def _check_bar(value: Any) -> float:
     """A give-up bar passed to :meth:`VisualMemory.recognise`: a number in (0, 1], else :class:`InputError`."""
-    try:
-        bar = float(value)
-    except (TypeError, ValueError):
-        raise InputError(f"give_up_evidence must be a number in (0, 1], got {value!r}") from None
+    bar = finite("give_up_evidence", value)
     if not 0.0 < bar <= 1.0:
         raise InputError(f"give_up_evidence must be in (0, 1], got {value!r}")
     return bar
