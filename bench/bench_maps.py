@@ -292,15 +292,18 @@ class TimedMapper(Mapper):
         self.frame_cpu_seconds: list[float] = []  # CPU time of this process (robust to a loaded machine)
         self.recognition_seconds: list[float] = []  # wall clock of each VisualMemory.recognise call
         self.recognition_cpu_seconds: list[float] = []
+        self.fixations = 0  # fixations of every recognition: the recognitions' work, whatever the machine's load
         recognise = self.memory.recognise
 
         def timed(*a: Any, **k: Any) -> Any:
             t0, c0 = time.perf_counter(), time.process_time()
             try:
-                return recognise(*a, **k)
+                rec = recognise(*a, **k)
             finally:
                 self.recognition_seconds.append(time.perf_counter() - t0)
                 self.recognition_cpu_seconds.append(time.process_time() - c0)
+            self.fixations += rec.n_fixations
+            return rec
 
         self.memory.recognise = timed  # type: ignore[method-assign]
 
@@ -468,6 +471,7 @@ def run_hippomap(data: Path, config_file: str | None, out_dir: Path) -> dict[str
         "keyframes": s.get("keyframes"),
         "nodes": s.get("nodes"),
         "recognitions": s.get("recognitions"),
+        "fixations": m.fixations,
         "wall_s": wall,
     }
 

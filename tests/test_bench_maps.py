@@ -294,6 +294,8 @@ def test_timed_mapper_keeps_each_closure_s_highest_weight(short_run):
     assert np.all(sec <= end - proposed + 1e-9)
     early_used = (now >= bench_maps.USED_WEIGHT) & (proposed < end - 5.0)
     assert early_used.any() and np.all(sec[early_used] > 0)
+    # every recognition's fixations, counted as they are made: those of the recognitions the mapper kept
+    assert m.fixations == sum(len(r["steps"]) for r in m.recognitions) > 0
 
 
 def test_the_false_closures_used_on_the_way_are_summarised_by_distance_weight_and_time():
