@@ -26,7 +26,8 @@ After Bicanski & Burgess (2019, [BBc]), adapted to robot key frames:
   ``verify_per_reset``; [S] §3.2: "it will continue to scan");
   an attempt resets after ``max_prediction_errors`` wrong predictions and the query is
   rejected after ``max_resets`` resets, or earlier when no frame's activity has reached
-  ``give_up_evidence`` in the first ``give_up_attempts`` attempts.
+  ``give_up_evidence`` in the first ``give_up_attempts`` attempts (optionally a bar that grows
+  with the number of competing frames, ``give_up_frames``).
 
   The grid code is re-anchored onto the first recognised feature (BB's "global
   remapping" for displaced stimuli) and onto every predicted feature, so saccades are the
@@ -69,6 +70,7 @@ re-exports the public names of the others.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Any, Iterable
 
@@ -123,6 +125,7 @@ class _Query:
     starts: np.ndarray
     scale: float
     size: tuple[int, int]
+    nframes: int  # the frames competing
 
 
 def _check_bar(value: Any) -> float:
@@ -163,7 +166,7 @@ class VisualMemory(FixationSensing):
         ``candidates``: restrict the hypotheses to these frame ids (the cognitive map passes
         the frames of nodes near the current place code); ``None`` = all frames.
         ``give_up_evidence``: the activity bar of the give-up rule for this recognition (``None``:
-        the config's ``give_up_evidence``); a search among more frames can ask more of its first
+        the config's, :meth:`_give_up_bar`); a search among more frames can ask more of its first
         attempts, as chance alone lifts some frame higher there.
 
         Attempts follow each other until one accepts a frame or ``max_resets`` resets have been
@@ -174,10 +177,12 @@ class VisualMemory(FixationSensing):
         active frame chooses the next saccade (:meth:`_next_saccade`).
         """
         cfg = self.config
-        bar = cfg.give_up_evidence if give_up_evidence is None else _check_bar(give_up_evidence)
+        bar = None if give_up_evidence is None else _check_bar(give_up_evidence)
         q = self._query(image, candidates)
         if isinstance(q, Recognition):
             return q
+        if bar is None:
+            bar = self._give_up_bar(q.nframes)
         a = np.zeros(self._nframes, np.float64)
         steps: list[SaccadeStep] = []
         used_starts: set[int] = set()
@@ -213,7 +218,19 @@ class VisualMemory(FixationSensing):
         starts = self._corners(cimg, cfg.query_keypoints, self.h)
         if len(starts) == 0:
             return Recognition(None, 0.0, [], 0, 0.0, size, "no keypoints in the query")
-        return _Query(sub, sense_img, starts, scale, size)
+        return _Query(sub, sense_img, starts, scale, size, self._nframes if frames is None else int(frames.size))
+
+    def _give_up_bar(self, nframes: int) -> float:
+        """The give-up bar of a recognition among ``nframes`` competing frames: ``give_up_evidence``, or with
+        ``give_up_frames = (n0, n1)`` a bar that grows with the log of the count from ``give_up_evidence`` (at n0
+        frames or fewer) to ``decision_threshold`` (at n1 or more): the best of many frames reaches more by
+        chance alone, so a search among many must show more in its first attempts to be worth the rest."""
+        cfg = self.config
+        if cfg.give_up_frames is None or nframes <= cfg.give_up_frames[0]:
+            return cfg.give_up_evidence
+        n0, n1 = cfg.give_up_frames
+        f = min(1.0, math.log(nframes / n0) / math.log(n1 / n0))
+        return cfg.give_up_evidence + (cfg.decision_threshold - cfg.give_up_evidence) * f
 
     def _candidate_frames(self, candidates: Iterable[int]) -> np.ndarray:
         """The distinct candidate frame ids, sorted: ``np.unique`` of every candidate checked by

@@ -160,6 +160,45 @@ def test_a_recognition_can_ask_more_of_its_first_attempts_than_the_config(memory
             VisualMemory().recognise(query, give_up_evidence=bad)
 
 
+def test_the_give_up_bar_grows_with_the_frames_that_compete():
+    """``give_up_frames = (n0, n1)``: a recognition among n0 frames or fewer gives up at ``give_up_evidence``, among
+    n1 or more at ``decision_threshold``, in between at a bar that grows with the log of the count; the saccades are
+    those of the same recognition given that bar; a bar passed to the call replaces it; a seen frame is still named."""
+    ramp, plain = VisualMemory(VisualConfig(give_up_frames=(3, 12))), VisualMemory(VisualConfig(give_up_frames=None))
+    assert [ramp.learn(img) for img in SCENES] == [plain.learn(img) for img in SCENES] == list(range(N_FRAMES))
+    cfg = ramp.config
+    low, high = cfg.give_up_evidence, cfg.decision_threshold
+    assert ramp._give_up_bar(1) == ramp._give_up_bar(3) == low
+    assert ramp._give_up_bar(12) == ramp._give_up_bar(5000) == high
+    assert ramp._give_up_bar(6) == pytest.approx(low + 0.5 * (high - low))  # log 2 / log 4 of the way
+    assert plain._give_up_bar(5000) == low
+    stopped = 0
+    for s in (1000, 1001, 1002, 1003, 1004):
+        many, usual = ramp.recognise(scene(s)), plain.recognise(scene(s))
+        assert many.steps == plain.recognise(scene(s), give_up_evidence=high).steps  # all 12 frames compete
+        assert (
+            ramp.recognise(scene(s), candidates=[0, 4, 7]).steps
+            == plain.recognise(scene(s), candidates=[0, 4, 7]).steps
+        )
+        assert ramp.recognise(scene(s), give_up_evidence=low).steps == usual.steps
+        stopped += len(many.steps) < len(usual.steps)
+    assert stopped > 0
+    query = perturb(SCENES[4], seed=104)
+    assert ramp.recognise(query).frame_id == plain.recognise(query).frame_id == 4
+    for bad in ((5, 5), (6, 2), (0, 4)):
+        with pytest.raises(ValueError, match="give_up_frames"):
+            VisualConfig(give_up_frames=bad)
+
+
+@settings(max_examples=60, deadline=None)
+@given(n0=hs.integers(1, 500), span=hs.integers(1, 5000), a=hs.integers(0, 10000), b=hs.integers(0, 10000))
+def test_the_give_up_bar_never_falls_as_more_frames_compete(n0, span, a, b):
+    mem = VisualMemory(VisualConfig(give_up_frames=(n0, n0 + span)))
+    lo, hi = sorted((a, b))
+    cfg = mem.config
+    assert cfg.give_up_evidence <= mem._give_up_bar(lo) <= mem._give_up_bar(hi) <= cfg.decision_threshold
+
+
 def test_query_at_another_resolution_is_recognised_and_traced_in_its_own_pixels(memory):
     big = cv2.resize(perturb(SCENES[6], seed=3, shift=(0, 0)), (640, 480), interpolation=cv2.INTER_LINEAR)
     big = cv2.cvtColor(big, cv2.COLOR_GRAY2BGR)

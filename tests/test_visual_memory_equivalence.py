@@ -208,7 +208,9 @@ class ReferenceMemory(vm.VisualMemory):
         starts = self._corners(cimg, cfg.query_keypoints, self.h)
         if len(starts) == 0:
             return vm.Recognition(None, 0.0, [], 0, 0.0, size, "no keypoints in the query")
-        return vm._Query(cast(Any, sub), sense_img, starts, scale, size)
+        return vm._Query(
+            cast(Any, sub), sense_img, starts, scale, size, self._nframes if frames is None else frames.size
+        )
 
     def _fixate(self, q, st, a, steps, resets):
         s = self._sense(q.sense_img, st.e, q.sub, q.sub.local(st.predicted) if st.predicted >= 0 else -1)
