@@ -454,6 +454,8 @@ def _wait_processed(c: TestClient, sid: str, seq: int) -> dict:
         ({"spatial": {"seed": -1}}, "seed"),
         ({"spatial": {"seed": 2**64}}, "seed"),
         ({"map": {"mu_p": 1e999}}, "mu_p"),  # sent as 1e999: JSON's way to say infinity
+        ({"visual": {"give_up_frames": [40, 40]}}, "give_up_frames"),
+        ({"visual": {"give_up_frames": [0, 320]}}, "give_up_frames"),
     ],
 )
 def test_config_overrides_outside_safe_ranges_are_422(tmp_path, overrides, field):
