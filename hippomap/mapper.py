@@ -271,7 +271,8 @@ class Mapper(KeyFrames):
         bar = self.config.mapper.global_search_give_up_evidence if search == "global" else None
         rec = self.memory.recognise(gray, candidates=candidates, give_up_evidence=bar)
         rec_id = len(self.recognitions)
-        made = RecognitionMade(rec_id, t, int(self.cmap.current), rec.to_dict())
+        result = {**rec.to_dict(), "search": search, "candidates": len(candidates)}
+        made = RecognitionMade(rec_id, t, int(self.cmap.current), result)
         self.recognitions.append(made.record())
         events.append(made)
         if rec.frame is None:

@@ -274,6 +274,10 @@ def test_a_drift_no_gate_covers_is_closed_by_global_searches(tmp_path, seed):
     assert metrics["map"]["ate"]["rmse"] < 0.05 * odometry_ate
     metrics, accepted = found["off"]
     assert accepted == [] and metrics["loop_closures"]["revisits"]["closed"] == 0
+    # the missed return says why: gated recognitions ran, no global one, and no true link was made
+    why = metrics["loop_closures"]["revisits"]["missed"][0]["why"]
+    assert why["recognitions"] >= 1 and why["global_searches"] == 0 and why["candidates_median"] >= 1
+    assert why["true_links_used"] == why["true_links_faded"] == 0
     assert metrics["map"]["ate"]["rmse"] > 0.5 * odometry_ate
 
 

@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from hippomap.errors import InputError
-from hippomap.eval.revisits import revisit_episodes, revisit_recall
+from hippomap.eval.revisits import explain_missed, revisit_episodes, revisit_recall
 
 
 def _circle(laps: float, circumference: float = 40.0, step: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
@@ -78,6 +78,35 @@ def test_an_episode_is_closed_by_a_closure_on_its_stretch_of_path():
     missed = revisit_recall(eps, t, p, [10.0, 35.0])
     assert missed["closed"] == 0 and missed["recall"] == 0.0 and missed["missed"][0]["path_m"] == eps[0].path_m
     assert revisit_recall(eps, t, p, [])["closed"] == 0
+
+
+def test_a_missed_episode_says_what_the_mapper_did_along_it():
+    """Only the recognitions and loop decisions made between the episode's t0 and t1 count: how many
+    recognitions ran and among how many key frames, how many named the right place (within 2 m in ground
+    truth) or a wrong one, and whether the true links the map accepted are used or faded."""
+    missed = [{"t0": 10.0, "t1": 20.0}, {"t0": 50.0, "t1": 60.0}]
+
+    def rec(t, search, n, d):
+        return {"t": t, "search": search, "candidates": n, "groundtruth_distance_m": d}
+
+    def row(t, status, d, used):
+        return {"hypothesis": {"time": t}, "status": status, "groundtruth_distance_m": d, "used": used}
+
+    recs = [rec(5.0, "gated", 9, 0.1), rec(11.0, "gated", 300, 0.5), rec(12.0, "global", 900, None)]
+    recs += [rec(13.0, "gated", 310, 1.9), rec(15.0, "gated", 320, 6.0), rec(25.0, "gated", 5, 0.2)]
+    loops = [row(5.0, "accepted", 0.1, True), row(11.0, "accepted", 0.5, False), row(13.0, "accepted", 1.9, True)]
+    loops += [row(15.0, "accepted", 6.0, False), row(16.0, "rejected", 0.3, False)]
+    explain_missed(missed, recs, loops)
+    assert missed[0]["why"] == {
+        "recognitions": 4,
+        "global_searches": 1,
+        "candidates_median": 315.0,  # of 300, 900, 310 and 320
+        "named_true": 2,
+        "named_false": 1,
+        "true_links_used": 1,
+        "true_links_faded": 1,
+    }
+    assert missed[1]["why"]["recognitions"] == 0 and missed[1]["why"]["candidates_median"] is None
 
 
 def test_two_separate_revisits_are_counted_apart():

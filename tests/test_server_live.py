@@ -133,6 +133,11 @@ def test_queries_serve_the_session_state(server, client):
     assert {"accepted", "rejected"} <= statuses, statuses
     recs = client.recognitions(sid)
     assert len(recs) == len(ref["recognitions"]) > 0
+    # each says which key frames competed, as the mapper's own record does
+    assert [(r["search"], r["candidates"]) for r in recs] == [
+        (r["search"], r["candidates"]) for r in ref["recognitions"]
+    ]
+    assert all(r["search"] in ("gated", "global") and r["candidates"] >= 1 for r in recs)
     for lc in loops:
         d = lc["decision"]
         assert lc["nodes"] == [d["from_node"], d["hypothesis"]["node"]] and lc["t"] == d["hypothesis"]["time"]

@@ -21,7 +21,7 @@ import numpy as np
 from ..config import HippomapConfig
 from ..errors import InputError
 from ..eval.evaluation import LOOP_TRUTH_DISTANCE_M, groundtruth_at, trajectory_metrics
-from ..eval.revisits import closed_revisits
+from ..eval.revisits import closed_revisits, explain_missed
 from ..extras import check
 from ..geometry import between
 from ..inputs import Odometry
@@ -121,6 +121,23 @@ def loop_report(m: Mapper, gt: tuple[np.ndarray, np.ndarray] | None) -> list[dic
     return out
 
 
+def recognition_report(m: Mapper, gt: tuple[np.ndarray, np.ndarray]) -> list[dict[str, Any]]:
+    """Every recognition's time, search and competing key frames, and the ground-truth distance from
+    the robot to the key frame it named (the robot's pose when that key frame's node was made; None
+    when it named none, or a saved map's key frame)."""
+    out = []
+    times = m.cmap.times
+    for r in m.recognitions:
+        node = m.frame_node.get(r["frame_id"]) if r.get("frame_id") is not None else None
+        a = groundtruth_at(gt, float(r["t"]))
+        b = groundtruth_at(gt, float(times[node])) if node is not None and node >= m.base_nodes else None
+        d = float(np.linalg.norm(a[:2] - b[:2])) if a is not None and b is not None else None
+        out.append(
+            {"t": r["t"], "search": r.get("search"), "candidates": r.get("candidates"), "groundtruth_distance_m": d}
+        )
+    return out
+
+
 def link_error(gt: tuple[np.ndarray, np.ndarray], t_from: float, t_to: float, transform) -> dict[str, float]:
     """Error of a loop link against ground truth: the link says where node ``to`` lies in the
     frame of node ``from``; ground truth says it from the robot's true poses when the two nodes
@@ -168,6 +185,9 @@ def write_run(
             r["hypothesis"]["time"] for r in used if r.get("groundtruth_distance_m", np.inf) < LOOP_TRUTH_DISTANCE_M
         ]
         metrics["loop_closures"]["revisits"] = closed_revisits(dataset.groundtruth, true_used)
+        explain_missed(
+            metrics["loop_closures"]["revisits"]["missed"], recognition_report(m, dataset.groundtruth), loops
+        )
         errs = [r["link_error_m"] for r in used if "link_error_m" in r]
         if errs:
             metrics["loop_closures"]["link_error_m"] = {

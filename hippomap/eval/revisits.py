@@ -22,6 +22,7 @@ from scipy.spatial import cKDTree
 
 from ..errors import InputError
 from ..geometry import path_lengths
+from .evaluation import LOOP_TRUTH_DISTANCE_M
 
 #: within this of an earlier place, the robot revisits it [ours]
 REVISIT_RADIUS_M = 1.5
@@ -159,6 +160,41 @@ def revisit_recall(
         "recall": float(closed.mean()) if n else None,
         "missed": [asdict(e) for e, c in zip(episodes, closed) if not c],
     }
+
+
+def explain_missed(
+    missed: list[dict[str, Any]], recognitions: list[dict[str, Any]], loops: list[dict[str, Any]]
+) -> None:
+    """Add to each of ``missed`` (the ``missed`` episodes of :func:`revisit_recall`) a ``why``: what
+    the mapper did between the episode's ``t0`` and ``t1``. From ``recognitions`` (dicts with ``t``,
+    ``search``, ``candidates`` and ``groundtruth_distance_m``, the ground-truth distance from the robot
+    to the key frame named, None when none was): how many ran, how many were global searches, the
+    median number of competing key frames, and how many named a key frame within / beyond
+    ``LOOP_TRUTH_DISTANCE_M`` of the robot. From ``loops`` (the loop decisions' rows, as ``hippomap run``
+    writes them): how many true ones the map accepted and uses, and how many it accepted and faded. An
+    episode nothing recognised lost its loop in recognition; one whose true links faded, in
+    verification."""
+    rt = np.array([float(r["t"]) for r in recognitions])
+    lt = np.array([float(r["hypothesis"]["time"]) for r in loops])
+    for e in missed:
+        recs = [recognitions[i] for i in np.flatnonzero((rt >= e["t0"]) & (rt <= e["t1"]))]
+        rows = [loops[i] for i in np.flatnonzero((lt >= e["t0"]) & (lt <= e["t1"]))]
+        named = [r["groundtruth_distance_m"] for r in recs if r.get("groundtruth_distance_m") is not None]
+        cands = [r["candidates"] for r in recs if r.get("candidates") is not None]
+        true_acc = [
+            r
+            for r in rows
+            if r["status"] == "accepted" and r.get("groundtruth_distance_m", np.inf) < LOOP_TRUTH_DISTANCE_M
+        ]
+        e["why"] = {
+            "recognitions": len(recs),
+            "global_searches": sum(r.get("search") == "global" for r in recs),
+            "candidates_median": float(np.median(cands)) if cands else None,
+            "named_true": sum(d < LOOP_TRUTH_DISTANCE_M for d in named),
+            "named_false": sum(d >= LOOP_TRUTH_DISTANCE_M for d in named),
+            "true_links_used": sum(bool(r["used"]) for r in true_acc),
+            "true_links_faded": sum(not r["used"] for r in true_acc),
+        }
 
 
 def closed_revisits(groundtruth: tuple[Any, Any], closure_times: Any) -> dict[str, Any]:

@@ -158,6 +158,8 @@ async def get_recognitions(
             "frame_id": r.get("frame_id"),
             "evidence": r.get("evidence"),
             "n_fixations": r.get("n_fixations"),
+            "search": r.get("search"),
+            "candidates": r.get("candidates"),
             "saccades": f"{base}{r['id']}",
             "image": f"{base}{r['id']}/image",
         }

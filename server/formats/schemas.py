@@ -222,6 +222,12 @@ class RecognitionInfo(BaseModel):
     frame_id: int | None
     evidence: float | None
     n_fixations: int | None
+    search: str | None = Field(
+        None,
+        description="which key frames competed: 'gated' (those the loop gate admits near the robot's map pose) or "
+        "'global' (every other one, after a long run without a verified closure); None in older sessions",
+    )
+    candidates: int | None = Field(None, description="how many key frames competed; None in older sessions")
     saccades: str
     image: str
 
