@@ -734,13 +734,14 @@ class MapperConfig(_Frozen):
         "[ours]",
     )
     view_distance_m: float | None = Field(
-        3.0,
+        4.5,
         gt=0,
         description="typical distance from the camera to the scene it sees; the scale change of a "
         "recognition's saccade correspondences (looming) times this is how far the robot stands ahead of or behind "
         "the matched key frame along its view, so a visual loop link is not off by up to a key-frame spacing along "
-        "the track. None = the robot is taken to be at the key frame [ours: fitted on the simulated tuning runs, "
-        "docs/MODEL.md]",
+        "the track, and its image shift measures heading + lateral offset / this (shift_coupling). None = the robot "
+        "is taken to be at the key frame. 4.5 chosen among 3 / 3.75 / 4.5 / 6 on the 24 simulated tuning runs (3 "
+        "before, chosen for looming alone; docs/MODEL.md items 37 and 72) [ours]",
     )
     shift_coupling: bool = Field(
         True,

@@ -328,7 +328,9 @@ def test_visual_offset_moves_the_robot_along_the_key_frames_view():
 
     m = Mapper(HippomapConfig())
     m.frame_offset[4] = (0.3, -0.1, 0.5)
-    ahead = 3.0 * (1 - 1 / 1.1)
+    D = m.config.mapper.view_distance_m
+    assert D is not None and D > 0
+    ahead = D * (1 - 1 / 1.1)
     x, y, th = m._visual_offset(Rec(), 320)
     assert (x, y, th) == pytest.approx((0.3 + ahead * math.cos(0.5), -0.1 + ahead * math.sin(0.5), 0.5))
     off = Mapper(HippomapConfig.with_overrides({"mapper": {"view_distance_m": None}}))
