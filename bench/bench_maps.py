@@ -80,7 +80,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import peers  # noqa: E402
 from hippomap.cli.run import dataset_config, open_dataset, run_dataset, write_run  # noqa: E402
 from hippomap.config import HippomapConfig  # noqa: E402
-from hippomap.eval.evaluation import groundtruth_at, trajectory_metrics  # noqa: E402
+from hippomap.eval.evaluation import groundtruth_at, groundtruth_distance, trajectory_metrics  # noqa: E402
 from hippomap.eval.revisits import closed_revisits  # noqa: E402
 from hippomap.geometry import between, wrap_angle  # noqa: E402
 from hippomap.inputs import Frame, Odometry  # noqa: E402
@@ -487,11 +487,11 @@ def score_ors(res: peers.ORSResult, gt: tuple[np.ndarray, np.ndarray]) -> dict[s
     judged, false = 0, 0
     true_times: list[float] = []
     for t, _src, dest in res.links:
-        a, b = groundtruth_at(gt, t), groundtruth_at(gt, created.get(dest, float("nan")))
-        if a is None or b is None:
+        dist = groundtruth_distance(gt, t, created.get(dest, float("nan")))
+        if dist is None:
             continue
         judged += 1
-        true = float(np.linalg.norm(a[:2] - b[:2])) <= TRUE_M
+        true = dist <= TRUE_M
         false += not true
         if true:
             true_times.append(t)
@@ -637,11 +637,7 @@ def sim_case(case: dict[str, Any]) -> dict[str, Any]:
 
 def closure_truth(dataset, pairs: list[tuple[int, int]]) -> list[float | None]:
     gt = dataset.groundtruth
-    out = []
-    for i, j in pairs:
-        a, b = groundtruth_at(gt, float(dataset.times[i])), groundtruth_at(gt, float(dataset.times[j]))
-        out.append(None if a is None or b is None else float(np.linalg.norm(a[:2] - b[:2])))
-    return out
+    return [groundtruth_distance(gt, float(dataset.times[i]), float(dataset.times[j])) for i, j in pairs]
 
 
 def pair_revisits(dataset, pairs: list[tuple[int, int]], dist: list[float | None], used: list[bool]) -> dict[str, Any]:

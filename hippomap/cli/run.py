@@ -20,7 +20,7 @@ import numpy as np
 
 from ..config import HippomapConfig
 from ..errors import InputError
-from ..eval.evaluation import LOOP_TRUTH_DISTANCE_M, groundtruth_at, trajectory_metrics
+from ..eval.evaluation import LOOP_TRUTH_DISTANCE_M, groundtruth_at, groundtruth_distance, trajectory_metrics
 from ..eval.revisits import closed_revisits, explain_missed
 from ..extras import check
 from ..geometry import between
@@ -111,10 +111,9 @@ def loop_report(m: Mapper, gt: tuple[np.ndarray, np.ndarray] | None) -> list[dic
         # nodes of a saved map (--base-map) were made in another run, whose ground truth this is not
         if gt is not None and min(d.hypothesis.node, d.from_node) >= m.base_nodes:
             h = d.hypothesis
-            a = groundtruth_at(gt, float(h.time))
-            b = groundtruth_at(gt, float(times[h.node]))
-            if a is not None and b is not None:
-                row["groundtruth_distance_m"] = float(np.linalg.norm(a[:2] - b[:2]))
+            dist = groundtruth_distance(gt, float(h.time), float(times[h.node]))
+            if dist is not None:
+                row["groundtruth_distance_m"] = dist
             if d.status == "accepted" and d.transform is not None:
                 row.update(link_error(gt, float(times[d.from_node]), float(times[h.node]), d.transform))
         out.append(row)
@@ -129,9 +128,8 @@ def recognition_report(m: Mapper, gt: tuple[np.ndarray, np.ndarray]) -> list[dic
     times = m.cmap.times
     for r in m.recognitions:
         node = m.frame_node.get(r["frame_id"]) if r.get("frame_id") is not None else None
-        a = groundtruth_at(gt, float(r["t"]))
-        b = groundtruth_at(gt, float(times[node])) if node is not None and node >= m.base_nodes else None
-        d = float(np.linalg.norm(a[:2] - b[:2])) if a is not None and b is not None else None
+        known = node is not None and node >= m.base_nodes
+        d = groundtruth_distance(gt, float(r["t"]), float(times[node])) if known else None
         out.append(
             {"t": r["t"], "search": r.get("search"), "candidates": r.get("candidates"), "groundtruth_distance_m": d}
         )
@@ -185,9 +183,9 @@ def write_run(
             r["hypothesis"]["time"] for r in used if r.get("groundtruth_distance_m", np.inf) < LOOP_TRUTH_DISTANCE_M
         ]
         metrics["loop_closures"]["revisits"] = closed_revisits(dataset.groundtruth, true_used)
-        explain_missed(
-            metrics["loop_closures"]["revisits"]["missed"], recognition_report(m, dataset.groundtruth), loops
-        )
+        missed = metrics["loop_closures"]["revisits"]["missed"]
+        if missed:  # the recognitions' ground truth is only needed to explain a miss
+            explain_missed(missed, recognition_report(m, dataset.groundtruth), loops)
         errs = [r["link_error_m"] for r in used if "link_error_m" in r]
         if errs:
             metrics["loop_closures"]["link_error_m"] = {

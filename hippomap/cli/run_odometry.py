@@ -20,7 +20,7 @@ import numpy as np
 from ..cognitive_map import CognitiveMap, LoopHypothesis
 from ..config import HippomapConfig
 from ..errors import InputError
-from ..eval.evaluation import LOOP_TRUTH_DISTANCE_M, groundtruth_at, trajectory_metrics
+from ..eval.evaluation import LOOP_TRUTH_DISTANCE_M, groundtruth_distance, trajectory_metrics
 from ..eval.revisits import closed_revisits
 from ..extras import check
 from ..geometry import between, compose, integrate
@@ -159,9 +159,8 @@ def _loop_truth(run: OdometryRun, gt: tuple[np.ndarray, np.ndarray] | None) -> N
         poses = d.get("hypothesis", {}).get("meta", {}).get("poses")
         if not poses:
             continue
-        a, b = (groundtruth_at(gt, float(run.times[p])) for p in poses)
-        if a is not None and b is not None:
-            dist = float(np.linalg.norm(a[:2] - b[:2]))
+        dist = groundtruth_distance(gt, *(float(run.times[p]) for p in poses))
+        if dist is not None:
             d["groundtruth_distance_m"] = dist
             d["groundtruth_true"] = dist < LOOP_TRUTH_DISTANCE_M
 

@@ -24,6 +24,13 @@ def groundtruth_at(gt: tuple[np.ndarray, np.ndarray], t: float, tol: float = 0.5
     return pg[k] if abs(tg[k] - t) <= tol else None
 
 
+def groundtruth_distance(gt: tuple[np.ndarray, np.ndarray], t_a: float, t_b: float) -> float | None:
+    """Ground-truth distance (m, in the plane) between where the robot was at ``t_a`` and at ``t_b``
+    (:func:`groundtruth_at`), or None when the ground truth misses either time."""
+    a, b = groundtruth_at(gt, t_a), groundtruth_at(gt, t_b)
+    return None if a is None or b is None else float(np.linalg.norm(a[:2] - b[:2]))
+
+
 def _stats(metric) -> dict[str, float]:
     s = metric.get_all_statistics()
     return {k: float(s[k]) for k in ("rmse", "mean", "median", "std", "min", "max")}
