@@ -1053,11 +1053,19 @@ def revisit_lines(ok: list[dict[str, Any]]) -> list[str]:
         )
     missed = [
         f"{world_label(r)} {r['seed']} {r['size']} {r['texture']} "
-        + ", ".join(f"{e['length_m']:.0f} m at {e['path_m']:.0f} m" for e in r["hippomap"]["revisits"]["missed"])
+        + ", ".join(
+            f"{e['length_m']:.0f} m at {e['path_m']:.0f} m"
+            + (f" ({e['heading_deg']:.0f}°)" if e.get("heading_deg") is not None else "")
+            for e in r["hippomap"]["revisits"]["missed"]
+        )
         for r in hm
         if r["hippomap"]["revisits"]["missed"]
     ]
-    return [line] + ([f"- hippomap missed (episode length at path): {'; '.join(missed)}"] if missed else [])
+    return [line] + (
+        [f"- hippomap missed (episode length at path, and the heading from the earlier pass): {'; '.join(missed)}"]
+        if missed
+        else []
+    )
 
 
 def bicocca_table(rows: list[dict[str, Any]]) -> list[str]:

@@ -149,8 +149,8 @@ def test_ors_revisits_are_closed_only_by_its_true_links():
 
 
 def test_revisit_lines_total_the_runs_and_name_the_episodes_missed():
-    def row(seed, hm_closed, ors_closed, n=2):
-        missed = [{"length_m": 11.0, "path_m": 406.0}] * (n - hm_closed)
+    def row(seed, hm_closed, ors_closed, n=2, heading=None):
+        missed = [{"length_m": 11.0, "path_m": 406.0, "heading_deg": heading}] * (n - hm_closed)
         return {
             "world": "bicocca",
             "seed": seed,
@@ -162,7 +162,10 @@ def test_revisit_lines_total_the_runs_and_name_the_episodes_missed():
 
     lines = bench_maps.revisit_lines([row(3, 1, 0), row(4, 2, 1)])
     assert "hippomap 3 of 4; ORS best 1 of 4 (2 runs)" in lines[0]
-    assert lines[1] == "- hippomap missed (episode length at path): bicocca 3 640x480 procedural 11 m at 406 m"
+    label = "- hippomap missed (episode length at path, and the heading from the earlier pass): "
+    assert lines[1] == label + "bicocca 3 640x480 procedural 11 m at 406 m"  # no heading: rows from before it
+    lines = bench_maps.revisit_lines([row(3, 1, 0, heading=84.6)])
+    assert lines[1] == label + "bicocca 3 640x480 procedural 11 m at 406 m (85°)"
     assert bench_maps.revisit_lines([{**row(3, 1, 0), "hippomap": {}}]) == []  # rows from before it was measured
 
 

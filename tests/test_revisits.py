@@ -64,6 +64,33 @@ def test_driving_back_the_other_way_is_no_revisit_for_a_forward_camera():
     assert len(revisit_episodes(t, p, max_heading_rad=math.pi)) == 1
 
 
+def _polyline(corners: list[tuple[float, float]], step: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
+    """Straight legs through ``corners`` at 1 m/s, facing the way each leg goes: times, poses."""
+    pts, heads = [], []
+    for (x0, y0), (x1, y1) in zip(corners[:-1], corners[1:]):
+        n = int(round(math.hypot(x1 - x0, y1 - y0) / step))
+        f = np.arange(n) / n
+        pts.append(np.column_stack((x0 + f * (x1 - x0), y0 + f * (y1 - y0))))
+        heads.append(np.full(n, math.atan2(y1 - y0, x1 - x0)))
+    p = np.column_stack((np.concatenate(pts), np.concatenate(heads)))
+    return np.arange(len(p)) * step, p
+
+
+def test_an_episode_says_how_far_the_robot_faced_from_its_earlier_pass():
+    """A second lap faces the way the first did; a later leg that crosses the first at 60 degrees is an
+    episode too (within the 90-degree limit), and says it came at 60 degrees: a graze of a crossing."""
+    (lap,) = revisit_episodes(*_circle(2.0))
+    assert lap.heading_deg is not None and lap.heading_deg < 2.0
+    c, s = math.cos(math.pi / 3), math.sin(math.pi / 3)
+    t, p = _polyline([(0, 0), (40, 0), (40, -12 * s), (20 - 12 * c, -12 * s), (20 + 12 * c, 12 * s)])
+    (cross,) = revisit_episodes(t, p)
+    assert cross.heading_deg == pytest.approx(60.0, abs=0.5)
+    assert cross.length_m == pytest.approx(2 * 1.5 / s, abs=0.5)  # within 1.5 m of the first leg
+    assert revisit_episodes(t, p, max_heading_rad=math.radians(50)) == []
+    assert revisit_episodes(t, p, max_heading_rad=None)[0].heading_deg is None  # headings not compared
+    assert revisit_recall([cross], t, p, [])["missed"][0]["heading_deg"] == cross.heading_deg
+
+
 def test_episodes_shorter_than_the_minimum_are_grazes():
     t, p = _out_and_back()
     assert revisit_episodes(t, p, min_length_m=6.0, max_heading_rad=None) == []

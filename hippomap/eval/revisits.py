@@ -41,13 +41,17 @@ SAMPLE_STEP_M = 0.25
 @dataclass(frozen=True)
 class Revisit:
     """One revisit episode of the ground truth: from ``t0`` to ``t1`` (s), starting ``path_m`` metres
-    of path into the run and ``length_m`` long, revisiting places first passed around ``earlier_t``."""
+    of path into the run and ``length_m`` long, revisiting places first passed around ``earlier_t``.
+    ``heading_deg``: the smallest difference of heading between the robot along the episode and the
+    earlier places it revisits (None when headings were not compared). An episode near the heading
+    limit is a graze of a crossing or a turn, where a forward camera sees little of the earlier view."""
 
     t0: float
     t1: float
     path_m: float
     length_m: float
     earlier_t: float
+    heading_deg: float | None = None
 
 
 def revisit_episodes(
@@ -73,7 +77,7 @@ def revisit_episodes(
     idx = idx[idx < len(t)]
     heading = p[idx, 2] if max_heading_rad is not None and p.shape[1] >= 3 else None
     s = s_all[idx]
-    rev, earlier = _revisiting(p[idx, :2], s, heading, radius_m, min_path_m, max_heading_rad)
+    rev, earlier, turn = _revisiting(p[idx, :2], s, heading, radius_m, min_path_m, max_heading_rad)
     if rev.size == 0:
         return []
     # episodes: runs of revisiting samples less than join_m of path apart
@@ -86,7 +90,8 @@ def revisit_episodes(
         length = float(s[rev[b]] - s[rev[a]])
         if length >= min_length_m:
             first = float(ts[earlier[a : b + 1].min()])
-            out.append(Revisit(float(ts[rev[a]]), float(ts[rev[b]]), float(s[rev[a]]), length, first))
+            deg = None if heading is None else math.degrees(float(turn[a : b + 1].min()))
+            out.append(Revisit(float(ts[rev[a]]), float(ts[rev[b]]), float(s[rev[a]]), length, first, deg))
     return out
 
 
@@ -115,25 +120,30 @@ def _revisiting(
     radius_m: float,
     min_path_m: float,
     max_heading_rad: float | None,
-) -> tuple[np.ndarray, np.ndarray]:
-    """``(rev, earlier)``: the samples (positions ``pts``, path lengths ``s``) that revisit an earlier one,
-    ascending, and for each the earliest sample it revisits; every pair within ``radius_m`` in one k-d
-    tree query, kept when ``min_path_m`` of path apart (and facing within ``max_heading_rad``)."""
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(rev, earlier, turn)``: the samples (positions ``pts``, path lengths ``s``) that revisit an earlier
+    one, ascending, for each the earliest sample it revisits, and the smallest heading difference (rad) to
+    any sample it revisits (0 without headings); every pair within ``radius_m`` in one k-d tree query, kept
+    when ``min_path_m`` of path apart (and facing within ``max_heading_rad``)."""
     none = np.zeros(0, dtype=np.int64)
     pairs = cKDTree(pts).query_pairs(radius_m, output_type="ndarray")  # i < j
     if pairs.size == 0:
-        return none, none
+        return none, none, np.zeros(0)
     i, j = pairs[:, 0], pairs[:, 1]
     far = s[j] - s[i] >= min_path_m
-    if heading is not None and max_heading_rad is not None:
-        far &= np.abs((heading[j] - heading[i] + np.pi) % (2 * np.pi) - np.pi) <= max_heading_rad
+    dth = np.zeros(len(i))
+    if heading is not None:
+        dth = np.abs((heading[j] - heading[i] + np.pi) % (2 * np.pi) - np.pi)
+        if max_heading_rad is not None:
+            far &= dth <= max_heading_rad
     if not far.any():
-        return none, none
-    i, j = i[far], j[far]
+        return none, none, np.zeros(0)
+    i, j, dth = i[far], j[far], dth[far]
     order = np.lexsort((i, j))  # by revisiting sample, then earliest partner first
     j_sorted, i_sorted = j[order], i[order]
     first = np.concatenate(([True], j_sorted[1:] != j_sorted[:-1]))
-    return j_sorted[first], i_sorted[first]
+    turn = np.minimum.reduceat(dth[order], np.flatnonzero(first))  # per revisiting sample, over its partners
+    return j_sorted[first], i_sorted[first], turn
 
 
 def revisit_recall(
