@@ -26,6 +26,7 @@ from typing import Any
 
 from ..cli import add_progress_argument, progress_enabled
 from ..errors import InputError
+from ..geometry import wrap_angle
 from ..inputs import Odometry, follows
 
 #: consecutive odometry readings sent as one message when not replaying in real time
@@ -51,7 +52,7 @@ def ground_truth_at(groundtruth: Any) -> Any:
         return (
             float(np.interp(t, gt_t, gt_p[:, 0])),
             float(np.interp(t, gt_t, gt_p[:, 1])),
-            float((a + np.pi) % (2 * np.pi) - np.pi),
+            wrap_angle(a),
         )
 
     return at

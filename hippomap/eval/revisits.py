@@ -21,7 +21,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..errors import InputError
-from ..geometry import path_lengths
+from ..geometry import path_lengths, wrap_angle
 from .evaluation import LOOP_TRUTH_DISTANCE_M
 
 #: within this of an earlier place, the robot revisits it [ours]
@@ -133,7 +133,7 @@ def _revisiting(
     far = s[j] - s[i] >= min_path_m
     dth = np.zeros(len(i))
     if heading is not None:
-        dth = np.abs((heading[j] - heading[i] + np.pi) % (2 * np.pi) - np.pi)
+        dth = np.abs(wrap_angle(heading[j] - heading[i]))
         if max_heading_rad is not None:
             far &= dth <= max_heading_rad
     if not far.any():
