@@ -421,6 +421,34 @@ def test_grid_world_is_a_random_walk_of_its_seed_along_the_grid_lines():
             sim.grid_world(**bad)
 
 
+def test_hall_world_is_an_open_room_of_pillars_driven_as_a_random_walk_of_its_seed():
+    """The hall world: walls only round the hall and round one pillar per square of lanes; the route is
+    the seed's random walk along the lanes, ``laps`` times the lanes long; it keeps a metre from every
+    pillar and wall; and the view is open: looking along a lane the camera sees further than the
+    corridor worlds' walls allow, and looking across it, the pillar beside the lane."""
+    world = sim.hall_world(seed=3, laps=1)
+    assert world.name == "hall"
+    assert len(world.segments) == 4 * (1 + 3 * 2)  # the hall's four walls and four faces of each of six pillars
+    run = sim.simulate(world, rate_hz=2.0, odometry_noise=sim.OdometryNoise())
+    gt = run.groundtruth
+    assert float(np.hypot(*np.diff(gt[:, :2], axis=0).T).sum()) == pytest.approx(85.0, rel=0.1)
+    assert_walls_clear(world, gt[::4], 1.0)
+    others = {tuple(np.round(sim.hall_world(seed=s, laps=1).route.path(1.0)[:12].ravel(), 3)) for s in range(4)}
+    assert len(others) == 4  # each seed walks its own route
+    cam = sim.Camera(width=9, hfov_deg=2)
+    assert sim.raycast(world, (2.5, 0.0, 0.0), cam).depth.min() > 12.0  # along the bottom lane: the far wall
+    beside = sim.raycast(world, (2.5, 0.0, np.pi / 2), cam).depth  # across it: the first pillar's face
+    assert np.all(np.abs(beside - 1.75) < 0.05)
+    for bad, match in (
+        ({"lanes": (0, 2)}, "lanes"),
+        ({"pillar": 4.5}, "pillar"),
+        ({"margin": 0.2}, "margin"),
+        ({"laps": 0}, "laps"),
+    ):
+        with pytest.raises(InputError, match=match):
+            sim.hall_world(**bad)
+
+
 # --------------------------------------------------------------------------- output
 
 
@@ -593,6 +621,8 @@ def test_command_line_writes_a_run(tmp_path, capsys):
     assert json.loads((tmp_path / "f" / "sim.json").read_text())["world"] == "figure8"
     assert main(["grid", "--out", str(tmp_path / "g"), "--laps", "1", "--frame-every", "100", "--no-progress"]) == 0
     assert json.loads((tmp_path / "g" / "sim.json").read_text())["world"] == "grid"
+    assert main(["hall", "--out", str(tmp_path / "h"), "--laps", "1", "--frame-every", "100", "--no-progress"]) == 0
+    assert json.loads((tmp_path / "h" / "sim.json").read_text())["world"] == "hall"
     assert main(["grid", "--out", str(tmp_path / "g3"), "--blocks", "3", "--laps", "1", "--frame-every", "100"]) == 0
     gt = np.loadtxt(tmp_path / "g3" / "groundtruth.csv", delimiter=",", skiprows=1)
     assert float(np.hypot(*np.diff(gt[:, 1:3], axis=0).T).sum()) > 150  # a 3 x 3 grid: 168 m of corridors (2 x 2: 84)

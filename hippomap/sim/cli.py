@@ -44,7 +44,7 @@ def _arguments(p: argparse.ArgumentParser) -> None:
 
 
 #: the worlds ``hippomap simulate`` renders (bench/bench_maps.py reports them in this order)
-WORLDS = ("loop", "corridor", "figure8", "grid", "bicocca")
+WORLDS = ("loop", "corridor", "figure8", "grid", "hall", "bicocca")
 
 
 def _world_arguments(p: argparse.ArgumentParser) -> None:
@@ -55,6 +55,7 @@ def _world_arguments(p: argparse.ArgumentParser) -> None:
         help="loop: a 16 m x 10 m corridor loop; corridor: a straight corridor driven out and back; "
         "figure8: corridors round two 10 m x 7 m blocks driven as a figure of eight; "
         "grid: corridors round a 2 x 2 grid of 8 m x 6 m blocks driven as a random walk of the seed; "
+        "hall: an open 18 m x 13 m hall with six pillars, driven as a random walk of the seed between them; "
         "bicocca: walls along the real Bicocca run, driven as recorded",
     )
     p.add_argument("--out", required=True, help="output folder")
@@ -69,7 +70,8 @@ def _world_arguments(p: argparse.ArgumentParser) -> None:
         "--laps",
         type=int,
         default=3,
-        help="loop and figure8: laps, corridor: passes, grid: the walk's length in lengths of the grid's corridors "
+        help="loop and figure8: laps, corridor: passes, grid and hall: the walk's length in lengths of the grid's "
+        "corridors or the hall's lanes "
         "(default 3; the bicocca world drives the recorded run once)",
     )
     p.add_argument(
@@ -190,6 +192,8 @@ def run_command(args) -> int:
     elif args.world == "grid":
         n = 2 if args.blocks is None else args.blocks
         world = worlds.grid_world(seed=args.seed, laps=args.laps, blocks=(n, n), texture=tex, **speed)
+    elif args.world == "hall":
+        world = worlds.hall_world(seed=args.seed, laps=args.laps, texture=tex, **speed)
     elif speed:
         raise InputError("--speed: the bicocca world drives the recorded run at its recorded speed")
     else:

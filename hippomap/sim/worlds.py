@@ -1,6 +1,7 @@
 """Ready-made worlds: a rectangular corridor loop, a straight corridor, a figure of eight
-of corridors round two blocks, a grid of blocks driven as a random walk, and the Bicocca
-2009-02-25b run (real odometry, ground-truth camera path, walls built around it)."""
+of corridors round two blocks, a grid of blocks driven as a random walk, an open hall of
+pillars driven as a random walk, and the Bicocca 2009-02-25b run (real odometry, ground-truth
+camera path, walls built around it)."""
 
 from __future__ import annotations
 
@@ -27,6 +28,12 @@ def _check_wider(what: str, size: tuple[float, float], corridor_width: float) ->
         raise InputError(f"{what} {size} must exceed the corridor width {corridor_width} in both directions")
 
 
+def _wandering(way, closed: bool, laps: int, speed_mps: float, jitter_m: float, seed: int) -> RoutePlan:
+    """The route through the waypoints ``way`` driven ``laps`` times at ``speed_mps``, wandering up to about
+    ``jitter_m`` beside them, differently each lap and each seed, so that revisits are near, not identical."""
+    return RoutePlan(tuple(way), closed=closed, laps=laps, speed_mps=speed_mps, lateral_jitter_m=jitter_m, seed=seed)
+
+
 def loop_world(
     seed: int = 0,
     size: tuple[float, float] = (16.0, 10.0),
@@ -45,14 +52,7 @@ def loop_world(
     outer = _rect(-h, -h, sx + h, sy + h)
     inner = _rect(h, h, sx - h, sy - h)
     way = [(sx / 2, 0.0), (sx, 0.0), (sx, sy), (0.0, sy), (0.0, 0.0)]
-    route = RoutePlan(
-        tuple(way),
-        closed=True,
-        laps=laps,
-        speed_mps=speed_mps,
-        lateral_jitter_m=min(0.12, 0.1 * corridor_width),
-        seed=seed,
-    )
+    route = _wandering(way, True, laps, speed_mps, min(0.12, 0.1 * corridor_width), seed)
     return World.from_polylines([outer, inner], name="loop", texture=texture, seed=seed, route=route)
 
 
@@ -70,14 +70,7 @@ def corridor_world(
     if not (length > 4 and h > 0.4):
         raise InputError(f"corridor length {length} must be > 4 m and width {width} > 0.8 m")
     walls = _rect(-2.0, -h, length + 2.0, h)
-    route = RoutePlan(
-        ((0.0, 0.0), (length, 0.0)),
-        closed=False,
-        laps=passes,
-        speed_mps=speed_mps,
-        lateral_jitter_m=min(0.1, 0.1 * width),
-        seed=seed,
-    )
+    route = _wandering([(0.0, 0.0), (length, 0.0)], False, passes, speed_mps, min(0.1, 0.1 * width), seed)
     return World.from_polylines([walls], name="corridor", texture=texture, seed=seed, route=route)
 
 
@@ -150,16 +143,57 @@ def grid_world(
     together, so, unlike the other worlds' fixed routes, each seed drives its own route, and corridors
     are revisited in both directions after irregular stretches. Walls are built round the walk
     (:func:`path_world`): a corridor the walk never takes is not there."""
-    nx, ny = blocks
-    bx, by = block
-    if not (isinstance(nx, int) and isinstance(ny, int) and nx >= 1 and ny >= 1):
-        raise InputError(f"grid blocks {blocks} must be two integers >= 1")
     _check_wider("grid block", block, corridor_width)
-    if not (isinstance(laps, int) and laps >= 1):
-        raise InputError(f"grid laps {laps!r} must be an integer >= 1")
-    network_m = nx * (ny + 1) * bx + (nx + 1) * ny * by
-    way = grid_walk(seed, (nx, ny), (bx, by), laps * network_m)
+    way = _lattice_walk(seed, blocks, block, laps, "grid blocks", "grid laps")
     return _route_world(way, "grid", False, 1, speed_mps, corridor_width, seed, texture)
+
+
+def _lattice_walk(
+    seed: int, counts: tuple[int, int], spacing: tuple[float, float], laps: int, counts_name: str, laps_name: str
+) -> list[tuple[float, float]]:
+    """:func:`grid_walk` over a ``counts`` lattice of ``spacing``-sized squares, ``laps`` times as long as the
+    lattice's lines together; :class:`InputError` names ``counts_name`` or ``laps_name`` when either is not a
+    positive integer (two for the counts)."""
+    nx, ny = counts
+    bx, by = spacing
+    if not (isinstance(nx, int) and isinstance(ny, int) and nx >= 1 and ny >= 1):
+        raise InputError(f"{counts_name} {counts} must be two integers >= 1")
+    if not (isinstance(laps, int) and laps >= 1):
+        raise InputError(f"{laps_name} {laps!r} must be an integer >= 1")
+    network_m = nx * (ny + 1) * bx + (nx + 1) * ny * by
+    return grid_walk(seed, (nx, ny), (bx, by), laps * network_m)
+
+
+def hall_world(
+    seed: int = 0,
+    lanes: tuple[int, int] = (3, 2),
+    spacing: float = 5.0,
+    pillar: float = 1.5,
+    margin: float = 1.5,
+    laps: int = 3,
+    speed_mps: float = 0.4,
+    texture: TextureParams | None = None,
+) -> World:
+    """An open hall: one room whose floor is a ``lanes`` grid of ``spacing``-metre squares, a square pillar
+    ``pillar`` metres wide at the centre of each, and the hall's walls ``margin`` beyond the outer lanes. The
+    default route is a random walk along the lanes between the pillars (:func:`grid_walk`) as long as ``laps``
+    times the lanes together. Unlike the corridor worlds, nothing walls a lane in: the camera sees across the
+    hall, past pillars 1 to 3 m away to walls up to 20 m away, and a place is passed again from any side."""
+    if not (0 < pillar < spacing - 1.0):
+        raise InputError(f"hall pillar {pillar} must be positive and leave more than 1 m of lane ({spacing} m apart)")
+    if not margin > 0.5:
+        raise InputError(f"hall margin {margin} must leave more than 0.5 m between the outer lanes and the walls")
+    way = _lattice_walk(seed, lanes, (spacing, spacing), laps, "hall lanes", "hall laps")
+    nx, ny = lanes
+    sx, sy = nx * spacing, ny * spacing
+    polys = [_rect(-margin, -margin, sx + margin, sy + margin)]
+    h = pillar / 2
+    for i in range(nx):
+        for j in range(ny):
+            cx, cy = (i + 0.5) * spacing, (j + 0.5) * spacing
+            polys.append(_rect(cx - h, cy - h, cx + h, cy + h))
+    route = _wandering(way, False, 1, speed_mps, 0.12, seed)
+    return World.from_polylines(polys, name="hall", texture=texture, seed=seed, route=route)
 
 
 def _route_world(
@@ -174,14 +208,7 @@ def _route_world(
 ) -> World:
     """A corridor ``corridor_width`` wide round the waypoints ``way`` (walls by :func:`path_world` round the
     centre line), with the route along them as the world's default, wandering a little each lap."""
-    route = RoutePlan(
-        tuple(way),
-        closed=closed,
-        laps=laps,
-        speed_mps=speed_mps,
-        lateral_jitter_m=min(0.12, 0.1 * corridor_width),
-        seed=seed,
-    )
+    route = _wandering(way, closed, laps, speed_mps, min(0.12, 0.1 * corridor_width), seed)
     centre = RoutePlan(tuple(way), closed=closed, lateral_jitter_m=0.0).path(0.05)
     return path_world(centre, half_width_m=corridor_width / 2, seed=seed, texture=texture, route=route, name=name)
 
