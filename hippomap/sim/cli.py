@@ -90,8 +90,8 @@ def _world_arguments(p: argparse.ArgumentParser) -> None:
         "--speed",
         type=float,
         default=None,
-        help="loop, corridor, figure8 and grid: the route's mean speed in m/s (default 0.4); the bicocca world drives "
-        "the recorded run at its recorded speed",
+        help="loop, corridor, figure8, grid and hall: the route's mean speed in m/s (default 0.4); the bicocca world "
+        "drives the recorded run at its recorded speed",
     )
     p.add_argument(
         "--stop-every",
