@@ -178,7 +178,8 @@ def hall_world(
     ``pillar`` metres wide at the centre of each, and the hall's walls ``margin`` beyond the outer lanes. The
     default route is a random walk along the lanes between the pillars (:func:`grid_walk`) as long as ``laps``
     times the lanes together. Unlike the corridor worlds, nothing walls a lane in: the camera sees across the
-    hall, past pillars 1 to 3 m away to walls up to 20 m away, and a place is passed again from any side."""
+    hall, past the pillars (their faces 1.75 m beside each lane by default) to walls up to about 20 m away, and a
+    place is passed again from any side."""
     if not (0 < pillar < spacing - 1.0):
         raise InputError(f"hall pillar {pillar} must be positive and leave more than 1 m of lane ({spacing} m apart)")
     if not margin > 0.5:
