@@ -10,7 +10,8 @@ settled with that error spread wrongly; from these poses it converges in a few i
 * :func:`rotation_first_init` — the re-initialisation, in place, in three named steps: the held
   nodes (:func:`_free_nodes`), the headings with the odometry's heading bias
   (:func:`_solve_headings`), the positions (:func:`_solve_positions`);
-  :func:`rotation_first_inits` the same from several branches of the wrapped heading residuals.
+  :func:`rotation_first_inits` the same from several branches of the wrapped heading residuals;
+  :func:`rate_turns` the branches that one drift rate gives loops of different durations.
 * :class:`_Laplacian` — the weighted least squares both steps are: ``min Σ_k w_k
   (u_dst − u_src + extra_k β − b_k)²``, on the fill-reducing orders and the symmetric sparse LU
   of :mod:`hippomap.least_squares`, factorised once for every branch.
@@ -221,3 +222,55 @@ def _solve_positions(
     b = np.column_stack([c * T[:, 0] - s * T[:, 1], s * T[:, 0] + c * T[:, 1]])
     r = P[dst, :2] - P[src, :2] - b
     return lap.solve(-r)[0]
+
+
+def rate_turns(
+    residual,
+    duration,
+    bias: float,
+    max_rate: float,
+    turns=(-2, -1, 1, 2),
+    limit: int = 4,
+    agree_rad: float = 0.5,
+) -> list[np.ndarray]:
+    """Branches of the wrapped heading residuals whose whole turns differ from link to link: the turns one
+    drift rate asks of each link.
+
+    A heading bias changed by ``db`` (rad/s) turns the headings along the odometry between a loop link's
+    two nodes by ``db`` times the time between them, ``duration`` (s, signed: target's time minus
+    source's), so a link's turned residual ``residual + 2π k`` agrees with that change when it equals
+    ``db · duration``. Loops of different lengths then need different ``k`` for one rate, which taking
+    every link the same number of turns round cannot give: a short loop closed first whose drift read
+    right and a long one closed later whose drift passed half a turn. Each link and each of ``turns``
+    proposes the rate change that would explain it; rates whose total ``bias + db`` lies beyond
+    ``max_rate`` are dropped; every link then takes the turns nearest to what a proposed rate asks
+    (``round((db · duration − residual) / 2π)``). Returns up to ``limit`` distinct turn vectors (each
+    (M,) floats, the wrapped reading, all zeros, left out), those under which the most links agree with
+    their rate within ``agree_rad`` first, then the smaller total rate. ``residual`` (M,): each link's
+    heading residual wrapped into [−π, π), as :func:`rotation_first_inits` reads it."""
+    e = np.asarray(residual, dtype=float).ravel()
+    dt = np.asarray(duration, dtype=float).ravel()
+    if e.shape != dt.shape:
+        raise ValueError(f"rate_turns: {e.size} residuals and {dt.size} durations")
+    ok = np.abs(dt) > 1e-9
+    if not ok.any():
+        return []
+    two_pi = 2.0 * np.pi
+    rates = ((e[ok, None] + two_pi * np.asarray(turns, dtype=float)[None, :]) / dt[ok, None]).ravel()
+    rates = rates[np.abs(bias + rates) <= max_rate]
+    if not rates.size:
+        return []
+    K = np.round((rates[:, None] * dt[None, :] - e[None, :]) / two_pi)  # (R, M): each rate's turns per link
+    left = np.abs(e[None, :] + two_pi * K - rates[:, None] * dt[None, :])
+    support = np.count_nonzero(left < agree_rad, axis=1)
+    seen = {np.zeros(e.size).tobytes()}
+    out: list[np.ndarray] = []
+    for r in np.lexsort((np.abs(bias + rates), -support)):  # the most links explained first
+        key = (K[r] + 0.0).tobytes()  # + 0.0: -0.0 and 0.0 are one turn count
+        if key in seen:
+            continue
+        seen.add(key)
+        out.append(K[r] + 0.0)
+        if len(out) == limit:
+            break
+    return out

@@ -16,7 +16,8 @@ from typing import Any
 
 import numpy as np
 
-from .headings_first import rotation_first_inits
+from .geometry import wrap_angle
+from .headings_first import rate_turns, rotation_first_inits
 from .least_squares import bias_sigma, graph_cost, solve_lsq
 from .loop_closure import link_errors
 from .map_events import MapEvent, MapRelaxed
@@ -33,6 +34,8 @@ _BRANCH_MARGIN = 0.5  # ... and keeps only at under this fraction of the wrapped
 # odometry_bias_sigma (docs/MODEL.md item 53)
 _BRANCH_WIDE = 3.0  # ... or within this many odometry_bias_sigma when the branch fits every link well (item 54)
 _BRANCH_FIT_P = 0.99  # ... "well": its whole cost within this chi-square quantile, 3 dof per turned link
+_RATE_BRANCHES = 4  # branches with turns chosen link by link for one drift rate (_rate_branches), the best supported
+_RATE_AGREE_RAD = 0.5  # ... a rate explains a link when its turned residual is within this of what the rate asks
 
 
 class MapCorrection(MapGraph):
@@ -312,7 +315,8 @@ class MapCorrection(MapGraph):
         (robust weight on ``P`` below ``USED_WEIGHT``: new closures, faded ones) taken together
         ``_BRANCH_TURNS`` whole turns further round (each (M,)). A closure alone cannot tell a drift
         of +3.4 rad from one of −2.9 rad, nor of +6.1 rad from −0.2 rad; the positions the branches
-        give can (docs/MODEL.md item 53)."""
+        give can (docs/MODEL.md item 53); then the branches one drift rate gives, whose turns differ from link
+        to link (:meth:`_rate_branches`, item 74)."""
         m, cfg = self._m, self.cfg
         loop = np.flatnonzero(self._kind[:m] == LOOP)
         if not len(loop) or cfg.loop_kernel == "none":
@@ -320,11 +324,40 @@ class MapCorrection(MapGraph):
         unused = loop[self._loop_weights(P, loop) < USED_WEIGHT]
         if not len(unused):
             return [None]
-        out: list[np.ndarray | None] = [None]
+        uniform = []
         for k in _BRANCH_TURNS:
             turns = np.zeros(m)
             turns[unused] = k
+            uniform.append(turns)
+        return [None, *uniform, *self._rate_branches(P, unused, uniform)]
+
+    def _rate_branches(self, P: np.ndarray, unused: np.ndarray, uniform: list[np.ndarray]) -> list[np.ndarray]:
+        """Branches whose turns differ from link to link (:func:`~hippomap.headings_first.rate_turns`): the
+        turns one drift rate, within ``_BRANCH_WIDE`` sigmas, asks of each unused loop link, from the times of
+        its nodes; up to ``_RATE_BRANCHES`` that are not among the ``uniform`` ones (docs/MODEL.md item 74)."""
+        sigma = self.cfg.odometry_bias_sigma
+        if sigma <= 0 or len(unused) < 2:
+            return []
+        src, dst = self._src[unused], self._dst[unused]
+        residual = wrap_angle(P[dst, 2] - P[src, 2] - self._tr[unused, 2])
+        seen = {t[unused].tobytes() for t in uniform}
+        out = []
+        for k in rate_turns(
+            residual,
+            self._Tn[dst] - self._Tn[src],
+            self._bias,
+            _BRANCH_WIDE * sigma,
+            turns=_BRANCH_TURNS,
+            limit=_RATE_BRANCHES + len(uniform),
+            agree_rad=_RATE_AGREE_RAD,
+        ):
+            if k.tobytes() in seen:
+                continue
+            turns = np.zeros(self._m)
+            turns[unused] = k
             out.append(turns)
+            if len(out) == _RATE_BRANCHES:
+                break
         return out
 
     def _reweight(self) -> bool:

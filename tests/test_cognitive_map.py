@@ -24,6 +24,7 @@ from hippomap.config import MapConfig
 from hippomap.errors import InputError
 from hippomap.geometry import between, compose, integrate
 from hippomap.loop_closure import bias_drift
+from hippomap.map_correction import MapCorrection
 
 
 def square_increments(side=8.0, step=0.1, laps=2, turn_steps=5):
@@ -964,6 +965,49 @@ def test_a_drift_past_half_a_turn_is_unwound_the_right_way_round(beta, dt):
     assert loops.sum() >= 8 and np.all(cmap.link_weights()[loops] > 0.5)
     assert cmap._bias == pytest.approx(beta, rel=0.05)
     assert rms_xy(corrected(cmap, node_at, off), gt) < 0.5 < 5.0 < rms_xy(integrate(noisy), gt)
+
+
+def _two_loop_corridor(monkeypatch, per_link_turns):
+    """A corridor driven five times (there, back, there, back, there) at 1 m per 10 s, odometry drifting
+    0.025 rad/s. Three true closures from the third pass to the first (120 s apart: 3.0 rad of drift, read
+    right) come with a false one (4 m aside, 1.6 rad turned), and the kernel fades all four; the fifth pass
+    is closed to the first by true closures 240 s apart (6.0 rad, read as −0.28 rad). Returns the map's
+    error, the odometry's and the bias; ``per_link_turns`` False leaves out the branches whose turns
+    differ from link to link (every unused link taken the same number of turns round)."""
+    if not per_link_turns:
+        monkeypatch.setattr(MapCorrection, "_rate_branches", lambda self, P, unused, uniform: [])
+    passes = 5
+    inc = back_and_forth(passes=passes, length=5.0, step=0.1)
+    gt, noisy, times = drifting(inc, 0.025, 1.0)
+    per = len(inc) // passes
+
+    def hypotheses(k, cmap, node_at, off):
+        p, i = divmod(k, per)
+        if i < 10 or i > per - 15 or i % 10 or p not in (2, 4) or (p == 2 and i > 30):
+            return []
+        j = k - p * per
+        rel = compose(compose(cmap.robot_offset, between(gt[k], gt[j])), between(off[j], np.zeros(3)))
+        out = [LoopHypothesis(node=int(node_at[j]), transform=tuple(rel), source="test", time=float(times[k]))]
+        if p == 2 and i == 20:
+            wrong = compose(rel, (0.0, 4.0, 1.6))
+            out.append(LoopHypothesis(node=int(node_at[j - 5]), transform=tuple(wrong), source="test", time=times[k]))
+        return out
+
+    cfg = MapConfig(solver="lsq", prune_online=False, loop_transform_radius_m=30.0, loop_radius_per_m=0.5)
+    cmap = CognitiveMap(cfg)
+    node_at, off, _ = drive(cmap, noisy, times=times, hypotheses=hypotheses)
+    cmap.finish()
+    return rms_xy(corrected(cmap, node_at, off), gt), rms_xy(integrate(noisy), gt), cmap._bias
+
+
+def test_loops_of_different_length_are_unwound_by_their_own_turns(monkeypatch):
+    """One drift rate turns a long loop's heading further than a short one's: when a faded short loop and a
+    new long one are both unused, the branch that one rate gives (no turn on the short loop, one on the long)
+    is tried beside those that turn every unused link alike, and closes the map (docs/MODEL.md item 74)."""
+    err, odo, bias = _two_loop_corridor(monkeypatch, per_link_turns=True)
+    assert err < 0.5 < 2.0 < odo and bias == pytest.approx(0.025, rel=0.05)
+    err_alike, _, bias_alike = _two_loop_corridor(monkeypatch, per_link_turns=False)
+    assert err_alike > 2.0 and bias_alike == 0.0  # every branch turned all four faded links too: none fitted
 
 
 def test_a_significant_heading_bias_is_estimated_and_closes_the_map():

@@ -8,7 +8,7 @@ from hypothesis import strategies as st
 from hippomap import headings_first
 from hippomap.errors import InputError
 from hippomap.geometry import between, compose, integrate
-from hippomap.headings_first import rotation_first_init, rotation_first_inits
+from hippomap.headings_first import rate_turns, rotation_first_init, rotation_first_inits
 from hippomap.least_squares import graph_cost, solve_lsq
 from hippomap.relaxation import (
     MAX_COLOURS,
@@ -698,3 +698,42 @@ def test_coupled_links_tell_a_sideways_step_from_a_turn():
     assert np.array_equal(zero, plain)
     with pytest.raises(InputError, match="coupling"):
         solve_lsq(start.copy(), src, dst, T, information=info, coupling=np.zeros(3))
+
+
+@settings(max_examples=80, deadline=None)
+@given(
+    rate=st.floats(-0.06, 0.06),
+    bias=st.floats(-0.02, 0.02),
+    durations=st.lists(st.floats(20.0, 400.0), min_size=2, max_size=8),
+    signs=st.lists(st.booleans(), min_size=8, max_size=8),
+)
+def test_rate_turns_offers_the_turns_one_drift_rate_asks_of_every_link(rate, bias, durations, signs):
+    """``rate_turns``: loop links whose nodes lie ``duration`` s apart along the odometry, each reading the
+    drift ``rate · duration`` wrapped into [−π, π): among the branches offered is the one that unwinds every
+    link by its own whole turns, the wrapped reading itself is never offered, and every branch is whole
+    turns, one per link, within ``turns``' reach."""
+    dt = np.array([d if s else -d for d, s in zip(durations, signs)])
+    truth = rate * dt
+    residual = (truth + np.pi) % (2.0 * np.pi) - np.pi
+    want = np.round((truth - residual) / (2.0 * np.pi))
+    got = rate_turns(residual, dt, bias, max_rate=0.1, limit=1000)
+    assert all(k.shape == dt.shape and np.array_equal(k, np.round(k)) for k in got)
+    assert not any(np.array_equal(k, np.zeros_like(k)) for k in got)
+    if np.any(want != 0) and np.all(np.abs(want) <= 2):
+        assert any(np.array_equal(k, want) for k in got)
+    assert len({k.tobytes() for k in got}) == len(got)
+
+
+def test_rate_turns_unwinds_a_short_and_a_long_loop_apart():
+    """A drift of 0.02 rad/s over a short loop (120 s: 2.4 rad, read right) and a long one (240 s: 4.8 rad,
+    read −1.5 rad): one turn on the long loop's links and none on the short one's is the first branch (every
+    link agrees with it); a rate beyond ``max_rate`` is not offered; residuals and durations must pair up."""
+    dt = np.array([120.0, 121.0, 240.0, 241.0])
+    residual = (0.02 * dt + np.pi) % (2.0 * np.pi) - np.pi
+    got = rate_turns(residual, dt, 0.0, max_rate=0.06)
+    np.testing.assert_array_equal(got[0], [0.0, 0.0, 1.0, 1.0])
+    assert len(got) <= 4
+    assert not any(np.array_equal(k, got[0]) for k in rate_turns(residual, dt, 0.0, max_rate=0.01))
+    assert rate_turns(residual, np.zeros(4), 0.0, max_rate=0.06) == []
+    with pytest.raises(ValueError):
+        rate_turns(residual, dt[:3], 0.0, max_rate=0.06)
