@@ -232,6 +232,7 @@ def rate_turns(
     turns=(-2, -1, 1, 2),
     limit: int = 4,
     agree_rad: float = 0.5,
+    exclude=(),
 ) -> list[np.ndarray]:
     """Branches of the wrapped heading residuals whose whole turns differ from link to link: the turns one
     drift rate asks of each link.
@@ -246,8 +247,9 @@ def rate_turns(
     ``max_rate`` are dropped; every link then takes the turns nearest to what a proposed rate asks
     (``round((db · duration − residual) / 2π)``). Returns up to ``limit`` distinct turn vectors (each
     (M,) floats, the wrapped reading, all zeros, left out), those under which the most links agree with
-    their rate within ``agree_rad`` first, then the smaller total rate. ``residual`` (M,): each link's
-    heading residual wrapped into [−π, π), as :func:`rotation_first_inits` reads it."""
+    their rate within ``agree_rad`` first, then the smaller total rate, none equal to one of ``exclude``
+    (turn vectors (M,) already tried). ``residual`` (M,): each link's heading residual wrapped into
+    [−π, π), as :func:`rotation_first_inits` reads it."""
     e = np.asarray(residual, dtype=float).ravel()
     dt = np.asarray(duration, dtype=float).ravel()
     if e.shape != dt.shape:
@@ -263,14 +265,15 @@ def rate_turns(
     K = np.round((rates[:, None] * dt[None, :] - e[None, :]) / two_pi)  # (R, M): each rate's turns per link
     left = np.abs(e[None, :] + two_pi * K - rates[:, None] * dt[None, :])
     support = np.count_nonzero(left < agree_rad, axis=1)
-    seen = {np.zeros(e.size).tobytes()}
+    seen = {np.zeros(e.size).tobytes()} | {(np.asarray(x, dtype=float).ravel() + 0.0).tobytes() for x in exclude}
     out: list[np.ndarray] = []
     for r in np.lexsort((np.abs(bias + rates), -support)):  # the most links explained first
-        key = (K[r] + 0.0).tobytes()  # + 0.0: -0.0 and 0.0 are one turn count
+        k = K[r] + 0.0  # + 0.0: -0.0 and 0.0 are one turn count
+        key = k.tobytes()
         if key in seen:
             continue
         seen.add(key)
-        out.append(K[r] + 0.0)
+        out.append(k)
         if len(out) == limit:
             break
     return out

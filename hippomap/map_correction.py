@@ -16,13 +16,12 @@ from typing import Any
 
 import numpy as np
 
-from .geometry import wrap_angle
 from .headings_first import rate_turns, rotation_first_inits
 from .least_squares import bias_sigma, graph_cost, solve_lsq
 from .loop_closure import link_errors
 from .map_events import MapEvent, MapRelaxed
 from .map_graph import LOOP, ODOMETRY, MapGraph, hop_distances
-from .relaxation import ColourGroups, RelaxResult, _link_residuals, relax, relax_jacobi
+from .relaxation import ColourGroups, RelaxResult, _link_residuals, _wrap_inplace, relax, relax_jacobi
 from .robust_kernel import USED_WEIGHT
 
 __all__ = ["MapCorrection"]
@@ -339,25 +338,21 @@ class MapCorrection(MapGraph):
         if sigma <= 0 or len(unused) < 2:
             return []
         src, dst = self._src[unused], self._dst[unused]
-        residual = wrap_angle(P[dst, 2] - P[src, 2] - self._tr[unused, 2])
-        seen = {t[unused].tobytes() for t in uniform}
-        out = []
-        for k in rate_turns(
-            residual,
+        branches = rate_turns(
+            _wrap_inplace(P[dst, 2] - P[src, 2] - self._tr[unused, 2]),  # the residuals the headings solve reads
             self._Tn[dst] - self._Tn[src],
             self._bias,
             _BRANCH_WIDE * sigma,
             turns=_BRANCH_TURNS,
-            limit=_RATE_BRANCHES + len(uniform),
+            limit=_RATE_BRANCHES,
             agree_rad=_RATE_AGREE_RAD,
-        ):
-            if k.tobytes() in seen:
-                continue
+            exclude=[t[unused] for t in uniform],
+        )
+        out = []
+        for k in branches:
             turns = np.zeros(self._m)
             turns[unused] = k
             out.append(turns)
-            if len(out) == _RATE_BRANCHES:
-                break
         return out
 
     def _reweight(self) -> bool:

@@ -734,6 +734,10 @@ def test_rate_turns_unwinds_a_short_and_a_long_loop_apart():
     np.testing.assert_array_equal(got[0], [0.0, 0.0, 1.0, 1.0])
     assert len(got) <= 4
     assert not any(np.array_equal(k, got[0]) for k in rate_turns(residual, dt, 0.0, max_rate=0.01))
+    rest = rate_turns(residual, dt, 0.0, max_rate=0.06, exclude=[got[0]])  # branches already tried are skipped
+    assert not any(np.array_equal(k, got[0]) for k in rest) and [k.tobytes() for k in rest[:2]] == [
+        k.tobytes() for k in got[1:3]
+    ]
     assert rate_turns(residual, np.zeros(4), 0.0, max_rate=0.06) == []
     with pytest.raises(ValueError):
         rate_turns(residual, dt[:3], 0.0, max_rate=0.06)
