@@ -12,6 +12,8 @@ g2o export's weights) and estimates the odometry's heading bias with the whole s
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -285,7 +287,8 @@ class MapCorrection(MapGraph):
             if turns is None:
                 better = cost < best_cost
             else:
-                better = cost < _BRANCH_MARGIN * best_cost and self._branch_rate_ok(b, cost, turns)
+                fit = partial(self._branch_fit, Q, info, {**bias, "bias": b}, turns)
+                better = cost < _BRANCH_MARGIN * best_cost and self._branch_rate_ok(b, fit)
             if better:
                 best_cost, best = cost, (Q, b)
         if best is None:
@@ -293,12 +296,13 @@ class MapCorrection(MapGraph):
         P[:] = best[0]
         return best[1]
 
-    def _branch_rate_ok(self, b: float, cost: float, turns: np.ndarray) -> bool:
+    def _branch_rate_ok(self, b: float, fit: Callable[[], tuple[float, int]]) -> bool:
         """Whether a turned branch's rate ``b`` may be taken: within ``odometry_bias_sigma``, or within
-        ``_BRANCH_WIDE`` sigmas when the branch's whole cost is within the chi-square ``_BRANCH_FIT_P``
-        quantile of 3 degrees of freedom per turned link. A gyro drifting faster than sigma is then
-        unwound when the turn makes every link agree; a lone false closure that one extra turn half
-        explains bends the odometry between its ends and stays far above (docs/MODEL.md item 54)."""
+        ``_BRANCH_WIDE`` sigmas when the branch fits: ``fit()`` (:meth:`_branch_fit`) gives a cost within
+        the chi-square ``_BRANCH_FIT_P`` quantile of its degrees of freedom. A gyro drifting faster than
+        sigma is then unwound when the turn makes the links agree; a lone false closure that one extra
+        turn half explains bends the odometry between its ends and stays far above (docs/MODEL.md
+        items 54 and 75)."""
         sigma = self.cfg.odometry_bias_sigma
         if abs(b) <= sigma:
             return True
@@ -306,7 +310,24 @@ class MapCorrection(MapGraph):
             return False
         from scipy.special import chdtri  # the chi-square quantile; needed only here, rarely
 
-        return bool(cost <= chdtri(3 * int(np.count_nonzero(turns)), 1.0 - _BRANCH_FIT_P))
+        cost, dof = fit()
+        return bool(cost <= chdtri(dof, 1.0 - _BRANCH_FIT_P))
+
+    def _branch_fit(
+        self, Q: np.ndarray, info: np.ndarray, bias: dict[str, Any], turns: np.ndarray
+    ) -> tuple[float, int]:
+        """What a turned branch's init ``Q`` is judged by in the fit test of :meth:`_branch_rate_ok`: the
+        whole solve's cost with every loop link at the robust weight the kernel gives it on ``Q`` (one
+        reweighting step), and 3 degrees of freedom per turned link. The map's weights were given on
+        another map: a closure faded as false there keeps its small weight while the branch moves its
+        residual by metres, and counted so it failed the branch that made every other link agree
+        (docs/MODEL.md item 75)."""
+        m = self._m
+        loop = np.flatnonzero(self._kind[:m] == LOOP)
+        reweighted = info.copy()
+        reweighted[loop] *= (self._loop_weights(Q, loop) / self._w[loop])[:, None]
+        cost = graph_cost(Q, self._src[:m], self._dst[:m], self._tr[:m], reweighted, coupling=self._lcoup[:m], **bias)
+        return cost, 3 * int(np.count_nonzero(turns))
 
     def _heading_branches(self, P: np.ndarray) -> list[np.ndarray | None]:
         """The branches of the loop links' heading residuals the headings-first init tries: each
