@@ -282,12 +282,13 @@ class MapCorrection(MapGraph):
         branches = self._heading_branches(P)
         inits = rotation_first_inits(P, src, dst, tr, info, anchor=0, branches=branches, **bias)
         for turns, (Q, _, b) in zip(branches, inits):
-            cost = graph_cost(Q, src, dst, tr, info, coupling=coupling, **{**bias, "bias": b})
+            at_b = {**bias, "bias": b}
+            cost = graph_cost(Q, src, dst, tr, info, coupling=coupling, **at_b)
             # another branch must explain the map clearly better than the wrapped reading, at an ordinary rate
             if turns is None:
                 better = cost < best_cost
             else:
-                fit = partial(self._branch_fit, Q, info, {**bias, "bias": b}, turns)
+                fit = partial(self._branch_fit, Q, info, at_b, turns)
                 better = cost < _BRANCH_MARGIN * best_cost and self._branch_rate_ok(b, fit)
             if better:
                 best_cost, best = cost, (Q, b)

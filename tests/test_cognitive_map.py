@@ -62,6 +62,13 @@ def drive(cmap, increments, times=None, hypotheses=None, extra=None):
     return np.array(node_at), np.array(off), events
 
 
+def seen_from(cmap, here, there, off_there):
+    """The relative pose a loop hypothesis carries: pose ``there`` seen from pose ``here`` (both in one
+    frame), re-expressed between the robot's current node and the node that holds ``there`` at offset
+    ``off_there``."""
+    return compose(compose(cmap.robot_offset, between(here, there)), between(off_there, np.zeros(3)))
+
+
 def true_loops(gt, first_lap, every=5, start=20):
     """Hypotheses built like the data-set runner: pose j of lap 1 seen from pose k of lap 2,
     with the true relative transform, re-expressed between the two current nodes."""
@@ -70,7 +77,7 @@ def true_loops(gt, first_lap, every=5, start=20):
         if k <= first_lap + start or k % every:
             return []
         j = k - first_lap
-        rel = compose(compose(cmap.robot_offset, between(gt[k], gt[j])), between(off[j], np.zeros(3)))
+        rel = seen_from(cmap, gt[k], gt[j], off[j])
         return [
             LoopHypothesis(
                 node=int(node_at[j]), transform=tuple(rel), source="test", time=float(k), meta={"poses": [k, j]}
@@ -997,7 +1004,7 @@ def _two_loop_corridor(monkeypatch, per_link_turns):
         if i < 10 or i > per - 15 or i % 10 or p not in (2, 4) or (p == 2 and i > 30):
             return []
         j = k - p * per
-        rel = compose(compose(cmap.robot_offset, between(gt[k], gt[j])), between(off[j], np.zeros(3)))
+        rel = seen_from(cmap, gt[k], gt[j], off[j])
         out = [LoopHypothesis(node=int(node_at[j]), transform=tuple(rel), source="test", time=float(times[k]))]
         if p == 2 and i == 20:
             wrong = compose(rel, (0.0, 4.0, 1.6))
@@ -1042,7 +1049,7 @@ def _corridor_with_a_faded_false_closure(beta, error, step, stale_weights=False,
         out = true(k, cmap, node_at, off)
         if k == per + step:
             j = per - step + 30
-            rel = compose(compose(cmap.robot_offset, between(odometry[k], odometry[j])), between(off[j], np.zeros(3)))
+            rel = seen_from(cmap, odometry[k], odometry[j], off[j])
             wrong = compose(rel, error)
             out.append(LoopHypothesis(node=int(node_at[j]), transform=wrong, source="test", time=float(k)))
         return out

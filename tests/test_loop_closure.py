@@ -30,6 +30,7 @@ from tests.test_cognitive_map import (
     corrected,
     drive,
     rms_xy,
+    seen_from,
     square_increments,
     true_loops,
 )
@@ -106,7 +107,7 @@ def square_with_a_false_closure(cmap):
         out = truth(k, cmap, node_at, off)
         if k == fake_at:  # a false closure inside the gate: the start, but 1.5 m off
             j = 0
-            rel = compose(compose(cmap.robot_offset, between(gt[k], gt[j])), between(off[j], np.zeros(3)))
+            rel = seen_from(cmap, gt[k], gt[j], off[j])
             out.append(
                 LoopHypothesis(
                     node=int(node_at[j]), transform=tuple(rel + [0.0, 1.5, 0.0]), source="false", time=float(k)
