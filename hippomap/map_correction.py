@@ -1,7 +1,8 @@
 """Map correction: when and how the cognitive map's node poses are solved (paper §2.4, Eq. 14).
 
 The layer of :class:`~hippomap.cognitive_map.CognitiveMap` above its graph
-(:class:`~hippomap.map_graph.MapGraph`): after any change of the graph the map is corrected with
+(:class:`~hippomap.map_graph.MapGraph`) and the branches its whole solves start from
+(:class:`~hippomap.heading_branches.HeadingBranches`): after any change of the graph the map is corrected with
 ``MapConfig.solver`` (the algorithms are in :mod:`hippomap.relaxation`): nothing is done while the
 map agrees with itself; a local window or the whole map is solved otherwise; once converged, the
 robust weights of the loop links are revised from their residuals (iteratively reweighted
@@ -12,35 +13,24 @@ g2o export's weights) and estimates the odometry's heading bias with the whole s
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from functools import partial
 from typing import Any
 
 import numpy as np
 
-from .headings_first import rate_turns, rotation_first_inits
-from .least_squares import bias_sigma, graph_cost, solve_lsq
-from .loop_closure import link_errors
+from .heading_branches import _FADED_INFORMATION, HeadingBranches
+from .least_squares import bias_sigma, solve_lsq
 from .map_events import MapEvent, MapRelaxed
-from .map_graph import LOOP, ODOMETRY, MapGraph, hop_distances
-from .relaxation import ColourGroups, RelaxResult, _link_residuals, _wrap_inplace, relax, relax_jacobi
+from .map_graph import LOOP, ODOMETRY, hop_distances
+from .relaxation import ColourGroups, RelaxResult, _link_residuals, relax, relax_jacobi
 from .robust_kernel import USED_WEIGHT
 
 __all__ = ["MapCorrection"]
 
 _STALE_FACTOR = 10.0  # a loop link's weight falling by this factor is revised whatever reweight_tolerance says
-_FADED_INFORMATION = 1e-12  # what is left of a faded loop link's information in the bias's significance test
-_BRANCH_TURNS = (-2, -1, 1, 2)  # whole turns the headings-first init also tries on loop links the map does not use
-_BRANCH_MARGIN = 0.5  # ... and keeps only at under this fraction of the wrapped reading's cost, at a rate within
-# odometry_bias_sigma (docs/MODEL.md item 53)
-_BRANCH_WIDE = 3.0  # ... or within this many odometry_bias_sigma when the branch fits every link well (item 54)
-_BRANCH_FIT_P = 0.99  # ... "well": its whole cost within this chi-square quantile, 3 dof per turned link
-_RATE_BRANCHES = 4  # branches with turns chosen link by link for one drift rate (_rate_branches), the best supported
-_RATE_AGREE_RAD = 0.5  # ... a rate explains a link when its turned residual is within this of what the rate asks
 
 
-class MapCorrection(MapGraph):
-    """The map's correction and robust reweighting, over :class:`~hippomap.map_graph.MapGraph`."""
+class MapCorrection(HeadingBranches):
+    """The map's correction and robust reweighting, over :class:`~hippomap.heading_branches.HeadingBranches`."""
 
     def _optimise(self, t: float, force: bool = False, sweeps: int | None = None) -> list[MapEvent]:
         """Correct node poses while the graph disagrees with itself (``MapConfig.solver``).
@@ -222,19 +212,6 @@ class MapCorrection(MapGraph):
         observed = bound is None or sigma <= bound * cfg.odometry_bias_sigma
         return sigma if abs(b) > k * sigma and observed else None
 
-    def _loop_weights(self, P: np.ndarray, loop: np.ndarray, heading_only: bool = False) -> np.ndarray:
-        """The ``loop_kernel`` weights the loop links ``loop`` would have on the poses ``P``: each link's
-        residual in its source frame, coupled (:func:`~hippomap.loop_closure.link_errors`), weighed by
-        :meth:`_kernel_weights`; with ``heading_only`` the heading part alone (x/y residuals taken as 0,
-        no coupling)."""
-        src, dst, tr = self._src[loop], self._dst[loop], self._tr[loop]
-        if heading_only:
-            r = link_errors(P, src, dst, tr)
-            r[:, :2] = 0.0
-        else:
-            r = link_errors(P, src, dst, tr, self._lcoup[loop])
-        return self._kernel_weights(r, loop)
-
     def _used_information(self, info: np.ndarray, Q: np.ndarray) -> np.ndarray:
         """``info`` (M, 3) without the loop links whose heading the solved poses ``Q`` leave
         inconsistent: what observes the odometry's bias in its significance test. The bias is a
@@ -264,118 +241,6 @@ class MapCorrection(MapGraph):
         m = self._m
         bdt = np.where(self._kind[:m] == ODOMETRY, self._dt[:m], 0.0)
         return {"bias_dt": bdt, "bias": self._bias, "bias_information": 1.0 / sigma**2}
-
-    def _rotation_init(
-        self, P: np.ndarray, src: np.ndarray, dst: np.ndarray, tr: np.ndarray, info: np.ndarray, bias: dict[str, Any]
-    ) -> float:
-        """Headings-first re-initialisation before a whole solve (with the bias when it is
-        estimated), kept only when it lowers the weighted cost (it cannot on a map that is
-        already at its optimum); with loop links the map does not use, from each branch of
-        :meth:`_heading_branches` too, a turned branch kept only at under ``_BRANCH_MARGIN`` of the
-        cost and at a rate within ``odometry_bias_sigma`` (a lone false closure can be explained by a
-        whole extra turn at an extraordinary rate), or within ``_BRANCH_WIDE`` of it when the branch
-        fits every link (:meth:`_branch_rate_ok`). Costs are the whole solve's own, the map's coupled
-        heading residuals included. Returns the bias to start the solve from."""
-        b0 = float(bias.get("bias", 0.0))
-        coupling = self._lcoup[: self._m]
-        best_cost, best = graph_cost(P, src, dst, tr, info, coupling=coupling, **bias), None
-        branches = self._heading_branches(P)
-        inits = rotation_first_inits(P, src, dst, tr, info, anchor=0, branches=branches, **bias)
-        for turns, (Q, _, b) in zip(branches, inits):
-            at_b = {**bias, "bias": b}
-            cost = graph_cost(Q, src, dst, tr, info, coupling=coupling, **at_b)
-            # another branch must explain the map clearly better than the wrapped reading, at an ordinary rate
-            if turns is None:
-                better = cost < best_cost
-            else:
-                fit = partial(self._branch_fit, Q, info, at_b, turns)
-                better = cost < _BRANCH_MARGIN * best_cost and self._branch_rate_ok(b, fit)
-            if better:
-                best_cost, best = cost, (Q, b)
-        if best is None:
-            return b0
-        P[:] = best[0]
-        return best[1]
-
-    def _branch_rate_ok(self, b: float, fit: Callable[[], tuple[float, int]]) -> bool:
-        """Whether a turned branch's rate ``b`` may be taken: within ``odometry_bias_sigma``, or within
-        ``_BRANCH_WIDE`` sigmas when the branch fits: ``fit()`` (:meth:`_branch_fit`) gives a cost within
-        the chi-square ``_BRANCH_FIT_P`` quantile of its degrees of freedom. A gyro drifting faster than
-        sigma is then unwound when the turn makes the links agree; a lone false closure that one extra
-        turn half explains bends the odometry between its ends and stays far above (docs/MODEL.md
-        items 54 and 75)."""
-        sigma = self.cfg.odometry_bias_sigma
-        if abs(b) <= sigma:
-            return True
-        if abs(b) > _BRANCH_WIDE * sigma:
-            return False
-        from scipy.special import chdtri  # the chi-square quantile; needed only here, rarely
-
-        cost, dof = fit()
-        return bool(cost <= chdtri(dof, 1.0 - _BRANCH_FIT_P))
-
-    def _branch_fit(
-        self, Q: np.ndarray, info: np.ndarray, bias: dict[str, Any], turns: np.ndarray
-    ) -> tuple[float, int]:
-        """What a turned branch's init ``Q`` is judged by in the fit test of :meth:`_branch_rate_ok`: the
-        whole solve's cost with every loop link at the robust weight the kernel gives it on ``Q`` (one
-        reweighting step), and 3 degrees of freedom per turned link. The map's weights were given on
-        another map: a closure faded as false there keeps its small weight while the branch moves its
-        residual by metres, and counted so it failed the branch that made every other link agree
-        (docs/MODEL.md item 75)."""
-        m = self._m
-        loop = np.flatnonzero(self._kind[:m] == LOOP)
-        reweighted = info.copy()
-        reweighted[loop] *= (self._loop_weights(Q, loop) / self._w[loop])[:, None]
-        cost = graph_cost(Q, self._src[:m], self._dst[:m], self._tr[:m], reweighted, coupling=self._lcoup[:m], **bias)
-        return cost, 3 * int(np.count_nonzero(turns))
-
-    def _heading_branches(self, P: np.ndarray) -> list[np.ndarray | None]:
-        """The branches of the loop links' heading residuals the headings-first init tries: each
-        wrapped into (−π, π] as it reads on ``P`` (None), then the loop links ``P`` does not use
-        (robust weight on ``P`` below ``USED_WEIGHT``: new closures, faded ones) taken together
-        ``_BRANCH_TURNS`` whole turns further round (each (M,)). A closure alone cannot tell a drift
-        of +3.4 rad from one of −2.9 rad, nor of +6.1 rad from −0.2 rad; the positions the branches
-        give can (docs/MODEL.md item 53); then the branches one drift rate gives, whose turns differ from link
-        to link (:meth:`_rate_branches`, item 74)."""
-        m, cfg = self._m, self.cfg
-        loop = np.flatnonzero(self._kind[:m] == LOOP)
-        if not len(loop) or cfg.loop_kernel == "none":
-            return [None]
-        unused = loop[self._loop_weights(P, loop) < USED_WEIGHT]
-        if not len(unused):
-            return [None]
-        uniform = []
-        for k in _BRANCH_TURNS:
-            turns = np.zeros(m)
-            turns[unused] = k
-            uniform.append(turns)
-        return [None, *uniform, *self._rate_branches(P, unused, uniform)]
-
-    def _rate_branches(self, P: np.ndarray, unused: np.ndarray, uniform: list[np.ndarray]) -> list[np.ndarray]:
-        """Branches whose turns differ from link to link (:func:`~hippomap.headings_first.rate_turns`): the
-        turns one drift rate, within ``_BRANCH_WIDE`` sigmas, asks of each unused loop link, from the times of
-        its nodes; up to ``_RATE_BRANCHES`` that are not among the ``uniform`` ones (docs/MODEL.md item 74)."""
-        sigma = self.cfg.odometry_bias_sigma
-        if sigma <= 0 or len(unused) < 2:
-            return []
-        src, dst = self._src[unused], self._dst[unused]
-        branches = rate_turns(
-            _wrap_inplace(P[dst, 2] - P[src, 2] - self._tr[unused, 2]),  # the residuals the headings solve reads
-            self._Tn[dst] - self._Tn[src],
-            self._bias,
-            _BRANCH_WIDE * sigma,
-            turns=_BRANCH_TURNS,
-            limit=_RATE_BRANCHES,
-            agree_rad=_RATE_AGREE_RAD,
-            exclude=[t[unused] for t in uniform],
-        )
-        out = []
-        for k in branches:
-            turns = np.zeros(self._m)
-            turns[unused] = k
-            out.append(turns)
-        return out
 
     def _reweight(self) -> bool:
         """Revise the robust weights of the loop links from their residuals on the converged
