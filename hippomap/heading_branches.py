@@ -6,8 +6,8 @@ A loop link's heading residual is known only up to whole turns: a closure alone 
 headings are re-initialised headings first (:func:`~hippomap.headings_first.rotation_first_inits`) from
 the wrapped reading and from branches that take the loop links the map does not use whole turns further
 round; a turned branch is kept when it explains the map clearly better at an ordinary drift rate, or at a
-faster one when it adds little cost to the map. The layer of
-:class:`~hippomap.map_correction.MapCorrection` below it holds these and the robust weights loop links
+faster one when it adds little cost to the map. This layer, below
+:class:`~hippomap.map_correction.MapCorrection`, holds these tests and the robust weights loop links
 would have on given poses.
 """
 
