@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from .headings_first import rate_turns, rotation_first_inits
+from .headings_first import rate_turns, rotation_first_inits, turn_rates
 from .least_squares import graph_cost
 from .loop_closure import link_errors
 from .map_graph import LOOP, MapGraph
@@ -130,10 +130,15 @@ class HeadingBranches(MapGraph):
         below ``USED_WEIGHT``): what the map's odometry and its agreeing closures already cost before a
         branch turns the others (:meth:`_branch_fit`)."""
         m = self._m
-        loop = np.flatnonzero(self._kind[:m] == LOOP)
         kept = info.copy()
-        kept[loop[self._loop_weights(P, loop) < USED_WEIGHT]] *= _FADED_INFORMATION  # (information must stay > 0)
+        kept[self._unused_loops(P)] *= _FADED_INFORMATION  # (information must stay > 0)
         return graph_cost(P, self._src[:m], self._dst[:m], self._tr[:m], kept, coupling=self._lcoup[:m], **bias)
+
+    def _unused_loops(self, P: np.ndarray) -> np.ndarray:
+        """The loop links the poses ``P`` do not use (robust weight on ``P`` below ``USED_WEIGHT``: new
+        closures, faded ones): those a branch turns, and those the map's own share leaves out."""
+        loop = np.flatnonzero(self._kind[: self._m] == LOOP)
+        return loop[self._loop_weights(P, loop) < USED_WEIGHT]
 
     def _heading_branches(self, P: np.ndarray) -> list[np.ndarray | None]:
         """The branches of the loop links' heading residuals the headings-first init tries: each
@@ -143,22 +148,16 @@ class HeadingBranches(MapGraph):
         drift of +3.4 rad from one of −2.9 rad, nor of +6.1 rad from −0.2 rad; the positions the
         branches give can (docs/MODEL.md item 53); then the branches one drift rate gives, whose turns
         differ from link to link (:meth:`_rate_branches`, item 74)."""
-        m, cfg = self._m, self.cfg
-        loop = np.flatnonzero(self._kind[:m] == LOOP)
-        if not len(loop) or cfg.loop_kernel == "none":
+        if self.cfg.loop_kernel == "none":
             return [None]
-        unused = loop[self._loop_weights(P, loop) < USED_WEIGHT]
+        unused = self._unused_loops(P)
         if not len(unused):
             return [None]
         src, dst = self._src[unused], self._dst[unused]
         residual = _wrap_inplace(P[dst, 2] - P[src, 2] - self._tr[unused, 2])  # as the headings solve reads them
         duration = self._Tn[dst] - self._Tn[src]
         whole = self._branch_turns(residual, duration)
-        uniform = []
-        for k in whole:
-            turns = np.zeros(m)
-            turns[unused] = k
-            uniform.append(turns)
+        uniform = [self._on_links(unused, k) for k in whole]
         return [None, *uniform, *self._rate_branches(unused, residual, duration, whole, uniform)]
 
     def _branch_turns(self, residual: np.ndarray, duration: np.ndarray) -> tuple[int, ...]:
@@ -170,12 +169,10 @@ class HeadingBranches(MapGraph):
         unwinds it is never tried with two (docs/MODEL.md item 76)."""
         sigma = self.cfg.odometry_bias_sigma
         far = np.arange(max(_BRANCH_TURNS) + 1, _BRANCH_MAX_TURNS + 1, dtype=float)
-        ok = np.abs(duration) > 1e-9
-        if sigma <= 0 or not far.size or not ok.any():
+        if sigma <= 0 or not far.size:
             return _BRANCH_TURNS
         far = np.concatenate([-far[::-1], far])
-        rates = self._bias + (residual[ok, None] + 2.0 * np.pi * far[None, :]) / duration[ok, None]
-        reach = np.any(np.abs(rates) <= _BRANCH_WIDE * sigma, axis=0)
+        reach = np.any(np.abs(self._bias + turn_rates(residual, duration, far)) <= _BRANCH_WIDE * sigma, axis=0)
         return tuple(sorted({*_BRANCH_TURNS, *far[reach].astype(int).tolist()}))
 
     def _rate_branches(
@@ -203,9 +200,11 @@ class HeadingBranches(MapGraph):
             agree_rad=_RATE_AGREE_RAD,
             exclude=[t[unused] for t in uniform],
         )
-        out = []
-        for k in branches:
-            turns = np.zeros(self._m)
-            turns[unused] = k
-            out.append(turns)
+        return [self._on_links(unused, k) for k in branches]
+
+    def _on_links(self, links: np.ndarray, turns: float | np.ndarray) -> np.ndarray:
+        """A branch's turns over the map's links (M,): ``turns`` on ``links`` (one number for all, or one
+        each), none on the others."""
+        out = np.zeros(self._m)
+        out[links] = turns
         return out

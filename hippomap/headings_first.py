@@ -224,6 +224,14 @@ def _solve_positions(
     return lap.solve(-r)[0]
 
 
+def turn_rates(residual: np.ndarray, duration: np.ndarray, turns) -> np.ndarray:
+    """The change of drift rate (rad/s) that each loop link, taken each of ``turns`` whole turns round, reads
+    as: ``(residual + 2π k) / duration`` (L, K), for the L links of ``residual`` and ``duration`` (M,) whose
+    duration is not zero (a link between nodes of one instant reads no rate)."""
+    ok = np.abs(duration) > 1e-9
+    return (residual[ok, None] + 2.0 * np.pi * np.asarray(turns, dtype=float)[None, :]) / duration[ok, None]
+
+
 def rate_turns(
     residual,
     duration,
@@ -254,11 +262,8 @@ def rate_turns(
     dt = np.asarray(duration, dtype=float).ravel()
     if e.shape != dt.shape:
         raise ValueError(f"rate_turns: {e.size} residuals and {dt.size} durations")
-    ok = np.abs(dt) > 1e-9
-    if not ok.any():
-        return []
     two_pi = 2.0 * np.pi
-    rates = ((e[ok, None] + two_pi * np.asarray(turns, dtype=float)[None, :]) / dt[ok, None]).ravel()
+    rates = turn_rates(e, dt, turns).ravel()
     rates = rates[np.abs(bias + rates) <= max_rate]
     if not rates.size:
         return []

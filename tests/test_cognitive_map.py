@@ -978,11 +978,10 @@ def test_a_drift_past_half_a_turn_is_unwound_the_right_way_round(beta, dt):
     assert rms_xy(corrected(cmap, node_at, off), gt) < 0.5 < 5.0 < rms_xy(integrate(noisy), gt)
 
 
-def _drifting_corridor_map(gt, noisy, times, hypotheses, **options):
+def _drifting_corridor_map(gt, noisy, times, hypotheses):
     """The corridors' map of the drift tests (the 'lsq' solver, no online pruning, a gate wide enough for
-    the drift, any other ``options`` of MapConfig), driven with ``hypotheses`` and finished: the map's
-    error, the odometry's and the bias."""
-    cfg = MapConfig(solver="lsq", prune_online=False, loop_transform_radius_m=30.0, loop_radius_per_m=0.5, **options)
+    the drift), driven with ``hypotheses`` and finished: the map's error, the odometry's and the bias."""
+    cfg = MapConfig(solver="lsq", prune_online=False, loop_transform_radius_m=30.0, loop_radius_per_m=0.5)
     cmap = CognitiveMap(cfg)
     node_at, off, _ = drive(cmap, noisy, times=times, hypotheses=hypotheses)
     cmap.finish()
@@ -1077,7 +1076,7 @@ def test_a_faded_false_closure_does_not_fail_the_branch_that_fits(beta, error, s
     assert stale > 5.0
 
 
-def _detour_and_back(beta, max_turns=None, monkeypatch=None, **options):
+def _detour_and_back(beta, max_turns=None, monkeypatch=None):
     """A road 100 m long driven out at 0.5 m/s, a detour round a block (100 m × 47.5 m, 630 s after the road's
     end was passed) back to its end, and the road driven back: odometry drifting ``beta`` rad/s, true closures
     from the way back to the way out, facing the other way. ``max_turns`` bounds the whole turns the
@@ -1107,7 +1106,7 @@ def _detour_and_back(beta, max_turns=None, monkeypatch=None, **options):
         rel = seen_from(cmap, gt[k], gt[j], off[j])
         return [LoopHypothesis(node=int(node_at[j]), transform=tuple(rel), source="test", time=float(times[k]))]
 
-    return _drifting_corridor_map(gt, noisy, times, hypotheses, **options)
+    return _drifting_corridor_map(gt, noisy, times, hypotheses)
 
 
 @pytest.mark.parametrize("beta", [0.03, 0.045])
