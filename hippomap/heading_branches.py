@@ -58,7 +58,7 @@ class HeadingBranches(MapGraph):
 
     def _rotation_init(
         self, P: np.ndarray, src: np.ndarray, dst: np.ndarray, tr: np.ndarray, info: np.ndarray, bias: dict[str, Any]
-    ) -> float:
+    ) -> tuple[float, np.ndarray]:
         """Headings-first re-initialisation before a whole solve (with the bias when it is
         estimated), kept only when it lowers the weighted cost (it cannot on a map that is
         already at its optimum); with loop links the map does not use, from each branch of
@@ -66,7 +66,9 @@ class HeadingBranches(MapGraph):
         cost and at a rate within ``odometry_bias_sigma`` (a lone false closure can be explained by a
         whole extra turn at an extraordinary rate), or within ``_BRANCH_WIDE`` of it when the branch
         fits every link (:meth:`_branch_rate_ok`). Costs are the whole solve's own, the map's coupled
-        heading residuals included. Returns the bias to start the solve from."""
+        heading residuals included. Returns the bias to start the solve from and the information to solve
+        with: ``info``, or after a turned branch ``info`` with every loop link at the robust weight the kernel
+        gives it on the branch (:meth:`_reweighted`; docs/MODEL.md item 77)."""
         b0 = float(bias.get("bias", 0.0))
         coupling = self._lcoup[: self._m]
         best_cost, best = graph_cost(P, src, dst, tr, info, coupling=coupling, **bias), None
@@ -83,11 +85,12 @@ class HeadingBranches(MapGraph):
                 fit = partial(self._branch_fit, Q, info, at_b, turns, base)
                 better = cost < _BRANCH_MARGIN * best_cost and self._branch_rate_ok(b, fit)
             if better:
-                best_cost, best = cost, (Q, b)
+                best_cost, best = cost, (Q, b, turns)
         if best is None:
-            return b0
-        P[:] = best[0]
-        return best[1]
+            return b0, info
+        Q, b, turns = best
+        P[:] = Q
+        return b, info if turns is None else self._reweighted(Q, info)
 
     def _branch_rate_ok(self, b: float, fit: Callable[[], tuple[float, int]]) -> bool:
         """Whether a turned branch's rate ``b`` may be taken: within ``odometry_bias_sigma``, or within
@@ -119,11 +122,17 @@ class HeadingBranches(MapGraph):
         explain, and the closures it uses are costs the branch does not add, which a bound of 3 degrees of
         freedom per turned link cannot hold (item 76)."""
         m = self._m
-        loop = np.flatnonzero(self._kind[:m] == LOOP)
-        reweighted = info.copy()
-        reweighted[loop] *= (self._loop_weights(Q, loop) / self._w[loop])[:, None]
+        reweighted = self._reweighted(Q, info)
         cost = graph_cost(Q, self._src[:m], self._dst[:m], self._tr[:m], reweighted, coupling=self._lcoup[:m], **bias)
         return cost - base(), 3 * int(np.count_nonzero(turns))
+
+    def _reweighted(self, Q: np.ndarray, info: np.ndarray) -> np.ndarray:
+        """``info`` (M, 3) with every loop link at the robust weight the kernel gives it on the poses ``Q``
+        instead of the map's (one step of the iteratively reweighted solve, started on ``Q``)."""
+        loop = np.flatnonzero(self._kind[: self._m] == LOOP)
+        out = info.copy()
+        out[loop] *= (self._loop_weights(Q, loop) / self._w[loop])[:, None]
+        return out
 
     def _odometry_share(self, P: np.ndarray, info: np.ndarray, bias: dict[str, Any]) -> float:
         """The whole solve's cost on the map ``P`` without the loop links ``P`` does not use (robust weight

@@ -176,16 +176,16 @@ class MapCorrection(HeadingBranches):
         }
         if bias:
             Q = P.copy()
-            b = self._rotation_init(Q, src, dst, tr, info, bias) if rotation_init else self._bias
-            res = solve_lsq(Q, src, dst, tr, **solve, **{**bias, "bias": b})
-            sd = self._bias_kept(Q, src, dst, tr, info, bias, res.bias)
+            b, at = self._rotation_init(Q, src, dst, tr, info, bias) if rotation_init else (self._bias, info)
+            res = solve_lsq(Q, src, dst, tr, **{**solve, "information": at}, **{**bias, "bias": b})
+            sd = self._bias_kept(Q, src, dst, tr, at, bias, res.bias)
             if sd is not None:
                 P[:] = Q
                 self._bias, self._bias_sd = res.bias, sd
                 return res
             self._bias = self._bias_sd = 0.0
         if rotation_init:
-            self._rotation_init(P, src, dst, tr, info, {})
+            solve["information"] = self._rotation_init(P, src, dst, tr, info, {})[1]
         return solve_lsq(P, src, dst, tr, **solve)
 
     def _bias_kept(
