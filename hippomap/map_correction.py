@@ -162,10 +162,10 @@ class MapCorrection(HeadingBranches):
         odometry_bias_significance × σ_b``, σ_b its posterior standard deviation at the solution
         (:func:`~hippomap.least_squares.bias_sigma`, a Wald test), and observed by the loops: ``σ_b ≤
         odometry_bias_observed × odometry_bias_sigma`` (the closures, not the prior, carry it). Otherwise
-        the bias is taken as 0
-        and the map is solved without it, exactly as with the option off: a bias that the loops
-        cannot tell from the odometry's own noise is not applied, so that loop links' errors
-        cannot pose as one."""
+        the bias is taken as 0 and the map is solved without it, exactly as with the option off: a bias
+        that the loops cannot tell from the odometry's own noise is not applied, so that loop links'
+        errors cannot pose as one. A solve that starts from a turned heading branch weighs each loop link
+        as the kernel does on the branch, not as on the map before it (docs/MODEL.md item 77)."""
         cfg = self.cfg
         solve: dict[str, Any] = {
             "iterations": cfg.lsq_iterations,
