@@ -43,6 +43,16 @@ _RATE_AGREE_RAD = 0.5  # ... a rate explains a link when its turned residual is 
 class HeadingBranches(MapGraph):
     """The headings-first re-initialisation's branches of a whole solve, over :class:`~hippomap.map_graph.MapGraph`."""
 
+    def _loop_ids(self) -> np.ndarray:
+        """The indices of the map's loop links (the links its robust kernel weighs)."""
+        return np.flatnonzero(self._kind[: self._m] == LOOP)
+
+    def _map_cost(self, Q: np.ndarray, info: np.ndarray, bias: dict[str, Any]) -> float:
+        """The whole solve's cost (:func:`~hippomap.least_squares.graph_cost`) of every link of the map on
+        the poses ``Q`` with the information ``info`` (M, 3), the map's coupled heading residuals included."""
+        m = self._m
+        return graph_cost(Q, self._src[:m], self._dst[:m], self._tr[:m], info, coupling=self._lcoup[:m], **bias)
+
     def _loop_weights(self, P: np.ndarray, loop: np.ndarray, heading_only: bool = False) -> np.ndarray:
         """The ``loop_kernel`` weights the loop links ``loop`` would have on the poses ``P``: each link's
         residual in its source frame, coupled (:func:`~hippomap.loop_closure.link_errors`), weighed by
@@ -121,15 +131,12 @@ class HeadingBranches(MapGraph):
         (:meth:`_odometry_share`): its odometry, bent to half fit closures the wrapped reading cannot
         explain, and the closures it uses are costs the branch does not add, which a bound of 3 degrees of
         freedom per turned link cannot hold (item 76)."""
-        m = self._m
-        reweighted = self._reweighted(Q, info)
-        cost = graph_cost(Q, self._src[:m], self._dst[:m], self._tr[:m], reweighted, coupling=self._lcoup[:m], **bias)
-        return cost - base(), 3 * int(np.count_nonzero(turns))
+        return self._map_cost(Q, self._reweighted(Q, info), bias) - base(), 3 * int(np.count_nonzero(turns))
 
     def _reweighted(self, Q: np.ndarray, info: np.ndarray) -> np.ndarray:
         """``info`` (M, 3) with every loop link at the robust weight the kernel gives it on the poses ``Q``
         instead of the map's (one step of the iteratively reweighted solve, started on ``Q``)."""
-        loop = np.flatnonzero(self._kind[: self._m] == LOOP)
+        loop = self._loop_ids()
         out = info.copy()
         out[loop] *= (self._loop_weights(Q, loop) / self._w[loop])[:, None]
         return out
@@ -138,15 +145,14 @@ class HeadingBranches(MapGraph):
         """The whole solve's cost on the map ``P`` without the loop links ``P`` does not use (robust weight
         below ``USED_WEIGHT``): what the map's odometry and its agreeing closures already cost before a
         branch turns the others (:meth:`_branch_fit`)."""
-        m = self._m
         kept = info.copy()
         kept[self._unused_loops(P)] *= _FADED_INFORMATION  # (information must stay > 0)
-        return graph_cost(P, self._src[:m], self._dst[:m], self._tr[:m], kept, coupling=self._lcoup[:m], **bias)
+        return self._map_cost(P, kept, bias)
 
     def _unused_loops(self, P: np.ndarray) -> np.ndarray:
         """The loop links the poses ``P`` do not use (robust weight on ``P`` below ``USED_WEIGHT``: new
         closures, faded ones): those a branch turns, and those the map's own share leaves out."""
-        loop = np.flatnonzero(self._kind[: self._m] == LOOP)
+        loop = self._loop_ids()
         return loop[self._loop_weights(P, loop) < USED_WEIGHT]
 
     def _heading_branches(self, P: np.ndarray) -> list[np.ndarray | None]:

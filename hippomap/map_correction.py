@@ -218,8 +218,8 @@ class MapCorrection(HeadingBranches):
         heading rate, so a loop link is evidence for an estimate only when its heading residual on
         the solution is within its kernel width (the heading part of its robust weight at least
         ``USED_WEIGHT``); a false closure the estimate cannot explain is not."""
-        m, cfg = self._m, self.cfg
-        loop = np.flatnonzero(self._kind[:m] == LOOP)
+        cfg = self.cfg
+        loop = self._loop_ids()
         if not len(loop) or cfg.loop_kernel == "none":
             return info
         faded = loop[self._loop_weights(Q, loop, heading_only=True) < USED_WEIGHT]
@@ -250,8 +250,7 @@ class MapCorrection(HeadingBranches):
         cfg = self.cfg
         if cfg.loop_kernel == "none":
             return False
-        m = self._m
-        loop = np.flatnonzero(self._kind[:m] == LOOP)
+        loop = self._loop_ids()
         if not len(loop):
             return False
         new = self._loop_weights(self._P[: self._n], loop)
