@@ -384,6 +384,13 @@ class MapConfig(_Frozen):
         "nodes outside the gate becomes loop links (0: such hypotheses are rejected like any other outside the gate); "
         "docs/MODEL.md [ours]",
     )
+    outside_searches: Literal["global", "all"] = Field(
+        "all",
+        description="which visual hypotheses that fall outside the gate wait for a consistent group "
+        "(map.outside_min_support) instead of being rejected: 'global', only a global search's; 'all', a gated "
+        "search's too (its key frame was inside the gate, the recognition's offset put it outside); "
+        "docs/MODEL.md [ours]",
+    )
     outside_window_m: float = Field(
         15.0,
         gt=0,

@@ -7,7 +7,7 @@ place-code gate whose radius grows with the path travelled since the matched nod
 consistency between hypotheses; an accepted group of visual hypotheses has its relative pose
 fitted before it becomes loop links. With ``loop_accept = 'robust'`` a gated hypothesis becomes a
 link at once, weighted by the robust kernel (revised by :mod:`hippomap.map_correction` as the map
-converges); hypotheses of a global search that fall outside the gate wait for a consistent group.
+converges); visual hypotheses that fall outside the gate wait for a consistent group.
 Every decision is kept in :attr:`LoopClosing.loop_decisions`.
 """
 
@@ -93,7 +93,8 @@ class LoopClosing(MapCorrection):
         t = self._t if self._t is not None else h.time
         base, reason, outside = self._screen(h, cand)
         book.decisions.append(base)
-        if outside and h.meta.get("search") == "global" and not h.measured and cfg.outside_min_support > 0:
+        searched = h.meta.get("search") == "global" or cfg.outside_searches == "all"
+        if outside and searched and not h.measured and cfg.outside_min_support > 0:
             return self._propose_outside(cand, t, reason)
         if reason:
             return self._reject(cand.id, reason, t)
@@ -179,10 +180,10 @@ class LoopClosing(MapCorrection):
         return book.decisions[did]
 
     def _propose_outside(self, cand: Candidate, t: float, gate_reason: str) -> LoopDecision:
-        """A visual hypothesis from a global search (``meta['search'] == 'global'``) that names a
-        node outside the gate: after a long excursion the map's drift exceeds any gate, so the
-        gate cannot judge it. It waits, without a link, for ``outside_min_support`` − 1 others of
-        the same kind within ``outside_window_m`` of path that agree with it in space
+        """A visual hypothesis from a global search (``meta['search'] == 'global'``; from any search with
+        ``outside_searches = 'all'``) that names a node outside the gate: after a long excursion the map's
+        drift exceeds any gate, so the gate cannot judge it. It waits, without a link, for ``outside_min_support``
+        − 1 others of the same kind within ``outside_window_m`` of path that agree with it in space
         (:func:`consistent`: the distance driven between two proposals equals the distance between
         the places they name) and in sequence (the old path between the two named nodes is as long
         as the path driven between the proposals, within ``loop_consistency_m`` + 10 %); the group
@@ -207,7 +208,7 @@ class LoopClosing(MapCorrection):
             book.outside.append(cand)
             d = replace(
                 book.decisions[cand.id],
-                reason=f"{gate_reason}: waits for consistent global recognitions",
+                reason=f"{gate_reason}: waits for consistent recognitions",
                 support=tuple(c.id for c in ok),
             )
             book.decisions[cand.id] = d
@@ -224,7 +225,7 @@ class LoopClosing(MapCorrection):
                 status="accepted",
                 link=link,
                 support=sup,
-                reason="outside the gate; verified by a group of consistent global recognitions",
+                reason="outside the gate; verified by a group of consistent recognitions",
                 decided_step=self._step,
                 transform=c.link_tr,
             )

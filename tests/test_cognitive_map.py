@@ -242,7 +242,9 @@ def test_uncorrupted_loop_stays_put():
 
 
 def test_gate_rejects_far_hypotheses_without_touching_the_map():
-    cmap = CognitiveMap(MapConfig(loop_min_support=1, loop_radius_m=3.0, loop_radius_per_m=0.05))
+    cmap = CognitiveMap(
+        MapConfig(loop_min_support=1, loop_radius_m=3.0, loop_radius_per_m=0.05, outside_searches="global")
+    )
     drive(cmap, np.tile([0.1, 0.0, 0.0], (200, 1)))  # 20 m straight
     poses = cmap.poses.copy()
     n_links = cmap.link_count
@@ -254,6 +256,29 @@ def test_gate_rejects_far_hypotheses_without_touching_the_map():
     assert cmap.link_count == n_links and cmap.current == cmap.node_count - 1
     events = cmap.update(None, (0.0, 0.0, 0.0), 1000.0)
     assert [type(e) for e in events] == [LoopRejected]
+
+
+def test_a_lone_far_hypothesis_waits_for_support_then_expires_without_touching_the_map():
+    """By default (``outside_searches='all'``) a visual hypothesis outside the gate waits for a consistent
+    group, whatever search made it; alone, it expires after ``outside_window_m`` of path with no link."""
+    cmap = CognitiveMap(MapConfig(loop_min_support=1, loop_radius_m=3.0, loop_radius_per_m=0.05))
+    seen = {}
+
+    def propose_after_20_m(k, cmap, node_at, off):
+        if k == 200:
+            seen["poses"] = cmap.poses.copy()
+            seen["decision"] = cmap.propose_loop(LoopHypothesis(node=2, transform=None, source="test"))
+            np.testing.assert_array_equal(cmap.poses, seen["poses"])
+            assert cmap.link_count == cmap.node_count - 1
+
+    drive(cmap, np.tile([0.1, 0.0, 0.0], (360, 1)), hypotheses=propose_after_20_m)  # 20 m, then 16 m more
+    d = seen["decision"]
+    assert d.status == "pending" and "waits for consistent recognitions" in d.reason
+    assert d.gate_distance > d.gate_limit
+    row = cmap.loop_rows()[d.id]
+    assert row["status"] == "rejected" and "no consistent support" in row["reason"]  # past the 15-m window
+    assert cmap.link_count == cmap.node_count - 1
+    np.testing.assert_array_equal(cmap.poses[: len(seen["poses"])], seen["poses"])
 
 
 def test_gate_radius_grows_with_the_path_travelled():
@@ -1248,7 +1273,8 @@ def test_the_gate_widens_with_the_error_of_the_kept_bias():
     since = maps[2.0].path_since_verified
     assert since == pytest.approx(20.0 + 0.1 * 20, abs=2.5)  # the straight, and what followed the last closure
     wide, plain = (maps[k].propose_loop(LoopHypothesis(node=2, transform=None, source="test")) for k in (2.0, 0.0))
-    assert wide.status == plain.status == "rejected"
+    assert wide.status == plain.status == "pending"  # outside the gate: waits for a consistent group
+    assert wide.gate_distance > wide.gate_limit and plain.gate_distance > plain.gate_limit
     # the pace: 2 s per metre on the straight, a little more with the turns on the spot since the last closure
     pace = (wide.gate_limit - plain.gate_limit) / bias_drift(maps[2.0].cfg, sd, since, 1.0)
     assert 2.0 <= pace <= 2.2

@@ -488,8 +488,11 @@ def _visual(gt, node_at, off, k, j, search="global"):
     )
 
 
-@pytest.mark.parametrize("search, support", [("global", 3), ("global", 0), (None, 3)])
-def test_global_recognitions_outside_the_gate_close_the_loop_only_as_a_consistent_group(search, support):
+@pytest.mark.parametrize(
+    "search, support, searches",
+    [("global", 3, "all"), ("global", 0, "all"), (None, 3, "all"), (None, 3, "global"), ("global", 3, "global")],
+)
+def test_recognitions_outside_the_gate_close_the_loop_only_as_a_consistent_group(search, support, searches):
     inc, gt, odo, noisy = _drifting_square()
     first_lap = len(inc) // 2
 
@@ -498,21 +501,22 @@ def test_global_recognitions_outside_the_gate_close_the_loop_only_as_a_consisten
             return []
         return [_visual(gt, node_at, off, k, k - first_lap, search)]
 
-    cmap = CognitiveMap(MapConfig(outside_min_support=support))
+    cmap = CognitiveMap(MapConfig(outside_min_support=support, outside_searches=searches))
     node_at, off, _ = drive(cmap, noisy, hypotheses=hyps)
     rows = cmap.loop_rows()
     assert rows and max(r["gate_distance_m"] for r in rows) > 10.0  # far outside the gate
     accepted = [r for r in rows if r["status"] == "accepted"]
-    if search == "global" and support:
+    if (search == "global" or searches == "all") and support:
         assert len(accepted) > 0.8 * len(rows)
         assert all("outside the gate" in r["reason"] for r in accepted[:3])
         assert rms_xy(corrected(cmap, node_at, off), gt) < 0.15 * rms_xy(odo, gt)  # measured 1.9 vs 15.2 m
-    else:  # a gated search's hypothesis, or outside support switched off: the gate rejects them all
+    else:  # a gated search's hypothesis with outside_searches 'global', or outside support off: all rejected
         assert not accepted and all("exceeds the gate" in r["reason"] for r in rows)
         assert cmap.link_count == cmap.node_count - 1
 
 
-def test_inconsistent_global_recognitions_expire_without_touching_the_map():
+@pytest.mark.parametrize("search", ["global", None])
+def test_inconsistent_recognitions_outside_the_gate_expire_without_touching_the_map(search):
     inc, gt, odo, noisy = _drifting_square()
     first_lap = len(inc) // 2
     rng = np.random.default_rng(0)
@@ -529,7 +533,7 @@ def test_inconsistent_global_recognitions_expire_without_touching_the_map():
                 transform=None,
                 source="false",
                 time=float(k),
-                meta={"poses": [k, j], "search": "global"},
+                meta={"poses": [k, j]} | ({"search": search} if search else {}),
                 offset=(0.2, 0.0, 0.0),
             )
         ]

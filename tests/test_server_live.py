@@ -130,7 +130,7 @@ def test_queries_serve_the_session_state(server, client):
     assert [r["id"] for r in client.loop_closures(sid, used=False)] == [r["id"] for r in loops if not r["used"]]
     assert len(used) == st["mapper"]["loop_closures_used"]
     statuses = {r["status"] for r in loops}
-    assert {"accepted", "rejected"} <= statuses, statuses
+    assert "accepted" in statuses and statuses - {"accepted"} <= {"pending", "rejected"} and len(statuses) > 1, statuses
     recs = client.recognitions(sid)
     assert len(recs) == len(ref["recognitions"]) > 0
     # each says which key frames competed, as the mapper's own record does
