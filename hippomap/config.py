@@ -380,8 +380,9 @@ class MapConfig(_Frozen):
     outside_min_support: int = Field(
         3,
         ge=0,
-        description="mutually consistent hypotheses from global searches needed before a group that names "
-        "nodes outside the gate becomes loop links (0: such hypotheses are rejected like any other outside the gate); "
+        description="mutually consistent visual hypotheses (map.outside_searches says whose) needed before a group "
+        "that names nodes outside the gate becomes loop links (0: such hypotheses are rejected like any other outside "
+        "the gate); "
         "docs/MODEL.md [ours]",
     )
     outside_searches: Literal["global", "all"] = Field(

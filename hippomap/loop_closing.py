@@ -93,8 +93,8 @@ class LoopClosing(MapCorrection):
         t = self._t if self._t is not None else h.time
         base, reason, outside = self._screen(h, cand)
         book.decisions.append(base)
-        searched = h.meta.get("search") == "global" or cfg.outside_searches == "all"
-        if outside and searched and not h.measured and cfg.outside_min_support > 0:
+        waits = cfg.outside_searches == "all" or h.meta.get("search") == "global"  # else the gate rejects it
+        if outside and waits and not h.measured and cfg.outside_min_support > 0:
             return self._propose_outside(cand, t, reason)
         if reason:
             return self._reject(cand.id, reason, t)

@@ -427,8 +427,8 @@ class LoopBook:
         self.pending: list[Candidate] = []
         self.accepted: list[Candidate] = []
         self.last_verified_path: float | None = None
-        #: hypotheses from a global search that named a node outside the gate: no link until a group
-        #: of them agrees (:meth:`CognitiveMap.propose_loop`)
+        #: visual hypotheses that named a node outside the gate (``outside_searches`` says whose): no link
+        #: until a group of them agrees (:meth:`CognitiveMap.propose_loop`)
         self.outside: list[Candidate] = []
 
     def expired(self, path: float, window_m: float) -> list[Candidate]:
