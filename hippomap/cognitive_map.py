@@ -176,6 +176,7 @@ class CognitiveMap(Pruning):
                 "information": self._linfo[:m].copy(),
                 "kernel_width": self._lkw[:m].copy(),
                 "coupling": self._lcoup[:m].copy(),
+                "kernel_position_information": self._lkpos[:m].copy(),
             },
             "robot": {
                 "current": self._cur,
@@ -230,6 +231,8 @@ class CognitiveMap(Pruning):
             cmap._linfo[:m] = li if li.shape[1] == 3 else li[:, [0, 0, 1]]
             cmap._lkw[:m] = np.asarray(links.get("kernel_width", np.full(m, cfg.loop_kernel_width)), dtype=float)
             cmap._lcoup[:m] = np.asarray(links.get("coupling", np.zeros(m)), dtype=float)
+            kpos = links.get("kernel_position_information")  # states before it: the link's own x
+            cmap._lkpos[:m] = cmap._linfo[:m, 0] if kpos is None else np.asarray(kpos, dtype=float)
             if n == 0 or not np.all(np.isfinite(cmap._P[:n])):
                 raise InputError("cognitive-map state: node poses missing or not finite")
             ends = np.concatenate([cmap._src[:m], cmap._dst[:m]])

@@ -751,6 +751,16 @@ class MapperConfig(_Frozen):
         "is taken to be at the key frame. 4.5 chosen among 3 / 3.75 / 4.5 / 6 on the 24 simulated tuning runs (3 "
         "before, chosen for looming alone; docs/MODEL.md items 37 and 72) [ours]",
     )
+    looming_spread: float | None = Field(
+        0.5,
+        ge=0,
+        description="how far a scene's depth strays from view_distance_m, as a fraction of it: a recognition's "
+        "looming offset d along the key frame's view is then uncertain by this x |d| (LoopHypothesis.along_sigma), "
+        "and its loop link that much looser along the robot's heading in the solve, so that a deep or shallow view "
+        "read through view_distance_m bends the map's lengths less; the robust kernel still weighs the link at its "
+        "own information. 0.5: the spread of the simulated views' depths (docs/MODEL.md items 73 and 84), not "
+        "tuned; None or 0 = the link's information alone [ours]",
+    )
     shift_coupling: bool = Field(
         True,
         description="a recognition's image shift measures its heading plus its offset beside the key frame "

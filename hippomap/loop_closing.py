@@ -21,7 +21,7 @@ import numpy as np
 
 from .errors import InputError
 from .geometry import se2_between, se2_compose, se2_inverse
-from .loop_closure import Candidate, LoopDecision, LoopHypothesis, consistent, link_info3
+from .loop_closure import Candidate, LoopDecision, LoopHypothesis, consistent
 from .loop_pose import fit_group
 from .map_correction import MapCorrection
 from .map_events import LoopAccepted, LoopPending, LoopRejected, MapEvent
@@ -139,6 +139,7 @@ class LoopClosing(MapCorrection):
             cfg.loop_kernel_width if h.transform is not None else cfg.visual_kernel_width,
             h.coupling,
             (h.offset[2] + h.coupling * h.offset[1]) if h.coupling and h.offset is not None else 0.0,
+            h.along_sigma,
         )
 
     def _screen(self, h: LoopHypothesis, cand: Candidate) -> tuple[LoopDecision, str, bool]:
@@ -429,7 +430,7 @@ class LoopClosing(MapCorrection):
                 self._tr[k] = tr
                 self._kind[k] = LOOP
                 self._w[k] = 1.0
-                self._linfo[k] = link_info3(c.info)
+                self._set_info(k, c.info, c.along_sigma)
                 self._lkw[k] = c.kernel_width
                 self._lcoup[k] = c.coupling
                 self._version += 1
@@ -446,6 +447,7 @@ class LoopClosing(MapCorrection):
             info=c.info,
             kernel_width=c.kernel_width,
             coupling=c.coupling,
+            along_sigma=c.along_sigma,
         )
 
     def _trust(self, k: int) -> None:

@@ -114,6 +114,11 @@ class LoopHypothesis:
     alone (an image shift is a turn plus a sideways step over the scene's depth, so ``coupling`` =
     1 / that depth); 0 = the heading alone. The link then holds ``heading + coupling · lateral``
     with the heading's information and the lateral offset with its own (:func:`couple`).
+    ``along_sigma`` (m, visual only): how uncertain ``offset`` is along the key frame's view, on top of
+    ``information``: a recognition's looming reads the robot's step along the view through a scene depth
+    it does not know, so the larger the step, the less sure it is. The link's information along its x
+    axis (the robot's heading, which faces roughly as the key frame looked) is lowered to match in the
+    solve; the robust kernel still weighs the link at ``information``. 0 = ``information`` alone.
     """
 
     node: int
@@ -125,6 +130,7 @@ class LoopHypothesis:
     offset: tuple[float, float, float] | None = None
     information: tuple[float, float] | None = None
     coupling: float = 0.0
+    along_sigma: float = 0.0
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "node", node_id(self.node, "LoopHypothesis.node"))
@@ -145,6 +151,11 @@ class LoopHypothesis:
         if self.coupling < 0 or (self.coupling and self.transform is not None):
             raise InputError(
                 f"LoopHypothesis.coupling must be >= 0 and only on a visual hypothesis, got {self.coupling!r}"
+            )
+        object.__setattr__(self, "along_sigma", finite("LoopHypothesis.along_sigma", self.along_sigma))
+        if self.along_sigma < 0 or (self.along_sigma and self.transform is not None):
+            raise InputError(
+                f"LoopHypothesis.along_sigma must be >= 0 and only on a visual hypothesis, got {self.along_sigma!r}"
             )
         object.__setattr__(self, "evidence", finite("LoopHypothesis.evidence", self.evidence))
         object.__setattr__(self, "time", finite("LoopHypothesis.time", self.time))
@@ -170,6 +181,8 @@ class LoopHypothesis:
         }
         if self.coupling:  # absent when 0, as in records written before the field
             out["coupling"] = self.coupling
+        if self.along_sigma:  # absent when 0, as in records written before the field
+            out["along_sigma"] = self.along_sigma
         return out
 
     @classmethod
@@ -185,6 +198,7 @@ class LoopHypothesis:
             offset=None if o is None else tuple(o),
             information=None if i is None else tuple(i),
             coupling=d.get("coupling", 0.0),
+            along_sigma=d.get("along_sigma", 0.0),
         )
 
 
@@ -266,6 +280,7 @@ class Candidate:
     kernel_width: float = 1.0  # robust kernel width of the link, in its standard deviations
     coupling: float = 0.0  # the hypothesis' heading-lateral coupling (m^-1; LoopHypothesis.coupling)
     coupled_heading: float = 0.0  # what it measured: heading + coupling x lateral of the robot in the node frame
+    along_sigma: float = 0.0  # the hypothesis' along-track uncertainty (m; LoopHypothesis.along_sigma)
 
     @property
     def delta(self) -> tuple[float, float, float]:
@@ -291,7 +306,10 @@ class Candidate:
             "path": self.path,
             "info": list(self.info),
             "kernel_width": self.kernel_width,
-        } | ({"coupling": self.coupling, "coupled_heading": self.coupled_heading} if self.coupling else {})
+        } | (
+            ({"coupling": self.coupling, "coupled_heading": self.coupled_heading} if self.coupling else {})
+            | ({"along_sigma": self.along_sigma} if self.along_sigma else {})
+        )
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "Candidate":
@@ -310,6 +328,7 @@ class Candidate:
             float(d.get("kernel_width", 1.0)),
             float(d.get("coupling", 0.0)),
             float(d.get("coupled_heading", 0.0)),
+            float(d.get("along_sigma", 0.0)),
         )
 
 

@@ -78,6 +78,7 @@ class MapGraph:
         self._linfo = np.zeros((cap, 3))  # information (x, y, heading; source frame) of loop links
         self._lkw = np.ones(cap)  # robust kernel width of loop links (standard deviations)
         self._lcoup = np.zeros(cap)  # heading-lateral coupling of visual loop links (m^-1; loop_closure.couple)
+        self._lkpos = np.zeros(cap)  # information the kernel weighs a loop link's position error at (_kernel_weights)
         self._pairs: set[tuple[int, int]] = set()
         self._groups: ColourGroups | None = None
         self._groups_key = -1
@@ -217,7 +218,7 @@ class MapGraph:
 
     def _grow_links(self) -> None:
         cap = 2 * len(self._src)
-        for name in ("_src", "_dst", "_tr", "_dt", "_kind", "_col", "_w", "_linfo", "_lkw", "_lcoup"):
+        for name in ("_src", "_dst", "_tr", "_dt", "_kind", "_col", "_w", "_linfo", "_lkw", "_lcoup", "_lkpos"):
             old = getattr(self, name)
             new = np.zeros((cap,) + old.shape[1:], dtype=old.dtype)
             new[: len(old)] = old
@@ -247,6 +248,7 @@ class MapGraph:
         info: tuple[float, ...] | None = None,
         kernel_width: float | None = None,
         coupling: float = 0.0,
+        along_sigma: float = 0.0,
     ) -> int:
         """Append link a→b (ORS ``on_create_link``); -1 if the pair is already linked (either way)."""
         key = (min(a, b), max(a, b))
@@ -260,7 +262,7 @@ class MapGraph:
         self._dt[k] = dt
         self._kind[k] = kind
         self._w[k] = 1.0
-        self._linfo[k] = link_info3(self.cfg.loop_information if info is None else info)
+        self._set_info(k, self.cfg.loop_information if info is None else info, along_sigma)
         self._lkw[k] = self.cfg.loop_kernel_width if kernel_width is None else kernel_width
         self._lcoup[k] = coupling
         self._col[k] = colour_link(self._mask, a, b)
@@ -277,14 +279,20 @@ class MapGraph:
             self._w[k] = self._kernel_weights(r, np.array([k]))[0]
         return k
 
+    def _set_info(self, k: int, info: tuple[float, ...], along_sigma: float = 0.0) -> None:
+        """Link ``k``'s information, its x loosened by ``along_sigma`` (m) for the solve; the kernel keeps x."""
+        x, y, heading = link_info3(info)
+        self._lkpos[k] = x
+        self._linfo[k] = (1.0 / (1.0 / x + along_sigma**2) if along_sigma else x, y, heading)
+
     def _kernel_weights(self, r: np.ndarray, k: np.ndarray) -> np.ndarray:
         """The ``loop_kernel`` weights of the loop links ``k`` with residuals ``r`` (K, 3) in their source
-        frames (:func:`~hippomap.loop_closure.link_errors`), whitened by their kernel widths and
-        information, with the position residual taken as a distance at the along-track information:
-        a visual link's looser lateral information (``visual_lateral_information``) lets the odometry
-        place the robot beside the track in the solve, but a link the map puts far beside its key
-        frame is no likelier true for it (docs/MODEL.md item 57)."""
-        return kernel_weights(r, self._linfo[k][:, [0, 0, 2]], self._lkw[k], self.cfg.loop_kernel)
+        frames (:func:`~hippomap.loop_closure.link_errors`), whitened by their kernel widths and information,
+        the position residual taken as a distance at the along-track information the link had before any
+        looming uncertainty loosened it for the solve (``_lkpos``; docs/MODEL.md items 57 and 84): a looser x
+        or y lets the odometry place the robot in the solve, but a link far off its key frame is no likelier true."""
+        info = np.column_stack((self._lkpos[k], self._lkpos[k], self._linfo[k][:, 2]))
+        return kernel_weights(r, info, self._lkw[k], self.cfg.loop_kernel)
 
     def _rebuild_link_index(self, colours=None) -> None:
         m, n = self._m, self._n

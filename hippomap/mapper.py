@@ -6,10 +6,10 @@ Odometry drives the place code (grid cells -> place cells). A frame becomes a ke
 key frames of the nodes the map's loop gate admits (:meth:`CognitiveMap.loop_candidates`) and
 then learned into the visual memory, together with where it was taken relative to its node.
 An accepted recognition becomes a :class:`~hippomap.loop_closure.LoopHypothesis` whose offset
-is that pose, moved along the key frame's view by the image's scale change (looming) and turned
-by the image shift of the saccade correspondences when the camera's field of view is known,
-which the loop closing (:mod:`hippomap.loop_closure`) verifies and fits before the map closes the
-loop and relaxes.
+is that pose, moved along the key frame's view by the image's scale change (looming, held as
+uncertain as it is long) and turned by the image shift of the saccade correspondences when the
+camera's field of view is known, which the loop closing (:mod:`hippomap.loop_closure`) verifies
+and fits before the map closes the loop and relaxes.
 
 Inputs must come in time order; every call returns the events it caused, typed
 (:mod:`hippomap.map_events`: the map's, raised while the call ran, and the mapper's own;
@@ -278,6 +278,7 @@ class Mapper(KeyFrames):
         if rec.frame is None:
             return False
         meta: dict[str, Any] = {"recognition": rec_id, "frame": int(rec.frame)}
+        ahead = self._looming(rec)
         if search != "gated":
             meta["search"] = search
         hyp = LoopHypothesis(
@@ -287,8 +288,9 @@ class Mapper(KeyFrames):
             source="visual",
             time=t,
             meta=meta,
-            offset=self._visual_offset(rec, gray.shape[1]),
+            offset=self._visual_offset(rec, gray.shape[1], ahead),
             coupling=self._shift_coupling(rec),
+            along_sigma=(self.config.mapper.looming_spread or 0.0) * abs(ahead),
         )
         decision = self.cmap.propose_loop(hyp)
         events.append(LoopDecided(t, decision))
@@ -329,21 +331,27 @@ class Mapper(KeyFrames):
             return None
         return cast("dict[str, Any]", shift)
 
-    def _visual_offset(self, rec: Any, width: int) -> tuple[float, float, float]:
-        """The robot's pose in the matched node's frame as recognition tells it: where the
-        matched key frame was taken, moved along the key frame's view by the looming of the
-        saccade correspondences (:func:`~hippomap.loop_pose.looming_offset`: the scene
-        appears larger when the robot stands ahead of the key frame) when
-        ``mapper.view_distance_m`` is set, and turned by the heading the horizontal image shift
-        of the correspondences implies (a feature further right in the query than in memory
-        means the robot has turned left) when the camera's field of view is known."""
-        off = self.frame_offset.get(int(rec.frame), (0.0, 0.0, 0.0))
-        ahead, turn = 0.0, 0.0
+    def _looming(self, rec: Any) -> float:
+        """How far the robot stands ahead of the matched key frame along its view (m; negative: behind),
+        from the looming of the recognition's saccade correspondences
+        (:func:`~hippomap.loop_pose.looming_offset`: the scene appears larger when the robot stands ahead of
+        the key frame); 0 without ``mapper.view_distance_m`` or a usable pair of correspondences."""
         view = self.config.mapper.view_distance_m
         pairs = getattr(rec, "correspondences", None) or []
-        if view is not None and pairs:
-            d = looming_offset([c["query"] for c in pairs], [c["memory"] for c in pairs], view)
-            ahead = 0.0 if d is None else d
+        if view is None or not pairs:
+            return 0.0
+        d = looming_offset([c["query"] for c in pairs], [c["memory"] for c in pairs], view)
+        return 0.0 if d is None else d
+
+    def _visual_offset(self, rec: Any, width: int, ahead: float | None = None) -> tuple[float, float, float]:
+        """The robot's pose in the matched node's frame as recognition tells it: where the
+        matched key frame was taken, moved ``ahead`` along the key frame's view (:meth:`_looming` when
+        None), and turned by the heading the horizontal image shift of the correspondences implies (a
+        feature further right in the query than in memory means the robot has turned left) when the
+        camera's field of view is known."""
+        off = self.frame_offset.get(int(rec.frame), (0.0, 0.0, 0.0))
+        ahead = self._looming(rec) if ahead is None else ahead
+        turn = 0.0
         hfov = self.config.mapper.camera_hfov_deg
         shift = self._shift_of(rec)
         if hfov is not None and shift is not None:

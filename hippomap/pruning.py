@@ -180,6 +180,7 @@ class Pruning(LoopClosing):
         self._linfo[:ml] = self._linfo[:m][kl]
         self._lkw[:ml] = self._lkw[:m][kl]
         self._lcoup[:ml] = self._lcoup[:m][kl]
+        self._lkpos[:ml] = self._lkpos[:m][kl]
         self._kind[:ml] = self._kind[:m][kl]
         self._src[:ml], self._dst[:ml] = s_new, d_new
         self._m = ml

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -45,6 +46,22 @@ def feed(m: Mapper, items) -> list[str]:
         ev = m.step(item) if isinstance(item, Odometry) else m.observe(item)
         events.extend(json.dumps(e.to_dict(), sort_keys=True, default=float) for e in ev)
     return events
+
+
+def test_a_recognition_s_hypothesis_is_as_uncertain_along_the_view_as_its_looming_is_long(inputs):
+    """Every visual hypothesis the mapper offers carries ``along_sigma`` = ``mapper.looming_spread`` times the
+    looming offset its recognition's correspondences read (0 with the spread off), and an offset moved by it."""
+    for spread in (0.5, None):
+        m = Mapper(HippomapConfig.with_overrides({"mapper": {"looming_spread": spread}}))
+        feed(m, inputs)
+        visual = [d.hypothesis for d in m.cmap.loop_decisions if "recognition" in d.hypothesis.meta]
+        assert len(visual) >= 3
+        for h in visual:
+            rec = SimpleNamespace(**m.recognitions[h.meta["recognition"]])
+            ahead = m._looming(rec)
+            assert h.along_sigma == pytest.approx((spread or 0.0) * abs(ahead))
+        if spread:
+            assert sum(h.along_sigma > 0.02 for h in visual) >= len(visual) // 2
 
 
 def test_save_restore_continue_is_identical(inputs):
@@ -428,8 +445,6 @@ def test_a_recognition_shift_couples_heading_and_lateral_only_with_a_known_camer
     """The coupling a visual hypothesis carries: 1 / view_distance_m when the camera's field of view is
     known and the recognition has an image shift; 0 without the field of view, without a shift, or
     with mapper.shift_coupling off."""
-    from types import SimpleNamespace
-
     rec = SimpleNamespace(shift={"x": 4.0, "y": 0.0, "n": 5})
     known = HippomapConfig.model_validate({"mapper": {"camera_hfov_deg": 60.0, "view_distance_m": 4.0}})
     assert Mapper(known)._shift_coupling(rec) == pytest.approx(0.25)
