@@ -186,7 +186,7 @@ class LoopClosing(MapCorrection):
         drift exceeds any gate, so the gate cannot judge it. It waits, without a link, for ``outside_min_support``
         − 1 others of the same kind within ``outside_window_m`` of path that agree with it in space
         (:func:`consistent`: the distance driven between two proposals equals the distance between
-        the places they name) and in sequence (the old path between the two named nodes is as long
+        the places they name) and in sequence (the old path between the two named places is as long
         as the path driven between the proposals, within ``loop_consistency_m`` + 10 %); the group
         must then fit one SE(2) transform (:meth:`_fit_group`). A fitted group
         becomes verified loop links at weight 1 and the whole map is solved; a lone or
@@ -195,13 +195,14 @@ class LoopClosing(MapCorrection):
         P, S = self._P, self._S
         self._expire_outside(t)
         older = [c for c in book.outside if c.step != cand.step]
-        # consistent in space, and in sequence: a revisit retraces the old path, so the old path between
-        # the two named nodes is as long as the robot's path between the two proposals
+        # consistent in space, and in sequence: a revisit retraces the old path, so the old path between the two
+        # named places (each node's path, plus how far ahead of it the hypothesis puts the robot) is as long as
+        # the robot's path between the two proposals
         ok = [
             c
             for c, good in zip(older, consistent(cfg, older, cand, P, S))
             if good
-            and abs((S[cand.node] - S[c.node]) - (cand.path - c.path))
+            and abs((S[cand.node] + cand.ahead - S[c.node] - c.ahead) - (cand.path - c.path))
             < cfg.loop_consistency_m + 0.1 * abs(cand.path - c.path)
         ]
         group = self._fit_group(ok + [cand], []) if 1 + len(ok) >= cfg.outside_min_support else None

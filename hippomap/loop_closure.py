@@ -287,6 +287,12 @@ class Candidate:
         """The robot's pose in the frame of ``from_node`` at the proposal."""
         return se2_compose(self.link_tr, se2_inverse(self.M))
 
+    @property
+    def ahead(self) -> float:
+        """How far ahead of its node, along the node's heading, the hypothesis puts the robot (m; its offset's
+        x: the looming of item 37): the place it names lies that far on along the old path."""
+        return se2_inverse(self.M)[0]
+
     def with_offset(self, offset) -> "Candidate":
         """The same candidate with the robot at ``offset`` in the node's frame."""
         M = se2_inverse(offset)

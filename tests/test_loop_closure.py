@@ -515,6 +515,35 @@ def test_recognitions_outside_the_gate_close_the_loop_only_as_a_consistent_group
         assert cmap.link_count == cmap.node_count - 1
 
 
+@pytest.mark.parametrize("told", [True, False])
+def test_a_group_outside_the_gate_is_in_sequence_by_the_places_it_names_not_its_nodes(told):
+    """Three recognitions 1 m apart on a revisit far outside the gate; the third names the key frame 0.8 m behind
+    the robot, and its offset says so (looming, item 37). The old path between the places they name (each node's
+    path plus its offset along it) matches the path driven, so they make a group; told nothing of the offset
+    (the robot put on the node), the third is 0.8 m out of sequence and the group does not form."""
+    inc, gt, odo, noisy = _drifting_square()
+    first_lap = len(inc) // 2
+    at = {first_lap + 100: 0, first_lap + 110: 0, first_lap + 120: 8}  # proposal step: how far behind it names
+
+    def hyps(k, cmap, node_at, off):
+        if k not in at:
+            return []
+        h = _visual(gt, node_at, off, k, k - first_lap - at[k], search=None)
+        assert h.offset is not None and (h.offset[0] > 0.7 if at[k] else abs(h.offset[0]) < 0.2)
+        return [h if told else LoopHypothesis(h.node, source="visual", time=h.time, meta=h.meta)]
+
+    cmap = CognitiveMap(MapConfig())
+    drive(cmap, noisy[: first_lap + 130], hypotheses=hyps)
+    rows = cmap.loop_rows()
+    assert len(rows) == 3 and all(r["gate_distance_m"] > r["gate_limit_m"] for r in rows)  # all outside the gate
+    if told:
+        assert [r["status"] for r in rows] == ["accepted"] * 3
+        assert "verified by a group" in rows[2]["reason"]
+    else:
+        assert [r["status"] for r in rows] == ["pending"] * 3  # two in sequence, the third not: no group of three
+        assert cmap.link_count == cmap.node_count - 1  # no loop link
+
+
 @pytest.mark.parametrize("search", ["global", None])
 def test_inconsistent_recognitions_outside_the_gate_expire_without_touching_the_map(search):
     inc, gt, odo, noisy = _drifting_square()
