@@ -704,3 +704,44 @@ def test_paired_timing_alternates_the_two_sides_and_takes_the_median_ratio(short
     ates[0.03] = 0.1
     sweep = bench_maps.run_ors_sweep(Path("ors"), Path("peer"), short_run, (96, 72), [0.02, 0.03], tmp_path, None)
     assert not sweep["best_is_stock"] and sweep["best"]["threshold"] == 0.03
+
+
+def test_closure_bound_ate_ignores_a_rigid_motion_and_counts_an_offset():
+    import bench_closure_bound
+
+    rng = np.random.default_rng(3)
+    T = np.column_stack([rng.uniform(-5, 5, (40, 2)), rng.uniform(-3, 3, 40)])
+    c, s = np.cos(0.7), np.sin(0.7)
+    moved = T.copy()
+    moved[:, :2] = T[:, :2] @ np.array([[c, s], [-s, c]]) + [3.0, -2.0]
+    assert bench_closure_bound.node_ate(moved, T) == pytest.approx(0.0, abs=1e-9)
+    bent = T.copy()
+    bent[::2, 0] += 0.2  # half the nodes 0.2 m off, the other half on: no rigid motion undoes that
+    assert 0.05 < bench_closure_bound.node_ate(bent, T) < 0.2
+
+
+def test_closure_bound_revisits_are_earlier_places_passed_long_before_and_facing_alike():
+    import bench_closure_bound
+
+    # a 10 m straight line driven east, then back west 0.3 m beside it, then east again on it
+    x = np.arange(0.0, 10.0, 0.5)
+    east = np.column_stack([x, np.zeros_like(x), np.zeros_like(x)])
+    west = np.column_stack([x[::-1], np.full_like(x, 0.3), np.full_like(x, np.pi)])
+    T = np.vstack([east, west, east])
+    path = np.arange(len(T)) * 0.5
+    later, earlier = bench_closure_bound.revisit_pairs(T, path, within_m=1.0, within_rad=0.8, after_m=5.0)
+    # the way back faces the other way: no revisit; the third pass finds each place of the first
+    assert set(later) == set(range(2 * len(x), 3 * len(x)))
+    assert np.array_equal(earlier, later - 2 * len(x))
+
+
+def test_closure_bound_solves_the_map_s_own_graph_back_to_the_map(short_run):
+    import bench_closure_bound
+
+    args = argparse.Namespace(iterations=30, revisit_m=1.0, revisit_rad=0.8, revisit_path=30.0)
+    r = bench_closure_bound.bound(short_run, None, args)
+    assert r["used loop links"] > 0 and r["revisit links"] > 0
+    # re-solving the finished graph gives back the map; true loop links and every revisit give a better one
+    assert r["as is"] == pytest.approx(r["map"], rel=0.1, abs=0.01)
+    assert r["true links"] < r["as is"]
+    assert r["every revisit"] < r["as is"]
