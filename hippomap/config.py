@@ -638,6 +638,15 @@ class MapConfig(_Frozen):
         "so odometry decides there; None = as x/y. 10 chosen among 3 / 10 / 30 / None on the simulated tuning runs "
         "[ours, docs/MODEL.md item 41]",
     )
+    visual_solve_loosening: float = Field(
+        3.0,
+        ge=1,
+        description="a visual loop link's x and y information in the solve is divided by this; the robust kernel "
+        "still judges the link at the undivided x (as looming's along_sigma, item 84): the several links one "
+        "revisit makes share one error (one offset beside the path, one depth misread), so at full information "
+        "together they outweighed the odometry beside them. 3 chosen among 1 / 2 / 3 / 5 / 8 on the simulated "
+        "tuning runs [ours, docs/MODEL.md item 88]",
+    )
     loop_information: tuple[_Positive, _Positive] = Field(
         (100.0, 1000.0),
         description="information of a loop link (x/y, heading): the middle of the B25b g2o loop "

@@ -420,6 +420,7 @@ class LoopClosing(MapCorrection):
         prev → A is added. Without an arrival link there is nothing to link (-1): the hypothesis
         only corrects the robot's offset when it relocalises.
         """
+        loosen = 1.0 if c.measured else self.cfg.visual_solve_loosening
         if c.node != c.from_node:
             source, tr = c.from_node, c.link_tr
         else:
@@ -431,7 +432,7 @@ class LoopClosing(MapCorrection):
                 self._tr[k] = tr
                 self._kind[k] = LOOP
                 self._w[k] = 1.0
-                self._set_info(k, c.info, c.along_sigma)
+                self._set_info(k, c.info, c.along_sigma, loosen)
                 self._lkw[k] = c.kernel_width
                 self._lcoup[k] = c.coupling
                 self._version += 1
@@ -449,6 +450,7 @@ class LoopClosing(MapCorrection):
             kernel_width=c.kernel_width,
             coupling=c.coupling,
             along_sigma=c.along_sigma,
+            loosen=loosen,
         )
 
     def _trust(self, k: int) -> None:

@@ -324,7 +324,8 @@ class MapCorrection(HeadingBranches):
         and prune links ``odometry_information_per_m / length`` (variance grows with the path;
         lengths below 5 cm count as 5 cm), the heading's variance also ``odometry_turn_variance``
         per radian turned; loop links their own (``loop_information``, ``visual_loop_information`` with
-        ``visual_lateral_information``, x loosened by a looming offset's ``along_sigma``)."""
+        ``visual_lateral_information``, x loosened by a looming offset's ``along_sigma``, a visual link's x and y
+        divided by ``visual_solve_loosening``)."""
         m = self._m
         cfg = self.cfg
         length = np.maximum(np.hypot(self._tr[:m, 0], self._tr[:m, 1]), 0.05)

@@ -249,6 +249,7 @@ class MapGraph:
         kernel_width: float | None = None,
         coupling: float = 0.0,
         along_sigma: float = 0.0,
+        loosen: float = 1.0,
     ) -> int:
         """Append link a→b (ORS ``on_create_link``); -1 if the pair is already linked (either way)."""
         key = (min(a, b), max(a, b))
@@ -262,7 +263,7 @@ class MapGraph:
         self._dt[k] = dt
         self._kind[k] = kind
         self._w[k] = 1.0
-        self._set_info(k, self.cfg.loop_information if info is None else info, along_sigma)
+        self._set_info(k, self.cfg.loop_information if info is None else info, along_sigma, loosen)
         self._lkw[k] = self.cfg.loop_kernel_width if kernel_width is None else kernel_width
         self._lcoup[k] = coupling
         self._col[k] = colour_link(self._mask, a, b)
@@ -279,18 +280,17 @@ class MapGraph:
             self._w[k] = self._kernel_weights(r, np.array([k]))[0]
         return k
 
-    def _set_info(self, k: int, info: tuple[float, ...], along_sigma: float = 0.0) -> None:
-        """Link ``k``'s information, its x loosened by ``along_sigma`` (m) for the solve; the kernel keeps x."""
+    def _set_info(self, k: int, info: tuple[float, ...], along_sigma: float = 0.0, loosen: float = 1.0) -> None:
+        """Link ``k``'s information; for the solve x loosened by ``along_sigma`` (m), x and y divided by ``loosen``."""
         x, y, heading = link_info3(info)
         self._lkpos[k] = x
-        self._linfo[k] = (1.0 / (1.0 / x + along_sigma**2) if along_sigma else x, y, heading)
+        self._linfo[k] = ((1.0 / (1.0 / x + along_sigma**2) if along_sigma else x) / loosen, y / loosen, heading)
 
     def _kernel_weights(self, r: np.ndarray, k: np.ndarray) -> np.ndarray:
-        """The ``loop_kernel`` weights of the loop links ``k`` with residuals ``r`` (K, 3) in their source
-        frames (:func:`~hippomap.loop_closure.link_errors`), whitened by their kernel widths and information,
-        the position residual taken as a distance at the along-track information the link had before any
-        looming uncertainty loosened it for the solve (``_lkpos``; docs/MODEL.md items 57 and 84): a looser x
-        or y lets the odometry place the robot in the solve, but a link far off its key frame is no likelier true."""
+        """The ``loop_kernel`` weights of the loop links ``k`` with residuals ``r`` (K, 3) in their source frames
+        (:func:`~hippomap.loop_closure.link_errors`), whitened by their kernel widths and information, the position
+        residual a distance at the x information the link had before the solve's loosening (``_lkpos``; MODEL items
+        57, 84, 88): looser x or y lets odometry place the robot; a link far off its key frame is no likelier true."""
         info = np.column_stack((self._lkpos[k], self._lkpos[k], self._linfo[k][:, 2]))
         return kernel_weights(r, info, self._lkw[k], self.cfg.loop_kernel)
 
