@@ -15,8 +15,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
-from hippomap.cli.run import open_dataset, run_dataset, write_run
+from hippomap.cli.run import link_error, open_dataset, run_dataset, write_run
 from hippomap.cognitive_map import CognitiveMap, LoopHypothesis
 from hippomap.config import HippomapConfig, MapConfig
 from hippomap.errors import InputError
@@ -395,3 +397,37 @@ def test_exports_refuse_what_they_cannot_write(server):
             with pytest.raises(ServerError) as e:
                 fn("s_0000000000000000", Path(server.data_dir) / "never.zip")
             assert e.value.status == 404
+
+
+def test_a_link_error_is_split_along_and_beside_the_view_of_the_node_it_names():
+    """Ground truth puts node ``to`` 1 m further ahead and 0.5 m further left, in the frame the link gives it,
+    and turned 0.1 rad further: ``link_error_along_m`` +1, ``link_error_beside_m`` +0.5, 0.1 rad; the same
+    pair seen in any frame of the world (both true poses moved by one rigid motion) gives the same parts."""
+    claim = (2.0, 1.0, 0.0)  # where the link says node ``to`` lies in the frame of node ``from``
+    t = np.array([0.0, 1.0])
+
+    def errors(world):
+        gt = compose(np.asarray(world, dtype=float), np.array([[0.0, 0.0, 0.0], [3.0, 1.5, 0.1]]))
+        return link_error((t, gt), 0.0, 1.0, claim)
+
+    e = errors((0.0, 0.0, 0.0))
+    assert e["link_error_along_m"] == pytest.approx(1.0) and e["link_error_beside_m"] == pytest.approx(0.5)
+    assert e["link_error_m"] == pytest.approx(math.hypot(1.0, 0.5)) and e["link_error_rad"] == pytest.approx(0.1)
+    assert errors((-4.0, 7.0, 2.5)) == pytest.approx(e)
+    assert link_error((t, np.zeros((2, 3))), 0.0, 5.0, claim) == {}  # ground truth has no pose at t = 5
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    st.tuples(*(st.floats(-5, 5),) * 2, st.floats(-3, 3)),
+    st.tuples(*(st.floats(-5, 5),) * 2, st.floats(-3, 3)),
+)
+def test_a_link_error_has_its_position_error_as_the_length_of_its_two_parts(claim, truth):
+    """Whatever the claim and the truth, the along and beside parts are the position error's two components:
+    their length is ``link_error_m``, and a claim equal to the truth has no error."""
+    t = np.array([0.0, 1.0])
+    gt = np.array([[0.0, 0.0, 0.0], truth])
+    e = link_error((t, gt), 0.0, 1.0, claim)
+    assert math.hypot(e["link_error_along_m"], e["link_error_beside_m"]) == pytest.approx(e["link_error_m"], abs=1e-9)
+    exact = link_error((t, gt), 0.0, 1.0, truth)
+    assert max(abs(exact["link_error_along_m"]), abs(exact["link_error_beside_m"]), exact["link_error_rad"]) < 1e-9

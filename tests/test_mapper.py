@@ -4,6 +4,7 @@ uninterrupted run, and rejected input never changes its state."""
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -161,6 +162,15 @@ def test_run_command_on_a_simulated_folder(tmp_path, capsys):
     assert metrics["loop_closures"]["used"] > 0
     assert metrics["loop_closures"]["used_false"] == 0  # a false hypothesis may be linked, but faded
     assert metrics["map"]["ate"]["rmse"] < metrics["odometry"]["ate"]["rmse"]
+    # the used links' error against ground truth, whole and in its parts, each part no larger than the whole
+    errors, parts = metrics["loop_closures"]["link_error_m"], metrics["loop_closures"]["link_error_parts"]
+    assert set(parts) == {"along_m", "beside_m", "heading_rad"}
+    assert 0 < errors["median"] < 1.0
+    assert parts["along_m"]["max"] <= errors["max"] + 1e-9 and parts["beside_m"]["max"] <= errors["max"] + 1e-9
+    decisions = json.loads((out / "loop_closures.json").read_text())
+    used = [d for d in decisions if d["used"]]
+    for d in used:
+        assert math.hypot(d["link_error_along_m"], d["link_error_beside_m"]) == pytest.approx(d["link_error_m"])
     revisits = metrics["loop_closures"]["revisits"]  # the laps after the first revisit it: closed
     assert revisits["episodes"] >= 1 and revisits["closed"] == revisits["episodes"] and revisits["missed"] == []
     for name in ("map.tum", "odometry.tum", "map.g2o", "map.json", "loop_closures.json", "map.png"):

@@ -116,13 +116,18 @@ def test_a_missed_episode_says_what_the_mapper_did_along_it():
     def rec(t, search, n, d):
         return {"t": t, "search": search, "candidates": n, "groundtruth_distance_m": d}
 
-    def row(t, status, d, used):
-        return {"hypothesis": {"time": t}, "status": status, "groundtruth_distance_m": d, "used": used}
+    def row(t, status, d, used, along=None, beside=0.0, heading=0.0):
+        r = {"hypothesis": {"time": t}, "status": status, "groundtruth_distance_m": d, "used": used}
+        if along is not None:  # hippomap run's link_error_* of an accepted link
+            r |= {"link_error_m": math.hypot(along, beside), "link_error_along_m": along}
+            r |= {"link_error_beside_m": beside, "link_error_rad": abs(heading)}
+        return r
 
     recs = [rec(5.0, "gated", 9, 0.1), rec(11.0, "gated", 300, 0.5), rec(12.0, "global", 900, None)]
     recs += [rec(13.0, "gated", 310, 1.9), rec(15.0, "gated", 320, 6.0), rec(25.0, "gated", 5, 0.2)]
-    loops = [row(5.0, "accepted", 0.1, True), row(11.0, "accepted", 0.5, False), row(13.0, "accepted", 1.9, True)]
-    loops += [row(15.0, "accepted", 6.0, False), row(16.0, "rejected", 0.3, False)]
+    loops = [row(5.0, "accepted", 0.1, True, 0.1), row(11.0, "accepted", 0.5, False, 0.6, -0.8, -0.2)]
+    loops += [row(13.0, "accepted", 1.9, True, 0.05), row(15.0, "accepted", 6.0, False, 3.0)]
+    loops += [row(16.0, "rejected", 0.3, False)]
     explain_missed(missed, recs, loops)
     assert missed[0]["why"] == {
         "recognitions": 4,
@@ -132,8 +137,41 @@ def test_a_missed_episode_says_what_the_mapper_did_along_it():
         "named_false": 1,
         "true_links_used": 1,
         "true_links_faded": 1,
+        # the one true link faded (the false one at 6 m and the used one do not count), absolute parts
+        "faded_link_error": pytest.approx({"m": 1.0, "along_m": 0.6, "beside_m": 0.8, "heading_rad": 0.2}),
     }
     assert missed[1]["why"]["recognitions"] == 0 and missed[1]["why"]["candidates_median"] is None
+    assert missed[1]["why"]["faded_link_error"] is None  # no faded link there
+
+
+def test_a_missed_episode_gives_the_median_error_of_its_faded_links_and_none_without_ground_truth():
+    """Three true links faded along one episode: each part of their error is the median of its absolute
+    values; a faded link without a ground-truth error (its times outside the ground truth) is left out, and
+    an episode whose faded links have none says None."""
+    missed = [{"t0": 0.0, "t1": 10.0}, {"t0": 20.0, "t1": 30.0}]
+    loops = []
+    for t, along, beside in ((1.0, 1.5, -0.2), (2.0, -0.4, 0.9), (3.0, 0.7, -1.1)):
+        loops.append(
+            {
+                "hypothesis": {"time": t},
+                "status": "accepted",
+                "groundtruth_distance_m": 1.0,
+                "used": False,
+                "link_error_m": math.hypot(along, beside),
+                "link_error_along_m": along,
+                "link_error_beside_m": beside,
+                "link_error_rad": 0.1 * t,
+            }
+        )
+    loops.append({"hypothesis": {"time": 4.0}, "status": "accepted", "groundtruth_distance_m": 1.0, "used": False})
+    loops.append({"hypothesis": {"time": 21.0}, "status": "accepted", "groundtruth_distance_m": 1.0, "used": False})
+    explain_missed(missed, [], loops)
+    why = missed[0]["why"]
+    assert why["true_links_faded"] == 4
+    assert why["faded_link_error"] == pytest.approx(
+        {"m": math.hypot(0.7, 1.1), "along_m": 0.7, "beside_m": 0.9, "heading_rad": 0.2}
+    )
+    assert missed[1]["why"]["true_links_faded"] == 1 and missed[1]["why"]["faded_link_error"] is None
 
 
 def test_two_separate_revisits_are_counted_apart():

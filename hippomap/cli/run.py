@@ -20,7 +20,13 @@ import numpy as np
 
 from ..config import HippomapConfig
 from ..errors import InputError
-from ..eval.evaluation import LOOP_TRUTH_DISTANCE_M, groundtruth_at, groundtruth_distance, trajectory_metrics
+from ..eval.evaluation import (
+    LINK_ERROR_PARTS,
+    LOOP_TRUTH_DISTANCE_M,
+    groundtruth_at,
+    groundtruth_distance,
+    trajectory_metrics,
+)
 from ..eval.revisits import closed_revisits, explain_missed
 from ..extras import check
 from ..geometry import between
@@ -139,12 +145,45 @@ def recognition_report(m: Mapper, gt: tuple[np.ndarray, np.ndarray]) -> list[dic
 def link_error(gt: tuple[np.ndarray, np.ndarray], t_from: float, t_to: float, transform) -> dict[str, float]:
     """Error of a loop link against ground truth: the link says where node ``to`` lies in the
     frame of node ``from``; ground truth says it from the robot's true poses when the two nodes
-    were made (a node is made at the robot's pose). Empty when ground truth misses a time."""
+    were made (a node is made at the robot's pose). Empty when ground truth misses a time.
+
+    ``link_error_m`` and ``link_error_rad``: the position and heading error. The position error in
+    the frame the link puts node ``to`` in, signed: ``link_error_along_m`` along that node's heading
+    (for a visual link, the key frame's view: the direction looming reads; positive when the node truly
+    lies further ahead than the link says, a reading that put the robot too near its key frame) and
+    ``link_error_beside_m`` across it (positive to its left)."""
     a, b = groundtruth_at(gt, t_from), groundtruth_at(gt, t_to)
     if a is None or b is None:
         return {}
     e = between(np.asarray(transform, dtype=float), between(a, b))
-    return {"link_error_m": float(np.hypot(e[0], e[1])), "link_error_rad": float(abs(e[2]))}
+    return {
+        "link_error_m": float(np.hypot(e[0], e[1])),
+        "link_error_rad": float(abs(e[2])),
+        "link_error_along_m": float(e[0]),
+        "link_error_beside_m": float(e[1]),
+    }
+
+
+def _summary(values: list[float]) -> dict[str, float]:
+    """Mean, median and max of ``values`` (not empty)."""
+    return {"mean": float(np.mean(values)), "median": float(np.median(values)), "max": float(np.max(values))}
+
+
+def _link_errors(used: list[dict[str, Any]]) -> dict[str, Any]:
+    """``link_error_m``: the summary of the ``used`` links' errors against ground truth (:func:`link_error`);
+    ``link_error_parts``: of their absolute parts, along the view of the key frame each names, beside it and in
+    heading: which part of the links is off. Empty when no used link has a ground-truth error."""
+    errs = [r for r in used if "link_error_m" in r]
+    if not errs:
+        return {}
+    return {
+        "link_error_m": _summary([r["link_error_m"] for r in errs]),
+        "link_error_parts": {
+            part: _summary([abs(r[key]) for r in errs if key in r])
+            for part, key in LINK_ERROR_PARTS.items()
+            if part != "m"
+        },
+    }
 
 
 def write_run(
@@ -186,13 +225,7 @@ def write_run(
         missed = metrics["loop_closures"]["revisits"]["missed"]
         if missed:  # the recognitions' ground truth is only needed to explain a miss
             explain_missed(missed, recognition_report(m, dataset.groundtruth), loops)
-        errs = [r["link_error_m"] for r in used if "link_error_m" in r]
-        if errs:
-            metrics["loop_closures"]["link_error_m"] = {
-                "mean": float(np.mean(errs)),
-                "median": float(np.median(errs)),
-                "max": float(np.max(errs)),
-            }
+        metrics["loop_closures"].update(_link_errors(used))
     segs = []
     if len(t):
         for r in used:

@@ -13,6 +13,14 @@ from ..io.exports import to_evo
 
 #: a loop closure is true when ground truth puts its two places closer than this [ours]
 LOOP_TRUTH_DISTANCE_M = 2.0
+#: the parts of a loop link's ground-truth error (``hippomap run``'s ``link_error_*`` per closure), by the name
+#: ``metrics.json`` gives them: position, along and beside the view of the node it names, heading
+LINK_ERROR_PARTS = {
+    "m": "link_error_m",
+    "along_m": "link_error_along_m",
+    "beside_m": "link_error_beside_m",
+    "heading_rad": "link_error_rad",
+}
 
 
 def groundtruth_at(gt: tuple[np.ndarray, np.ndarray], t: float, tol: float = 0.5) -> np.ndarray | None:

@@ -22,7 +22,7 @@ from scipy.spatial import cKDTree
 
 from ..errors import InputError
 from ..geometry import path_lengths, wrap_angle
-from .evaluation import LOOP_TRUTH_DISTANCE_M
+from .evaluation import LINK_ERROR_PARTS, LOOP_TRUTH_DISTANCE_M
 
 #: within this of an earlier place, the robot revisits it [ours]
 REVISIT_RADIUS_M = 1.5
@@ -183,7 +183,10 @@ def explain_missed(
     ``LOOP_TRUTH_DISTANCE_M`` of the robot. From ``loops`` (the loop decisions' rows, as ``hippomap run``
     writes them): how many true ones the map accepted and uses, and how many it accepted and faded. An
     episode nothing recognised lost its loop in recognition; one whose true links faded, in
-    verification."""
+    verification, and then ``faded_link_error`` says how far those links were from ground truth (the
+    median of each part of their ``link_error_*``: position ``m``, ``along_m`` and ``beside_m`` the key
+    frame's view, ``heading_rad``; absolute values), which says what misled them: looming's reading along
+    the view, the image shift's across it, or neither (None when no faded link has a ground-truth error)."""
     rt = np.array([float(r["t"]) for r in recognitions])
     lt = np.array([float(r["hypothesis"]["time"]) for r in loops])
     for e in missed:
@@ -204,7 +207,20 @@ def explain_missed(
             "named_false": sum(d >= LOOP_TRUTH_DISTANCE_M for d in named),
             "true_links_used": sum(bool(r["used"]) for r in true_acc),
             "true_links_faded": sum(not r["used"] for r in true_acc),
+            "faded_link_error": _median_errors([r for r in true_acc if not r["used"]]),
         }
+
+
+def _median_errors(rows: list[dict[str, Any]]) -> dict[str, float] | None:
+    """The median absolute value of each part of the rows' link errors; None when no row has one."""
+    rows = [r for r in rows if "link_error_m" in r]
+    if not rows:
+        return None
+    return {
+        part: float(np.median([abs(r[key]) for r in rows if key in r]))
+        for part, key in LINK_ERROR_PARTS.items()
+        if any(key in r for r in rows)
+    }
 
 
 def closed_revisits(groundtruth: tuple[Any, Any], closure_times: Any) -> dict[str, Any]:
