@@ -1053,19 +1053,35 @@ def revisit_lines(ok: list[dict[str, Any]]) -> list[str]:
         )
     missed = [
         f"{world_label(r)} {r['seed']} {r['size']} {r['texture']} "
-        + ", ".join(
-            f"{e['length_m']:.0f} m at {e['path_m']:.0f} m"
-            + (f" ({e['heading_deg']:.0f}°)" if e.get("heading_deg") is not None else "")
-            for e in r["hippomap"]["revisits"]["missed"]
-        )
+        + ", ".join(missed_text(e) for e in r["hippomap"]["revisits"]["missed"])
         for r in hm
         if r["hippomap"]["revisits"]["missed"]
     ]
     return [line] + (
-        [f"- hippomap missed (episode length at path, and the heading from the earlier pass): {'; '.join(missed)}"]
+        [
+            "- hippomap missed (episode length at path, the heading from the earlier pass, and the true links it "
+            f"faded there with their median error: position, along / beside the key frame's view): {'; '.join(missed)}"
+        ]
         if missed
         else []
     )
+
+
+def missed_text(e: dict[str, Any]) -> str:
+    """One missed revisit episode for :func:`revisit_lines`: its length at its path, the heading from the earlier
+    pass, and when true links faded there (``why``, :func:`hippomap.eval.revisits.explain_missed`) how many and how
+    far off at the median; each part only when the row has it (rows from before it was measured have not)."""
+    text = f"{e['length_m']:.0f} m at {e['path_m']:.0f} m"
+    if e.get("heading_deg") is not None:
+        text += f" ({e['heading_deg']:.0f}°)"
+    why = e.get("why") or {}
+    err = why.get("faded_link_error")
+    if why.get("true_links_faded") and err:
+        text += (
+            f" [{why['true_links_faded']} true faded, {err['m']:.2f} m off: "
+            f"{err['along_m']:.2f} / {err['beside_m']:.2f} m]"
+        )
+    return text
 
 
 def bicocca_table(rows: list[dict[str, Any]]) -> list[str]:

@@ -162,10 +162,27 @@ def test_revisit_lines_total_the_runs_and_name_the_episodes_missed():
 
     lines = bench_maps.revisit_lines([row(3, 1, 0), row(4, 2, 1)])
     assert "hippomap 3 of 4; ORS best 1 of 4 (2 runs)" in lines[0]
-    label = "- hippomap missed (episode length at path, and the heading from the earlier pass): "
+    label = (
+        "- hippomap missed (episode length at path, the heading from the earlier pass, and the true links it faded "
+        "there with their median error: position, along / beside the key frame's view): "
+    )
     assert lines[1] == label + "bicocca 3 640x480 procedural 11 m at 406 m"  # no heading: rows from before it
     lines = bench_maps.revisit_lines([row(3, 1, 0, heading=84.6)])
     assert lines[1] == label + "bicocca 3 640x480 procedural 11 m at 406 m (85°)"
+    # the true links faded there, with the median of their errors (explain_missed's why)
+    faded = row(3, 1, 0, heading=0.4)
+    err = {"m": 1.304, "along_m": 0.677, "beside_m": 0.994, "heading_rad": 0.18}
+    faded["hippomap"]["revisits"]["missed"] = [
+        {**faded["hippomap"]["revisits"]["missed"][0], "why": {"true_links_faded": 4, "faded_link_error": err}}
+    ]
+    lines = bench_maps.revisit_lines([faded])
+    assert (
+        lines[1] == label + "bicocca 3 640x480 procedural 11 m at 406 m (0°) [4 true faded, 1.30 m off: 0.68 / 0.99 m]"
+    )
+    # none faded, or a row from before the errors were measured: nothing added
+    for why in ({"true_links_faded": 0, "faded_link_error": None}, {"true_links_faded": 2}):
+        faded["hippomap"]["revisits"]["missed"][0]["why"] = why
+        assert bench_maps.revisit_lines([faded])[1] == label + "bicocca 3 640x480 procedural 11 m at 406 m (0°)"
     assert bench_maps.revisit_lines([{**row(3, 1, 0), "hippomap": {}}]) == []  # rows from before it was measured
 
 
