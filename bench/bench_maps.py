@@ -81,7 +81,7 @@ import peers  # noqa: E402
 from hippomap.cli.run import dataset_config, open_dataset, run_dataset, write_run  # noqa: E402
 from hippomap.config import HippomapConfig  # noqa: E402
 from hippomap.eval.evaluation import groundtruth_at, groundtruth_distance, trajectory_metrics  # noqa: E402
-from hippomap.eval.revisits import closed_revisits  # noqa: E402
+from hippomap.eval.revisits import closed_revisits, describe_missed  # noqa: E402
 from hippomap.geometry import between, wrap_angle  # noqa: E402
 from hippomap.inputs import Frame, Odometry  # noqa: E402
 from hippomap.mapper import Mapper  # noqa: E402
@@ -1053,7 +1053,7 @@ def revisit_lines(ok: list[dict[str, Any]]) -> list[str]:
         )
     missed = [
         f"{world_label(r)} {r['seed']} {r['size']} {r['texture']} "
-        + ", ".join(missed_text(e) for e in r["hippomap"]["revisits"]["missed"])
+        + ", ".join(describe_missed(e) for e in r["hippomap"]["revisits"]["missed"])
         for r in hm
         if r["hippomap"]["revisits"]["missed"]
     ]
@@ -1065,23 +1065,6 @@ def revisit_lines(ok: list[dict[str, Any]]) -> list[str]:
         if missed
         else []
     )
-
-
-def missed_text(e: dict[str, Any]) -> str:
-    """One missed revisit episode for :func:`revisit_lines`: its length at its path, the heading from the earlier
-    pass, and when true links faded there (``why``, :func:`hippomap.eval.revisits.explain_missed`) how many and how
-    far off at the median; each part only when the row has it (rows from before it was measured have not)."""
-    text = f"{e['length_m']:.0f} m at {e['path_m']:.0f} m"
-    if e.get("heading_deg") is not None:
-        text += f" ({e['heading_deg']:.0f}°)"
-    why = e.get("why") or {}
-    err = why.get("faded_link_error")
-    if why.get("true_links_faded") and err:
-        text += (
-            f" [{why['true_links_faded']} true faded, {err['m']:.2f} m off: "
-            f"{err['along_m']:.2f} / {err['beside_m']:.2f} m]"
-        )
-    return text
 
 
 def bicocca_table(rows: list[dict[str, Any]]) -> list[str]:

@@ -173,6 +173,7 @@ def test_run_command_on_a_simulated_folder(tmp_path, capsys):
         assert math.hypot(d["link_error_along_m"], d["link_error_beside_m"]) == pytest.approx(d["link_error_m"])
     revisits = metrics["loop_closures"]["revisits"]  # the laps after the first revisit it: closed
     assert revisits["episodes"] >= 1 and revisits["closed"] == revisits["episodes"] and revisits["missed"] == []
+    assert f"revisits closed {revisits['closed']} of {revisits['episodes']}\n" in printed  # and nothing missed
     for name in ("map.tum", "odometry.tum", "map.g2o", "map.json", "loop_closures.json", "map.png"):
         assert (out / name).stat().st_size > 0
     assert main(["run", str(tmp_path / "nowhere"), "--out", str(out), "--no-progress"]) == 2
@@ -272,7 +273,7 @@ def test_standing_still_the_robot_s_heading_on_the_map_stays_put(tmp_path):
 
 
 @pytest.mark.parametrize("seed", [40, 42])
-def test_a_drift_no_gate_covers_is_closed_by_global_searches(tmp_path, seed):
+def test_a_drift_no_gate_covers_is_closed_by_global_searches(tmp_path, capsys, seed):
     """A corridor driven out, back and out again with three times the gyro bias of the other runs: by the
     third pass the map has drifted so far that the gate never offers the old key frames, and only the
     global searches (default config: from 40 m without a verified closure, one every 2 m) find the return.
@@ -286,10 +287,12 @@ def test_a_drift_no_gate_covers_is_closed_by_global_searches(tmp_path, seed):
     run.write(tmp_path / "data")
     off = tmp_path / "off.json"
     off.write_text(json.dumps({"mapper": {"global_search_after_m": None}}))
-    found = {}
+    found, printed = {}, {}
     for name, extra in (("default", []), ("off", ["--config", str(off)])):
         out = tmp_path / name
+        capsys.readouterr()
         metrics = run_command(tmp_path / "data", out, *extra)
+        printed[name] = capsys.readouterr().out
         closures = json.loads((out / "loop_closures.json").read_text())
         found[name] = metrics, [c for c in closures if c["status"] == "accepted"]
     metrics, accepted = found["default"]
@@ -306,6 +309,10 @@ def test_a_drift_no_gate_covers_is_closed_by_global_searches(tmp_path, seed):
     assert why["recognitions"] >= 1 and why["global_searches"] == 0 and why["candidates_median"] >= 1
     assert why["true_links_used"] == why["true_links_faded"] == 0
     assert metrics["map"]["ate"]["rmse"] > 0.5 * odometry_ate
+    # run prints which revisit it missed, where; the default run closed it
+    e = metrics["loop_closures"]["revisits"]["missed"][0]
+    assert "revisits closed 0 of 1; missed" in printed["off"] and f"m at {e['path_m']:.0f} m" in printed["off"]
+    assert "revisits closed 1 of 1\n" in printed["default"]
 
 
 def _recognised_path_gaps(cfg: HippomapConfig, inputs) -> list[float]:

@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from hippomap.errors import InputError
-from hippomap.eval.revisits import explain_missed, revisit_episodes, revisit_recall
+from hippomap.eval.revisits import describe_missed, explain_missed, revisit_episodes, revisit_recall
 
 
 def _circle(laps: float, circumference: float = 40.0, step: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
@@ -225,3 +225,17 @@ def test_the_ground_truths_rate_does_not_change_the_episodes():
 def test_bad_input_is_named(times, poses, match):
     with pytest.raises(InputError, match=match):
         revisit_episodes(times, poses)
+
+
+def test_a_missed_episode_is_described_with_whatever_its_entry_holds():
+    """Length at path always; the heading from the earlier pass when measured; the faded true links and their
+    median error (position: along / beside the view) only when some faded and their errors are known."""
+    e = {"length_m": 14.2, "path_m": 564.8}
+    assert describe_missed(e) == "14 m at 565 m"
+    e["heading_deg"] = 0.4
+    assert describe_missed(e) == "14 m at 565 m (0°)"
+    err = {"m": 1.304, "along_m": 0.677, "beside_m": 0.994, "heading_rad": 0.18}
+    e["why"] = {"true_links_faded": 4, "faded_link_error": err}
+    assert describe_missed(e) == "14 m at 565 m (0°) [4 true faded, 1.30 m off: 0.68 / 0.99 m]"
+    for why in ({"true_links_faded": 0, "faded_link_error": None}, {"true_links_faded": 2}):
+        assert describe_missed({**e, "why": why}) == "14 m at 565 m (0°)"

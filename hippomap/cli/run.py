@@ -27,7 +27,7 @@ from ..eval.evaluation import (
     groundtruth_distance,
     trajectory_metrics,
 )
-from ..eval.revisits import closed_revisits, explain_missed
+from ..eval.revisits import closed_revisits, describe_missed, explain_missed
 from ..extras import check
 from ..geometry import between
 from ..inputs import Odometry
@@ -285,6 +285,17 @@ def _cmd(args: argparse.Namespace) -> int:
             f" x{metrics['map']['ate_scaled']['scale']:.3f})"
         )
     print(line)
+    revisits = lc.get("revisits")
+    if revisits and revisits["episodes"]:
+        missed = "; ".join(describe_missed(e) for e in revisits["missed"])
+        print(
+            f"revisits closed {revisits['closed']} of {revisits['episodes']}"
+            + (
+                f"; missed (length at path, heading from the earlier pass, true links faded there): {missed}"
+                if missed
+                else ""
+            )
+        )
     return 0
 
 

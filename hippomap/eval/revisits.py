@@ -223,6 +223,24 @@ def _median_errors(rows: list[dict[str, Any]]) -> dict[str, float] | None:
     }
 
 
+def describe_missed(e: dict[str, Any]) -> str:
+    """One missed episode (a ``missed`` entry of :func:`revisit_recall`, with :func:`explain_missed`'s ``why``) in
+    words: its length at its path, the heading from the earlier pass, and when true links faded there how many and
+    how far off at the median (position: along / beside the key frame's view); each part only when the entry has it
+    (entries written before it was measured have not). What ``hippomap run`` prints and the benchmark lists."""
+    text = f"{e['length_m']:.0f} m at {e['path_m']:.0f} m"
+    if e.get("heading_deg") is not None:
+        text += f" ({e['heading_deg']:.0f}°)"
+    why = e.get("why") or {}
+    err = why.get("faded_link_error")
+    if why.get("true_links_faded") and err:
+        text += (
+            f" [{why['true_links_faded']} true faded, {err['m']:.2f} m off: "
+            f"{err['along_m']:.2f} / {err['beside_m']:.2f} m]"
+        )
+    return text
+
+
 def closed_revisits(groundtruth: tuple[Any, Any], closure_times: Any) -> dict[str, Any]:
     """:func:`revisit_recall` of the ground truth's own episodes (:func:`revisit_episodes`, default
     parameters): what ``hippomap run``, ``hippomap run-odometry`` and the benchmark's peers report."""
