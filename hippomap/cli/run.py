@@ -21,10 +21,10 @@ import numpy as np
 from ..config import HippomapConfig
 from ..errors import InputError
 from ..eval.evaluation import (
-    LINK_ERROR_PARTS,
     LOOP_TRUTH_DISTANCE_M,
     groundtruth_at,
     groundtruth_distance,
+    link_error_parts,
     trajectory_metrics,
 )
 from ..eval.revisits import closed_revisits, describe_missed, explain_missed
@@ -173,16 +173,12 @@ def _link_errors(used: list[dict[str, Any]]) -> dict[str, Any]:
     """``link_error_m``: the summary of the ``used`` links' errors against ground truth (:func:`link_error`);
     ``link_error_parts``: of their absolute parts, along the view of the key frame each names, beside it and in
     heading: which part of the links is off. Empty when no used link has a ground-truth error."""
-    errs = [r for r in used if "link_error_m" in r]
-    if not errs:
+    parts = link_error_parts(used)
+    if not parts:
         return {}
     return {
-        "link_error_m": _summary([r["link_error_m"] for r in errs]),
-        "link_error_parts": {
-            part: _summary([abs(r[key]) for r in errs if key in r])
-            for part, key in LINK_ERROR_PARTS.items()
-            if part != "m"
-        },
+        "link_error_m": _summary(parts.pop("m")),
+        "link_error_parts": {part: _summary(v) for part, v in parts.items()},
     }
 
 

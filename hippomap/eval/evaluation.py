@@ -23,6 +23,13 @@ LINK_ERROR_PARTS = {
 }
 
 
+def link_error_parts(rows: list[dict[str, Any]]) -> dict[str, list[float]]:
+    """The absolute value of each part of the ground-truth errors of the loop decisions' ``rows`` that have one
+    (``link_error_*``), by the names of :data:`LINK_ERROR_PARTS`; empty when no row has an error."""
+    rows = [r for r in rows if LINK_ERROR_PARTS["m"] in r]
+    return {part: [abs(r[key]) for r in rows] for part, key in LINK_ERROR_PARTS.items()} if rows else {}
+
+
 def groundtruth_at(gt: tuple[np.ndarray, np.ndarray], t: float, tol: float = 0.5) -> np.ndarray | None:
     """The ground-truth pose nearest in time to ``t`` (times sorted), or None when the
     nearest is more than ``tol`` seconds away (a gap in the ground truth)."""

@@ -22,7 +22,7 @@ from scipy.spatial import cKDTree
 
 from ..errors import InputError
 from ..geometry import path_lengths, wrap_angle
-from .evaluation import LINK_ERROR_PARTS, LOOP_TRUTH_DISTANCE_M
+from .evaluation import LOOP_TRUTH_DISTANCE_M, link_error_parts
 
 #: within this of an earlier place, the robot revisits it [ours]
 REVISIT_RADIUS_M = 1.5
@@ -213,14 +213,8 @@ def explain_missed(
 
 def _median_errors(rows: list[dict[str, Any]]) -> dict[str, float] | None:
     """The median absolute value of each part of the rows' link errors; None when no row has one."""
-    rows = [r for r in rows if "link_error_m" in r]
-    if not rows:
-        return None
-    return {
-        part: float(np.median([abs(r[key]) for r in rows if key in r]))
-        for part, key in LINK_ERROR_PARTS.items()
-        if any(key in r for r in rows)
-    }
+    parts = link_error_parts(rows)
+    return {part: float(np.median(v)) for part, v in parts.items()} if parts else None
 
 
 def describe_missed(e: dict[str, Any]) -> str:
