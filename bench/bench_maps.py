@@ -134,7 +134,7 @@ def sim_source_hash() -> str:
 
 #: ``hippomap simulate`` options a run may set beside the speed and rate (``--sim-option NAME=VALUE``):
 #: the odometry's errors, the camera's noise and field of view, frames rarer than odometry steps, light that changes,
-#: the grid world's size
+#: the grid world's size, and on photo walls how many photos and whether posters are drawn over them
 SIM_OPTIONS = (
     "omega-bias",
     "sigma-omega",
@@ -151,7 +151,12 @@ SIM_OPTIONS = (
     "blocks",
     "stop-every",
     "stop-seconds",
+    "photos",
+    "photo-overlay",
 )
+
+#: :data:`SIM_OPTIONS` that only photo walls take
+PHOTO_OPTIONS = ("photos", "photo-overlay")
 
 
 def motion_args(motion: dict[str, float | None] | None) -> list[str]:
@@ -1258,6 +1263,9 @@ def main(argv: list[str] | None = None) -> int:
     shared = args.shared.resolve()
     if not (shared / "data").is_dir():
         ap.error(f"--shared {shared}: no data/ folder there")
+    photo_options = sorted({name for name, _ in args.sim_option or []} & set(PHOTO_OPTIONS))
+    if photo_options and "procedural" in args.textures:
+        ap.error(f"--sim-option {', '.join(photo_options)}: photo walls only; drop procedural from --textures")
     if args.config and not Path(args.config).is_file():
         ap.error(f"--config {args.config}: no such file")
     config = str(Path(args.config).resolve()) if args.config else None

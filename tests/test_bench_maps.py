@@ -386,6 +386,17 @@ def test_sim_options_are_checked_by_name_and_number(bad):
     assert bench_maps.motion_args({"blocks": bench_maps.parse_sim_option("blocks=3")[1]}) == ["--blocks", "3"]
 
 
+def test_photo_sim_options_are_refused_with_procedural_walls(capsys):
+    """``--sim-option photos=N`` and ``photo-overlay=0`` change photo walls only: asked for beside procedural walls
+    the run stops before anything is rendered and names the options; the simulator gets them as integers."""
+    with pytest.raises(SystemExit):
+        bench_maps.main(["--sim-option", "photos=4", "--sim-option", "photo-overlay=0", "--skip-bicocca"])
+    assert "photo-overlay, photos: photo walls only" in capsys.readouterr().err
+    motion = dict([bench_maps.parse_sim_option("photos=4"), bench_maps.parse_sim_option("photo-overlay=0")])
+    assert bench_maps.motion_args(motion) == ["--photos", "4", "--photo-overlay", "0"]
+    assert bench_maps.motion_label(motion) == " (photos 4, photo-overlay 0)"
+
+
 def test_scale_corrected_ates_are_reported_for_runs_with_a_scale_error():
     hm = {"ate": 0.36, "ate_scaled": 0.09, "scale": 0.956}
     best = {"ate": 0.30, "ate_scaled": 0.20, "scale": 0.97}

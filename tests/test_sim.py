@@ -216,6 +216,42 @@ def test_photo_textures_from_a_folder(tmp_path):
         sim.loop_world(texture=sim.TextureParams(source=str(tmp_path / "missing")))
 
 
+def test_photo_walls_can_use_fewer_photos_and_leave_them_bare(tmp_path):
+    """``photo_count`` keeps the first photos of the folder (sorted by name) and ``photo_overlay=False`` draws
+    no posters over them: a strip of a dark and a bright photo, cut to the dark one, holds only its grey levels
+    (each crop re-exposed by at most x1.2 + 20), while the posters of the overlay and the second photo do not."""
+    cv2.imwrite(str(tmp_path / "a.png"), np.full((60, 80), 40, np.uint8))
+    cv2.imwrite(str(tmp_path / "b.png"), np.full((60, 80), 210, np.uint8))
+    bare_one = sim.photo_strip(30.0, sim.TextureParams(source=str(tmp_path), photo_count=1, photo_overlay=False))
+    assert bare_one.max() <= 40 * 1.2 + 20 + 1
+    bare_both = sim.photo_strip(30.0, sim.TextureParams(source=str(tmp_path), photo_overlay=False))
+    assert bare_both.max() >= 210 * 0.8 - 20 - 1 and bare_both.min() <= 40 * 1.2 + 20 + 1
+    posters = sim.photo_strip(30.0, sim.TextureParams(source=str(tmp_path), photo_count=1))
+    assert bare_one.shape == posters.shape and (posters > 40 * 1.2 + 20 + 1).mean() > 0.02
+    with pytest.raises(InputError, match="photo_count"):
+        sim.TextureParams(source=str(tmp_path), photo_count=0)
+
+
+def test_command_line_photo_options_need_photo_walls(tmp_path, capsys):
+    """``--photos N --photo-overlay 0`` render with the photo walls asked for and record them in ``sim.json``;
+    on procedural walls either option is named as needing photos."""
+    import json
+
+    from hippomap.sim.cli import main
+
+    cv2.imwrite(str(tmp_path / "a.png"), (np.random.default_rng(0).random((60, 80)) * 255).astype(np.uint8))
+    out = tmp_path / "bare"
+    args = ["loop", "--out", str(out), "--laps", "1", "--frame-every", "100", "--no-progress", "--texture"]
+    assert main(args + [str(tmp_path), "--photos", "1", "--photo-overlay", "0"]) == 0
+    texture = json.loads((out / "sim.json").read_text())["texture"]
+    assert texture["photo_count"] == 1 and texture["photo_overlay"] is False and texture["source"] == str(tmp_path)
+    capsys.readouterr()
+    assert main(["loop", "--out", str(tmp_path / "p"), "--photos", "2"]) == 2
+    assert "photo walls" in capsys.readouterr().err
+    assert main(["loop", "--out", str(tmp_path / "p"), "--photo-overlay", "0"]) == 2
+    assert "photo walls" in capsys.readouterr().err
+
+
 def test_grid_raycast_equals_brute_force():
     rng = np.random.default_rng(2)
     a = rng.uniform(-40, 40, (300, 2))

@@ -38,7 +38,7 @@ def _arguments(p: argparse.ArgumentParser) -> None:
     _world_arguments(p)
     _camera_arguments(p)
     _noise_arguments(p)
-    p.add_argument("--texture", default="procedural", help="'procedural' or a folder of photos (jpg/png)")
+    _texture_arguments(p)
     p.add_argument("--format", choices=["png", "jpg"], default="png", help="frame file format (default png)")
     add_progress_argument(p)
 
@@ -133,6 +133,34 @@ def _camera_arguments(p: argparse.ArgumentParser) -> None:
     )
 
 
+def _texture_arguments(p: argparse.ArgumentParser) -> None:
+    """The walls' appearance (:class:`TextureParams`): procedural, or photos, and how often the photos repeat."""
+    p.add_argument("--texture", default="procedural", help="'procedural' or a folder of photos (jpg/png)")
+    p.add_argument(
+        "--photos",
+        type=int,
+        default=None,
+        help="photo walls: use only the first N photos of the --texture folder, sorted by name (default all); "
+        "fewer photos repeat more often along the walls",
+    )
+    p.add_argument(
+        "--photo-overlay",
+        type=int,
+        choices=(0, 1),
+        default=1,
+        help="photo walls: 1 draws procedural posters over the photos so that repeated photos still make distinct "
+        "places (default); 0 leaves the photos bare, so that places far apart can look alike",
+    )
+
+
+def texture_params(args: argparse.Namespace) -> TextureParams:
+    """The walls of a command line; the photo options need photo walls."""
+    photo_options = args.photos is not None or args.photo_overlay != 1
+    if args.texture == "procedural" and photo_options:
+        raise InputError("--photos and --photo-overlay apply to photo walls: give --texture a folder of photos")
+    return TextureParams(source=args.texture, photo_overlay=bool(args.photo_overlay), photo_count=args.photos)
+
+
 def _noise_arguments(p: argparse.ArgumentParser) -> None:
     """The odometry noise (:class:`OdometryNoise`): each option defaults to the realistic noise, or none with
     ``--no-noise`` (see :func:`odometry_noise`)."""
@@ -181,7 +209,7 @@ def run_command(args) -> int:
 
     if args.blocks is not None and args.world != "grid":
         raise InputError(f"--blocks: only the grid world has blocks, not the {args.world} world")
-    tex = TextureParams(source=args.texture)
+    tex = texture_params(args)
     speed = {} if args.speed is None else {"speed_mps": args.speed}
     if args.world == "loop":
         world = worlds.loop_world(seed=args.seed, laps=args.laps, texture=tex, **speed)

@@ -155,12 +155,16 @@ class TextureParams:
     #: photo textures: overlay procedural posters on the photos so that repeated photos
     #: (when walls are longer than the photo set) still give distinct places
     photo_overlay: bool = True
+    #: photo textures: use only the first this many photos of the folder (sorted by name; None = all).
+    #: Fewer photos repeat more often along the walls: without the overlay, distant places look alike
+    photo_count: int | None = None
 
     def __post_init__(self):
         _finite(self)
         _check(self, "wall_height_m", self.wall_height_m > 0, "must be > 0")
         _check(self, "texels_per_m", 4 <= self.texels_per_m <= 1000, "in [4, 1000]")
         _check(self, "feature_spacing_m", self.feature_spacing_m > 0, "must be > 0")
+        _check(self, "photo_count", self.photo_count is None or self.photo_count >= 1, "must be >= 1 or None")
 
     @property
     def rows(self) -> int:

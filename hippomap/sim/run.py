@@ -109,6 +109,7 @@ class SimRun:
         meta = {
             "world": self.world.name,
             "world_seed": self.world.seed,
+            "texture": asdict(self.world.texture),
             "config": asdict(self.config),
             "intrinsics": {
                 "fx": cam.focal_px,

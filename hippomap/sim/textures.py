@@ -338,10 +338,10 @@ def photo_strip(length_m: float, params, seed: int = 0) -> np.ndarray:
     order, each randomly cropped, flipped, rescaled and re-exposed. If the walls are
     longer than the photo set the photos repeat (with different crops); with
     ``params.photo_overlay`` procedural posters are drawn over them so places stay
-    distinguishable."""
+    distinguishable. ``params.photo_count`` keeps only the first photos of the folder."""
     if not np.isfinite(length_m) or length_m <= 0:
         raise InputError(f"texture strip length {length_m!r} m must be finite and > 0")
-    photos = load_photos(params.source)
+    photos = load_photos(params.source)[: params.photo_count]
     rng = np.random.default_rng(seed)
     R = params.rows
     W = max(4, int(np.ceil(length_m * params.texels_per_m)) + 2)
