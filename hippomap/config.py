@@ -317,6 +317,19 @@ class MapConfig(_Frozen):
         ge=0,
         description="gate growth per metre travelled between the two nodes: odometric drift allowance [ours]",
     )
+    loop_heading_radius_rad: float | None = Field(
+        0.8,
+        gt=0,
+        description="heading part of the gate for a visual hypothesis: the heading it gives the named node may differ "
+        "from the node's map heading by this much plus loop_heading_per_m per metre of the drift path, or the "
+        "hypothesis is outside the gate (it waits for a consistent group, map.outside_searches); None = no heading "
+        "gate. Measured transforms keep their own heading check (loop_transform_consistency_rad) [ours]",
+    )
+    loop_heading_per_m: float = Field(
+        0.02,
+        ge=0,
+        description="growth of the gate's heading part per metre of the drift path (loop_drift) [ours]",
+    )
     loop_radius_bias_sd: float = Field(
         2.0,
         ge=0,

@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from .errors import InputError
-from .geometry import se2_between, se2_compose, se2_inverse
+from .geometry import se2_between, se2_compose, se2_inverse, wrap_angle
 from .loop_closure import Candidate, LoopDecision, LoopHypothesis, consistent
 from .loop_pose import fit_group
 from .map_correction import MapCorrection
@@ -160,7 +160,23 @@ class LoopClosing(MapCorrection):
                 if not dist < limit:
                     reason = f"{what} distance {dist:.3f} m exceeds the gate {limit:.3f} m"
                     outside = True
+                else:
+                    reason = self._heading_gate(cand)
+                    outside = bool(reason)
         return base, reason, outside
+
+    def _heading_gate(self, c: Candidate) -> str:
+        """Why visual candidate ``c`` is outside the gate's heading part, or "": the heading it gives the named node
+        (the robot's map heading ⊕ the hypothesis) must be within ``loop_heading_radius_rad`` +
+        ``loop_heading_per_m`` × the drift path (the position gate's, :meth:`_drift`) of the node's map heading. The
+        position gate alone let a recognition through that turns the map by a right angle a few metres after a
+        verified closure (docs/MODEL.md). Measured transforms keep their own heading check."""
+        cfg = self.cfg
+        if cfg.loop_heading_radius_rad is None or c.measured:
+            return ""
+        turn = abs(wrap_angle(_compose3(self.robot_map_pose(), c.M)[2] - float(self._P[c.node, 2])))
+        limit = cfg.loop_heading_radius_rad + cfg.loop_heading_per_m * float(self._drift(np.array([c.node]), False)[0])
+        return f"heading {turn:.3f} rad from the node's exceeds the gate {limit:.3f} rad" if turn > limit else ""
 
     def _verify(self, cand: Candidate, t: float) -> LoopDecision:
         """Check (b) of :meth:`propose_loop` for a gated candidate: cycle consistency with the

@@ -281,6 +281,40 @@ def test_a_lone_far_hypothesis_waits_for_support_then_expires_without_touching_t
     np.testing.assert_array_equal(cmap.poses[: len(seen["poses"])], seen["poses"])
 
 
+@pytest.mark.parametrize("turned, status", [(0.0, "accepted"), (-0.6, "accepted"), (2.0, "pending"), (-2.0, "pending")])
+def test_a_visual_hypothesis_that_turns_the_map_too_far_waits_for_a_group(turned, status):
+    """The gate has a heading part for visual hypotheses: one that puts the robot where it is but turned by more
+    than ``loop_heading_radius_rad`` + ``loop_heading_per_m`` x the drift path (here one lap of the square, 32 m:
+    0.8 + 0.64 rad) from its node's map heading is outside the gate: it waits for a consistent group, without a
+    link. The same place with a heading within it becomes a link at once; without the heading part (``None``)
+    the turned one is linked too."""
+    inc = square_increments(laps=2)
+    gt = integrate(inc)
+    lap = len(inc) // 2
+    k, j = lap + 30, 30
+
+    def turned_view(cfg):
+        cmap = CognitiveMap(cfg)
+        node_at, _, _ = drive(cmap, inc[:k])
+        node = int(node_at[j])
+        offset = between(cmap.poses[node], gt[k]) + [0.0, 0.0, turned]
+        poses, links = cmap.poses.copy(), cmap.link_count
+        d = cmap.propose_loop(LoopHypothesis(node=node, transform=None, source="test", offset=tuple(offset)))
+        return d, cmap, poses, links
+
+    cfg = MapConfig(loop_heading_radius_rad=0.8, loop_heading_per_m=0.02)
+    d, cmap, poses, links = turned_view(cfg)
+    assert d.status == status
+    if status == "accepted":
+        assert cmap.link_count == links + 1
+    else:
+        assert "heading" in d.reason and "exceeds the gate 1.4" in d.reason
+        assert "waits for consistent recognitions" in d.reason
+        assert cmap.link_count == links
+        np.testing.assert_array_equal(cmap.poses, poses)
+    assert turned_view(cfg.model_copy(update={"loop_heading_radius_rad": None}))[0].status == "accepted"
+
+
 def test_gate_radius_grows_with_the_path_travelled():
     """The same 4 m place-code discrepancy passes after a long trip, not after a short one."""
     cfg = MapConfig(
