@@ -20,10 +20,10 @@ from typing import Any
 import numpy as np
 
 from .errors import InputError
-from .geometry import se2_between, se2_compose, se2_inverse, wrap_angle
+from .geometry import se2_between, se2_compose, se2_inverse
 from .loop_closure import Candidate, LoopDecision, LoopHypothesis, consistent
+from .loop_gate import LoopGate
 from .loop_pose import fit_group
-from .map_correction import MapCorrection
 from .map_events import LoopAccepted, LoopPending, LoopRejected, MapEvent
 from .map_graph import LOOP, PRUNE
 from .robust_kernel import is_used
@@ -33,8 +33,8 @@ __all__ = ["LoopClosing"]
 _compose3, _inv3, _between3 = se2_compose, se2_inverse, se2_between
 
 
-class LoopClosing(MapCorrection):
-    """Loop hypotheses and their decisions, over :class:`~hippomap.map_correction.MapCorrection`."""
+class LoopClosing(LoopGate):
+    """Loop hypotheses and their decisions, over :class:`~hippomap.loop_gate.LoopGate`."""
 
     @property
     def loop_decisions(self) -> list[LoopDecision]:
@@ -44,21 +44,6 @@ class LoopClosing(MapCorrection):
     @property
     def pending_count(self) -> int:
         return len(self._loops.pending)
-
-    def loop_candidates(self, limit: int | None = None) -> np.ndarray:
-        """Ids of the nodes a visual hypothesis made now could name and pass the gate with:
-        within :func:`~hippomap.loop_closure.gate_limit` of the robot (unmeasured hypothesis, no
-        offset), not current nor among the last ``N_excl`` nodes; nearest first."""
-        n = self._n
-        r = self.robot_map_pose()
-        d = np.hypot(self._P[:n, 0] - r[0], self._P[:n, 1] - r[1])
-        lim = self._gate_limit(np.arange(n), False)
-        mask = d < lim
-        mask[max(0, n - self.cfg.exclude_recent) :] = False
-        mask[self._cur] = False
-        ids = np.flatnonzero(mask)
-        ids = ids[np.argsort(d[ids], kind="stable")]
-        return ids if limit is None else ids[:limit]
 
     def propose_loop(self, h: LoopHypothesis) -> LoopDecision:
         """Offer a loop closure; returns the decision. Its events are queued: the caller takes them
@@ -142,42 +127,6 @@ class LoopClosing(MapCorrection):
             h.along_sigma,
         )
 
-    def _screen(self, h: LoopHypothesis, cand: Candidate) -> tuple[LoopDecision, str, bool]:
-        """The first checks of :meth:`propose_loop`: (pending decision with its gate distance and
-        limit, reason to reject or "", whether the hypothesis fell outside the gate)."""
-        cfg = self.cfg
-        base = LoopDecision(cand.id, "pending", "", h, self._cur, proposed_step=self._step)
-        reason = ""
-        outside = False
-        if h.node != self._cur and h.node >= self._n - cfg.exclude_recent:
-            reason = f"node {h.node} is among the {cfg.exclude_recent} most recent nodes"
-        else:
-            dist, limit, what = self._gate(cand)
-            if dist is None:
-                reason = "no place code yet to gate the hypothesis"
-            else:
-                base = replace(base, gate_distance=dist, gate_limit=limit)
-                if not dist < limit:
-                    reason = f"{what} distance {dist:.3f} m exceeds the gate {limit:.3f} m"
-                    outside = True
-                else:
-                    reason = self._heading_gate(cand)
-                    outside = bool(reason)
-        return base, reason, outside
-
-    def _heading_gate(self, c: Candidate) -> str:
-        """Why visual candidate ``c`` is outside the gate's heading part, or "": the heading it gives the named node
-        (the robot's map heading ⊕ the hypothesis) must be within ``loop_heading_radius_rad`` +
-        ``loop_heading_per_m`` × the drift path (the position gate's, :meth:`_drift`) of the node's map heading. The
-        position gate alone let a recognition through that turns the map by a right angle a few metres after a
-        verified closure (docs/MODEL.md). Measured transforms keep their own heading check."""
-        cfg = self.cfg
-        if cfg.loop_heading_radius_rad is None or c.measured:
-            return ""
-        turn = abs(wrap_angle(_compose3(self.robot_map_pose(), c.M)[2] - float(self._P[c.node, 2])))
-        limit = cfg.loop_heading_radius_rad + cfg.loop_heading_per_m * float(self._drift(np.array([c.node]), False)[0])
-        return f"heading {turn:.3f} rad from the node's exceeds the gate {limit:.3f} rad" if turn > limit else ""
-
     def _verify(self, cand: Candidate, t: float) -> LoopDecision:
         """Check (b) of :meth:`propose_loop` for a gated candidate: cycle consistency with the
         pending and accepted candidates of the window; accepted, rejected, or left pending."""
@@ -253,19 +202,6 @@ class LoopClosing(MapCorrection):
         book.last_verified_path = self._path
         self._events.extend(self._optimise(t))  # the links disagree with the map by far: a whole solve
         return book.decisions[cand.id]
-
-    def _gate(self, c: Candidate) -> tuple[float | None, float, str]:
-        """(distance, limit, what) of the gate for candidate ``c``; distance None: cannot gate."""
-        cfg = self.cfg
-        limit = float(self._gate_limit(np.array([c.node]), c.measured)[0])
-        if cfg.loop_gate == "map":
-            pred = _compose3(self.robot_map_pose(), c.M)
-            return math.hypot(pred[0] - self._P[c.node, 0], pred[1] - self._P[c.node, 1]), limit, "map"
-        code = self._robot_code()
-        if code is None or np.isnan(self._C[c.node, 0]):
-            return None, limit, "place-code"
-        pred = _compose3(code, c.M)
-        return cfg.mu_p * math.hypot(pred[0] - self._C[c.node, 0], pred[1] - self._C[c.node, 1]), limit, "place-code"
 
     def _reject(self, did: int, reason: str, t: float) -> LoopDecision:
         book = self._loops
