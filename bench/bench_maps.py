@@ -1260,12 +1260,12 @@ def main(argv: list[str] | None = None) -> int:
     else:
         thresholds = args.thresholds or DEFAULT_THRESHOLDS
         files = args.bicocca_files or BICOCCA_FILES
-    shared = args.shared.resolve()
-    if not (shared / "data").is_dir():
-        ap.error(f"--shared {shared}: no data/ folder there")
     photo_options = sorted({name for name, _ in args.sim_option or []} & set(PHOTO_OPTIONS))
     if photo_options and "procedural" in args.textures:
         ap.error(f"--sim-option {', '.join(photo_options)}: photo walls only; drop procedural from --textures")
+    shared = args.shared.resolve()
+    if not (shared / "data").is_dir():
+        ap.error(f"--shared {shared}: no data/ folder there")
     if args.config and not Path(args.config).is_file():
         ap.error(f"--config {args.config}: no such file")
     config = str(Path(args.config).resolve()) if args.config else None

@@ -140,6 +140,7 @@ def _texture_arguments(p: argparse.ArgumentParser) -> None:
         "--photos",
         type=int,
         default=None,
+        metavar="N",
         help="photo walls: use only the first N photos of the --texture folder, sorted by name (default all); "
         "fewer photos repeat more often along the walls",
     )
