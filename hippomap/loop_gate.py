@@ -60,7 +60,7 @@ class LoopGate(MapCorrection):
                 if not dist < limit:
                     reason = f"{what} distance {dist:.3f} m exceeds the gate {limit:.3f} m"
                     outside = True
-                else:
+                elif math.isfinite(limit):  # a waived gate (a run not yet placed on a saved map) waives both parts
                     reason = self._heading_gate(cand)
                     outside = bool(reason)
         return base, reason, outside

@@ -105,18 +105,10 @@ class ReuseMap(CognitiveMap):
             self.configure(self.localise_only, False)
         return book.decisions[decision.id]
 
-    def _unplaced(self, c) -> bool:
-        """Whether ``c`` names a saved node while the run is not placed on the map: the gate (both its parts) is
-        waived, as the robot's pose on the map is unknown."""
-        return self.lost and (self.component_from < 0 or c.node < self.component_from)
-
     def _gate(self, c):
-        if self._unplaced(c):
+        if self.lost and (self.component_from < 0 or c.node < self.component_from):
             return 0.0, math.inf, "unplaced"
         return super()._gate(c)
-
-    def _heading_gate(self, c) -> str:
-        return "" if self._unplaced(c) else super()._heading_gate(c)
 
     def _add_loop_link(self, c) -> int:
         if self.localise_only:
