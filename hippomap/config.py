@@ -691,6 +691,14 @@ class MapperConfig(_Frozen):
         "None / 1.0 / 1.5 / 2.0 on the simulated tuning runs (loops, corridors and the Bicocca world's 16 seeds: "
         "lower map ATE on both, a third fewer recognitions on the loops); docs/MODEL.md item 44 [ours]",
     )
+    keyframe_familiar_seconds: float | None = Field(
+        2.0,
+        gt=0,
+        description="... and no sooner than this many seconds after the last key frame: a robot that retraces its "
+        "map faster recognises as often per second as a slow one, not per metre, so its cost per frame does not grow "
+        "with its speed. 2.0 s binds only above 0.5 m/s (the familiar spacing, 1 m, takes 2.5 s at the simulated "
+        "routes' 0.4 m/s); None = by distance only [ours, docs/MODEL.md item 92]",
+    )
     keyframe_familiar_after_m: float = Field(
         0.0,
         ge=0,
@@ -720,6 +728,13 @@ class MapperConfig(_Frozen):
         description="a key frame can be recognised only after the robot has travelled this far since "
         "learning it: the camera still sees the scene it took a few metres back (such matches are not loop "
         "closures); chosen on the simulated tuning worlds, docs/MODEL.md [ours]",
+    )
+    recognition_every_s: float | None = Field(
+        None,
+        gt=0,
+        description="a key frame is recognised only if this many seconds have passed since the last key frame that "
+        "was; the others are learned without a recognition. None = every key frame (measured, not kept: fewer revisits "
+        "and a growing memory) [ours, docs/MODEL.md item 93]",
     )
     global_search_after_m: float | None = Field(
         40.0,

@@ -23,6 +23,9 @@ if TYPE_CHECKING:
     from .config import HippomapConfig
     from .map_reuse import ReuseMap
 
+#: the frame times :class:`KeyFrames` keeps: of the last key frame, the previous frame, the last recognised key frame
+_CLOCKS = ("time_at_keyframe", "_frame_t", "time_at_recognition")
+
 
 class KeyFrames:
     """Key-frame bookkeeping and selection of :class:`~hippomap.mapper.Mapper` (a mixin: the mapper
@@ -32,6 +35,8 @@ class KeyFrames:
     cmap: ReuseMap
     distance: float
     distance_at_keyframe: float
+    time_at_keyframe: float  # frame time of the last key frame
+    time_at_recognition: float  # frame time of the last key frame that was recognised
     turn: float
     turn_at_keyframe: float
     frames_seen: int
@@ -39,26 +44,47 @@ class KeyFrames:
     familiar_since: float
     _frame_distance: float
     _frame_turn: float
+    _frame_t: float  # time of the previous frame
     frame_offset: dict[int, tuple[float, float, float]]
     frame_node: dict[int, int]
     frame_path: dict[int, float]
 
-    def _is_keyframe(self) -> bool:
+    def _is_keyframe(self, t: float) -> bool:
+        """Whether the frame at time ``t`` is a key frame: by distance or turn since the last key frame, further
+        apart in metres and in seconds on a familiar path (``keyframe_familiar_*``)."""
         m = self.config.mapper
         if m.keyframe_interval is not None:
             return (self.frames_seen - 1) % m.keyframe_interval == 0
         # the frame nearest to the threshold: it may fall short by half the motion since the
         # previous frame, so that the spacing does not depend on the frame rate
         moved, turned = self.distance - self._frame_distance, self.turn - self._frame_turn
-        self._frame_distance, self._frame_turn = self.distance, self.turn
+        waited = t - self._frame_t
+        self._frame_distance, self._frame_turn, self._frame_t = self.distance, self.turn, t
         # familiar: the last key frames verified loops over at least keyframe_familiar_after_m of path
         long_familiar = self.familiar and self.distance - self.familiar_since >= m.keyframe_familiar_after_m
         familiar = m.keyframe_familiar_distance_m if long_familiar else None
         dist = m.keyframe_distance_m if familiar is None else familiar
-        return (
-            self.distance - self.distance_at_keyframe >= dist - moved / 2
-            or self.turn - self.turn_at_keyframe >= m.keyframe_turn_rad - turned / 2
-        )
+        far = self.distance - self.distance_at_keyframe >= dist - moved / 2
+        if far and familiar is not None and m.keyframe_familiar_seconds is not None:  # and long enough ago
+            far = t - self.time_at_keyframe >= m.keyframe_familiar_seconds - waited / 2
+        return far or self.turn - self.turn_at_keyframe >= m.keyframe_turn_rad - turned / 2
+
+    def _recognition_due(self, t: float) -> bool:
+        """The key frame at ``t`` is recognised: ``recognition_every_s`` since the last key frame that was, or
+        always while lost or without the option."""
+        every = self.config.mapper.recognition_every_s
+        return every is None or self.cmap.lost or t - self.time_at_recognition >= every
+
+    def _clock_state(self) -> dict[str, float | None]:
+        """The key frames' clocks (:data:`_CLOCKS`) for a snapshot; None for none yet."""
+        return {k.lstrip("_"): None if math.isinf(getattr(self, k)) else float(getattr(self, k)) for k in _CLOCKS}
+
+    def _set_clocks(self, meta: dict[str, Any] | None = None) -> None:
+        """The key frames' clocks from a snapshot's ``meta`` (one written before they existed has none), or none
+        yet (-inf: a new mapper, or a new run on a saved map, whose clock may differ)."""
+        for k in _CLOCKS:
+            v = (meta or {}).get(k.lstrip("_"))
+            setattr(self, k, -math.inf if v is None else float(v))
 
     def _recognisable(self, frames: np.ndarray) -> list[int]:
         """The key frames a recognition may name, sorted: those learned at least

@@ -110,6 +110,7 @@ class Mapper(KeyFrames):
         self.familiar = False  # the last key frame's recognition verified a loop (keyframe_familiar_distance_m)
         self.familiar_since = 0.0  # odometric path at the first of the current run of verified key frames
         self._frame_distance = self._frame_turn = 0.0  # distance and turn at the previous frame
+        self._set_clocks()
         self.frame_offset: dict[int, tuple[float, float, float]] = {}  # key frame -> its pose in its node's frame
         self.frame_node: dict[int, int] = {}  # key-frame id -> node id
         self.frame_path: dict[int, float] = {}  # key-frame id -> odometric path length when it was learned
@@ -164,6 +165,7 @@ class Mapper(KeyFrames):
         m.frames_seen = 0
         m.distance += cfg.mapper.recognition_min_path_m
         m.distance_at_keyframe = m.global_search_path = -math.inf
+        m._set_clocks()  # the new run's clock may differ
         m.turn_at_keyframe = m.turn
         m.familiar = False
         m._frame_distance, m._frame_turn = m.distance, m.turn
@@ -220,11 +222,12 @@ class Mapper(KeyFrames):
         self.memory.check_image(gray)  # raises InputError before any state changes
         self.last_t = self.last_frame_t = frame.t
         self.frames_seen += 1
-        if not self._is_keyframe():
+        if not self._is_keyframe(frame.t):
             return []
         events: list[MapEvent] = []
         recognised = False
-        if self.place is not None and self.memory.frame_count:
+        if self.place is not None and self.memory.frame_count and self._recognition_due(frame.t):
+            self.time_at_recognition = frame.t
             if self.cmap.lost:  # no pose on the map yet: any key frame of the saved map may be the place
                 frames = self.cmap.frames[: self.base_nodes]
             else:
@@ -241,6 +244,7 @@ class Mapper(KeyFrames):
                 if others:
                     recognised = self._recognise(gray, frame.t, others, events, search="global")
         self.distance_at_keyframe = self.distance
+        self.time_at_keyframe = frame.t
         self.turn_at_keyframe = self.turn
         # a place is familiar when this key frame's recognition verified a loop (keyframe_familiar_distance_m);
         # familiar_since: where the current run of such key frames began (keyframe_familiar_after_m)
@@ -440,6 +444,7 @@ class Mapper(KeyFrames):
             "familiar_since": self.familiar_since,
             "frame_distance": self._frame_distance,
             "frame_turn": self._frame_turn,
+            **self._clock_state(),
             "recognitions": self.recognitions,
             "place": self.place,
             "reuse": {
@@ -484,6 +489,7 @@ class Mapper(KeyFrames):
         self.familiar_since = float(meta.get("familiar_since", self.distance))
         self._frame_distance = float(meta.get("frame_distance", self.distance))
         self._frame_turn = float(meta.get("frame_turn", self.turn))
+        self._set_clocks(meta)
         self.recognitions = meta["recognitions"]
         self.place = None if meta["place"] is None else tuple(meta["place"])
         self.place_field = None

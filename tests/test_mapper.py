@@ -458,6 +458,77 @@ def test_familiar_paths_take_key_frames_further_apart():
     assert np.all(gaps[long_run] > 0.85) and np.all(gaps[~long_run] < 0.7)
 
 
+def _keyframe_gaps(speed: float, seconds: float | None) -> tuple[np.ndarray, np.ndarray, np.ndarray, Mapper]:
+    """On two laps of a small loop driven at ``speed`` with ``keyframe_familiar_seconds`` = ``seconds``: the time of
+    every key frame; for those made by distance (not by turning), the seconds since the key frame before and whether
+    the path was familiar then; and the mapper, restored from a snapshot half way."""
+    world = sim.loop_world(seed=3, size=(8.0, 5.0), laps=2, speed_mps=speed)
+    run = sim.simulate(
+        world, None, rate_hz=5.0, seed=1, odometry_noise=sim.OdometryNoise(sigma_v=0.02, sigma_omega=0.01)
+    )
+    m = Mapper(HippomapConfig.with_overrides({"mapper": {"keyframe_familiar_seconds": seconds}}))
+    times, gaps, familiar = [], [], []
+    for i in range(len(run)):
+        t, v, w = run.odometry[i]
+        m.step(Odometry(float(t), v=float(v), omega=float(w)))
+        before, turn_before, last = m.familiar, m.turn_at_keyframe, m.time_at_keyframe
+        m.observe(Frame(float(t), run.frame(i)))
+        if m.time_at_keyframe == float(t):
+            times.append(float(t))
+            if times[1:] and m.turn - turn_before < 0.9 * m.config.mapper.keyframe_turn_rad:
+                gaps.append(float(t) - last)
+                familiar.append(before)
+        if i == len(run) // 2:
+            restored = Mapper.from_bytes(m.to_bytes())
+            assert (restored.time_at_keyframe, restored._frame_t) == (m.time_at_keyframe, m._frame_t)
+            m = restored
+    return np.array(times), np.array(gaps), np.array(familiar, dtype=bool), m
+
+
+def test_familiar_key_frames_wait_seconds_as_well_as_metres_at_speed():
+    """``keyframe_familiar_seconds``: on a familiar path a key frame also waits that long after the last one, so
+    a robot retracing its map at 1.2 m/s recognises about as often per second as one at 0.4 m/s, not three times
+    as often; at 0.4 m/s the metres bind (1 m takes 2.5 s) and the key frames are the very same with it or
+    without it. The clocks are kept in a snapshot."""
+    _, gaps, fam, m_fast = _keyframe_gaps(1.2, 2.0)
+    assert fam.sum() >= 3, "no verified loop on the second lap"
+    assert np.all(gaps[fam] >= 2.0 - 0.1) and np.all(gaps[~fam] < 1.0)  # 0.5 m where new, 2 s where familiar
+    _, gaps_m, fam_m, m_metres = _keyframe_gaps(1.2, None)
+    assert fam_m.sum() >= 3 and np.all(gaps_m[fam_m] < 1.2)  # 1 m at 1.2 m/s
+    assert m_fast.stats()["recognitions"] < m_metres.stats()["recognitions"]
+    slow, _, fam_slow, _ = _keyframe_gaps(0.4, 2.0)
+    assert fam_slow.sum() >= 3
+    assert np.array_equal(slow, _keyframe_gaps(0.4, None)[0])
+
+
+def test_recognitions_can_be_spaced_in_seconds():
+    """``recognition_every_s``: a key frame is recognised only that long after the last one that was; the key frames
+    in between are learned without a recognition (what the map knows of a place it is not sure of); the clock is kept
+    in a snapshot. Off by default: every key frame is recognised."""
+    from hippomap.map_events import KeyframeLearned, RecognitionMade
+
+    world = sim.loop_world(seed=3, size=(8.0, 5.0), laps=2, speed_mps=1.2)
+    run = sim.simulate(world, None, rate_hz=5.0, seed=1, odometry_noise=sim.OdometryNoise(sigma_v=0.02))
+    counts = {}
+    for every in (None, 1.0):
+        m = Mapper(HippomapConfig.with_overrides({"mapper": {"recognition_every_s": every}}))
+        recognised, learned = [], []
+        for i in range(len(run)):
+            t, v, w = run.odometry[i]
+            m.step(Odometry(float(t), v=float(v), omega=float(w)))
+            events = m.observe(Frame(float(t), run.frame(i)))
+            recognised += [float(t)] * any(isinstance(e, RecognitionMade) for e in events)
+            learned += [float(t)] * any(isinstance(e, KeyframeLearned) for e in events)
+            if i == len(run) // 2:
+                restored = Mapper.from_bytes(m.to_bytes())
+                assert restored.time_at_recognition == m.time_at_recognition
+                m = restored
+        counts[every] = (len(recognised), len(learned))
+        if every is not None:
+            assert len(recognised) >= 5 and np.all(np.diff(recognised) >= every)
+    assert counts[1.0][0] < counts[None][0] and counts[1.0][1] > counts[None][1]
+
+
 def test_a_recognition_shift_couples_heading_and_lateral_only_with_a_known_camera():
     """The coupling a visual hypothesis carries: 1 / view_distance_m when the camera's field of view is
     known and the recognition has an image shift; 0 without the field of view, without a shift, or
