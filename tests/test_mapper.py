@@ -459,10 +459,10 @@ def test_familiar_paths_take_key_frames_further_apart():
 
 
 def _keyframe_gaps(speed: float, seconds: float | None) -> tuple[np.ndarray, np.ndarray, np.ndarray, Mapper]:
-    """On two laps of a small loop driven at ``speed`` with ``keyframe_familiar_seconds`` = ``seconds``: the time of
+    """On three laps of a small loop driven at ``speed`` with ``keyframe_familiar_seconds`` = ``seconds``: the time of
     every key frame; for those made by distance (not by turning), the seconds since the key frame before and whether
     the path was familiar then; and the mapper, restored from a snapshot half way."""
-    world = sim.loop_world(seed=3, size=(8.0, 5.0), laps=2, speed_mps=speed)
+    world = sim.loop_world(seed=3, size=(8.0, 5.0), laps=3, speed_mps=speed)
     run = sim.simulate(
         world, None, rate_hz=5.0, seed=1, odometry_noise=sim.OdometryNoise(sigma_v=0.02, sigma_omega=0.01)
     )
@@ -475,7 +475,7 @@ def _keyframe_gaps(speed: float, seconds: float | None) -> tuple[np.ndarray, np.
         m.observe(Frame(float(t), run.frame(i)))
         if m.time_at_keyframe == float(t):
             times.append(float(t))
-            if times[1:] and m.turn - turn_before < 0.9 * m.config.mapper.keyframe_turn_rad:
+            if times[1:] and m.turn - turn_before < 0.5 * m.config.mapper.keyframe_turn_rad:  # not by turning
                 gaps.append(float(t) - last)
                 familiar.append(before)
         if i == len(run) // 2:
@@ -486,17 +486,20 @@ def _keyframe_gaps(speed: float, seconds: float | None) -> tuple[np.ndarray, np.
 
 
 def test_familiar_key_frames_wait_seconds_as_well_as_metres_at_speed():
-    """``keyframe_familiar_seconds``: on a familiar path a key frame also waits that long after the last one, so
-    a robot retracing its map at 1.2 m/s recognises about as often per second as one at 0.4 m/s, not three times
-    as often; at 0.4 m/s the metres bind (1 m takes 2.5 s) and the key frames are the very same with it or
-    without it. The clocks are kept in a snapshot."""
-    _, gaps, fam, m_fast = _keyframe_gaps(1.2, 2.0)
+    """``keyframe_familiar_seconds`` (its default): on a familiar path a key frame also waits that long after the
+    last one, so a robot retracing its map at 1.2 m/s does not recognise three times as often per second as one at
+    0.4 m/s; at 0.4 m/s the metres bind (1 m takes 2.5 s) and the key frames are the very same with it or without
+    it. The clocks are kept in a snapshot."""
+    wait = HippomapConfig().mapper.keyframe_familiar_seconds
+    assert wait is not None and 1.0 / 0.4 > wait > 1.0 / 1.2  # binds at 1.2 m/s, not at 0.4 m/s
+    _, gaps, fam, m_fast = _keyframe_gaps(1.2, wait)
     assert fam.sum() >= 3, "no verified loop on the second lap"
-    assert np.all(gaps[fam] >= 2.0 - 0.1) and np.all(gaps[~fam] < 1.0)  # 0.5 m where new, 2 s where familiar
+    assert np.all(gaps[fam] > wait - 0.1 - 1e-6)  # less half a frame (5 Hz)
+    assert np.all(gaps[~fam] < 1.0)  # 0.5 m at 1.2 m/s where the path is new
     _, gaps_m, fam_m, m_metres = _keyframe_gaps(1.2, None)
     assert fam_m.sum() >= 3 and np.all(gaps_m[fam_m] < 1.2)  # 1 m at 1.2 m/s
     assert m_fast.stats()["recognitions"] < m_metres.stats()["recognitions"]
-    slow, _, fam_slow, _ = _keyframe_gaps(0.4, 2.0)
+    slow, _, fam_slow, _ = _keyframe_gaps(0.4, wait)
     assert fam_slow.sum() >= 3
     assert np.array_equal(slow, _keyframe_gaps(0.4, None)[0])
 
