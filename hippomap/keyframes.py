@@ -1,12 +1,13 @@
 """The mapper's key frames: when a frame becomes one, where each was taken, and which of them a
 recognition may name from where the robot stands (paper §2.2 key frames; docs/MODEL.md items 24,
-27, 44, 45).
+27, 44, 45, 92).
 
 :class:`KeyFrames` is the part of :class:`~hippomap.mapper.Mapper` that holds, per key frame, its
 node, its pose in that node's frame (``frame_offset``) and the odometric path length when it was
-learned (``frame_path``), and answers three questions: is this frame a key frame (distance, turn,
-or further apart on a familiar path), was a key frame learned long enough ago to be recognised as
-a return, and could its view face the robot's way at all.
+learned (``frame_path``), and answers four questions: is this frame a key frame (distance, turn,
+or further apart in metres and seconds on a familiar path), is this key frame recognised at all
+(``recognition_every_s``), was a key frame learned long enough ago to be recognised as a return,
+and could its view face the robot's way at all. It keeps the clocks these need (:data:`_CLOCKS`).
 """
 
 from __future__ import annotations
