@@ -24,8 +24,8 @@ if TYPE_CHECKING:
     from .config import HippomapConfig
     from .map_reuse import ReuseMap
 
-#: the frame times :class:`KeyFrames` keeps: of the last key frame, the previous frame, the last recognised key frame
-_CLOCKS = ("time_at_keyframe", "_frame_t", "time_at_recognition")
+#: the frame times :class:`KeyFrames` keeps: of the last key frame and of the last recognised key frame
+_CLOCKS = ("time_at_keyframe", "time_at_recognition")
 
 
 class KeyFrames:
@@ -45,22 +45,22 @@ class KeyFrames:
     familiar_since: float
     _frame_distance: float
     _frame_turn: float
-    _frame_t: float  # time of the previous frame
     frame_offset: dict[int, tuple[float, float, float]]
     frame_node: dict[int, int]
     frame_path: dict[int, float]
 
-    def _is_keyframe(self, t: float) -> bool:
-        """Whether the frame at time ``t`` is a key frame: by distance or turn since the last key frame, further
-        apart in metres and in seconds on a familiar path (``keyframe_familiar_*``)."""
+    def _is_keyframe(self, t: float, previous_t: float | None) -> bool:
+        """Whether the frame at time ``t`` (the frame before it at ``previous_t``, None for none) is a key frame: by
+        distance or turn since the last key frame, further apart in metres and in seconds on a familiar path
+        (``keyframe_familiar_*``)."""
         m = self.config.mapper
         if m.keyframe_interval is not None:
             return (self.frames_seen - 1) % m.keyframe_interval == 0
         # the frame nearest to the threshold: it may fall short by half the motion since the
         # previous frame, so that the spacing does not depend on the frame rate
         moved, turned = self.distance - self._frame_distance, self.turn - self._frame_turn
-        waited = t - self._frame_t
-        self._frame_distance, self._frame_turn, self._frame_t = self.distance, self.turn, t
+        waited = math.inf if previous_t is None else t - previous_t
+        self._frame_distance, self._frame_turn = self.distance, self.turn
         # familiar: the last key frames verified loops over at least keyframe_familiar_after_m of path
         long_familiar = self.familiar and self.distance - self.familiar_since >= m.keyframe_familiar_after_m
         familiar = m.keyframe_familiar_distance_m if long_familiar else None
@@ -78,13 +78,13 @@ class KeyFrames:
 
     def _clock_state(self) -> dict[str, float | None]:
         """The key frames' clocks (:data:`_CLOCKS`) for a snapshot; None for none yet."""
-        return {k.lstrip("_"): None if math.isinf(getattr(self, k)) else float(getattr(self, k)) for k in _CLOCKS}
+        return {k: None if math.isinf(getattr(self, k)) else float(getattr(self, k)) for k in _CLOCKS}
 
     def _set_clocks(self, meta: dict[str, Any] | None = None) -> None:
         """The key frames' clocks from a snapshot's ``meta`` (one written before they existed has none), or none
         yet (-inf: a new mapper, or a new run on a saved map, whose clock may differ)."""
         for k in _CLOCKS:
-            v = (meta or {}).get(k.lstrip("_"))
+            v = (meta or {}).get(k)
             setattr(self, k, -math.inf if v is None else float(v))
 
     def _recognisable(self, frames: np.ndarray) -> list[int]:

@@ -220,9 +220,9 @@ class Mapper(KeyFrames):
         self._check_time(frame.t, self.last_frame_t, "frame")
         gray = frame.gray()
         self.memory.check_image(gray)  # raises InputError before any state changes
-        self.last_t = self.last_frame_t = frame.t
+        previous_t, self.last_t, self.last_frame_t = self.last_frame_t, frame.t, frame.t
         self.frames_seen += 1
-        if not self._is_keyframe(frame.t):
+        if not self._is_keyframe(frame.t, previous_t):
             return []
         events: list[MapEvent] = []
         recognised = False

@@ -458,14 +458,19 @@ def test_familiar_paths_take_key_frames_further_apart():
     assert np.all(gaps[long_run] > 0.85) and np.all(gaps[~long_run] < 0.7)
 
 
+def _small_loop(speed: float, laps: int):
+    """``laps`` laps of a small loop world driven at ``speed`` (m/s), 5 Hz, noisy odometry."""
+    world = sim.loop_world(seed=3, size=(8.0, 5.0), laps=laps, speed_mps=speed)
+    return sim.simulate(
+        world, None, rate_hz=5.0, seed=1, odometry_noise=sim.OdometryNoise(sigma_v=0.02, sigma_omega=0.01)
+    )
+
+
 def _keyframe_gaps(speed: float, seconds: float | None) -> tuple[np.ndarray, np.ndarray, np.ndarray, Mapper]:
     """On three laps of a small loop driven at ``speed`` with ``keyframe_familiar_seconds`` = ``seconds``: the time of
     every key frame; for those made by distance (not by turning), the seconds since the key frame before and whether
     the path was familiar then; and the mapper, restored from a snapshot half way."""
-    world = sim.loop_world(seed=3, size=(8.0, 5.0), laps=3, speed_mps=speed)
-    run = sim.simulate(
-        world, None, rate_hz=5.0, seed=1, odometry_noise=sim.OdometryNoise(sigma_v=0.02, sigma_omega=0.01)
-    )
+    run = _small_loop(speed, 3)
     m = Mapper(HippomapConfig.with_overrides({"mapper": {"keyframe_familiar_seconds": seconds}}))
     times, gaps, familiar = [], [], []
     for i in range(len(run)):
@@ -480,7 +485,7 @@ def _keyframe_gaps(speed: float, seconds: float | None) -> tuple[np.ndarray, np.
                 familiar.append(before)
         if i == len(run) // 2:
             restored = Mapper.from_bytes(m.to_bytes())
-            assert (restored.time_at_keyframe, restored._frame_t) == (m.time_at_keyframe, m._frame_t)
+            assert (restored.time_at_keyframe, restored.last_frame_t) == (m.time_at_keyframe, m.last_frame_t)
             m = restored
     return np.array(times), np.array(gaps), np.array(familiar, dtype=bool), m
 
@@ -510,8 +515,7 @@ def test_recognitions_can_be_spaced_in_seconds():
     in a snapshot. Off by default: every key frame is recognised."""
     from hippomap.map_events import KeyframeLearned, RecognitionMade
 
-    world = sim.loop_world(seed=3, size=(8.0, 5.0), laps=2, speed_mps=1.2)
-    run = sim.simulate(world, None, rate_hz=5.0, seed=1, odometry_noise=sim.OdometryNoise(sigma_v=0.02))
+    run = _small_loop(1.2, 2)
     counts = {}
     for every in (None, 1.0):
         m = Mapper(HippomapConfig.with_overrides({"mapper": {"recognition_every_s": every}}))
