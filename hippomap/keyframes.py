@@ -99,7 +99,8 @@ class KeyFrames:
 
     def _facing(self, frames: list[int]) -> list[int]:
         """Of ``frames``, those whose view could face the robot's way (``recognition_view_rad``): the
-        key frame's heading on the map, within ``recognition_view_rad`` of the robot's, plus
+        key frame's heading on the map, within ``recognition_view_rad`` of the robot's (at most
+        ``recognition_view_fovs`` fields of view when the camera's is known), plus
         ``recognition_view_rad_per_m`` per metre of drift path (the path since the last verified
         closure, or since the key frame was learned if shorter: the map's headings drift as its
         positions do). A camera turned further than that sees none of what the key frame saw, so
@@ -107,6 +108,9 @@ class KeyFrames:
         m = self.config.mapper
         if m.recognition_view_rad is None or not frames:
             return frames
+        bound = m.recognition_view_rad
+        if m.recognition_view_fovs is not None and m.camera_hfov_deg is not None:
+            bound = min(bound, m.recognition_view_fovs * math.radians(m.camera_hfov_deg))
         cm = self.cmap
         f = np.asarray(frames, dtype=np.int64)
         nodes = self._lookup(self._frame_array("frame_node", int, -1), f, -1).astype(np.int64)
@@ -116,9 +120,7 @@ class KeyFrames:
         drift = np.minimum(
             cm.path_since_verified, self.distance - self._lookup(self._frame_array("frame_path", float), f, 0.0)
         )
-        keep = (nodes >= 0) & (
-            np.abs(wrap_angle(heading - robot)) <= m.recognition_view_rad + m.recognition_view_rad_per_m * drift
-        )
+        keep = (nodes >= 0) & (np.abs(wrap_angle(heading - robot)) <= bound + m.recognition_view_rad_per_m * drift)
         return f[keep].tolist()
 
     @staticmethod

@@ -228,6 +228,41 @@ def test_key_frames_facing_away_from_the_robot_are_no_recognition_candidates():
             assert 0 < len(facing) < len(frames)  # the oldest key frames' allowance (0.5 rad/m) lets them in
 
 
+@pytest.mark.parametrize(
+    ("hfov", "fovs", "kept"),
+    [(None, 1.0, True), (60.0, 1.0, False), (60.0, None, True), (60.0, 2.0, True), (150.0, 1.0, True)],
+)
+def test_key_frames_turned_further_than_the_camera_sees_are_no_recognition_candidates(hfov, fovs, kept):
+    """recognition_view_fovs (off by default): where the camera's field of view is known, the view bound is at most
+    that many fields of view (never wider than recognition_view_rad). A robot that turns on the spot by 1.5 rad after
+    learning its key frames faces further from them than a 60-degree camera sees (pi/3 + the drift allowance)
+    but within recognition_view_rad (2 pi / 3): they are candidates with the camera unknown, with the rule off,
+    with two fields of view or with a 150-degree camera (capped at 2 pi / 3), and not with one 60-degree view."""
+    seconds = 6.0
+    m = Mapper(HippomapConfig.with_overrides({"mapper": {"camera_hfov_deg": hfov, "recognition_view_fovs": fovs}}))
+    for _t, odo, frame in _frames_at(10.0, seconds=seconds):
+        m.step(odo)
+        m.observe(frame)
+    frames = sorted(m.frame_node)
+    assert len(frames) > 3
+    assert m._facing(frames) == frames
+    for k in range(1, 16):  # turn on the spot by 1.5 rad: odometry only
+        m.step(Odometry(seconds + 0.1 * k, v=0.0, omega=1.0))
+    robot = compose(m.cmap.poses[m.cmap.current], np.asarray(m.cmap.robot_offset))[2]
+    bound = m.config.mapper.recognition_view_rad
+    if hfov is not None and fovs is not None:
+        bound = min(bound, fovs * math.radians(hfov))
+    expected = []
+    for f in frames:  # the rule, key frame by key frame
+        heading = m.cmap.poses[m.frame_node[f], 2] + m.frame_offset[f][2]
+        drift = min(m.cmap.path_since_verified, m.distance - m.frame_path[f])
+        turned = abs(wrap_angle(heading - robot))
+        assert 1.2 < turned < 2.0  # between one 60-degree view (plus 3 m of drift allowance) and 2 pi / 3
+        if turned <= bound + m.config.mapper.recognition_view_rad_per_m * drift:
+            expected.append(f)
+    assert m._facing(frames) == expected == (frames if kept else [])
+
+
 def test_a_visual_hypothesis_carries_where_its_key_frame_was_taken():
     """The offset a visual hypothesis carries is the key frame's pose in its node's frame, so a
     closure links the robot to where the view was learned, not to the node's own pose."""
