@@ -17,7 +17,7 @@ import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -380,7 +380,13 @@ def _robust(kernel: str, base):
     raise ValueError(kernel)
 
 
-def run_gtsam(g2o_file: Path, kernel: str, max_iterations: int = 100, upto: int | None = None) -> GtsamResult:
+def run_gtsam(
+    g2o_file: Path,
+    kernel: str,
+    max_iterations: int = 100,
+    upto: int | None = None,
+    keep: Callable[[int, int], bool] | None = None,
+) -> GtsamResult:
     """Levenberg–Marquardt on the g2o graph (Pose2 between factors, noise from each edge's
     information matrix, a tight prior on pose 0), with ``kernel`` on the loop factors.
     Used closures: with no kernel every closure has weight 1 and is used. With a robust
@@ -390,7 +396,8 @@ def run_gtsam(g2o_file: Path, kernel: str, max_iterations: int = 100, upto: int 
     the closure rather than having down-weighted it away. Each closure's r and its final
     robust weight w(r) are kept as well (``weight``; ``w >= 0.5`` is a stricter reading).
     ``upto``: only the poses up to that index and the factors between them (the batch solution a
-    back-end could have had online at that pose)."""
+    back-end could have had online at that pose). ``keep``: only the loop factors (i, j) it accepts (with the
+    ground truth: an oracle that applies the true closures alone)."""
     import gtsam
 
     graph, initial = gtsam.readG2o(str(g2o_file), False)
@@ -409,6 +416,8 @@ def run_gtsam(g2o_file: Path, kernel: str, max_iterations: int = 100, upto: int 
             continue
         if abs(int(i) - int(j)) == 1:
             g.add(f)
+            continue
+        if keep is not None and not keep(int(i), int(j)):
             continue
         est = _robust(kernel, f.noiseModel())
         model = f.noiseModel() if est is None else gtsam.noiseModel.Robust.Create(est, f.noiseModel())

@@ -773,3 +773,45 @@ def test_closure_bound_solves_the_map_s_own_graph_back_to_the_map(short_run):
     assert r["as is"] == pytest.approx(r["map"], rel=0.1, abs=0.01)
     assert r["true links"] < r["as is"]
     assert r["every revisit"] < r["as is"]
+
+
+def _square_dataset():
+    """Eight poses around a 2 m square (ground truth at times 0..7 s): pose 7 stands 0.5 m short of pose 0 and
+    pose 4 at the opposite corner, 2.8 m away; pose 6's time has no ground truth."""
+    from types import SimpleNamespace
+
+    xy = np.array([[0, 0], [1, 0], [2, 0], [2, 1], [2, 2], [1, 2], [0, 2], [0, 0.5]], float)
+    t = np.array([0, 1, 2, 3, 4, 5, 7], float)  # no ground truth near 6 s
+    poses = np.c_[xy[[0, 1, 2, 3, 4, 5, 7]], np.zeros(7)]
+    return SimpleNamespace(times=np.arange(8, dtype=float), groundtruth=(t, poses)), xy
+
+
+def test_true_closures_are_those_the_ground_truth_puts_within_two_metres():
+    dataset, _ = _square_dataset()
+    assert bench_maps.true_closure(dataset, 7, 0)  # 0.5 m apart
+    assert not bench_maps.true_closure(dataset, 4, 0)  # 2.83 m apart
+    assert not bench_maps.true_closure(dataset, 6, 0)  # no ground truth at pose 6: cannot tell
+
+
+def test_gtsam_applies_only_the_loop_factors_it_is_told_to_keep(tmp_path):
+    """run_gtsam(keep=...): the left-out loop factor neither appears among the loops nor moves the solution; the
+    solution equals that of the same graph written without it (the oracle row of the online checkpoints)."""
+    pytest.importorskip("gtsam")
+    dataset, xy = _square_dataset()
+    head = [f"VERTEX_SE2 {i} {x:.3f} {y:.3f} 0" for i, (x, y) in enumerate(xy)]
+    info = "100 0 0 100 0 1000"
+    odo = [
+        f"EDGE_SE2 {i} {i + 1} {xy[i + 1, 0] - xy[i, 0]:.3f} {xy[i + 1, 1] - xy[i, 1]:.3f} 0 {info}" for i in range(7)
+    ]
+    odo[3] = f"EDGE_SE2 3 4 0.2 1.1 0 {info}"  # one odometry step off: the closures pull the square back
+    true_loop = f"EDGE_SE2 7 0 0 -0.5 0 {info}"
+    false_loop = f"EDGE_SE2 4 0 0 0 0 {info}"  # says the far corner is the start
+    both, only = tmp_path / "both.g2o", tmp_path / "only.g2o"
+    both.write_text("\n".join([*head, *odo, true_loop, false_loop]) + "\n")
+    only.write_text("\n".join([*head, *odo, true_loop]) + "\n")
+    kept = peers.run_gtsam(both, "none", keep=lambda i, j: bench_maps.true_closure(dataset, i, j))
+    assert [(lp["i"], lp["j"]) for lp in kept.loops] == [(7, 0)]
+    np.testing.assert_allclose(kept.poses, peers.run_gtsam(only, "none").poses, atol=1e-9)
+    everything = peers.run_gtsam(both, "none")
+    assert len(everything.loops) == 2
+    assert np.abs(everything.poses - kept.poses).max() > 0.1  # the false closure, applied, moves the map
