@@ -682,6 +682,16 @@ class MapperConfig(_Frozen):
         description="learn a key frame after this many metres of odometric path [ours: chosen on simulated "
         "worlds, docs/MODEL.md]",
     )
+    keyframe_seconds: float | None = Field(
+        0.75,
+        gt=0,
+        description="... and no sooner than this many seconds after the last key frame, off a familiar path (key "
+        "frames made by turning are not held back): a robot faster than keyframe_distance_m / keyframe_seconds "
+        "(0.67 m/s) learns and recognises as often per second as one at that speed, not per metre. 0.75 s binds "
+        "at the speed where keyframe_familiar_seconds does; chosen among 0.6 / 0.75 / 1.0 s on simulated runs at "
+        "0.8 and 1.2 m/s (1.0 s would bind at the Bicocca world's recorded speeds). None = by distance only [ours, "
+        "docs/MODEL.md item 95]",
+    )
     keyframe_familiar_distance_m: float | None = Field(
         1.0,
         gt=0,

@@ -1,13 +1,14 @@
 """The mapper's key frames: when a frame becomes one, where each was taken, and which of them a
 recognition may name from where the robot stands (paper §2.2 key frames; docs/MODEL.md items 24,
-27, 44, 45, 92).
+27, 44, 45, 92, 95).
 
 :class:`KeyFrames` is the part of :class:`~hippomap.mapper.Mapper` that holds, per key frame, its
 node, its pose in that node's frame (``frame_offset``) and the odometric path length when it was
-learned (``frame_path``), and answers four questions: is this frame a key frame (distance, turn,
-or further apart in metres and seconds on a familiar path), is this key frame recognised at all
-(``recognition_every_s``), was a key frame learned long enough ago to be recognised as a return,
-and could its view face the robot's way at all. It keeps the clocks these need (:data:`_CLOCKS`).
+learned (``frame_path``), and answers four questions: is this frame a key frame (distance or turn,
+further apart on a familiar path, and some seconds apart for a fast robot), is this key frame
+recognised at all (``recognition_every_s``), was a key frame learned long enough ago to be
+recognised as a return, and could its view face the robot's way at all. It keeps the clocks these
+need (:data:`_CLOCKS`).
 """
 
 from __future__ import annotations
@@ -52,7 +53,8 @@ class KeyFrames:
     def _is_keyframe(self, t: float, previous_t: float | None) -> bool:
         """Whether the frame at time ``t`` (the frame before it at ``previous_t``, None for none) is a key frame: by
         distance or turn since the last key frame, further apart in metres and in seconds on a familiar path
-        (``keyframe_familiar_*``)."""
+        (``keyframe_familiar_*``); a key frame made by distance also waits ``keyframe_seconds`` (or
+        ``keyframe_familiar_seconds``) after the last one."""
         m = self.config.mapper
         if m.keyframe_interval is not None:
             return (self.frames_seen - 1) % m.keyframe_interval == 0
@@ -66,8 +68,9 @@ class KeyFrames:
         familiar = m.keyframe_familiar_distance_m if long_familiar else None
         dist = m.keyframe_distance_m if familiar is None else familiar
         far = self.distance - self.distance_at_keyframe >= dist - moved / 2
-        if far and familiar is not None and m.keyframe_familiar_seconds is not None:  # and long enough ago
-            far = t - self.time_at_keyframe >= m.keyframe_familiar_seconds - waited / 2
+        wait = m.keyframe_seconds if familiar is None else m.keyframe_familiar_seconds
+        if far and wait is not None:  # and long enough ago
+            far = t - self.time_at_keyframe >= wait - waited / 2
         return far or self.turn - self.turn_at_keyframe >= m.keyframe_turn_rad - turned / 2
 
     def _recognition_due(self, t: float) -> bool:

@@ -466,12 +466,15 @@ def _small_loop(speed: float, laps: int):
     )
 
 
-def _keyframe_gaps(speed: float, seconds: float | None) -> tuple[np.ndarray, np.ndarray, np.ndarray, Mapper]:
-    """On three laps of a small loop driven at ``speed`` with ``keyframe_familiar_seconds`` = ``seconds``: the time of
-    every key frame; for those made by distance (not by turning), the seconds since the key frame before and whether
-    the path was familiar then; and the mapper, restored from a snapshot half way."""
+def _keyframe_gaps(
+    speed: float, seconds: float | None, option: str = "keyframe_familiar_seconds", turns: list[float] | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, Mapper]:
+    """On three laps of a small loop driven at ``speed`` with the mapper's ``option`` = ``seconds``: the time of every
+    key frame; for those made by distance (not by turning), the seconds since the key frame before and whether the
+    path was familiar then (the seconds after those made by turning go to ``turns``); and the mapper, restored from a
+    snapshot half way."""
     run = _small_loop(speed, 3)
-    m = Mapper(HippomapConfig.with_overrides({"mapper": {"keyframe_familiar_seconds": seconds}}))
+    m = Mapper(HippomapConfig.with_overrides({"mapper": {option: seconds}}))
     times, gaps, familiar = [], [], []
     for i in range(len(run)):
         t, v, w = run.odometry[i]
@@ -483,6 +486,8 @@ def _keyframe_gaps(speed: float, seconds: float | None) -> tuple[np.ndarray, np.
             if times[1:] and m.turn - turn_before < 0.5 * m.config.mapper.keyframe_turn_rad:  # not by turning
                 gaps.append(float(t) - last)
                 familiar.append(before)
+            elif times[1:] and turns is not None and m.turn - turn_before >= 0.9 * m.config.mapper.keyframe_turn_rad:
+                turns.append(float(t) - last)
         if i == len(run) // 2:
             restored = Mapper.from_bytes(m.to_bytes())
             assert (restored.time_at_keyframe, restored.last_frame_t) == (m.time_at_keyframe, m.last_frame_t)
@@ -507,6 +512,26 @@ def test_familiar_key_frames_wait_seconds_as_well_as_metres_at_speed():
     slow, _, fam_slow, _ = _keyframe_gaps(0.4, wait)
     assert fam_slow.sum() >= 3
     assert np.array_equal(slow, _keyframe_gaps(0.4, None)[0])
+
+
+def test_new_key_frames_can_wait_seconds_as_well_as_metres_at_speed():
+    """``keyframe_seconds``: off a familiar path a key frame made by distance also waits that long after the last
+    key frame, so a robot at 1.2 m/s learns and recognises about as often per second as one at 0.67 m/s; key frames
+    made by turning do not wait; at 0.4 m/s the metres bind (0.5 m takes 1.25 s) and the key frames are the very
+    same with it or without it."""
+    wait = HippomapConfig().mapper.keyframe_seconds
+    assert wait is not None and 0.5 / 0.4 > wait > 0.5 / 1.2  # binds at 1.2 m/s, not at 0.4 m/s
+    turns: list[float] = []
+    _, gaps, fam, m_wait = _keyframe_gaps(1.2, wait, "keyframe_seconds", turns)
+    assert (~fam).sum() >= 10
+    assert np.all(gaps[~fam] > wait - 0.1 - 1e-6)  # less half a frame (5 Hz)
+    assert min(turns) < wait - 0.1  # a turn makes a key frame sooner
+    _, gaps_m, fam_m, m_metres = _keyframe_gaps(1.2, None, "keyframe_seconds")
+    assert np.all(gaps_m[~fam_m] < 0.5)  # 0.5 m at 1.2 m/s
+    assert m_wait.stats()["keyframes"] < m_metres.stats()["keyframes"]
+    assert m_wait.stats()["recognitions"] < m_metres.stats()["recognitions"]
+    slow = _keyframe_gaps(0.4, wait, "keyframe_seconds")[0]
+    assert np.array_equal(slow, _keyframe_gaps(0.4, None, "keyframe_seconds")[0])
 
 
 def test_recognitions_can_be_spaced_in_seconds():
