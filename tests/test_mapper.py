@@ -505,7 +505,7 @@ def test_familiar_key_frames_wait_seconds_as_well_as_metres_at_speed():
     _, gaps, fam, m_fast = _keyframe_gaps(1.2, wait)
     assert fam.sum() >= 3, "no verified loop on the second lap"
     assert np.all(gaps[fam] > wait - 0.1 - 1e-6)  # less half a frame (5 Hz)
-    assert np.all(gaps[~fam] < 1.0)  # 0.5 m at 1.2 m/s where the path is new
+    assert np.all(gaps[~fam] < 1.0)  # 0.5 m and keyframe_seconds (0.75 s) at 1.2 m/s where the path is new
     _, gaps_m, fam_m, m_metres = _keyframe_gaps(1.2, None)
     assert fam_m.sum() >= 3 and np.all(gaps_m[fam_m] < 1.2)  # 1 m at 1.2 m/s
     assert m_fast.stats()["recognitions"] < m_metres.stats()["recognitions"]
