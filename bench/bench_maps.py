@@ -647,14 +647,16 @@ def closure_truth(dataset, pairs: list[tuple[int, int]]) -> list[float | None]:
     return [groundtruth_distance(gt, float(dataset.times[i]), float(dataset.times[j])) for i, j in pairs]
 
 
+def is_true(d: float | None) -> bool:
+    """A closure whose two places are ``d`` apart in ground truth is true: within ``TRUE_M`` (None: the ground truth
+    cannot tell, so not known to be true)."""
+    return d is not None and d <= TRUE_M
+
+
 def pair_revisits(dataset, pairs: list[tuple[int, int]], dist: list[float | None], used: list[bool]) -> dict[str, Any]:
     """:func:`~hippomap.eval.revisits.revisit_recall` of the ground truth's revisit episodes by the used true
     closures among the pose ``pairs`` (each made when the robot stood at the later pose of its pair)."""
-    times = [
-        float(dataset.times[max(i, j)])
-        for (i, j), d, ok in zip(pairs, dist, used)
-        if ok and d is not None and d <= TRUE_M
-    ]
+    times = [float(dataset.times[max(i, j)]) for (i, j), d, ok in zip(pairs, dist, used) if ok and is_true(d)]
     return closed_revisits(dataset.groundtruth, times)
 
 
@@ -666,7 +668,7 @@ def count_closures(dist: list[float | None], used: list[bool]) -> dict[str, int]
         "false_2m": sum(d is not None and d > TRUE_M for d in u),
         "false_5m": sum(d is not None and d > FAR_M for d in u),
         "unjudged": sum(d is None for d in u),
-        "true_rejected": sum(d is not None and d <= TRUE_M and not ok for d, ok in zip(dist, used)),
+        "true_rejected": sum(is_true(d) and not ok for d, ok in zip(dist, used)),
     }
 
 
@@ -699,8 +701,7 @@ def online_reference(
 def true_closure(dataset: Any, i: int, j: int) -> bool:
     """Poses ``i`` and ``j`` of ``dataset`` are within ``TRUE_M`` of each other in ground truth (False where
     the ground truth cannot tell)."""
-    d = closure_truth(dataset, [(i, j)])[0]
-    return d is not None and d <= TRUE_M
+    return is_true(closure_truth(dataset, [(i, j)])[0])
 
 
 def bicocca_case(case: dict[str, Any]) -> list[dict[str, Any]]:
