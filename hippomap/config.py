@@ -317,6 +317,16 @@ class MapConfig(_Frozen):
         ge=0,
         description="gate growth per metre travelled between the two nodes: odometric drift allowance [ours]",
     )
+    loop_outer_gate: float | None = Field(
+        0.7,
+        gt=0,
+        le=1,
+        description="a visual hypothesis that puts its node at or beyond this fraction of the gate's limit from the "
+        "node's map pose waits for a consistent group as one outside the gate does (map.outside_min_support); None = "
+        "every hypothesis inside the gate becomes a link at once. 0.7 chosen among 0.35 / 0.5 / 0.6 / 0.7 on the "
+        "simulated tuning runs and the runs at 0.8 and 1.2 m/s: accepted false closures 77 -> 48 at the same maps "
+        "[ours, docs/MODEL.md item 97]",
+    )
     loop_heading_radius_rad: float | None = Field(
         0.8,
         gt=0,

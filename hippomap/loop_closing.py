@@ -187,12 +187,15 @@ class LoopClosing(LoopGate):
             if link >= 0:
                 self._trust(link)
             sup = tuple(sorted(ids - {c.id}))
+            d = book.decisions[c.id]
+            why = gate_reason if c.id == cand.id else d.reason  # the others' reasons say why they waited
+            where = "in the gate's outer part" if "outer part" in why else "outside the gate"
             book.decisions[c.id] = replace(
-                book.decisions[c.id],
+                d,
                 status="accepted",
                 link=link,
                 support=sup,
-                reason="outside the gate; verified by a group of consistent recognitions",
+                reason=f"{where}; verified by a group of consistent recognitions",
                 decided_step=self._step,
                 transform=c.link_tr,
             )

@@ -61,7 +61,7 @@ class LoopGate(MapCorrection):
                     reason = f"{what} distance {dist:.3f} m exceeds the gate {limit:.3f} m"
                     outside = True
                 elif math.isfinite(limit):  # a waived gate (a run not yet placed on a saved map) waives both parts
-                    reason = self._heading_gate(cand)
+                    reason = self._heading_gate(cand) or self._outer_gate(cand, dist, limit, what)
                     outside = bool(reason)
         return base, reason, outside
 
@@ -77,6 +77,14 @@ class LoopGate(MapCorrection):
         turn = abs(wrap_angle(se2_compose(self.robot_map_pose(), c.M)[2] - float(self._P[c.node, 2])))
         limit = cfg.loop_heading_radius_rad + cfg.loop_heading_per_m * float(self._drift(np.array([c.node]), False)[0])
         return f"heading {turn:.3f} rad from the node's exceeds the gate {limit:.3f} rad" if turn > limit else ""
+
+    def _outer_gate(self, c: Candidate, dist: float, limit: float, what: str) -> str:
+        """Why visual candidate ``c``, inside the gate at ``dist`` of ``limit``, lies in its outer part
+        (``loop_outer_gate``), or "": such a hypothesis waits for a consistent group as one outside does."""
+        f = self.cfg.loop_outer_gate
+        if f is None or c.measured or dist < f * limit:
+            return ""
+        return f"{what} distance {dist:.3f} m is in the gate's outer part (from {f * limit:.3f} m)"
 
     def _gate(self, c: Candidate) -> tuple[float | None, float, str]:
         """(distance, limit, what) of the gate for candidate ``c``; distance None: cannot gate."""

@@ -615,6 +615,64 @@ def test_inconsistent_recognitions_outside_the_gate_expire_without_touching_the_
     assert cmap.link_count == cmap.node_count - 1 + len(linked)
 
 
+DEFAULT_OUTER = MapConfig().loop_outer_gate
+
+
+def _outer_gate_run(bias, outer, hyps, steps):
+    """The 20 m square's first lap and ``steps`` of the second, with a heading bias of ``bias`` rad per forward step,
+    hypotheses from ``hyps`` and ``loop_outer_gate`` = ``outer``: ``(map, loop rows)``."""
+    inc = square_increments(side=20.0, laps=2)
+    noisy = inc.copy()
+    noisy[:, 2] += bias * (inc[:, 0] > 0)
+    cmap = CognitiveMap(MapConfig(loop_outer_gate=outer))
+    drive(cmap, noisy[: len(inc) // 2 + steps], hypotheses=hyps)
+    return cmap, cmap.loop_rows()
+
+
+@pytest.mark.parametrize("outer", [None, DEFAULT_OUTER])
+def test_a_lone_recognition_in_the_gate_s_outer_part_waits_and_expires_without_a_link(outer):
+    """On a map with no drift the gate is still about 7 m wide at the start of the second lap (3 m plus the drift
+    allowance of an 80-m lap). A recognition there that names the place 5.5 m ahead is false: under the robust
+    kernel alone it becomes a link at once (faded later), while with the default ``loop_outer_gate`` it lies in the
+    gate's outer part, waits for two consistent recognitions that never come and expires without touching the map."""
+    first_lap = len(square_increments(side=20.0, laps=2)) // 2
+
+    def hyps(k, cmap, node_at, off):  # the robot is said to stand where it stood 5.5 m further on in the first lap
+        if k != first_lap + 60:
+            return []
+        return [LoopHypothesis(node=int(node_at[115]), source="false", time=float(k), offset=tuple(off[115]))]
+
+    cmap, rows = _outer_gate_run(0.0, outer, hyps, 260)
+    (row,) = rows
+    assert DEFAULT_OUTER * row["gate_limit_m"] < row["gate_distance_m"] < row["gate_limit_m"]  # in the outer part
+    if outer is None:
+        assert row["status"] == "accepted" and row["reason"].startswith("gate; weighted by the robust kernel")
+        assert cmap.link_count == cmap.node_count
+    else:
+        assert row["status"] == "rejected" and "no consistent support" in row["reason"]
+        assert cmap.link_count == cmap.node_count - 1  # no loop link was ever made
+
+
+def test_a_revisit_in_the_gate_s_outer_part_closes_as_a_consistent_group():
+    """A drift of 0.006 rad per metre puts the first lap's places 5.3-5.6 m from the robot at the start of the second
+    lap, inside the 7-m gate but in its outer part (the default ``loop_outer_gate``): the first true recognitions
+    wait and the third makes a group of three, verified at once; the recognitions after it are in the inner part."""
+    inc = square_increments(side=20.0, laps=2)
+    gt, first_lap = integrate(inc), len(inc) // 2
+
+    def hyps(k, cmap, node_at, off):
+        return [] if k <= first_lap + 20 or k % 5 else [_visual(gt, node_at, off, k, k - first_lap, None)]
+
+    cmap, rows = _outer_gate_run(0.0006, DEFAULT_OUTER, hyps, 200)
+    first = rows[:3]
+    assert all(DEFAULT_OUTER * r["gate_limit_m"] < r["gate_distance_m"] < r["gate_limit_m"] for r in first)
+    assert [r["status"] for r in first] == ["accepted"] * 3
+    assert all(r["reason"] == "in the gate's outer part; verified by a group of consistent recognitions" for r in first)
+    assert {r["decided_step"] for r in first} == {first[2]["proposed_step"]}  # no link before the group was whole
+    later = rows[3:]
+    assert later and all(r["status"] == "accepted" and r["gate_distance_m"] < 0.1 for r in later)
+
+
 def test_the_global_search_schedule_survives_a_snapshot():
     cfg = HippomapConfig.with_overrides({"mapper": {"global_search_after_m": 20.0, "global_search_every_m": 2.0}})
     m = Mapper(cfg)
