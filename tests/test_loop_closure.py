@@ -498,13 +498,14 @@ def test_a_closure_elsewhere_keeps_the_gate_open_towards_places_it_did_not_join(
 
 
 # ------------------------------------------------------------------ outside the gate (global searches)
-def _drifting_square():
-    """Two laps of a 20 m square with a heading drift of 0.02 rad per metre: on the second lap the
-    robot's map pose is metres away from the first lap's nodes, beyond any gate."""
+def _drifting_square(bias=0.002):
+    """Two laps of a 20 m square with a heading drift of ``bias`` rad per forward step of 0.1 m: at the default,
+    0.02 rad per metre, the robot's map pose on the second lap is metres away from the first lap's nodes, beyond
+    any gate. ``(true increments, true poses, drifting poses, drifting increments)``."""
     inc = square_increments(side=20.0, laps=2)
     gt = integrate(inc)
     noisy = inc.copy()
-    noisy[:, 2] += 0.002 * (inc[:, 0] > 0)
+    noisy[:, 2] += bias * (inc[:, 0] > 0)
     return inc, gt, integrate(noisy), noisy
 
 
@@ -619,11 +620,9 @@ DEFAULT_OUTER = MapConfig().loop_outer_gate
 
 
 def _outer_gate_run(bias, outer, hyps, steps):
-    """The 20 m square's first lap and ``steps`` of the second, with a heading bias of ``bias`` rad per forward step,
-    hypotheses from ``hyps`` and ``loop_outer_gate`` = ``outer``: ``(map, loop rows)``."""
-    inc = square_increments(side=20.0, laps=2)
-    noisy = inc.copy()
-    noisy[:, 2] += bias * (inc[:, 0] > 0)
+    """:func:`_drifting_square`'s first lap and ``steps`` of the second at heading bias ``bias``, hypotheses from
+    ``hyps`` and ``loop_outer_gate`` = ``outer``: ``(map, loop rows)``."""
+    inc, _, _, noisy = _drifting_square(bias)
     cmap = CognitiveMap(MapConfig(loop_outer_gate=outer))
     drive(cmap, noisy[: len(inc) // 2 + steps], hypotheses=hyps)
     return cmap, cmap.loop_rows()
@@ -635,7 +634,7 @@ def test_a_lone_recognition_in_the_gate_s_outer_part_waits_and_expires_without_a
     allowance of an 80-m lap). A recognition there that names the place 5.5 m ahead is false: under the robust
     kernel alone it becomes a link at once (faded later), while with the default ``loop_outer_gate`` it lies in the
     gate's outer part, waits for two consistent recognitions that never come and expires without touching the map."""
-    first_lap = len(square_increments(side=20.0, laps=2)) // 2
+    first_lap = len(_drifting_square()[0]) // 2
 
     def hyps(k, cmap, node_at, off):  # the robot is said to stand where it stood 5.5 m further on in the first lap
         if k != first_lap + 60:
@@ -657,8 +656,8 @@ def test_a_revisit_in_the_gate_s_outer_part_closes_as_a_consistent_group():
     """A drift of 0.006 rad per metre puts the first lap's places 5.3-5.6 m from the robot at the start of the second
     lap, inside the 7-m gate but in its outer part (the default ``loop_outer_gate``): the first true recognitions
     wait and the third makes a group of three, verified at once; the recognitions after it are in the inner part."""
-    inc = square_increments(side=20.0, laps=2)
-    gt, first_lap = integrate(inc), len(inc) // 2
+    inc, gt, _, _ = _drifting_square()
+    first_lap = len(inc) // 2
 
     def hyps(k, cmap, node_at, off):
         return [] if k <= first_lap + 20 or k % 5 else [_visual(gt, node_at, off, k, k - first_lap, None)]
