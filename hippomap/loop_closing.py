@@ -22,7 +22,7 @@ import numpy as np
 from .errors import InputError
 from .geometry import se2_between, se2_compose, se2_inverse
 from .loop_closure import Candidate, LoopDecision, LoopHypothesis, consistent
-from .loop_gate import LoopGate
+from .loop_gate import OUTER_PART, LoopGate
 from .loop_pose import fit_group
 from .map_events import LoopAccepted, LoopPending, LoopRejected, MapEvent
 from .map_graph import LOOP, PRUNE
@@ -189,7 +189,7 @@ class LoopClosing(LoopGate):
             sup = tuple(sorted(ids - {c.id}))
             d = book.decisions[c.id]
             why = gate_reason if c.id == cand.id else d.reason  # the others' reasons say why they waited
-            where = "in the gate's outer part" if "outer part" in why else "outside the gate"
+            where = OUTER_PART if OUTER_PART in why else "outside the gate"
             book.decisions[c.id] = replace(
                 d,
                 status="accepted",

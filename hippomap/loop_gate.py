@@ -21,7 +21,10 @@ from .geometry import se2_compose, wrap_angle
 from .loop_closure import Candidate, LoopDecision, LoopHypothesis
 from .map_correction import MapCorrection
 
-__all__ = ["LoopGate"]
+__all__ = ["OUTER_PART", "LoopGate"]
+
+# where a hypothesis inside the gate that waits for a consistent group lies: its pending and accepted reasons say so
+OUTER_PART = "in the gate's outer part"
 
 
 class LoopGate(MapCorrection):
@@ -84,7 +87,7 @@ class LoopGate(MapCorrection):
         f = self.cfg.loop_outer_gate
         if f is None or c.measured or dist < f * limit:
             return ""
-        return f"{what} distance {dist:.3f} m is in the gate's outer part (from {f * limit:.3f} m)"
+        return f"{what} distance {dist:.3f} m is {OUTER_PART} (from {f * limit:.3f} m)"
 
     def _gate(self, c: Candidate) -> tuple[float | None, float, str]:
         """(distance, limit, what) of the gate for candidate ``c``; distance None: cannot gate."""
