@@ -430,7 +430,10 @@ def run_hippomap(data: Path, config_file: str | None, out_dir: Path) -> dict[str
     decisions = json.loads((out_dir / "loop_closures.json").read_text())
     accepted = [d for d in decisions if d.get("status") == "accepted"]
     judged = [d for d in accepted if d.get("groundtruth_distance_m") is not None]
-    # accepted false closures that were used after some input on the way (weight >= USED_WEIGHT), though faded
+    # links retracted after fading (map.loop_retract_below): rejected at the end, linked for a while
+    retracted = [d for d in decisions if d.get("reason", "").startswith("retracted")]
+    # false closures linked at some point (accepted, or retracted since) that were used after some input on the way
+    # (weight >= USED_WEIGHT), though faded
     ever_used = [
         {
             "id": d["id"],
@@ -438,7 +441,7 @@ def run_hippomap(data: Path, config_file: str | None, out_dir: Path) -> dict[str
             "peak_weight": float(m.peak_loop_weights[d["id"]]),
             "used_s": float(m.used_seconds[d["id"]]),
         }
-        for d in judged
+        for d in judged + [d for d in retracted if d.get("groundtruth_distance_m") is not None]
         if d["groundtruth_distance_m"] > TRUE_M and m.peak_loop_weights[d["id"]] >= USED_WEIGHT
     ]
     ms = np.array(m.frame_seconds) * 1e3
@@ -457,6 +460,8 @@ def run_hippomap(data: Path, config_file: str | None, out_dir: Path) -> dict[str
         # (decisions without the field: every accepted one is used)
         "closures_used": sum(bool(d.get("used", True)) for d in accepted),
         "closures_used_false": sum(d["groundtruth_distance_m"] > TRUE_M for d in judged if d.get("used", True)),
+        "closures_retracted": len(retracted),
+        "closures_retracted_false": sum((d.get("groundtruth_distance_m") or 0.0) > TRUE_M for d in retracted),
         "closures_false_ever_used": len(ever_used),
         # each of those: how far apart its places were, its highest weight, and how long it was used (s)
         "false_ever_used": ever_used,
@@ -996,9 +1001,16 @@ def sim_targets(rows: list[dict[str, Any]]) -> list[str]:
         f"{sum(_used_false(r['hippomap']) for r in ok)} (of {sum(_used(r['hippomap']) for r in ok)} used); "
         f"accepted {false} (of {sum(r['hippomap']['closures_accepted'] for r in ok)} accepted), of which used "
         f"after any input on the way {sum(r['hippomap'].get('closures_false_ever_used', 0) for r in ok)}"
+        f" (retracted ones counted too); retracted after fading {_total(ok, 'closures_retracted')}"
+        f" (false {_total(ok, 'closures_retracted_false')})"
         + _ever_used_detail([c for r in ok for c in r["hippomap"].get("false_ever_used", [])])
     )
     return lines
+
+
+def _total(runs: list[dict[str, Any]], key: str) -> int:
+    """The sum of hippomap's ``key`` over ``runs`` (0 where a run's JSON predates it)."""
+    return sum(r["hippomap"].get(key, 0) for r in runs)
 
 
 def _ever_used_detail(closures: list[dict[str, Any]]) -> str:

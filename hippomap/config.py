@@ -327,6 +327,23 @@ class MapConfig(_Frozen):
         "simulated tuning runs and the runs at 0.8 and 1.2 m/s: accepted false closures 77 -> 48 at the same maps "
         "[ours, docs/MODEL.md item 97]",
     )
+    loop_retract_below: float | None = Field(
+        0.03,
+        gt=0,
+        le=1,
+        description="an accepted loop link still unverified when its support window ends is judged "
+        "map.loop_retract_after_m later: weighted below this by the robust kernel then, it is retracted (held at the "
+        "kernel's floor weight for good, its decision rejected); None = every such link stays at the kernel's weight. "
+        "0.03 chosen among 0.01 / 0.03 / 0.1 on the simulated tuning runs and the runs at 0.8 and 1.2 m/s: accepted "
+        "false closures 48 -> 12 at better maps [ours, docs/MODEL.md item 99]",
+    )
+    loop_retract_after_m: float = Field(
+        20.0,
+        ge=0,
+        description="metres of path after its support window (map.loop_support_window_m) at which an unverified "
+        "link is judged for retraction (map.loop_retract_below), once a closure verified since it was made has had "
+        "the chance to move the map; 10 and 20 measured alike [ours, docs/MODEL.md item 99]",
+    )
     loop_heading_radius_rad: float | None = Field(
         0.8,
         gt=0,

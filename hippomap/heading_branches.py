@@ -45,7 +45,7 @@ class HeadingBranches(MapGraph):
 
     def _loop_ids(self) -> np.ndarray:
         """The indices of the map's loop links (the links its robust kernel weighs)."""
-        return np.flatnonzero(self._kind[: self._m] == LOOP)
+        return np.flatnonzero((self._kind[: self._m] == LOOP) & (self._lkw[: self._m] > 0))
 
     def _map_cost(self, Q: np.ndarray, info: np.ndarray, bias: dict[str, Any]) -> float:
         """The whole solve's cost (:func:`~hippomap.least_squares.graph_cost`) of every link of the map on

@@ -26,7 +26,7 @@ from .loop_gate import OUTER_PART, LoopGate
 from .loop_pose import fit_group
 from .map_events import LoopAccepted, LoopPending, LoopRejected, MapEvent
 from .map_graph import LOOP, PRUNE
-from .robust_kernel import is_used
+from .robust_kernel import WEIGHT_FLOOR, is_used
 
 __all__ = ["LoopClosing"]
 
@@ -427,9 +427,40 @@ class LoopClosing(LoopGate):
         for c in self._loops.expired(self._path, w):
             if self.cfg.loop_accept == "verified":
                 self._reject(c.id, f"expired: no consistent support within {w:g} m of path", t)
+            elif self.cfg.loop_retract_below is not None and self._loops.decisions[c.id].status == "accepted":
+                self._loops.faded.append(c)
+        self._judge_faded(w + self.cfg.loop_retract_after_m, t)
         self._expire_outside(t)
         out, self._events = self._events, []
         return out
+
+    def _judge_faded(self, after_m: float, t: float) -> None:
+        """Judge (:meth:`_retract_faded`) the unverified links older than ``after_m`` metres of path that a closure
+        verified since they were made could have moved the map towards; the others wait on."""
+        book, lv = self._loops, self._loops.last_verified_path
+        due = [c for c in book.faded if self._path - c.path > after_m and lv is not None and lv > c.path]
+        if due:
+            ids = {c.id for c in due}
+            book.faded = [c for c in book.faded if c.id not in ids]
+        for c in due:
+            self._retract_faded(c.id, after_m, t)
+
+    def _retract_faded(self, did: int, window_m: float, t: float) -> None:
+        """An accepted link left unverified over its support window whose kernel weight is below
+        ``loop_retract_below`` is retracted: held at the kernel's floor weight for good (kernel width 0 marks
+        it, and the kernel no longer revises it), its decision rejected."""
+        bar, d = self.cfg.loop_retract_below, self._loops.decisions[did]
+        k = d.link
+        linked = d.status == "accepted" and 0 <= k < self._m and self._kind[k] == LOOP
+        if bar is None or not linked or not self._w[k] < bar:
+            return
+        w = float(self._w[k])
+        self._w[k] = WEIGHT_FLOOR
+        self._lkw[k] = 0.0
+        self._version += 1
+        self._dirty = True
+        self._touched.append(k)
+        self._reject(did, f"retracted: unverified, and faded to weight {w:.3g} after {window_m:g} m of path", t)
 
     def loop_weights(self) -> np.ndarray:
         """The current robust weight of each loop decision's link, indexed by decision id (float64; NaN

@@ -455,6 +455,9 @@ class LoopBook:
         #: visual hypotheses that named a node outside the gate (``outside_searches`` says whose): no link
         #: until a group of them agrees (:meth:`CognitiveMap.propose_loop`)
         self.outside: list[Candidate] = []
+        #: accepted links left unverified when their support window ended: retracted if still faded later
+        #: (:meth:`LoopClosing._judge_faded`)
+        self.faded: list[Candidate] = []
 
     def expired(self, path: float, window_m: float) -> list[Candidate]:
         """Drop pending candidates older than ``window_m`` metres of path (returned, to be
@@ -479,6 +482,7 @@ class LoopBook:
             "accepted": [c.to_dict() for c in self.accepted],
             "last_verified_path": self.last_verified_path,
             "outside": [c.to_dict() for c in self.outside],
+            "faded": [c.to_dict() for c in self.faded],
         }
 
     @classmethod
@@ -490,4 +494,5 @@ class LoopBook:
         lv = d.get("last_verified_path")
         book.last_verified_path = None if lv is None else float(lv)
         book.outside = [Candidate.from_dict(x) for x in d.get("outside", [])]
+        book.faded = [Candidate.from_dict(x) for x in d.get("faded", [])]
         return book

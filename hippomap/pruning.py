@@ -200,3 +200,4 @@ class Pruning(LoopClosing):
                 self._reject(cand.id, "prune() merged its node into the node it was proposed from", t)
         book.pending = [remap(c) for c in book.pending if old_to_new[c.node] != old_to_new[c.from_node]]
         book.accepted = [remap(c) for c in book.accepted]
+        book.faded = []  # their links were renumbered: no longer judged for retraction

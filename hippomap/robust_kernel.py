@@ -19,10 +19,12 @@ import numpy as np
 
 from .errors import InputError
 
-__all__ = ["USED_WEIGHT", "is_used", "used_flags", "robust_weight", "kernel_weights"]
+__all__ = ["USED_WEIGHT", "WEIGHT_FLOOR", "is_used", "used_flags", "robust_weight", "kernel_weights"]
 
 #: a loop link whose robust weight is at least this counts as used (applied); below, it has faded
 USED_WEIGHT = 0.5
+#: the least weight the kernel gives a loop link, so that no link is divided away entirely
+WEIGHT_FLOOR = 1e-4
 
 
 def is_used(status: str, weight: float) -> bool:
@@ -56,4 +58,4 @@ def kernel_weights(e: np.ndarray, info: np.ndarray, width: np.ndarray, kernel: s
     information ``info`` (K, 3: x, y, heading) and kernel widths ``width`` (K,): whitened by
     both, floored so that no link is divided away entirely."""
     chi2 = (e[:, 0] ** 2 * info[:, 0] + e[:, 1] ** 2 * info[:, 1] + e[:, 2] ** 2 * info[:, 2]) / width**2
-    return np.maximum(robust_weight(chi2, kernel), 1e-4)
+    return np.maximum(robust_weight(chi2, kernel), WEIGHT_FLOOR)

@@ -22,7 +22,7 @@ from hippomap.map_graph import LOOP, MapGraph, _undirected_paths, _undirected_pa
 from hippomap.map_reuse import ReuseMap
 from hippomap.mapper import Mapper
 from hippomap.mapper_queries import LoopDecisions, ViewerState
-from hippomap.robust_kernel import USED_WEIGHT, kernel_weights, robust_weight
+from hippomap.robust_kernel import USED_WEIGHT, WEIGHT_FLOOR, kernel_weights, robust_weight
 from hippomap.visual_memory import VisualMemory
 from tests.test_cognitive_map import (
     back_and_forth,
@@ -610,9 +610,9 @@ def test_inconsistent_recognitions_outside_the_gate_expire_without_touching_the_
     expired = [r for r in rows if r["status"] == "rejected" and "no consistent support" in r["reason"]]
     assert len(expired) > 0.5 * len(rows)
     # the few that happened to name a node inside the gate took the gated path (a link the robust kernel
-    # weighs); no group outside the gate was ever accepted
+    # weighs, or a link retracted once it had faded); no group outside the gate was ever accepted
     linked = [r for r in rows if r.get("link", -1) >= 0]
-    assert all(r["reason"].startswith("gate;") for r in linked)
+    assert all(r["reason"].startswith(("gate;", "retracted:")) for r in linked)
     assert cmap.link_count == cmap.node_count - 1 + len(linked)
 
 
@@ -1099,3 +1099,57 @@ def test_visual_solve_loosening_lets_odometry_bend_a_visual_link_but_not_its_ker
     assert d.status == "accepted" and d.link >= 0
     x, heading = MapConfig().loop_information
     np.testing.assert_allclose(cmap._linfo[d.link], [x, x, heading])
+
+
+@pytest.mark.parametrize("bar", [None, 0.1])
+def test_a_faded_closure_left_unverified_is_retracted_and_stays_out_of_the_kernel(bar):
+    """``loop_retract_below``: an accepted link still unverified when its support window ends, and weighted
+    below the bar then, is retracted: its decision rejected, its link held at the kernel's floor weight and no
+    longer revised (nor after a snapshot); the true closures stay used and the map as good."""
+    cfg = MapConfig(prune_online=False, relax_loops=200, loop_retract_below=bar, loop_retract_after_m=5.0)
+    cmap = CognitiveMap(cfg)
+    node_at, off, gt, odo = square_with_a_false_closure(cmap)
+    rows = cmap.loop_rows()
+    false = [r for r in rows if r["hypothesis"]["source"] == "false"]
+    true = [r for r in rows if r["hypothesis"]["source"] == "test"]
+    k = false[0]["link"]
+    assert k >= 0 and not false[0]["used"]
+    if bar is None:
+        assert false[0]["status"] == "accepted" and cmap._lkw[k] > 0
+        return
+    assert false[0]["status"] == "rejected" and false[0]["reason"].startswith("retracted")
+    assert false[0]["weight"] == WEIGHT_FLOOR and cmap._lkw[k] == 0 and k not in cmap._loop_ids()
+    assert all(r["status"] == "accepted" for r in true)  # verified, or weighted above the bar
+    assert sum(r["used"] for r in true) > 0.8 * len(true)
+    assert rms_xy(corrected(cmap, node_at, off), gt) < 0.25 * rms_xy(odo, gt)
+    back = CognitiveMap.from_state(cmap.cfg, cmap.state_dict())
+    assert back._lkw[k] == 0 and back._w[k] == WEIGHT_FLOOR and k not in back._loop_ids()
+    back.finish(iterations=50)  # the kernel revises the other links, never this one
+    assert back._w[k] == WEIGHT_FLOOR
+
+
+def test_a_faded_link_waits_to_be_judged_until_a_closure_verified_since_it_was_made(monkeypatch):
+    """``LoopClosing._judge_faded``: a faded link is judged only past ``after_m`` of path *and* once a closure verified
+    after it was made may have moved the map towards it (a long drift's first links rise only then); the map's state
+    keeps the links still waiting."""
+    cmap = CognitiveMap(MapConfig())
+    judged = []
+    monkeypatch.setattr(cmap, "_retract_faded", lambda did, after_m, t: judged.append(did))
+    book = cmap._loops
+    book.faded = [
+        Candidate(i, i, 0, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0), (0.0, 0.0, 0.0), i, path=p)
+        for i, p in enumerate([10.0, 30.0])
+    ]
+    cmap._path = 100.0
+    cmap._judge_faded(20.0, 0.0)
+    assert [c.id for c in book.faded] == [0, 1] and judged == []  # no closure verified yet: both wait
+    book.last_verified_path = 20.0  # verified after the first, before the second
+    cmap._judge_faded(20.0, 0.0)
+    assert [c.id for c in book.faded] == [1] and judged == [0]
+    assert [c.id for c in CognitiveMap.from_state(cmap.cfg, cmap.state_dict())._loops.faded] == [1]
+    book.last_verified_path, cmap._path = 40.0, 45.0
+    cmap._judge_faded(20.0, 0.0)
+    assert [c.id for c in book.faded] == [1]  # not yet 20 m on
+    cmap._path = 50.5
+    cmap._judge_faded(20.0, 0.0)
+    assert book.faded == [] and judged == [0, 1]
