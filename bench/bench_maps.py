@@ -86,6 +86,7 @@ from hippomap.eval.evaluation import groundtruth_at, groundtruth_distance, traje
 from hippomap.eval.revisits import closed_revisits, describe_missed  # noqa: E402
 from hippomap.geometry import between, wrap_angle  # noqa: E402
 from hippomap.inputs import Frame, Odometry  # noqa: E402
+from hippomap.loop_closing import RETRACTED  # noqa: E402
 from hippomap.mapper import Mapper  # noqa: E402
 from hippomap.robust_kernel import USED_WEIGHT  # noqa: E402
 from hippomap.sim.cli import WORLDS  # noqa: E402
@@ -431,7 +432,7 @@ def run_hippomap(data: Path, config_file: str | None, out_dir: Path) -> dict[str
     accepted = [d for d in decisions if d.get("status") == "accepted"]
     judged = [d for d in accepted if d.get("groundtruth_distance_m") is not None]
     # links retracted after fading (map.loop_retract_below): rejected at the end, linked for a while
-    retracted = [d for d in decisions if d.get("reason", "").startswith("retracted")]
+    retracted = [d for d in decisions if d.get("reason", "").startswith(RETRACTED)]
     # false closures linked at some point (accepted, or retracted since) that were used after some input on the way
     # (weight >= USED_WEIGHT), though faded
     ever_used = [

@@ -28,7 +28,10 @@ from .map_events import LoopAccepted, LoopPending, LoopRejected, MapEvent
 from .map_graph import LOOP, PRUNE
 from .robust_kernel import WEIGHT_FLOOR, is_used
 
-__all__ = ["LoopClosing"]
+__all__ = ["RETRACTED", "LoopClosing"]
+
+#: how the reason of a retracted closure (:meth:`LoopClosing._retract_faded`) begins: reports tell them by it
+RETRACTED = "retracted"
 
 _compose3, _inv3, _between3 = se2_compose, se2_inverse, se2_between
 
@@ -438,14 +441,16 @@ class LoopClosing(LoopGate):
         """Judge (:meth:`_retract_faded`) the unverified links older than ``after_m`` metres of path that a closure
         verified since they were made could have moved the map towards; the others wait on."""
         book, lv = self._loops, self._loops.last_verified_path
-        due = [c for c in book.faded if self._path - c.path > after_m and lv is not None and lv > c.path]
+        if lv is None or not book.faded:
+            return  # nothing waits, or no closure verified yet: no pass over the list on every update
+        due = [c for c in book.faded if self._path - c.path > after_m and lv > c.path]
         if due:
             ids = {c.id for c in due}
             book.faded = [c for c in book.faded if c.id not in ids]
         for c in due:
             self._retract_faded(c.id, after_m, t)
 
-    def _retract_faded(self, did: int, window_m: float, t: float) -> None:
+    def _retract_faded(self, did: int, after_m: float, t: float) -> None:
         """An accepted link left unverified over its support window whose kernel weight is below
         ``loop_retract_below`` is retracted: held at the kernel's floor weight for good (kernel width 0 marks
         it, and the kernel no longer revises it), its decision rejected."""
@@ -460,7 +465,7 @@ class LoopClosing(LoopGate):
         self._version += 1
         self._dirty = True
         self._touched.append(k)
-        self._reject(did, f"retracted: unverified, and faded to weight {w:.3g} after {window_m:g} m of path", t)
+        self._reject(did, f"{RETRACTED}: unverified, and faded to weight {w:.3g} after {after_m:g} m of path", t)
 
     def loop_weights(self) -> np.ndarray:
         """The current robust weight of each loop decision's link, indexed by decision id (float64; NaN
