@@ -16,6 +16,7 @@ from hippomap.config import HippomapConfig, MapConfig, VisualConfig
 from hippomap.errors import InputError
 from hippomap.geometry import between, compose, integrate, wrap_angle
 from hippomap.inputs import Frame, Odometry
+from hippomap.loop_closing import RETRACTED
 from hippomap.loop_closure import Candidate, LoopHypothesis, consistent, link_errors, link_info3, vec3
 from hippomap.loop_pose import align_group, looming_offset, looming_scale
 from hippomap.map_graph import LOOP, MapGraph, _undirected_paths, _undirected_paths_reference, hop_distances
@@ -612,7 +613,7 @@ def test_inconsistent_recognitions_outside_the_gate_expire_without_touching_the_
     # the few that happened to name a node inside the gate took the gated path (a link the robust kernel
     # weighs, or a link retracted once it had faded); no group outside the gate was ever accepted
     linked = [r for r in rows if r.get("link", -1) >= 0]
-    assert all(r["reason"].startswith(("gate;", "retracted:")) for r in linked)
+    assert all(r["reason"].startswith(("gate;", f"{RETRACTED}:")) for r in linked)
     assert cmap.link_count == cmap.node_count - 1 + len(linked)
 
 
@@ -1117,7 +1118,7 @@ def test_a_faded_closure_left_unverified_is_retracted_and_stays_out_of_the_kerne
     if bar is None:
         assert false[0]["status"] == "accepted" and cmap._lkw[k] > 0
         return
-    assert false[0]["status"] == "rejected" and false[0]["reason"].startswith("retracted")
+    assert false[0]["status"] == "rejected" and false[0]["reason"].startswith(f"{RETRACTED}:")
     assert false[0]["weight"] == WEIGHT_FLOOR and cmap._lkw[k] == 0 and k not in cmap._loop_ids()
     assert all(r["status"] == "accepted" for r in true)  # verified, or weighted above the bar
     assert sum(r["used"] for r in true) > 0.8 * len(true)
