@@ -344,6 +344,13 @@ class MapConfig(_Frozen):
         "link is judged for retraction (map.loop_retract_below), once a closure verified since it was made has had "
         "the chance to move the map; 10 and 20 measured alike [ours, docs/MODEL.md item 99]",
     )
+    loop_retract_groups: bool = Field(
+        True,
+        description="the links a group of recognitions outside the gate (or in its outer part) made are judged for "
+        "retraction like unverified ones (map.loop_retract_below, map.loop_retract_after_m, counted from the group's "
+        "acceptance). On by default: on the simulated tuning runs and the runs at 0.8 and 1.2 m/s accepted false "
+        "closures 12 -> 9 at maps 22.124 -> 22.156 m summed, revisits unchanged [ours, docs/MODEL.md item 100]",
+    )
     loop_heading_radius_rad: float | None = Field(
         0.8,
         gt=0,

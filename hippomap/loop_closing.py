@@ -28,10 +28,12 @@ from .map_events import LoopAccepted, LoopPending, LoopRejected, MapEvent
 from .map_graph import LOOP, PRUNE
 from .robust_kernel import WEIGHT_FLOOR, is_used
 
-__all__ = ["RETRACTED", "LoopClosing"]
+__all__ = ["GROUP_VERIFIED", "RETRACTED", "LoopClosing"]
 
 #: how the reason of a retracted closure (:meth:`LoopClosing._retract_faded`) begins: reports tell them by it
 RETRACTED = "retracted"
+#: how the reason of a closure accepted with a group of recognitions outside the gate (or in its outer part) ends
+GROUP_VERIFIED = "verified by a group of consistent recognitions"
 
 _compose3, _inv3, _between3 = se2_compose, se2_inverse, se2_between
 
@@ -159,8 +161,7 @@ class LoopClosing(LoopGate):
         must then fit one SE(2) transform (:meth:`_fit_group`). A fitted group
         becomes verified loop links at weight 1 and the whole map is solved; a lone or
         contradicted hypothesis expires without touching the map."""
-        cfg, book = self.cfg, self._loops
-        P, S = self._P, self._S
+        cfg, book, P, S = self.cfg, self._loops, self._P, self._S
         self._expire_outside(t)
         older = [c for c in book.outside if c.step != cand.step]
         # consistent in space, and in sequence: a revisit retraces the old path, so the old path between the two
@@ -184,6 +185,12 @@ class LoopClosing(LoopGate):
             book.decisions[cand.id] = d
             self._events.append(LoopPending(cand.id, cand.node, cand.from_node, len(ok), t))
             return d
+        return self._accept_outside(group, cand, gate_reason, t)
+
+    def _accept_outside(self, group: list[Candidate], cand: Candidate, gate_reason: str, t: float) -> LoopDecision:
+        """A fitted group outside the gate (or in its outer part) becomes loop links, each supported by the others;
+        the links wait to be judged for retraction (``loop_retract_groups``); the whole map is solved."""
+        cfg, book = self.cfg, self._loops
         ids = {c.id for c in group}
         for c in sorted(group, key=lambda c: c.id):
             link = self._add_loop_link(c)
@@ -198,21 +205,22 @@ class LoopClosing(LoopGate):
                 status="accepted",
                 link=link,
                 support=sup,
-                reason=f"{where}; verified by a group of consistent recognitions",
+                reason=f"{where}; {GROUP_VERIFIED}",
                 decided_step=self._step,
                 transform=c.link_tr,
             )
             self._events.append(LoopAccepted(c.id, c.node, c.from_node, link, sup, False, t))
         book.outside = [c for c in book.outside if c.id not in ids]
         book.accepted.extend(group)
+        if cfg.loop_retract_groups and cfg.loop_retract_below is not None:  # judged as unverified ones, from now
+            book.faded.extend(replace(c, path=self._path) for c in group)
         book.last_verified_path = self._path
         self._events.extend(self._optimise(t))  # the links disagree with the map by far: a whole solve
         return book.decisions[cand.id]
 
     def _reject(self, did: int, reason: str, t: float) -> LoopDecision:
-        book = self._loops
-        d = replace(book.decisions[did], status="rejected", reason=reason, decided_step=self._step)
-        book.decisions[did] = d
+        d = replace(self._loops.decisions[did], status="rejected", reason=reason, decided_step=self._step)
+        self._loops.decisions[did] = d
         self._events.append(LoopRejected(did, d.hypothesis.node, d.from_node, reason, t))
         return d
 
@@ -438,7 +446,7 @@ class LoopClosing(LoopGate):
         return out
 
     def _judge_faded(self, after_m: float, t: float) -> None:
-        """Judge (:meth:`_retract_faded`) the unverified links older than ``after_m`` metres of path that a closure
+        """Judge (:meth:`_retract_faded`) the waiting links older than ``after_m`` metres of path that a closure
         verified since they were made could have moved the map towards; the others wait on."""
         book, lv = self._loops, self._loops.last_verified_path
         if lv is None or not book.faded:
@@ -451,9 +459,10 @@ class LoopClosing(LoopGate):
             self._retract_faded(c.id, after_m, t)
 
     def _retract_faded(self, did: int, after_m: float, t: float) -> None:
-        """An accepted link left unverified over its support window whose kernel weight is below
-        ``loop_retract_below`` is retracted: held at the kernel's floor weight for good (kernel width 0 marks
-        it, and the kernel no longer revises it), its decision rejected."""
+        """An accepted link left unverified over its support window, or made by a group outside the gate
+        (``loop_retract_groups``), whose kernel weight is below ``loop_retract_below`` is retracted: held at the
+        kernel's floor weight for good (kernel width 0 marks it, and the kernel no longer revises it), its
+        decision rejected."""
         bar, d = self.cfg.loop_retract_below, self._loops.decisions[did]
         k = d.link
         linked = d.status == "accepted" and 0 <= k < self._m and self._kind[k] == LOOP
@@ -465,7 +474,8 @@ class LoopClosing(LoopGate):
         self._version += 1
         self._dirty = True
         self._touched.append(k)
-        self._reject(did, f"{RETRACTED}: unverified, and faded to weight {w:.3g} after {after_m:g} m of path", t)
+        kind = "a group's link" if d.reason.endswith(GROUP_VERIFIED) else "unverified"
+        self._reject(did, f"{RETRACTED}: {kind}, and faded to weight {w:.3g} after {after_m:g} m of path", t)
 
     def loop_weights(self) -> np.ndarray:
         """The current robust weight of each loop decision's link, indexed by decision id (float64; NaN

@@ -455,8 +455,8 @@ class LoopBook:
         #: visual hypotheses that named a node outside the gate (``outside_searches`` says whose): no link
         #: until a group of them agrees (:meth:`CognitiveMap.propose_loop`)
         self.outside: list[Candidate] = []
-        #: accepted links left unverified when their support window ended: retracted if still faded later
-        #: (:meth:`LoopClosing._judge_faded`)
+        #: accepted links left unverified when their support window ended, and a group's links (path counted
+        #: from its acceptance): retracted if still faded later (:meth:`LoopClosing._judge_faded`)
         self.faded: list[Candidate] = []
 
     def expired(self, path: float, window_m: float) -> list[Candidate]:

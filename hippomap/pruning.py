@@ -132,7 +132,8 @@ class Pruning(LoopClosing):
         dropped), their key frame moves to it if it has none. Node ids are compacted.
 
         Returns ``old_to_new`` (N_old,) mapping every old node id to its new id. The robot's
-        current node and offset, and pending hypotheses, are remapped.
+        current node and offset, and pending hypotheses, are remapped; each loop decision's link is
+        renumbered with the links (-1 when its link was merged into another or became a self-link).
         """
         n, m = self._n, self._m
         P = self._P[:n].copy()
@@ -161,7 +162,7 @@ class Pruning(LoopClosing):
         self._anchor = None if code is None else _compose3(code, _inv3(delta))
         t = self._t if self._t is not None else 0.0
         self._arrival = -1
-        self._remap_loops(old_to_new, t)
+        self._remap_loops(old_to_new, np.where(keep_link, np.cumsum(keep_link) - 1, -1), t)
         self._events.append(NodesPruned(n - kn, kn, ml, frames_dropped, t))
         self._events.extend(self._optimise(t, force=True))
         return old_to_new
@@ -187,9 +188,10 @@ class Pruning(LoopClosing):
         self._rebuild_link_index()
         return ml
 
-    def _remap_loops(self, old_to_new: np.ndarray, t: float) -> None:
-        """Pending and accepted candidates renamed to the new node ids (their arrival links are
-        gone); a pending one whose node was merged into the node it was proposed from is rejected."""
+    def _remap_loops(self, old_to_new: np.ndarray, link_to_new: np.ndarray, t: float) -> None:
+        """Pending, accepted and faded candidates renamed to the new node ids (their arrival links are
+        gone), and every decision's link to its new index (``link_to_new``, -1: dropped); a pending
+        candidate whose node was merged into the node it was proposed from is rejected."""
 
         def remap(c: Candidate) -> Candidate:
             return replace(c, node=int(old_to_new[c.node]), from_node=int(old_to_new[c.from_node]), arrival=-1)
@@ -200,4 +202,5 @@ class Pruning(LoopClosing):
                 self._reject(cand.id, "prune() merged its node into the node it was proposed from", t)
         book.pending = [remap(c) for c in book.pending if old_to_new[c.node] != old_to_new[c.from_node]]
         book.accepted = [remap(c) for c in book.accepted]
-        book.faded = []  # their links were renumbered: no longer judged for retraction
+        book.faded = [remap(c) for c in book.faded]  # judged by their decisions' renumbered links
+        book.decisions = [d if d.link < 0 else replace(d, link=int(link_to_new[d.link])) for d in book.decisions]

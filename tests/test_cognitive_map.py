@@ -580,6 +580,35 @@ def test_batch_prune_keeps_one_node_per_block_and_relinks():
     np.testing.assert_allclose(cmap.robot_pose[:2], robot_before[:2], atol=0.5)
 
 
+@pytest.mark.parametrize("behind", [0, 20])
+def test_batch_prune_renumbers_the_decisions_links(behind):
+    """After a batch prune every accepted decision names its own loop link, renumbered with the links,
+    or none (-1, no weight) when the prune merged it away: a revisit of the very places (``behind`` 0)
+    merges every loop link into an odometry link; loops 2 m behind along the first lap keep theirs."""
+    inc, gt, noisy, first_lap = biased_square()
+
+    def behind_loops(k, cmap, node_at, off):
+        if k <= first_lap + 20 or k % 5:
+            return []
+        j = k - first_lap - behind
+        return [LoopHypothesis(node=int(node_at[j]), transform=tuple(seen_from(cmap, gt[k], gt[j], off[j])))]
+
+    cmap = CognitiveMap(MapConfig(prune_online=False, loop_transform_radius_m=3.0))
+    drive(cmap, noisy, hypotheses=behind_loops)
+    before = {d.id: (d.hypothesis.node, d.from_node) for d in cmap.loop_decisions if d.link >= 0}
+    assert len(before) > 50
+    old_to_new = cmap.prune()
+    L, w = cmap.links, cmap.loop_weights()
+    linked = [d for d in cmap.loop_decisions if d.link >= 0]
+    for d in linked:
+        assert L["kind"][d.link] == "loop"
+        assert {int(L["source"][d.link]), int(L["target"][d.link])} == {int(old_to_new[n]) for n in before[d.id]}
+        assert w[d.id] == cmap.link_weights()[d.link]
+    assert len({d.link for d in linked}) == len(linked) == (L["kind"] == "loop").sum()
+    assert np.isnan(w[[d.id for d in cmap.loop_decisions if d.link < 0]]).all()
+    assert len(linked) == (len(before) if behind else 0)
+
+
 # ----------------------------------------------------------------------------- queries
 def test_nodes_near_is_sorted_and_excludes_recent_nodes():
     cfg = MapConfig(exclude_recent=3)
