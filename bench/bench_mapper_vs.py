@@ -145,7 +145,7 @@ class _Run:
 
     def result(self) -> dict[str, Any]:
         m = self.m
-        m.cmap.finish()  # the run's final solve, as `hippomap run` ends it (outside the timing)
+        m.cmap.finish()  # a final solve for both versions alike (untimed; `hippomap run` writes the online map)
         return {
             "codes": self.codes,
             "recognitions": m.recognitions,
