@@ -16,7 +16,7 @@ from hippomap.config import HippomapConfig, MapConfig, VisualConfig
 from hippomap.errors import InputError
 from hippomap.geometry import between, compose, integrate, wrap_angle
 from hippomap.inputs import Frame, Odometry
-from hippomap.loop_closing import RETRACTED
+from hippomap.loop_closing import GROUP_VERIFIED, RETRACTED
 from hippomap.loop_closure import Candidate, LoopHypothesis, consistent, link_errors, link_info3, vec3
 from hippomap.loop_pose import align_group, looming_offset, looming_scale
 from hippomap.map_graph import LOOP, MapGraph, _undirected_paths, _undirected_paths_reference, hop_distances
@@ -1187,7 +1187,7 @@ def test_a_false_group_outside_the_gate_fades_and_is_retracted(groups):
         assert all(r["status"] == "rejected" and r["reason"].startswith(f"{RETRACTED}: a group's link") for r in false)
         assert all(r["weight"] == WEIGHT_FLOOR and r["link"] not in cmap._loop_ids() for r in false)
     else:
-        assert all(r["status"] == "accepted" and "group" in r["reason"] for r in false)
+        assert all(r["status"] == "accepted" and r["reason"].endswith(GROUP_VERIFIED) for r in false)
     assert all(r["status"] == "accepted" for r in true)
     assert sum(r["used"] for r in true) > 0.9 * len(true)
     assert rms_xy(corrected(cmap, node_at, off), gt) < 0.05 * rms_xy(odo, gt)  # measured 0.27-0.28 vs 15.2 m
