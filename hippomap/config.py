@@ -851,6 +851,14 @@ class MapperConfig(_Frozen):
         "own information. 0.5: the spread of the simulated views' depths (docs/MODEL.md items 73 and 84), not "
         "tuned; None or 0 = the link's information alone [ours]",
     )
+    reanchor_span: int | None = Field(
+        15,
+        ge=1,
+        description="a recognition's loop link names the node, among this many either side of the matched key "
+        "frame's node along the old path, nearest the place the recognition claims (the key frame's pose moved by "
+        "the looming and the image shift), instead of the key frame's node: the link then joins nodes that stood "
+        "at the same place. None = the key frame's node [ours, docs/MODEL.md item 103]",
+    )
     shift_coupling: bool = Field(
         True,
         description="a recognition's image shift measures its heading plus its offset beside the key frame "

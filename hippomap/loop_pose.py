@@ -13,6 +13,8 @@ A visual recognition names a node; how far the robot is from it comes from two p
   averages that out, and the heading comes from the shape of the path.
 * :func:`fit_group` — :func:`align_group` on a group of candidates and the map, checked, each
   candidate's offset set from the fit.
+* :func:`reanchor` — one recognition's offset moved to the node of the old path nearest the place it
+  claims, so that its loop link joins nodes that stand where the robot stood.
 
 The map's decisions that use them are in :mod:`hippomap.loop_closing` and :mod:`hippomap.mapper`.
 """
@@ -27,9 +29,9 @@ import numpy as np
 from .config import MapConfig
 from .errors import InputError
 from .geometry import compose, se2_between, se2_compose, wrap_angle
-from .loop_closure import Candidate, place_of
+from .loop_closure import Candidate, place_of, vec3
 
-__all__ = ["align_group", "fit_group", "looming_distance", "looming_offset", "looming_scale"]
+__all__ = ["align_group", "fit_group", "looming_distance", "looming_offset", "looming_scale", "reanchor"]
 
 
 def align_group(odom: np.ndarray, targets: np.ndarray, min_spread_m: float) -> np.ndarray:
@@ -144,3 +146,28 @@ def fit_group(
             off = (off[0], off[1], c.coupled_heading - c.coupling * off[1])
         out.append(c.with_offset(off))
     return out
+
+
+def reanchor(P: np.ndarray, node: int, offset: Any, span: int, end: int) -> tuple[int, tuple[float, float, float]]:
+    """The node nearest the place a recognition claims, and the robot's offset from it.
+
+    The recognition puts the robot at ``offset`` in the frame of ``node`` (the matched key frame's node)
+    on the map ``P`` (N, 3). The looming and the key frame's own offset can put that place metres
+    along the old path from ``node``; the loop link would then join two nodes that never stood at
+    the same place. The nodes ``node - span`` .. ``node + span`` (ids below ``end``: the node ids
+    count along the path, so these are the old path around it) are searched for the one nearest
+    the claimed place, and the offset is re-expressed in its frame: the claimed pose is unchanged.
+    What a coupled heading reads (:attr:`~hippomap.loop_closure.LoopHypothesis.coupling`, heading +
+    coupling x lateral) moves with the frame only approximately, off by about coupling x the turn
+    between the two nodes x the new offset's length, small because that offset is short.
+    ``(node, offset)`` unchanged when ``node`` is nearest.
+    """
+    off = vec3(offset, "offset")
+    lo, hi = max(0, node - span), min(len(P), end, node + span + 1)
+    if hi <= lo + 1 or not lo <= node < hi:
+        return node, off
+    claim = se2_compose([float(v) for v in P[node]], off)
+    k = lo + int(np.argmin(np.hypot(P[lo:hi, 0] - claim[0], P[lo:hi, 1] - claim[1])))
+    if k == node:
+        return node, off
+    return k, se2_between([float(v) for v in P[k]], claim)

@@ -8,8 +8,9 @@ then learned into the visual memory, together with where it was taken relative t
 An accepted recognition becomes a :class:`~hippomap.loop_closure.LoopHypothesis` whose offset
 is that pose, moved along the key frame's view by the image's scale change (looming, held as
 uncertain as it is long) and turned by the image shift of the saccade correspondences when the
-camera's field of view is known, which the loop closing (:mod:`hippomap.loop_closure`) verifies
-and fits before the map closes the loop and relaxes.
+camera's field of view is known, and named on the node of the old path nearest the place it
+claims (:func:`~hippomap.loop_pose.reanchor`), which the loop closing (:mod:`hippomap.loop_closure`)
+verifies and fits before the map closes the loop and relaxes.
 
 Inputs must come in time order; every call returns the events it caused, typed
 (:mod:`hippomap.map_events`: the map's, raised while the call ran, and the mapper's own;
@@ -44,10 +45,10 @@ from .geometry import compose, se2_compose
 from .inputs import Frame, Odometry, follows
 from .keyframes import KeyFrames
 from .loop_closure import LoopHypothesis
-from .loop_pose import looming_offset
+from .loop_pose import looming_offset, reanchor
 from .map_events import KeyframeLearned, LoopDecided, MapEvent, RecognitionMade
 from .map_reuse import ReuseMap
-from .mapper_state import config_over, join_arrays, pack, split_arrays, unpack
+from .mapper_state import Grow, config_over, join_arrays, pack, split_arrays, unpack
 from .robust_kernel import used_flags
 from .spatial_pathway import PlaceCode, SpatialPathway
 from .visual_memory import VisualMemory
@@ -61,31 +62,6 @@ T = TypeVar("T")
 #: columns of the per-step trajectory store: t, raw odometric pose (x, y, theta), current node, the robot's
 #: offset from it as the odometry measured it (dx, dy, dtheta), and the seconds since it arrived at the node
 _TRAJ_COLUMNS = 9
-
-
-class _Grow:
-    """Append-only float array of fixed row width with amortised doubling."""
-
-    def __init__(self, width: int, dtype: Any = float) -> None:
-        self.data = np.empty((64, width), dtype=dtype)
-        self.n = 0
-
-    def append(self, row: Any) -> None:
-        if self.n == len(self.data):
-            self.data = np.concatenate([self.data, np.empty_like(self.data)])
-        self.data[self.n] = row
-        self.n += 1
-
-    @property
-    def view(self) -> np.ndarray:
-        return self.data[: self.n]
-
-    @classmethod
-    def of(cls, arr: np.ndarray) -> "_Grow":
-        g = cls(arr.shape[1], arr.dtype)
-        g.data = np.array(arr, copy=True) if len(arr) else g.data
-        g.n = len(arr)
-        return g
 
 
 class Mapper(KeyFrames):
@@ -118,7 +94,7 @@ class Mapper(KeyFrames):
         self.place: tuple[float, float, float] | None = None  # latest place code p
         self.place_field: PlaceCode | None = None  # latest PlaceCode with its field (not persisted)
         # per odometry step: t, raw odometric pose, current node, robot offset from it, seconds at the node
-        self._traj = _Grow(_TRAJ_COLUMNS)
+        self._traj = Grow(_TRAJ_COLUMNS)
 
     @property
     def localise_only(self) -> bool:
@@ -172,7 +148,7 @@ class Mapper(KeyFrames):
         m.recognitions = []
         m.place = None
         m.place_field = None
-        m._traj = _Grow(_TRAJ_COLUMNS)
+        m._traj = Grow(_TRAJ_COLUMNS)
         m.base_nodes = int(m.cmap.node_count)
         m.cmap.configure(m.localise_only, False)
         m.cmap.start_run(cfg.map.initial_pose)
@@ -285,14 +261,21 @@ class Mapper(KeyFrames):
         ahead = self._looming(rec)
         if search != "gated":
             meta["search"] = search
+        node, offset = self.frame_node[int(rec.frame)], self._visual_offset(rec, gray.shape[1], ahead)
+        span = self.config.mapper.reanchor_span
+        if span is not None:  # the link names the node nearest the place claimed (MODEL item 103)
+            end = self.cmap.node_count - self.config.map.exclude_recent
+            node, offset = reanchor(self.cmap.poses, node, offset, span, end)
+            if node != self.frame_node[int(rec.frame)]:
+                meta["key_frame_node"] = self.frame_node[int(rec.frame)]
         hyp = LoopHypothesis(
-            node=self.frame_node[int(rec.frame)],
+            node=node,
             transform=None,
             evidence=float(rec.evidence),
             source="visual",
             time=t,
             meta=meta,
-            offset=self._visual_offset(rec, gray.shape[1], ahead),
+            offset=offset,
             coupling=self._shift_coupling(rec),
             along_sigma=(self.config.mapper.looming_spread or 0.0) * abs(ahead),
         )
@@ -496,5 +479,5 @@ class Mapper(KeyFrames):
         traj = arrays["traj"]
         if traj.shape[1] == _TRAJ_COLUMNS - 1:  # a snapshot from before the time at the node was kept: none
             traj = np.column_stack([traj, np.zeros(len(traj))])
-        self._traj = _Grow.of(traj)
+        self._traj = Grow.of(traj)
         return self

@@ -84,3 +84,28 @@ def join_arrays(obj: Any, arrays: dict[str, np.ndarray]) -> Any:
     if isinstance(obj, list):
         return [join_arrays(v, arrays) for v in obj]
     return obj
+
+
+class Grow:
+    """Append-only float array of fixed row width with amortised doubling."""
+
+    def __init__(self, width: int, dtype: Any = float) -> None:
+        self.data = np.empty((64, width), dtype=dtype)
+        self.n = 0
+
+    def append(self, row: Any) -> None:
+        if self.n == len(self.data):
+            self.data = np.concatenate([self.data, np.empty_like(self.data)])
+        self.data[self.n] = row
+        self.n += 1
+
+    @property
+    def view(self) -> np.ndarray:
+        return self.data[: self.n]
+
+    @classmethod
+    def of(cls, arr: np.ndarray) -> "Grow":
+        g = cls(arr.shape[1], arr.dtype)
+        g.data = np.array(arr, copy=True) if len(arr) else g.data
+        g.n = len(arr)
+        return g

@@ -18,7 +18,7 @@ from hippomap.geometry import between, compose, integrate, wrap_angle
 from hippomap.inputs import Frame, Odometry
 from hippomap.loop_closing import GROUP_VERIFIED, RETRACTED
 from hippomap.loop_closure import Candidate, LoopHypothesis, consistent, link_errors, link_info3, vec3
-from hippomap.loop_pose import align_group, looming_offset, looming_scale
+from hippomap.loop_pose import align_group, looming_offset, looming_scale, reanchor
 from hippomap.map_graph import LOOP, MapGraph, _undirected_paths, _undirected_paths_reference, hop_distances
 from hippomap.map_reuse import ReuseMap
 from hippomap.mapper import Mapper
@@ -373,6 +373,33 @@ def test_visual_offset_moves_the_robot_along_the_key_frames_view():
     off = Mapper(HippomapConfig.with_overrides({"mapper": {"view_distance_m": None}}))
     off.frame_offset[4] = (0.3, -0.1, 0.5)
     assert off._visual_offset(Rec(), 320) == (0.3, -0.1, 0.5)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    st.lists(st.floats(-0.3, 0.3), min_size=12, max_size=40),
+    st.floats(0.2, 0.8),
+    st.tuples(st.floats(-2.5, 2.5), st.floats(-0.5, 0.5), st.floats(-0.6, 0.6)),
+    st.data(),
+)
+def test_reanchor_names_the_nearest_node_of_the_old_path_and_keeps_the_claimed_place(turns, step, offset, data):
+    """A recognition's offset moves to the node within ``span`` ids (below ``end``) nearest the place it claims;
+    re-expressed there it claims the same pose; nodes outside the span or from ``end`` on are never named."""
+    n = len(turns)
+    P = integrate(np.column_stack([np.full(n - 1, step), np.zeros(n - 1), turns[1:]]))
+    node = data.draw(st.integers(0, n - 1))
+    span = data.draw(st.integers(1, 8))
+    end = data.draw(st.integers(node + 1, n))
+    k, off = reanchor(P, node, offset, span, end)
+    claim = compose(P[node], np.array(offset))
+    assert max(0, node - span) <= k <= min(node + span, end - 1)
+    np.testing.assert_allclose(compose(P[k], np.array(off))[:2], claim[:2], atol=1e-9)
+    assert abs(wrap_angle(compose(P[k], np.array(off))[2] - claim[2])) < 1e-9
+    allowed = P[max(0, node - span) : min(node + span, end - 1) + 1, :2]
+    assert np.hypot(*(P[k, :2] - claim[:2])) == pytest.approx(np.hypot(*(allowed - claim[:2]).T).min())
+    if k == node:
+        assert off == pytest.approx(offset)
+    assert reanchor(P, node, offset, span, node) == (node, pytest.approx(offset))  # node itself past end: untouched
 
 
 # ------------------------------------------------------------------ the gate's drift path

@@ -65,6 +65,32 @@ def test_a_recognition_s_hypothesis_is_as_uncertain_along_the_view_as_its_loomin
             assert sum(h.along_sigma > 0.02 for h in visual) >= len(visual) // 2
 
 
+def test_a_recognition_s_link_names_the_node_nearest_where_the_robot_stood():
+    """``mapper.reanchor_span``: a visual hypothesis names the node of the old path nearest the place its recognition
+    claims (the key frame's node kept in ``meta``), and that node stood nearer the robot in ground truth than the
+    key frame's node did, on average over a whole simulated loop."""
+    world = sim.loop_world(seed=5, size=(8.0, 5.0))
+    noise = sim.OdometryNoise(sigma_v=0.02, sigma_omega=0.01, omega_bias=0.01)
+    run = sim.simulate(world, None, rate_hz=5.0, seed=1, odometry_noise=noise)
+    m = Mapper()
+    for i in range(len(run)):
+        t, v, w = (float(x) for x in run.odometry[i])
+        m.step(Odometry(t, v=v, omega=w))
+        m.observe(Frame(t, run.frame(i)))
+    moved = [d.hypothesis for d in m.cmap.loop_decisions if "key_frame_node" in d.hypothesis.meta]
+    assert len(moved) >= 10
+    span = m.config.mapper.reanchor_span
+    assert span is not None and all(0 < abs(h.node - h.meta["key_frame_node"]) <= span for h in moved)
+
+    def truth(t: float, node: int) -> float:
+        i, j = np.searchsorted(run.times, [t, m.cmap.times[node]])
+        return float(np.hypot(*(run.groundtruth[i, :2] - run.groundtruth[j, :2])))
+
+    named = np.array([truth(h.time, h.node) for h in moved])
+    key = np.array([truth(h.time, h.meta["key_frame_node"]) for h in moved])
+    assert named.mean() < 0.9 * key.mean() and (named < key).mean() > 0.5
+
+
 def test_save_restore_continue_is_identical(inputs):
     whole = Mapper(CONFIG)
     events_whole = feed(whole, inputs)
