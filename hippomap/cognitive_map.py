@@ -37,9 +37,9 @@ from typing import Any, Self
 import numpy as np
 
 from .config import MapConfig
-from .errors import InputError, finite
+from .errors import InputError, finite, vec3
 from .geometry import se2_between, se2_compose, se2_inverse
-from .loop_closure import LoopBook, LoopDecision, LoopHypothesis, vec3
+from .loop_closure import LoopBook, LoopDecision, LoopHypothesis
 from .map_events import (
     LoopAccepted,
     LoopPending,

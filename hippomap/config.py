@@ -373,6 +373,12 @@ class MapConfig(_Frozen):
         "this many posterior standard deviations of the estimate kept by the last whole solve (0 while none is "
         "kept). 0 = off. 2 chosen on the Bicocca world's 16 simulated tuning seeds (docs/MODEL.md item 58) [ours]",
     )
+    loop_bias_per_node: bool = Field(
+        True,
+        description="loop_radius_bias_sd's allowance counted per node: a node d metres back gets e d (D - d/2) / v, "
+        "the heading error over the path between it and the robot only, instead of e D^2 / (2 v) for every node "
+        "(False). Chosen on the 60 simulated choosing runs (docs/MODEL.md items 102 and 104) [ours]",
+    )
     loop_drift: Literal["verified", "graph"] = Field(
         "graph",
         description="the path over which drift may separate a visual hypothesis's node from the robot, for the gate: "

@@ -102,10 +102,8 @@ class LoopClosing(LoopGate):
         information and kernel width (measured or visual)."""
         cfg = self.cfg
         did = len(self._loops.decisions)
-        if h.transform is not None:
-            link_tr = h.transform
-        else:
-            link_tr = self._delta if h.offset is None else _compose3(self._delta, _inv3(h.offset))
+        visual = self._delta if h.offset is None else _compose3(self._delta, _inv3(h.offset))  # node from current node
+        link_tr = visual if h.transform is None else h.transform
         if h.information:
             info: tuple[float, ...] = h.information
         elif h.transform is not None:
@@ -331,8 +329,7 @@ class LoopClosing(LoopGate):
                     self._trust(k)
                     self._touched.append(k)
                     book.decisions[c.id] = replace(book.decisions[c.id], transform=c.link_tr)
-            self._version += 1
-            self._dirty = True
+            self._link_changed()
             ids = {c.id for c in group}
             book.pending = [c for c in book.pending if c.id not in ids]
             book.accepted.extend(group)
@@ -401,9 +398,7 @@ class LoopClosing(LoopGate):
                 self._set_info(k, c.info, c.along_sigma, loosen)
                 self._lkw[k] = c.kernel_width
                 self._lcoup[k] = c.coupling
-                self._version += 1
-                self._dirty = True
-                self._touched.append(k)
+                self._link_changed(k)
                 return k
         return self._add_link(
             source,
@@ -471,11 +466,15 @@ class LoopClosing(LoopGate):
         w = float(self._w[k])
         self._w[k] = WEIGHT_FLOOR
         self._lkw[k] = 0.0
-        self._version += 1
-        self._dirty = True
-        self._touched.append(k)
+        self._link_changed(k)
         kind = "a group's link" if d.reason.endswith(GROUP_VERIFIED) else "unverified"
         self._reject(did, f"{RETRACTED}: {kind}, and faded to weight {w:.3g} after {after_m:g} m of path", t)
+
+    def _link_changed(self, *links: int) -> None:
+        """Links ``links`` changed (transform or weight): the solves rebuild; relaxation starts from them."""
+        self._version += 1
+        self._dirty = True
+        self._touched.extend(links)
 
     def loop_weights(self) -> np.ndarray:
         """The current robust weight of each loop decision's link, indexed by decision id (float64; NaN

@@ -34,7 +34,7 @@ from typing import Any, cast
 import numpy as np
 
 from .config import MapConfig
-from .errors import InputError, finite
+from .errors import InputError, finite, node_id, vec3
 from .geometry import between, compose, se2_compose, se2_inverse
 from .least_squares import couple, link_errors
 
@@ -52,8 +52,6 @@ __all__ = [
     "couple",
     "link_errors",
     "link_info3",
-    "vec3",
-    "node_id",
     "jsonable",
 ]
 
@@ -69,31 +67,6 @@ def jsonable(x: Any) -> Any:
     if isinstance(x, np.generic):
         return x.item()
     return x
-
-
-def vec3(value: Any, name: str) -> tuple[float, float, float]:
-    """A finite (x, y, θ) triple from a sequence (or an object with x, y, theta), else InputError. A tuple
-    of three finite Python floats (the mapper's, every step) is returned as it is: the floats the array
-    route gives, without its round trip (7 us, more than the rest of a step's map bookkeeping)."""
-    if type(value) is tuple and len(value) == 3 and all(type(v) is float and math.isfinite(v) for v in value):
-        return value
-    if hasattr(value, "x") and hasattr(value, "y") and hasattr(value, "theta"):
-        value = (value.x, value.y, value.theta)
-    try:
-        arr = np.asarray(value, dtype=float).reshape(-1)
-    except (TypeError, ValueError):
-        raise InputError(f"{name} must be three numbers (x, y, theta), got {value!r}") from None
-    if arr.shape != (3,):
-        raise InputError(f"{name} must be three numbers (x, y, theta), got {value!r}")
-    if not np.all(np.isfinite(arr)):
-        raise InputError(f"{name} must be finite, got {value!r}")
-    return (float(arr[0]), float(arr[1]), float(arr[2]))
-
-
-def node_id(value: Any, name: str) -> int:
-    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
-        raise InputError(f"{name} must be an integer node id, got {value!r}")
-    return int(value)
 
 
 # --------------------------------------------------------------------------- records
@@ -352,7 +325,7 @@ def drift_path(path: float, node_path, last_verified_path: float | None = None):
     return np.maximum(d, 0.0)
 
 
-def gate_limit(cfg: MapConfig, measured: bool, drift, bias_m: float = 0.0) -> Any:
+def gate_limit(cfg: MapConfig, measured: bool, drift, bias_m: Any = 0.0) -> Any:
     """Gate radius (m): base radius (smaller for a measured transform, which says where the
     node is) plus ``loop_radius_per_m`` per metre of drift path, plus ``bias_m``, what the error of
     the odometry's estimated bias may have moved the robot (:func:`bias_drift`)."""
@@ -360,7 +333,7 @@ def gate_limit(cfg: MapConfig, measured: bool, drift, bias_m: float = 0.0) -> An
     return base + cfg.loop_radius_per_m * np.asarray(drift, dtype=float) + bias_m
 
 
-def bias_drift(cfg: MapConfig, bias_sd: float, path_m: float, seconds_per_m: float) -> float:
+def bias_drift(cfg: MapConfig, bias_sd: float, path_m: float, seconds_per_m: float, node_m: Any = None) -> Any:
     """How far (m) the error of the odometry's estimated heading bias may have moved the robot's map
     pose over the ``path_m`` metres since the map last anchored it (the last verified closure).
 
@@ -371,10 +344,15 @@ def bias_drift(cfg: MapConfig, bias_sd: float, path_m: float, seconds_per_m: flo
     allowance ``loop_radius_per_m`` grows with the path, this one with its square, which is how a
     heading-rate error grows. A ``bias_sd`` that is not finite (an estimate kept by a config without the
     significance test while the graph does not determine it) bounds nothing: no allowance, rather
-    than a gate over the whole map."""
+    than a gate over the whole map. ``node_m`` (the path since each node was made): the error between
+    the robot and a node ``d`` metres back is the heading error over those metres only, ``e d (D - d/2)``
+    ``seconds_per_m`` for ``d`` below ``D`` = ``path_m`` (``map.loop_bias_per_node``)."""
     if cfg.loop_radius_bias_sd <= 0 or not 0 < bias_sd < math.inf or path_m <= 0 or seconds_per_m <= 0:
         return 0.0
-    return float(cfg.loop_radius_bias_sd * bias_sd * path_m * path_m * seconds_per_m / 2.0)
+    if node_m is None:
+        return float(cfg.loop_radius_bias_sd * bias_sd * path_m * path_m * seconds_per_m / 2.0)
+    d = np.minimum(np.asarray(node_m, dtype=float), path_m)
+    return cfg.loop_radius_bias_sd * bias_sd * seconds_per_m * d * (path_m - d / 2.0)
 
 
 def cycle_errors(older: list[Candidate], b: Candidate, P: np.ndarray) -> np.ndarray:

@@ -27,9 +27,9 @@ from typing import Any
 import numpy as np
 
 from .config import MapConfig
-from .errors import InputError
+from .errors import InputError, vec3
 from .geometry import compose, se2_between, se2_compose, wrap_angle
-from .loop_closure import Candidate, place_of, vec3
+from .loop_closure import Candidate, place_of
 
 __all__ = ["align_group", "fit_group", "looming_distance", "looming_offset", "looming_scale", "reanchor"]
 

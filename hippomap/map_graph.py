@@ -29,9 +29,9 @@ from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 
 from .config import MapConfig
-from .errors import InputError, finite
+from .errors import InputError, finite, node_id, vec3
 from .geometry import se2_between, se2_compose, se2_inverse, wrap_angle
-from .loop_closure import LoopBook, bias_drift, drift_path, gate_limit, link_errors, link_info3, node_id, vec3
+from .loop_closure import LoopBook, bias_drift, drift_path, gate_limit, link_errors, link_info3
 from .map_events import FrameAssigned, MapEvent
 from .relaxation import ColourGroups, colour_link, edge_colouring
 from .robust_kernel import USED_WEIGHT, kernel_weights
@@ -385,21 +385,19 @@ class MapGraph:
     def _gate_limit(self, nodes: np.ndarray, measured: bool) -> np.ndarray:
         """:func:`~hippomap.loop_closure.gate_limit` of ``nodes``: the base radius, their drift path's
         allowance (:meth:`_drift`) and the bias estimate's (:meth:`_bias_drift`)."""
-        return np.asarray(gate_limit(self.cfg, measured, self._drift(nodes, measured), self._bias_drift()))
+        bias = self._bias_drift(nodes if self.cfg.loop_bias_per_node else None)
+        return np.asarray(gate_limit(self.cfg, measured, self._drift(nodes, measured), bias))
 
-    def _bias_drift(self) -> float:
+    def _bias_drift(self, nodes: np.ndarray | None = None) -> float | np.ndarray:
         """:func:`~hippomap.loop_closure.bias_drift` since the last verified closure (or the start): its
         path, and the seconds per metre of the nodes made since (the robot's pace over the drift)."""
         if self._bias_sd <= 0:
             return 0.0
         n = self._n
         first = int(np.searchsorted(self._S[:n], self._loops.last_verified_path or 0.0))  # nodes: in path order
-        if n - first < 2:
-            return 0.0
-        ds, dt = self._S[n - 1] - self._S[first], self._Tn[n - 1] - self._Tn[first]
-        if ds <= 0:
-            return 0.0
-        return bias_drift(self.cfg, self._bias_sd, self.path_since_verified, dt / ds)
+        ds, dt = (self._S[n - 1] - self._S[first], self._Tn[n - 1] - self._Tn[first]) if n - first >= 2 else (0, 0)
+        node_m = None if nodes is None else self._path - self._S[nodes]
+        return bias_drift(self.cfg, self._bias_sd, self.path_since_verified, dt / ds, node_m) if ds > 0 else 0.0
 
     def take_events(self) -> list[MapEvent]:
         """The events queued since the last call that returned events (by :meth:`propose_loop`,

@@ -1310,6 +1310,23 @@ def test_bias_drift_is_the_position_error_of_a_heading_rate_error(k, sd, path, p
     assert np.sum(steps * k * sd * t) == pytest.approx(got, rel=1e-6, abs=1e-12)
 
 
+@settings(max_examples=60, deadline=None)
+@given(k=st.floats(0.1, 5.0), sd=st.floats(1e-4, 0.01), path=st.floats(1.0, 500.0), pace=st.floats(0.1, 10.0))
+def test_bias_drift_per_node_is_the_heading_error_over_the_path_since_the_node(k, sd, path, pace):
+    """``bias_drift`` with the path since each node: the robot and a node ``d`` metres back are moved apart by the
+    heading error over those metres only, ``k sd pace d (D - d/2)``; a node made before the anchor (``d`` >= ``D``)
+    gets the whole allowance, the newest nothing, and the allowance grows with ``d``."""
+    cfg = MapConfig(loop_radius_bias_sd=k)
+    d = np.array([0.0, 0.25, 0.5, 0.9, 1.0, 3.0]) * path
+    got = bias_drift(cfg, sd, path, pace, d)
+    assert got[0] == 0.0 and got[-2] == got[-1] == pytest.approx(bias_drift(cfg, sd, path, pace), rel=1e-12)
+    assert np.all(np.diff(got) >= 0)
+    for di, g in zip(d[:-1], got[:-1]):  # the rate error's position error integrated over the last di metres
+        steps = np.full(400, path / 400)
+        s = np.cumsum(steps) - steps / 2
+        assert np.sum(steps * k * sd * pace * s * (s >= path - di)) == pytest.approx(g, rel=2e-2, abs=1e-9)
+
+
 def test_the_gate_widens_with_the_error_of_the_kept_bias():
     """After two laps closed over odometry turning 0.01 rad/s too much, the whole solves keep a bias
     estimate and its posterior standard deviation; 20 m further without a closure the gate of a
@@ -1345,3 +1362,13 @@ def test_the_gate_widens_with_the_error_of_the_kept_bias():
     restored = CognitiveMap.from_state(maps[2.0].cfg, maps[2.0].state_dict())
     again = restored.propose_loop(LoopHypothesis(node=2, transform=None, source="test"))
     assert again.gate_limit == wide.gate_limit
+    # counted per node (the default), a node 5 m back on the straight gets the heading error over those 5 m only
+    m2 = maps[2.0]
+    whole = CognitiveMap.from_state(m2.cfg.model_copy(update={"loop_bias_per_node": False}), m2.state_dict())
+    recent = int(np.searchsorted(m2._S[: m2.node_count], m2._path - 5.0))
+    hyp = LoopHypothesis(node=recent, transform=None, source="test")
+    per_node, alike = (m.propose_loop(hyp) for m in (restored, whole))
+    full = bias_drift(m2.cfg, sd, since, pace)
+    allowance = bias_drift(m2.cfg, sd, since, pace, np.array([m2._path - m2._S[recent]]))[0]
+    assert alike.gate_limit - per_node.gate_limit == pytest.approx(full - allowance)
+    assert 0.0 < allowance < 0.5 * full
