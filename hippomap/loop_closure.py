@@ -15,7 +15,8 @@ an image's looming, is :mod:`hippomap.loop_pose`):
 * :func:`gate_limit` — the radius a hypothesis must fall within: a base radius plus an
   allowance for odometric drift that grows with the path travelled since the node was made or
   since the last verified closure, whichever is shorter, and one for the error of the
-  odometry's estimated bias (:func:`bias_drift`), which grows with its square.
+  odometry's estimated bias (:func:`bias_drift`), which grows with its square (per node: over the
+  path between the node and the robot).
 * :func:`cycle_errors` / :func:`consistent` — geometric verification: two hypotheses made at
   different times and the odometry between them form a cycle through the map, which must
   compose to identity.
@@ -345,8 +346,8 @@ def bias_drift(cfg: MapConfig, bias_sd: float, path_m: float, seconds_per_m: flo
     heading-rate error grows. A ``bias_sd`` that is not finite (an estimate kept by a config without the
     significance test while the graph does not determine it) bounds nothing: no allowance, rather
     than a gate over the whole map. ``node_m`` (the path since each node was made): the error between
-    the robot and a node ``d`` metres back is the heading error over those metres only, ``e d (D - d/2)``
-    ``seconds_per_m`` for ``d`` below ``D`` = ``path_m`` (``map.loop_bias_per_node``)."""
+    the robot and a node ``d`` metres back is the heading error over those metres only, ``e d (D - d/2)
+    seconds_per_m`` for ``d`` below ``D`` = ``path_m`` (``map.loop_bias_per_node``)."""
     if cfg.loop_radius_bias_sd <= 0 or not 0 < bias_sd < math.inf or path_m <= 0 or seconds_per_m <= 0:
         return 0.0
     if node_m is None:
