@@ -322,14 +322,15 @@ class LoopClosing(LoopGate):
             book.pending.append(cand)
         else:
             assert group is not None  # verified
+            changed = []
             for c in group:
                 k = book.decisions[c.id].link
                 if k >= 0 and c.node != c.from_node:
                     self._tr[k] = c.link_tr
                     self._trust(k)
-                    self._touched.append(k)
+                    changed.append(k)
                     book.decisions[c.id] = replace(book.decisions[c.id], transform=c.link_tr)
-            self._link_changed()
+            self._link_changed(*changed)
             ids = {c.id for c in group}
             book.pending = [c for c in book.pending if c.id not in ids]
             book.accepted.extend(group)

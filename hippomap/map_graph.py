@@ -395,9 +395,11 @@ class MapGraph:
             return 0.0
         n = self._n
         first = int(np.searchsorted(self._S[:n], self._loops.last_verified_path or 0.0))  # nodes: in path order
-        ds, dt = (self._S[n - 1] - self._S[first], self._Tn[n - 1] - self._Tn[first]) if n - first >= 2 else (0, 0)
+        if n - first < 2 or not self._S[n - 1] > self._S[first]:
+            return 0.0
+        ds, dt = self._S[n - 1] - self._S[first], self._Tn[n - 1] - self._Tn[first]
         node_m = None if nodes is None else self._path - self._S[nodes]
-        return bias_drift(self.cfg, self._bias_sd, self.path_since_verified, dt / ds, node_m) if ds > 0 else 0.0
+        return bias_drift(self.cfg, self._bias_sd, self.path_since_verified, dt / ds, node_m)
 
     def take_events(self) -> list[MapEvent]:
         """The events queued since the last call that returned events (by :meth:`propose_loop`,

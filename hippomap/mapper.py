@@ -261,13 +261,14 @@ class Mapper(KeyFrames):
         ahead = self._looming(rec)
         if search != "gated":
             meta["search"] = search
-        node, offset = self.frame_node[int(rec.frame)], self._visual_offset(rec, gray.shape[1], ahead)
+        key_node = node = self.frame_node[int(rec.frame)]
+        offset = self._visual_offset(rec, gray.shape[1], ahead)
         span = self.config.mapper.reanchor_span
         if span is not None:  # the link names the node nearest the place claimed (MODEL item 103)
             end = self.cmap.node_count - self.config.map.exclude_recent
-            node, offset = reanchor(self.cmap.poses, node, offset, span, end)
-            if node != self.frame_node[int(rec.frame)]:
-                meta["key_frame_node"] = self.frame_node[int(rec.frame)]
+            node, offset = reanchor(self.cmap.poses, key_node, offset, span, end)
+            if node != key_node:
+                meta["key_frame_node"] = key_node
         hyp = LoopHypothesis(
             node=node,
             transform=None,
