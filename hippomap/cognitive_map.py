@@ -1,10 +1,11 @@
 """The cognitive map: nodes, links, loop closure, relaxation and pruning (paper §2.4; spec §4).
 
-:class:`CognitiveMap` is built in layers, one concept per module, each using only those beneath it:
-the graph (:mod:`hippomap.map_graph`: nodes, links, the robot's place, read-only views), map
-correction (:mod:`hippomap.map_correction`: relaxation and robust reweighting), loop closing
-(:mod:`hippomap.loop_closing`, with its data and maths in :mod:`hippomap.loop_closure`) and pruning
-(:mod:`hippomap.pruning`). This module adds the per-step update and the map's state.
+:class:`CognitiveMap` is built in layers, one concept per module, each using only those beneath it: the
+graph (:mod:`hippomap.map_graph`: nodes, links, the robot's place, read-only views), map correction
+(:mod:`hippomap.map_correction`: relaxation and robust reweighting), loop closing
+(:mod:`hippomap.loop_gate`, :mod:`hippomap.loop_record`, :mod:`hippomap.loop_closing`, with its data and
+maths in :mod:`hippomap.loop_closure`) and pruning (:mod:`hippomap.pruning`). This module adds the
+per-step update and the map's state.
 
 A node ``e_i = {p_i, V_i, l_i}`` (Eq. 11) holds the place code ``p_i`` (x, y, θ) that
 created it, the id ``V_i`` of the key frame learned there (-1: none) and its pose ``l_i`` in

@@ -17,10 +17,11 @@ from typing import Any
 
 import numpy as np
 
+from .graph_paths import hop_distances
 from .heading_branches import _FADED_INFORMATION, HeadingBranches
 from .least_squares import bias_sigma, solve_lsq
 from .map_events import MapEvent, MapRelaxed
-from .map_graph import LOOP, ODOMETRY, hop_distances
+from .map_graph import LOOP, ODOMETRY
 from .relaxation import ColourGroups, RelaxResult, _link_residuals, relax, relax_jacobi
 from .robust_kernel import USED_WEIGHT
 

@@ -15,11 +15,12 @@ from hippomap.cognitive_map import CognitiveMap
 from hippomap.config import HippomapConfig, MapConfig, VisualConfig
 from hippomap.errors import InputError, vec3
 from hippomap.geometry import between, compose, integrate, wrap_angle
+from hippomap.graph_paths import _undirected_paths, _undirected_paths_reference, hop_distances
 from hippomap.inputs import Frame, Odometry
-from hippomap.loop_closing import GROUP_VERIFIED, RETRACTED
 from hippomap.loop_closure import Candidate, LoopHypothesis, consistent, link_errors, link_info3
 from hippomap.loop_pose import align_group, looming_offset, looming_scale, reanchor
-from hippomap.map_graph import LOOP, MapGraph, _undirected_paths, _undirected_paths_reference, hop_distances
+from hippomap.loop_record import GROUP_VERIFIED, RETRACTED
+from hippomap.map_graph import LOOP, MapGraph
 from hippomap.map_reuse import ReuseMap
 from hippomap.mapper import Mapper
 from hippomap.mapper_queries import LoopDecisions, ViewerState
