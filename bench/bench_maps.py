@@ -86,7 +86,7 @@ from hippomap.eval.evaluation import groundtruth_at, groundtruth_distance, traje
 from hippomap.eval.revisits import closed_revisits, describe_missed  # noqa: E402
 from hippomap.geometry import between, wrap_angle  # noqa: E402
 from hippomap.inputs import Frame, Odometry  # noqa: E402
-from hippomap.loop_closing import RETRACTED  # noqa: E402
+from hippomap.loop_record import RETRACTED  # noqa: E402
 from hippomap.mapper import Mapper  # noqa: E402
 from hippomap.robust_kernel import USED_WEIGHT  # noqa: E402
 from hippomap.sim.cli import WORLDS  # noqa: E402
