@@ -86,8 +86,12 @@ class LoopClosing(LoopRecord):
         information and kernel width (measured or visual)."""
         cfg = self.cfg
         did = len(self._loops.decisions)
-        visual = self._delta if h.offset is None else _compose3(self._delta, _inv3(h.offset))  # node from current node
-        link_tr = visual if h.transform is None else h.transform
+        if h.transform is not None:
+            link_tr = h.transform
+        elif h.offset is None:
+            link_tr = self._delta  # the robot stands on the node: the node from the current node is where it is
+        else:
+            link_tr = _compose3(self._delta, _inv3(h.offset))  # the node from the current node
         if h.information:
             info: tuple[float, ...] = h.information
         elif h.transform is not None:
