@@ -24,7 +24,9 @@ search (``gated``: the key frames the gate offers; ``global``: the global search
 and outcome, with their fixations (median, p95) and CPU ms per fixation: a recognition's cost is its
 fixations times a cost per fixation, and this says which of the two sets a p95. When the run has ground
 truth, a recognition that named none is also counted as *futile* when none of its candidate key frames was
-learned within ``FUTILE_M`` of where the robot truly stands (there was nothing there to recognise).
+learned within ``FUTILE_M`` of where the robot truly stands (there was nothing there to recognise), and as *facing
+away* when some were but none of those faced within ``FUTILE_RAD`` of the robot's true heading (they stood near
+but saw another view).
 
     python -m hippomap simulate loop --out SIM --seed 3 --omega-bias 0.01 --sigma-omega 0.01 --sigma-v 0.02
     python bench/bench_mapper_parts.py SIM [SIM ...] [--config FILE] [--repeats 3]
@@ -49,6 +51,7 @@ from bench_maps import TimedMapper, warm_up  # noqa: E402
 from hippomap.cli.run import dataset_config, open_dataset  # noqa: E402
 from hippomap.config import HippomapConfig  # noqa: E402
 from hippomap.eval.evaluation import groundtruth_at  # noqa: E402
+from hippomap.geometry import wrap_angle  # noqa: E402
 from hippomap.inputs import Frame, Odometry  # noqa: E402
 from hippomap.mapper import Mapper  # noqa: E402
 
@@ -56,6 +59,8 @@ from hippomap.mapper import Mapper  # noqa: E402
 PARTS = ("spatial pathway", "map update", "candidates", "recognition", "loop decision", "learning")
 #: a recognition that names none is futile when no candidate key frame was learned within this of the robot (m)
 FUTILE_M = 2.0
+#: ... and faces away when none of the candidates learned within FUTILE_M faced within this of the robot (rad, 45 deg)
+FUTILE_RAD = math.pi / 4
 
 
 @dataclass
@@ -68,6 +73,9 @@ class Recognised:
     fixations: int
     search: str  # "gated" or "global"
     truth_m: float  # how far the nearest candidate key frame was learned from the robot's true position (nan: unknown)
+    #: the smallest true heading difference (rad) between the robot and the candidates learned within FUTILE_M of it
+    #: (nan: none, or unknown)
+    truth_rad: float = math.nan
 
 
 class PartTimer:
@@ -147,7 +155,9 @@ class PartTimer:
         """Set ``truth_m`` of the recognitions noted by :meth:`wrap_truth` from the ground truth ``gt``."""
         learned = {f: groundtruth_at(gt, t) for f, t in self._learned_t.items()}
         for i, t, candidates in self._asked:
-            self.recognitions[i].truth_m = nearest_learned_m(learned, candidates, groundtruth_at(gt, t))
+            now = groundtruth_at(gt, t)
+            self.recognitions[i].truth_m = nearest_learned_m(learned, candidates, now)
+            self.recognitions[i].truth_rad = nearest_facing_rad(learned, candidates, now)
 
     def wrap_windows(self, cmap: Any) -> None:
         """Keep the size of every local solve's window (``CognitiveMap._local_window``: None for a whole solve)."""
@@ -174,6 +184,19 @@ def nearest_learned_m(learned_at: dict[int, np.ndarray | None], frames: Any, now
         return math.nan
     d = np.asarray(where, float) - np.asarray(now[:2], float)
     return float(np.min(np.hypot(*d.T)))
+
+
+def nearest_facing_rad(learned_at: dict[int, np.ndarray | None], frames: Any, now: np.ndarray | None) -> float:
+    """Of the key frames ``frames`` learned within ``FUTILE_M`` of the true pose ``now`` (by their true poses
+    ``learned_at``), the smallest difference between the heading each was learned at and ``now``'s (rad, in [0, pi]);
+    nan when none was, or nothing is known."""
+    if now is None:
+        return math.nan
+    poses = np.asarray([learned_at[c] for c in frames if learned_at.get(c) is not None], float).reshape(-1, 3)
+    near = poses[np.hypot(poses[:, 0] - now[0], poses[:, 1] - now[1]) <= FUTILE_M]
+    if not len(near):
+        return math.nan
+    return float(np.min(np.abs(wrap_angle(near[:, 2] - now[2]))))
 
 
 def run(folder: Path, config: HippomapConfig | None) -> tuple[PartTimer, Mapper]:
@@ -262,7 +285,7 @@ def report(name: str, timers: list[PartTimer]) -> None:
 
 def searches(recognitions: list[Recognised], timers: list[PartTimer], n: int) -> None:
     """Print the recognitions per third, search and outcome: count, fixations (median, p95), CPU ms per fixation
-    (over all repeats), and of those that named none, the futile ones (ground truth only)."""
+    (over all repeats), and of those that named none, the futile ones and those facing away (ground truth only)."""
     for label, lo, hi in spans(n):
         parts = []
         for search in ("gated", "global"):
@@ -283,7 +306,8 @@ def searches(recognitions: list[Recognised], timers: list[PartTimer], n: int) ->
                 )
                 truth = np.array([x.truth_m for x in sel])
                 if not named and np.isfinite(truth).any():
-                    text += f", futile {int((truth > FUTILE_M).sum())}"
+                    away = np.array([x.truth_rad for x in sel])
+                    text += f", futile {int((truth > FUTILE_M).sum())}, facing away {int((away > FUTILE_RAD).sum())}"
                 parts.append(text)
         print(f"recognitions by search, {label}: {'; '.join(parts) or 'none'}")
 

@@ -509,6 +509,10 @@ def test_mapper_parts_add_up_to_the_whole_and_see_every_recognition(short_run):
     assert none and all(0 <= d < math.hypot(16.0 + 2.5, 10.0 + 2.5) for d in none)
     assert min(none) <= bench_mapper_parts.FUTILE_M < max(none)
     assert all(np.isnan(x.truth_m) for x in timer.recognitions if x.named)
+    # ... and, where some candidate was learned within FUTILE_M, the smallest true heading difference to those
+    for x in timer.recognitions:
+        near = not x.named and x.truth_m <= bench_mapper_parts.FUTILE_M
+        assert (0 <= x.truth_rad <= math.pi) if near else np.isnan(x.truth_rad)
     # bench_maps' own mapper times each recognition too (inside the part timer's wrapper: never longer)
     assert len(m.recognition_seconds) == len(m.recognition_cpu_seconds) == len(m.recognitions)
     assert all(inner <= x.seconds + 1e-9 for inner, x in zip(m.recognition_cpu_seconds, timer.recognitions))
@@ -529,6 +533,23 @@ def test_mapper_parts_add_up_to_the_whole_and_see_every_recognition(short_run):
     assert mean == pytest.approx(whole["total"])
 
 
+def test_mapper_parts_tell_a_candidate_facing_away_from_one_that_faces_the_robot():
+    """nearest_facing_rad: among the candidates learned within FUTILE_M of the robot's true pose, the smallest
+    heading difference (wrapped); nan when none was learned that near or the pose is unknown."""
+    import bench_mapper_parts as b
+
+    learned = {0: np.array([1.0, 0.0, 3.0]), 1: np.array([0.5, 0.5, -2.9]), 2: np.array([9.0, 0.0, 0.0]), 3: None}
+    now = np.array([0.0, 0.0, 3.1])
+    # frames 0 and 1 are near: 0.1 rad and 0.2832 rad (across the +-pi wrap) from the robot; 2 is too far
+    assert b.nearest_facing_rad(learned, [0, 1, 2, 3], now) == pytest.approx(0.1)
+    assert b.nearest_facing_rad(learned, [1], now) == pytest.approx(2 * math.pi - 6.0)
+    # a robot at the same place facing the other way: both near candidates face away (2.9 and 3.0 rad)
+    away = b.nearest_facing_rad(learned, [0, 1], np.array([0.0, 0.0, 0.0]))
+    assert away == pytest.approx(2.9) and away > b.FUTILE_RAD
+    assert math.isnan(b.nearest_facing_rad(learned, [2, 3], now))
+    assert math.isnan(b.nearest_facing_rad(learned, [0], None))
+
+
 def test_mapper_parts_report_prints_the_recognitions_per_search(short_run, capsys):
     import bench_mapper_parts
 
@@ -543,6 +564,10 @@ def test_mapper_parts_report_prints_the_recognitions_per_search(short_run, capsy
     # the run has ground truth: the futile recognitions are those that named none far from every candidate
     futile = [int(c) for ln in lines for c in re.findall(r"futile (\d+)", ln)]
     assert sum(futile) == sum(not x.named and x.truth_m > bench_mapper_parts.FUTILE_M for x in timer.recognitions) > 0
+    # ... and those facing away: a candidate learned near, but none of the near ones facing the robot's way
+    away = [int(c) for ln in lines for c in re.findall(r"facing away (\d+)", ln)]
+    assert len(away) == len(futile)
+    assert sum(away) == sum(not x.named and x.truth_rad > bench_mapper_parts.FUTILE_RAD for x in timer.recognitions)
 
 
 def test_looming_bench_scores_named_recognitions_against_ground_truth(short_run):
