@@ -152,7 +152,8 @@ class PartTimer:
         self.clock = lambda: mapper.last_frame_t
 
     def date_truth(self, gt: tuple[np.ndarray, np.ndarray]) -> None:
-        """Set ``truth_m`` of the recognitions noted by :meth:`wrap_truth` from the ground truth ``gt``."""
+        """Set ``truth_m`` and ``truth_rad`` of the recognitions noted by :meth:`wrap_truth` from the ground truth
+        ``gt``."""
         learned = {f: groundtruth_at(gt, t) for f, t in self._learned_t.items()}
         for i, t, candidates in self._asked:
             now = groundtruth_at(gt, t)
@@ -176,23 +177,28 @@ class PartTimer:
         self.rows.append({**self.acc, "total": self.total})
 
 
+def _learned_poses(learned_at: dict[int, np.ndarray | None], frames: Any) -> np.ndarray:
+    """(k, 3) the true poses ``learned_at`` (frame -> x, y, heading; None where the ground truth has a gap) of the
+    key frames ``frames`` that have one."""
+    return np.asarray([learned_at[c] for c in frames if learned_at.get(c) is not None], float).reshape(-1, 3)
+
+
 def nearest_learned_m(learned_at: dict[int, np.ndarray | None], frames: Any, now: np.ndarray | None) -> float:
     """How far from the true pose ``now`` the nearest of the key frames ``frames`` was learned, by their true
-    poses ``learned_at`` (frame -> pose, None where the ground truth has a gap); nan when nothing is known."""
-    where = [learned_at[c][:2] for c in frames if learned_at.get(c) is not None]
-    if now is None or not where:
+    poses ``learned_at`` (:func:`_learned_poses`); nan when nothing is known."""
+    poses = _learned_poses(learned_at, frames)
+    if now is None or not len(poses):
         return math.nan
-    d = np.asarray(where, float) - np.asarray(now[:2], float)
-    return float(np.min(np.hypot(*d.T)))
+    return float(np.min(np.hypot(poses[:, 0] - now[0], poses[:, 1] - now[1])))
 
 
 def nearest_facing_rad(learned_at: dict[int, np.ndarray | None], frames: Any, now: np.ndarray | None) -> float:
     """Of the key frames ``frames`` learned within ``FUTILE_M`` of the true pose ``now`` (by their true poses
-    ``learned_at``), the smallest difference between the heading each was learned at and ``now``'s (rad, in [0, pi]);
-    nan when none was, or nothing is known."""
+    ``learned_at``, :func:`_learned_poses`), the smallest difference between the heading each was learned at and
+    ``now``'s (rad, in [0, pi]); nan when none was, or nothing is known."""
     if now is None:
         return math.nan
-    poses = np.asarray([learned_at[c] for c in frames if learned_at.get(c) is not None], float).reshape(-1, 3)
+    poses = _learned_poses(learned_at, frames)
     near = poses[np.hypot(poses[:, 0] - now[0], poses[:, 1] - now[1]) <= FUTILE_M]
     if not len(near):
         return math.nan

@@ -48,6 +48,7 @@ def vec3(value: Any, name: str) -> tuple[float, float, float]:
 
 
 def node_id(value: Any, name: str) -> int:
+    """``value`` as a node id (an integer, not a bool), else InputError naming ``name``."""
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
         raise InputError(f"{name} must be an integer node id, got {value!r}")
     return int(value)

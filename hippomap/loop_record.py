@@ -40,6 +40,7 @@ class LoopRecord(LoopGate):
 
     @property
     def pending_count(self) -> int:
+        """How many hypotheses wait for consistent support."""
         return len(self._loops.pending)
 
     def _reject(self, did: int, reason: str, t: float) -> LoopDecision:
