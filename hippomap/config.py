@@ -247,6 +247,15 @@ class VisualConfig(_Frozen):
     )
     index_shortlist: int = Field(64, ge=1, description="FLCs scored exactly per fixation when the index is used [ours]")
     stats_sample: int = Field(128, ge=8, description="FLCs sampled to estimate mean/sd of the drive for N_std [ours]")
+    stats_stride: int = Field(
+        2,
+        ge=1,
+        description="the statistics sample's drive is summed over every stats_stride-th row and column of its "
+        "fovea (its normaliser over the same pixels); the exactly scored units keep every pixel. The drive of a "
+        "blurred patch varies smoothly from pixel to pixel, so at 2 the N_std threshold's estimate is as close "
+        "to the whole library's as with every pixel, at a quarter of the sample's cost (3 and 4 widen the "
+        "estimated spread). 1 = every pixel [ours, docs/MODEL.md item 106]",
+    )
     target_candidates: int = Field(
         16, ge=1, description="next-target candidates tried per saccade, best first (tolerance / image checks) [ours]"
     )

@@ -8,10 +8,11 @@ frame node. Storage is struct-of-arrays, grown by doubling.
 An FLC's drive ``u_k = W_k . s(I)`` reduces exactly to ``sum_p K[I~_{k,p}, I_p] / Z_k`` with the
 256 x 256 table ``K = S S^T`` of the sensory cells (:meth:`FeatureStore._drive`): the sensory
 cells are simulated exactly but never materialised. Above ``index_shortlist + stats_sample`` FLCs
-an index is used (:meth:`FeatureStore._population_drive`): OpenCV's ``batchDistance`` finds the
+an index is used (:meth:`FeatureStore._shortlist_drive`): OpenCV's ``batchDistance`` finds the
 ``index_shortlist`` nearest 8 x 8 area-averaged patch descriptors, whose drive is computed
 exactly, and the population's statistics (the ``N_std`` rule) are estimated from them plus a fixed
-stratified sample of ``stats_sample`` other units. :class:`~hippomap.flc_subset.FlcSubset` is the
+stratified sample of ``stats_sample`` other units, driven over every ``stats_stride``-th row and column
+of their foveae. :class:`~hippomap.flc_subset.FlcSubset` is the
 set of FLCs one recognition may use (all, or the candidate frames').
 
 The saccade loop that reads this store is :class:`~hippomap.visual_memory.VisualMemory`.
@@ -98,6 +99,7 @@ class FeatureStore:
         self._ori_side = len(range(0, cfg.fovea, cfg.v1_stride))
         self.P = self.P0 + self._n_ori * self._ori_side**2
         self.D = cfg.index_side * cfg.index_side
+        self._stats_pix = self._stride_pixels(cfg.stats_stride)  # where the statistics sample is driven
         # sensory cells: s_a(v) = exp(-((a - v)/sigma)^2), cut below the cutoff ([BBc])
         v = np.arange(256, dtype=np.float64)
         S = np.exp(-(((v[:, None] - v[None, :]) / cfg.sensory_sigma) ** 2))
@@ -197,6 +199,17 @@ class FeatureStore:
             a.flags.writeable = False
         self._last_views = (np.array(image, copy=True), work, scale, cimg)
         return work, scale, cimg
+
+    def _stride_pixels(self, stride: int) -> np.ndarray | None:
+        """Positions in a sensory field (``P`` values, :meth:`_patch_at`'s order) of every ``stride``-th row
+        and column of the ganglion fovea and of each orientation channel's fovea; None when ``stride`` is 1."""
+        f, o = self.config.fovea, self._ori_side
+        grids = [(np.arange(0, f, stride)[:, None] * f + np.arange(0, f, stride)).ravel()]
+        grids += [
+            self.P0 + c * o * o + (np.arange(0, o, stride)[:, None] * o + np.arange(0, o, stride)).ravel()
+            for c in range(self._n_ori)
+        ]
+        return None if stride == 1 else np.concatenate(grids)
 
     def _descriptor(self, patches: np.ndarray) -> np.ndarray:
         f, s = self.config.fovea, self.config.index_side
@@ -326,12 +339,15 @@ class FeatureStore:
         return fid
 
     # -- drive -------------------------------------------------------------------------
-    def _drive(self, patch: np.ndarray, flc: np.ndarray) -> np.ndarray:
-        """Exact FLC drive u_k of a fovea patch (uint8, P) for global FLC indices ``flc``."""
+    def _drive(self, patch: np.ndarray, flc: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """Exact FLC drive u_k of a fovea patch (uint8, P) for global FLC indices ``flc``; ``out``: a
+        uint16 buffer of at least ``flc.size`` rows for the table indices (else a new array)."""
         if flc.size == 0:
             return np.zeros(0, np.float32)
-        # flat index a * 256 + b into K, built in uint16 (fast gather; 255 * 256 + 255 fits)
-        idx = (self._patch[flc].astype(np.uint16) << 8) | patch[None, :]
+        # flat index a * 256 + b into K in uint16 (fast gather; 255 * 256 + 255 fits; left_shift casts)
+        buf = None if out is None else out[: flc.size]
+        idx = np.left_shift(np.take(self._patch, flc, axis=0), 8, out=buf, dtype=np.uint16)
+        np.bitwise_or(idx, patch[None, :], out=idx)
         return _row_sums(_gather_k(self._K, idx)) / self._z[flc]
 
     def _drive_rows(self, patch: np.ndarray, sub: FlcSubset) -> np.ndarray:
@@ -345,17 +361,31 @@ class FeatureStore:
         u = _row_sums(_gather_k(self._K, idx)) / sub.rows_z
         return u if sub.rows_inv is None else u[sub.rows_inv]
 
-    def _drive_index(self, patch: np.ndarray, sub: FlcSubset, flc: np.ndarray) -> np.ndarray:
-        """:meth:`_drive` of the global units ``flc`` followed by the subset's statistics sample (index
-        with candidates): the sample's patches were gathered once for the subset, the others are gathered
-        here into the subset's buffer; every row's drive is its own gather and sum, as in :meth:`_drive`."""
-        k = flc.size
-        idx = sub.index_buf[: k + sub.sample_hi.shape[0]]
-        head = np.left_shift(np.take(self._patch, flc, axis=0), 8, out=idx[:k], dtype=np.uint16)
-        np.bitwise_or(head, patch[None, :], out=head)
-        np.bitwise_or(sub.sample_hi, patch[None, :], out=idx[k:])
-        z = np.concatenate([self._z[flc], sub.sample_z])
-        return _row_sums(_gather_k(self._K, idx)) / z
+    def _stats_drive(self, patch: np.ndarray, sub: FlcSubset) -> np.ndarray:
+        """The drive of the statistics sample apart from the exactly scored units (``sub.stats_apart``): each
+        row its own gather and sum over the statistics pixels (``stats_stride``), divided by its normaliser
+        over the same pixels (docs/MODEL.md item 106)."""
+        q = patch if self._stats_pix is None else patch[self._stats_pix]
+        idx = np.bitwise_or(sub.stats_hi, q[None, :], out=sub.stats_buf)
+        return _row_sums(_gather_k(self._K, idx)) / sub.stats_z
+
+    def _exact_drive(self, patch: np.ndarray, x: int, y: int, sub: FlcSubset) -> tuple[np.ndarray, np.ndarray | None]:
+        """``(uT, uR)`` of a subset scored exactly at fixation (x, y): the drive of every unit and of the
+        statistics sample (None: the whole library), remembered per point for the recognition (read only)."""
+        got = sub.drives.get((x, y))
+        if got is None:
+            u = self._drive_rows(patch, sub)
+            u.flags.writeable = False
+            if sub.stats_apart:
+                uR = self._stats_drive(patch, sub)
+                uR.flags.writeable = False
+                got = (u, uR)
+            elif sub.is_all:
+                got = (u, None)
+            else:  # a small library: the sample is every unit, driven exactly with the candidates
+                got = (u[: sub.n], u[sub.n :])
+            sub.drives[(x, y)] = got
+        return got
 
     def _shortlist_drive(
         self, patch: np.ndarray, x: int, y: int, sub: FlcSubset, predicted: int
@@ -365,38 +395,25 @@ class FeatureStore:
         their drive ``uT``, and the drive ``uR`` of the statistics sample (None: the subset is the
         whole library, computed exactly)."""
         cfg = self.config
-        uR = None
         if sub.exact_all:
-            T = sub.all_local
-            # the drive of the same rows at the same point of the same image: remembered (read only)
-            u = sub.drives.get((x, y))
-            if u is None:
-                u = self._drive_rows(patch, sub)
-                u.flags.writeable = False
-                sub.drives[(x, y)] = u
-            if sub.is_all:
-                uT = u
-            else:  # candidates and the library sample of the statistics in one gather
-                uT, uR = u[: sub.n], u[sub.n :]
-        else:
-            # the patch's descriptor (:meth:`_descriptor` of the one patch: the same area average, cast)
-            f, s = cfg.fovea, cfg.index_side
-            q = cv2.resize(patch[: self.P0].reshape(f, f), (s, s), interpolation=cv2.INTER_AREA)
-            q = q.astype(np.float32).reshape(1, self.D)
-            M = cfg.index_shortlist
-            # index: the M nearest descriptors (L2) in one vectorised OpenCV call (no BLAS threads)
-            _, nidx = cv2.batchDistance(q, sub.desc, cv2.CV_32F, normType=cv2.NORM_L2SQR, K=M)
-            T = nidx.ravel().astype(np.int64)
-            T = T[T >= 0]
-            if predicted >= 0 and not (T == predicted).any():
-                T = np.concatenate((T, np.array([predicted], np.int64)))  # np.append(T, predicted)
-            # shortlist and statistics sample in one gather
-            assert sub.sample is not None  # set unless exact_all
-            if sub.is_all:
-                u = self._drive(patch, np.concatenate([sub.idx[T], np.setdiff1d(sub.sample, T)]))
-            else:
-                u = self._drive_index(patch, sub, sub.idx[T])
-            uT, uR = u[: T.size], u[T.size :]
+            uT, uR = self._exact_drive(patch, x, y, sub)
+            return sub.all_local, uT, uR
+        # the patch's descriptor (:meth:`_descriptor` of the one patch: the same area average, cast)
+        f, s = cfg.fovea, cfg.index_side
+        q = cv2.resize(patch[: self.P0].reshape(f, f), (s, s), interpolation=cv2.INTER_AREA)
+        q = q.astype(np.float32).reshape(1, self.D)
+        M = cfg.index_shortlist
+        # index: the M nearest descriptors (L2) in one vectorised OpenCV call (no BLAS threads)
+        _, nidx = cv2.batchDistance(q, sub.desc, cv2.CV_32F, normType=cv2.NORM_L2SQR, K=M)
+        T = nidx.ravel().astype(np.int64)
+        T = T[T >= 0]
+        if predicted >= 0 and not (T == predicted).any():
+            T = np.concatenate((T, np.array([predicted], np.int64)))  # np.append(T, predicted)
+        assert sub.sample is not None  # set unless exact_all
+        uT = self._drive(patch, sub.idx[T], sub.index_buf)
+        uR = self._stats_drive(patch, sub)
+        if sub.is_all:  # the rest of the library: the sample's units outside the shortlist
+            uR = uR[~np.isin(sub.sample, T)]
         return T, uT, uR
 
     def _drive_stats(

@@ -42,6 +42,7 @@ class _Library:
         self.sample.flags.writeable = False
         self._hi: np.ndarray | None = None
         self._z: np.ndarray | None = None
+        self._stats: tuple[np.ndarray, np.ndarray] | None = None  # see stats_hi
 
     @property
     def sample_hi(self) -> np.ndarray:
@@ -58,6 +59,32 @@ class _Library:
             self._z = self.mem._z[self.sample]
             self._z.flags.writeable = False
         return self._z
+
+    @property
+    def stats_hi(self) -> np.ndarray:
+        """The sample's patches at the statistics pixels (``stats_stride``), shifted into the high byte of
+        the drive table's index, gathered on first use (read only): the sample driven apart from the exactly
+        scored units (:meth:`~hippomap.feature_store.FeatureStore._stats_drive`)."""
+        return self._stats_rows()[0]
+
+    @property
+    def stats_z(self) -> np.ndarray:
+        """The sample's normalisers over the statistics pixels (read only)."""
+        return self._stats_rows()[1]
+
+    def _stats_rows(self) -> tuple[np.ndarray, np.ndarray]:
+        if self._stats is None:
+            pix = self.mem._stats_pix
+            if pix is None:  # every pixel: the sample's own rows and normalisers
+                self._stats = (self.sample_hi, self.sample_z)
+            else:
+                patches = np.take(self.mem._patch[self.sample], pix, axis=1)
+                hi = np.left_shift(patches, 8, dtype=np.uint16)
+                z = self.mem._n[patches].sum(axis=1)  # as the units' own normalisers are summed
+                hi.flags.writeable = False
+                z.flags.writeable = False
+                self._stats = (hi, z)
+        return self._stats
 
 
 class FlcSubset:
@@ -87,53 +114,51 @@ class FlcSubset:
         # library, of the whole library for candidates (the sensory layer is global: N_std statistics over
         # the library, not the candidates); the same stratified sample either way, remembered per library
         self.sample = None if self.is_all and self.exact_all else lib.sample
+        #: whether the statistics sample is driven apart from the exactly scored units, over the statistics
+        #: pixels (``stats_stride``): unless the library is small, when the sample is every unit, scored exactly
+        self.stats_apart = self.sample is not None and not lib.small
         # the FLCs whose drive is computed exactly at every fixation are fixed for the whole recognition when
         # no index is used: their learned patches (shifted into the high byte of the drive table's index)
         # and normalisers are gathered once here, not once per fixation
         self.rows: np.ndarray | None = None
         self.rows_inv: np.ndarray | None = None  # see _gather_rows
-        # drives of the rows per fixation point, for this recognition: a saccade lands on a point
-        # fixated before (a microsaccade snaps onto the same feature) about one time in eight
-        self.drives: dict[tuple[int, int], np.ndarray] = {}
+        # drives of the rows and of the statistics sample per fixation point, for this recognition: a saccade
+        # lands on a point fixated before (a microsaccade snaps onto the same feature) about one time in eight
+        self.drives: dict[tuple[int, int], tuple[np.ndarray, np.ndarray | None]] = {}
         #: local indices of the units scored exactly when no index is used (all of the subset, read only)
         self.all_local = np.arange(self.n)
         self.all_local.flags.writeable = False
         if self.exact_all:
             self._gather_rows(mem, lib)
-        elif not self.is_all:
-            # index with candidates: the statistics sample is the same at every fixation, its patches
-            # (high byte of the table index) and normalisers are gathered once per library; the buffer holds
-            # the shortlist (plus the predicted unit) and the sample
-            self.sample_hi = lib.sample_hi
-            self.sample_z = lib.sample_z
-            self.index_buf = np.empty((cfg.index_shortlist + 1 + lib.sample.size, mem.P), np.uint16)
+        else:  # the index's buffer: the shortlist plus the predicted unit
+            self.index_buf = np.empty((cfg.index_shortlist + 1, mem.P), np.uint16)
+        if self.stats_apart:
+            # the statistics sample is the same at every fixation: its patches (high byte of the table index)
+            # and normalisers are gathered once per library
+            self.stats_hi = lib.stats_hi
+            self.stats_z = lib.stats_z
+            self.stats_buf = np.empty(self.stats_hi.shape, np.uint16)
 
     def _gather_rows(self, mem: FeatureStore, lib: _Library) -> None:
-        """The rows scored exactly at every fixation when no index is used (the subset, then the library's
-        statistics sample for candidates), their learned patches shifted into the high byte of the drive
-        table's index, their normalisers and the buffer of their table indices."""
-        n = mem.n_features
-        self.rows = rows = self.idx if self.is_all else np.concatenate([self.idx, lib.sample])
-        # a unit both candidate and in the statistics sample (all of them while the library is small)
-        # is gathered once: a row's drive does not depend on the other rows of the gather. The gathered
-        # rows are np.unique(rows) and rows_inv its inverse (None when no unit is repeated)
+        """The rows scored exactly at every fixation when no index is used (the subset; for candidates in a
+        small library, then the library's statistics sample, which is every unit), their learned patches
+        shifted into the high byte of the drive table's index, their normalisers and the buffer of their
+        table indices."""
         if lib.small:
-            # every row is a unit of the library, and all of them are in it (the whole library, or the
-            # candidates followed by the sample = the whole library): the unique rows are 0..n-1, each
-            # row's position among them is the row itself, and their patches are the library's sample's
+            # a unit both candidate and in the sample is gathered once (a row's drive does not depend on the
+            # other rows of the gather): the unique rows are the whole library 0..n-1, each row's position
+            # among them is the row itself (rows_inv), and their patches are the library's sample's
+            self.rows = rows = self.idx if self.is_all else np.concatenate([self.idx, lib.sample])
             self.rows_inv = rows if self.n and not self.is_all else None
             self.rows_hi = lib.sample_hi
             self.rows_z = lib.sample_z
         else:
-            # sorted unique rows and each row's position among them, by marking the library's units
-            mark = np.zeros(n, np.bool_)
-            mark[rows] = True
-            uniq = mark.nonzero()[0]
-            self.rows_inv = (np.cumsum(mark) - 1)[rows] if uniq.size < rows.size else None
-            gathered = uniq if self.rows_inv is not None else rows
-            # = _patch[gathered].astype(uint16) << 8: the cast is left_shift's own (one pass less)
-            self.rows_hi = np.left_shift(np.take(mem._patch, gathered, axis=0), 8, dtype=np.uint16)
-            self.rows_z = mem._z[gathered]
+            # the subset's own units (whole frames: no unit twice); the sample is driven apart (stats_apart)
+            self.rows = self.idx
+            self.rows_inv = None
+            # = _patch[idx].astype(uint16) << 8: the cast is left_shift's own (one pass less)
+            self.rows_hi = np.left_shift(np.take(mem._patch, self.idx, axis=0), 8, dtype=np.uint16)
+            self.rows_z = mem._z[self.idx]
         self.rows_buf = np.empty(self.rows_hi.shape, np.uint16)
 
     @property

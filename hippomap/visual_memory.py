@@ -49,7 +49,8 @@ Above ``index_shortlist + stats_sample`` FLCs an index is used: OpenCV's ``batch
 finds the ``index_shortlist`` nearest 8 x 8 area-averaged patch descriptors among all FLCs
 (one call, no Python loop), whose drive is then computed exactly; the mean and standard
 deviation of the drive over all FLCs (the ``N_std`` rule) are estimated from the exact
-shortlist plus a fixed stratified sample of ``stats_sample`` other units. With
+shortlist plus a fixed stratified sample of ``stats_sample`` other units (driven over every
+``stats_stride``-th row and column of their foveae, the exact units over every pixel). With
 ``candidates`` only the candidate frames' FLCs compete, but the statistics stay those of
 the whole library (the sensory layer is global; the candidates gate the frame nodes).
 
@@ -57,7 +58,7 @@ Project choices that differ from [BBc]/spec (each a :class:`~hippomap.config.Vis
 field; measured by ``python bench/bench_visual.py --ablation``): ``max_survivors`` 5,
 ``tolerance_px`` 8, ``next_target="nearest"``, ``prediction_tolerance`` 0.9,
 ``start_order="strongest"``, ``verify_saccades`` 2, ``anchor="start"``, the retina front
-end (``retina_*``) with ``n_std`` 3.3; plus the FLC index (``index_*``, ``stats_sample``)
+end (``retina_*``) with ``n_std`` 3.3; plus the FLC index (``index_*``, ``stats_sample``, ``stats_stride``)
 for scale.
 
 The module's parts: frames to working images (:mod:`hippomap.visual_images`), the feature store,

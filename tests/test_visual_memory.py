@@ -15,6 +15,7 @@ from hypothesis import strategies as hs
 import hippomap
 from hippomap.config import VisualConfig
 from hippomap.errors import InputError
+from hippomap.flc_subset import FlcSubset
 from hippomap.sim.scenes import shapes_scene
 from hippomap.visual_memory import (
     Recognition,
@@ -650,3 +651,34 @@ def test_a_row_sum_is_the_rows_own(rows, cols, seed, shift):
         buf[:] = g[::-1]
         assert _row_sums(buf)[::-1].tobytes() == s.tobytes()
         assert _row_sums(g[rows // 2 : rows // 2 + 1]).tobytes() == s[rows // 2 : rows // 2 + 1].tobytes()
+
+
+def test_the_statistics_sample_over_every_second_pixel_estimates_the_threshold_as_well():
+    """The ``N_std`` rule's threshold, mean + n_std sd of the drive over the whole library, estimated from the
+    stratified statistics sample: over every second row and column of the fovea (``stats_stride`` 2, the
+    default) about as closely as over every pixel, and over every pixel the sample's drive is the units' own."""
+    scenes = [scene(100 + s) for s in range(40)]
+    errors: dict[int, list[float]] = {1: [], 2: []}
+    for stride in errors:
+        mem = VisualMemory(VisualConfig(stats_stride=stride))
+        for img in scenes:
+            mem.learn(img)
+        sub = FlcSubset(mem, np.arange(5))  # candidates in a large library: the sample is driven apart
+        assert sub.stats_apart and sub.sample is not None and sub.sample.size == mem.config.stats_sample
+        units = np.arange(mem.n_features)
+        for i in range(8):
+            work, _, cimg = mem._views(perturb(scenes[5 * i], seed=i))
+            sense = mem._blur(work) if mem.config.query_blur else work
+            for x, y in mem._corners(cimg, 12, mem.h):
+                patch = mem._patch_at(sense, int(x), int(y))
+                u = mem._drive(patch, units).astype(np.float64)
+                sample = mem._stats_drive(patch, sub)
+                if stride == 1:
+                    assert np.array_equal(sample, mem._drive(patch, sub.sample))
+                threshold = u.mean() + mem.config.n_std * u.std()
+                estimate = sample.mean(dtype=np.float64) + mem.config.n_std * sample.std(dtype=np.float64)
+                errors[stride].append((estimate - threshold) / u.std())
+    rms = {stride: float(np.sqrt(np.mean(np.square(e)))) for stride, e in errors.items()}
+    assert len(errors[2]) >= 60
+    assert rms[2] <= 1.25 * rms[1] + 0.05, rms
+    assert abs(float(np.mean(errors[2]))) <= 0.3

@@ -95,11 +95,15 @@ class ReferenceSubset:
                 if n_all <= cfg.index_shortlist + cfg.stats_sample
                 else np.unique(np.linspace(0, n_all - 1, cfg.stats_sample).round().astype(np.int64))
             )
+        small = n_all <= cfg.index_shortlist + cfg.stats_sample
+        # the sample is driven apart over the statistics pixels unless it is every unit of a small library
+        self.stats_apart = self.sample is not None and not small
         self.rows = None
+        self.index_buf = None
         self.drives = {}
         self.all_local = np.arange(self.n)
         if self.exact_all:
-            self.rows = self.idx if self.is_all else np.concatenate([self.idx, self.sample])
+            self.rows = self.idx if self.is_all or self.stats_apart else np.concatenate([self.idx, self.sample])
             uniq, inv = np.unique(self.rows, return_inverse=True)
             self.rows_inv = inv if uniq.size < self.rows.size else None
             gathered = uniq if self.rows_inv is not None else self.rows
@@ -128,7 +132,7 @@ def _to_img(p, scale):
 class ReferenceMemory(vm.VisualMemory):
     """The memory with its fast paths replaced by the plain computation they must equal."""
 
-    def _drive(self, patch: np.ndarray, flc: np.ndarray) -> np.ndarray:
+    def _drive(self, patch: np.ndarray, flc: np.ndarray, out=None) -> np.ndarray:
         if flc.size == 0:
             return np.zeros(0, np.float32)
         idx = (self._patch[flc].astype(np.uint16) << 8) | patch[None, :]
@@ -136,11 +140,19 @@ class ReferenceMemory(vm.VisualMemory):
         return np.einsum("ij->i", np.take(self._K, idx)) / self._z[flc]
 
     def _drive_rows(self, patch: np.ndarray, sub) -> np.ndarray:
-        rows = sub.idx if sub.is_all else np.concatenate([sub.idx, sub.sample])
+        rows = sub.idx if sub.is_all or sub.stats_apart else np.concatenate([sub.idx, sub.sample])
         return self._drive(patch, rows)
 
-    def _drive_index(self, patch: np.ndarray, sub, flc: np.ndarray) -> np.ndarray:
-        return self._drive(patch, np.concatenate([flc, sub.sample]))
+    def _stats_drive(self, patch: np.ndarray, sub) -> np.ndarray:
+        """The sample's drive over every stats_stride-th row and column of the fovea, normalised over them."""
+        st, f = self.config.stats_stride, self.config.fovea
+        keep = np.zeros((f, f), bool)
+        keep[::st, ::st] = True  # the default retina: a ganglion fovea only
+        pix = np.flatnonzero(keep)
+        # C order, as the units' own rows: a float32 sum along a row depends on the order it is read in
+        learned = np.ascontiguousarray(self._patch[sub.sample][:, pix])
+        idx = (learned.astype(np.uint16) << 8) | patch[pix][None, :]
+        return np.einsum("ij->i", np.take(self._K, idx)) / self._n[learned].sum(axis=1)
 
     def _decode_shared(self, m: np.ndarray, target: np.ndarray) -> np.ndarray:
         g_cur, g_tgt = self.grid.encode(m), self.grid.encode(target)
@@ -571,9 +583,13 @@ def test_subsets_equal_the_reference(n_frames):
                     assert np.array_equal(got.rows_inv, ref.rows_inv)
                 assert np.array_equal(got.rows_hi, ref.rows_hi) and got.rows_hi.dtype == np.uint16
                 assert np.array_equal(got.rows_z, ref.rows_z)
-            elif not ref.is_all:
-                assert np.array_equal(got.sample_hi, mem._patch[ref.sample].astype(np.uint16) << 8)
-                assert np.array_equal(got.sample_z, mem._z[ref.sample])
+            assert got.stats_apart == ref.stats_apart
+            if ref.stats_apart:  # the sample at every second row and column of the fovea (stats_stride 2)
+                keep = np.zeros((31, 31), bool)
+                keep[::2, ::2] = True
+                learned = np.ascontiguousarray(mem._patch[ref.sample][:, np.flatnonzero(keep)])
+                assert np.array_equal(got.stats_hi, learned.astype(np.uint16) << 8)
+                assert np.array_equal(got.stats_z, mem._n[learned].sum(axis=1))
             for g in (0, mem.n_features - 1, int(got.idx[-1]), int(rng.integers(0, mem.n_features))):
                 assert got.local(g) == ref.local(g)
 
