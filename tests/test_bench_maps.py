@@ -795,8 +795,10 @@ def test_closure_bound_solves_the_map_s_own_graph_back_to_the_map(short_run):
     args = argparse.Namespace(iterations=30, revisit_m=1.0, revisit_rad=0.8, revisit_path=30.0)
     r = bench_closure_bound.bound(short_run, None, args)
     assert r["used loop links"] > 0 and r["revisit links"] > 0
-    # re-solving the finished graph gives back the map; true loop links and every revisit give a better one
-    assert r["as is"] == pytest.approx(r["map"], rel=0.1, abs=0.01)
+    # re-solving the finished graph from the map's poses, with its weights and bias, finishes the map's own solve:
+    # no worse, and the same map (an online map stops short of convergence after a late closure, by up to a
+    # quarter of its ATE on this run under other visual seeds); true loop links and every revisit give a better one
+    assert 0.6 * r["map"] <= r["as is"] <= r["map"] + 0.005
     assert r["true links"] < r["as is"]
     assert r["every revisit"] < r["as is"]
 
