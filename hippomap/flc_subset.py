@@ -24,8 +24,9 @@ class _Library:
     """What every subset of one library state shares (remembered per library size, read only): the
     statistics sample of the ``N_std`` rule over the whole library (all units while it is small, else a
     fixed stratified sample), and lazily the sample's patches shifted into the high byte of the drive
-    table's index and its normalisers. The library only grows (a learned frame appends units, stored rows
-    never change), so its size names its state."""
+    table's index and its normalisers, over every pixel (``sample_hi``, the exact rows of a small library) and
+    over the statistics pixels (``stats_hi``, the sample driven apart). The library only grows (a learned frame
+    appends units, stored rows never change), so its size names its state."""
 
     def __init__(self, mem: FeatureStore):
         cfg = mem.config
