@@ -373,6 +373,21 @@ class MapConfig(_Frozen):
         ge=0,
         description="growth of the gate's heading part per metre of the drift path (loop_drift) [ours]",
     )
+    loop_heading_anchored_rad: float | None = Field(
+        0.4,
+        gt=0,
+        description="once a verified closure has anchored the map (and the odometry's heading bias with it, "
+        "odometry_bias_sigma), the gate's heading part is at most this plus loop_heading_anchored_sd of the "
+        "odometry's own heading standard deviation over the drift path (odometry_information_per_m): what is left "
+        "of the heading drift is the odometry's random walk, not the bias that turned true closures by up to 2 rad "
+        "before the first one. None = the unanchored part throughout [ours, docs/MODEL.md item 107]",
+    )
+    loop_heading_anchored_sd: float = Field(
+        1.0,
+        ge=0,
+        description="standard deviations of the odometry's heading random walk over the drift path that the "
+        "anchored heading part (loop_heading_anchored_rad) adds to its base [ours, docs/MODEL.md item 107]",
+    )
     loop_radius_bias_sd: float = Field(
         2.0,
         ge=0,

@@ -5,7 +5,9 @@ The layer of :class:`~hippomap.cognitive_map.CognitiveMap` between its correctio
 (:class:`~hippomap.loop_closing.LoopClosing`): where a hypothesis puts the node it names must lie within
 :func:`~hippomap.loop_closure.gate_limit` of the node (the map's pose, or its place code as in Eq. 13), a radius
 that grows with the drift path (docs/MODEL.md items 21, 47 and 58); a visual hypothesis must also give the node a
-heading within ``loop_heading_radius_rad`` + ``loop_heading_per_m`` x the drift path of its map heading (item 90).
+heading within ``loop_heading_radius_rad`` + ``loop_heading_per_m`` x the drift path of its map heading (item 90),
+once a verified closure has anchored the map within ``loop_heading_anchored_rad`` + the odometry's heading walk over
+that path (item 107).
 The mapper's recognition candidates are the nodes inside the same gate (:meth:`LoopGate.loop_candidates`). A
 hypothesis outside the gate is rejected, or waits for a consistent group (:mod:`hippomap.loop_closing`).
 """
@@ -73,12 +75,19 @@ class LoopGate(MapCorrection):
         (the robot's map heading ⊕ the hypothesis) must be within ``loop_heading_radius_rad`` +
         ``loop_heading_per_m`` × the drift path (the position gate's, :meth:`_drift`) of the node's map heading. The
         position gate alone let a recognition through that turns the map by a right angle a few metres after a
-        verified closure (docs/MODEL.md). Measured transforms keep their own heading check."""
+        verified closure (docs/MODEL.md). Once a verified closure has anchored the map (and the odometry's bias), the
+        part is at most ``loop_heading_anchored_rad`` + ``loop_heading_anchored_sd`` × the odometry's heading sd over
+        the drift path: a lateral alias read as a turn of 0.7-0.8 rad passed 0.8 + 0.02 rad/m at the end of a long
+        route (docs/MODEL.md item 107). Measured transforms keep their own heading check."""
         cfg = self.cfg
         if cfg.loop_heading_radius_rad is None or c.measured:
             return ""
         turn = abs(wrap_angle(se2_compose(self.robot_map_pose(), c.M)[2] - float(self._P[c.node, 2])))
-        limit = cfg.loop_heading_radius_rad + cfg.loop_heading_per_m * float(self._drift(np.array([c.node]), False)[0])
+        drift = float(self._drift(np.array([c.node]), False)[0])
+        limit = cfg.loop_heading_radius_rad + cfg.loop_heading_per_m * drift
+        if cfg.loop_heading_anchored_rad is not None and self._loops.last_verified_path is not None:
+            walk = math.sqrt(drift / cfg.odometry_information_per_m[1])
+            limit = min(limit, cfg.loop_heading_anchored_rad + cfg.loop_heading_anchored_sd * walk)
         return f"heading {turn:.3f} rad from the node's exceeds the gate {limit:.3f} rad" if turn > limit else ""
 
     def _outer_gate(self, c: Candidate, dist: float, limit: float, what: str) -> str:
