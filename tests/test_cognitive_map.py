@@ -321,9 +321,9 @@ def test_a_visual_hypothesis_that_turns_the_map_too_far_waits_for_a_group(turned
 def test_after_a_verified_closure_the_heading_part_shrinks_to_the_odometry_s_walk(turned, anchored, status):
     """Once a verified closure has anchored the map, a visual hypothesis may turn its node's map heading by at most
     ``loop_heading_anchored_rad`` + ``loop_heading_anchored_sd`` x the odometry's heading sd over the drift path
-    (here a lap of the square, 32 m: 0.4 + 0.094 rad), not the unanchored 0.8 + 0.02 rad/m (1.44 rad): the turn
-    of 0.6 rad that the unanchored map links at once waits for a consistent group. ``None`` keeps the unanchored
-    part throughout."""
+    (here 6 m back through the second lap's last closure: 0.4 + 0.041 rad), not the unanchored 0.8 + 0.02 rad/m
+    (0.92 rad): the turn of 0.6 rad that the unanchored map links at once waits for a consistent group. ``None``
+    keeps the unanchored part throughout."""
     inc = square_increments(laps=3)
     gt = integrate(inc)
     lap = len(inc) // 3
@@ -335,14 +335,14 @@ def test_after_a_verified_closure_the_heading_part_shrinks_to_the_odometry_s_wal
 
     cmap = CognitiveMap(MapConfig(loop_heading_anchored_rad=anchored))
     node_at, _, _ = drive(cmap, inc[:k], hypotheses=second_lap)
-    assert cmap.path_since_verified < 0.5 * lap * 0.1 + 4  # a closure of the second lap verified and anchored it
+    assert cmap.path_since_verified == pytest.approx(3.0, abs=0.5)  # the second lap's last closure anchored it
     node = int(node_at[j])
     offset = between(cmap.poses[node], gt[k]) + [0.0, 0.0, turned]
     links = cmap.link_count
     d = cmap.propose_loop(LoopHypothesis(node=node, transform=None, source="test", offset=tuple(offset)))
     assert d.status == status
     if status == "pending":
-        assert "heading" in d.reason and "exceeds the gate 0.4" in d.reason
+        assert "heading 0.600 rad" in d.reason and "exceeds the gate 0.441 rad" in d.reason
         assert cmap.link_count == links
     else:
         assert cmap.link_count == links + 1
