@@ -625,6 +625,15 @@ class MapConfig(_Frozen):
         description="after this many local solves the next correction solves the whole map (and revises "
         "the robust weights, which only a whole solve does) [ours]",
     )
+    lsq_whole_every_map: float | None = Field(
+        1.0,
+        gt=0,
+        description="... and not before the local solves since the last whole solve have moved, summed, this many "
+        "times the map's nodes: a whole solve costs about as much per node as a local one, so at 1 the whole "
+        "solves cost at most about what the local solves between them do, and a step's cost stops growing with "
+        "the map's size; None = every lsq_window_every local solves, whatever the map's size "
+        "[ours, docs/MODEL.md item 108]",
+    )
     lsq_window_residual_m: float = Field(
         0.5, gt=0, description="largest residual of a changed link that still counts as a local correction [ours]"
     )

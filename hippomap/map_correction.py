@@ -55,7 +55,7 @@ class MapCorrection(HeadingBranches):
         if not force and self._deferred(t):
             return []
         self._solved_path, self._solved_t = self._path, t
-        if cfg.solver == "lsq" and not force and self._local_solves < cfg.lsq_window_every:
+        if cfg.solver == "lsq" and not force and not self._whole_due():
             window = self._local_window()
         # a whole solve of changes that all agree with the map: no headings-first init (see _solve_lsq)
         init = cfg.solver != "lsq" or force or window is not None or not self._small_change()
@@ -77,6 +77,18 @@ class MapCorrection(HeadingBranches):
         # fixed, and the strain at its edge would fade true links
         self._dirty = not converged or (self._local_solves == 0 and self._reweight())
         return [MapRelaxed(res.solver, res.iterations, res.max_shift, t)]
+
+    def _whole_due(self) -> bool:
+        """Whether the next correction solves the whole map (and revises the robust weights): after
+        ``lsq_window_every`` local solves, once those have moved, summed, ``lsq_whole_every_map`` times the
+        map's nodes. A whole solve's cost grows with the map and a local one's with its window: counted in
+        local solves alone, the whole solves' share of a step grew with the map's size (docs/MODEL.md item
+        108)."""
+        cfg = self.cfg
+        if self._local_solves < cfg.lsq_window_every:
+            return False
+        k = cfg.lsq_whole_every_map
+        return k is None or self._local_moved >= k * self._n
 
     def _deferred(self, t: float) -> bool:
         """Whether the correction at time ``t`` waits (``lsq_defer_m``, ``lsq_defer_s``): the 'lsq'
@@ -118,10 +130,11 @@ class MapCorrection(HeadingBranches):
         bias = self._bias_args()
         if window is None:
             res = self._whole_solve(P, src, dst, tr, info, bias, rotation_init=cfg.lsq_rotation_init and rotation_init)
-            self._local_solves = 0
+            self._local_solves = self._local_moved = 0
         else:
             self._local_solves += 1
             nodes, links, fixed = window
+            self._local_moved += len(nodes) - len(fixed)
             local = np.full(n, -1, dtype=np.int64)
             local[nodes] = np.arange(len(nodes))
             Q = P[nodes].copy()

@@ -832,6 +832,48 @@ def test_a_node_cap_keeps_the_local_windows_from_growing_with_the_laps():
     assert rms_xy(capped, gt) < 1.1 * rms_xy(whole, gt) + 0.02
 
 
+def test_whole_solves_wait_until_the_local_ones_have_moved_the_map_s_size():
+    """The periodic whole solve (after lsq_window_every local solves) also waits, with lsq_whole_every_map k,
+    until the local solves since the last whole one have moved k times the map's nodes, summed: on a map
+    much larger than its windows the whole solves then cost about what the local ones between them do,
+    whatever the map's size. Over four laps of a square with 20-node windows and a whole solve due after
+    every second local solve, the rule waits several times (never while the local solves had moved less
+    than the map), solves the whole map fewer times, and ends on the same map."""
+    inc, gt, noisy, first_lap = biased_square(side=8.0, laps=4)
+    runs = {}
+    for k in (None, 1.0):
+        cmap = CognitiveMap(
+            MapConfig(
+                prune_online=False,
+                loop_transform_radius_m=3.0,
+                lsq_window_max_nodes=20,
+                lsq_window_every=2,
+                lsq_whole_every_map=k,
+            )
+        )
+        solves: list[tuple[bool, int, int, int]] = []
+        original = cmap._solve_lsq
+
+        def spy(window, rotation_init=True, original=original, solves=solves, cmap=cmap):
+            solves.append((window is None, cmap._local_solves, cmap._local_moved, cmap.node_count))
+            return original(window, rotation_init)
+
+        cmap._solve_lsq = spy
+        node_at, off, _ = drive(cmap, noisy, hypotheses=true_loops(gt, first_lap))
+        runs[k] = (corrected(cmap, node_at, off), solves)
+    (plain, every), (amortised, waited) = runs[None], runs[1.0]
+    # local solves past lsq_window_every: the rule held the whole solve back, and only while the local
+    # solves since the last whole one had moved less than the map's nodes
+    held = [(moved, n) for whole, done, moved, n in waited if not whole and done >= 2]
+    assert len(held) >= 3, waited
+    assert all(moved < n for moved, n in held), held
+    assert not [s for s in every if not s[0] and s[1] >= 2]  # without the rule every third solve is whole
+    n_whole = {k: sum(whole for whole, *_ in s) for k, (_, s) in runs.items()}
+    assert n_whole[1.0] < n_whole[None], n_whole
+    assert rms_xy(amortised, plain) < 0.1
+    assert rms_xy(amortised, gt) < 1.1 * rms_xy(plain, gt) + 0.02
+
+
 def test_the_step_tolerance_saves_solves_not_accuracy():
     """lsq_step_tolerance ends a Gauss-Newton solve once no unknown moves by more than it: at 0.1 mm
     the map's solves take fewer linear solves than at 1e-9 and end on the same map within a
