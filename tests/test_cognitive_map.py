@@ -867,7 +867,11 @@ def test_whole_solves_wait_until_the_local_ones_have_moved_the_map_s_size():
     held = [(moved, n) for whole, done, moved, n in waited if not whole and done >= 2]
     assert len(held) >= 3, waited
     assert all(moved < n for moved, n in held), held
-    assert not [s for s in every if not s[0] and s[1] >= 2]  # without the rule every third solve is whole
+    # ... and once they had, the next solve was the whole map's
+    due = [whole for whole, done, moved, n in waited if done >= 2 and moved >= n]
+    assert due and all(due), waited
+    # without the rule no local solve follows lsq_window_every local ones
+    assert not [s for s in every if not s[0] and s[1] >= 2]
     n_whole = {k: sum(whole for whole, *_ in s) for k, (_, s) in runs.items()}
     assert n_whole[1.0] < n_whole[None], n_whole
     assert rms_xy(amortised, plain) < 0.1
