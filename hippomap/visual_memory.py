@@ -27,7 +27,8 @@ After Bicanski & Burgess (2019, [BBc]), adapted to robot key frames:
   an attempt resets after ``max_prediction_errors`` wrong predictions and the query is
   rejected after ``max_resets`` resets, or earlier when no frame's activity has reached
   ``give_up_evidence`` in the first ``give_up_attempts`` attempts (optionally a bar that grows
-  with the number of competing frames, ``give_up_frames``).
+  with the number of competing frames, ``give_up_frames``) or has crossed ``decision_threshold``
+  in the first ``give_up_late_attempts``.
 
   The grid code is re-anchored onto the first recognised feature (BB's "global
   remapping" for displaced stimuli) and onto every predicted feature, so saccades are the
@@ -172,10 +173,11 @@ class VisualMemory(FixationSensing):
 
         Attempts follow each other until one accepts a frame or ``max_resets`` resets have been
         used (or, after ``give_up_attempts`` attempts, while no frame has reached
-        ``give_up_evidence``). Each attempt (:meth:`_attempt`) starts at a query corner (:meth:`_start_point`); at
-        every fixation (:meth:`_fixate`) the feature units are driven (:meth:`_sense`), the frame
-        hypotheses updated (:meth:`_observe`), the decision checked (:meth:`_decide`), and the most
-        active frame chooses the next saccade (:meth:`_next_saccade`).
+        ``give_up_evidence``; after ``give_up_late_attempts``, while none has crossed ``decision_threshold``).
+        Each attempt (:meth:`_attempt`) starts at a query corner (:meth:`_start_point`); at every fixation
+        (:meth:`_fixate`) the feature units are driven (:meth:`_sense`), the frame hypotheses updated
+        (:meth:`_observe`), the decision checked (:meth:`_decide`), and the most active frame chooses the next
+        saccade (:meth:`_next_saccade`).
         """
         cfg = self.config
         bar = None if give_up_evidence is None else _check_bar(give_up_evidence)
@@ -200,6 +202,10 @@ class VisualMemory(FixationSensing):
             peak = max(peak, best)
             if cfg.give_up_attempts is not None and resets + 1 >= cfg.give_up_attempts and peak < bar:
                 why = f"no frame reached {bar:g} in {resets + 1} attempts"
+                return Recognition(None, best, steps, resets, 0.0, q.size, why)
+            late = cfg.give_up_late_attempts
+            if late is not None and resets + 1 >= late and peak <= cfg.decision_threshold:
+                why = f"no frame crossed {cfg.decision_threshold:g} in {resets + 1} attempts"
                 return Recognition(None, best, steps, resets, 0.0, q.size, why)
         why = f"no match after {cfg.max_resets} resets"
         return Recognition(None, best, steps, cfg.max_resets, 0.0, q.size, why)

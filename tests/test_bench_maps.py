@@ -841,3 +841,36 @@ def test_gtsam_applies_only_the_loop_factors_it_is_told_to_keep(tmp_path):
     everything = peers.run_gtsam(both, "none")
     assert len(everything.loops) == 2
     assert np.abs(everything.poses - kept.poses).max() > 0.1  # the false closure, applied, moves the map
+
+
+def test_sim_vpr_sets_split_a_run_into_passes_with_ground_truth_positives(short_run):
+    """bench_sim_vpr.build_set: references along the first half of the true path, queries along the second, each
+    query's positives the references learned within the radius and facing its way; score() counts the memory's
+    acceptances as true, near or false by the same ground truth."""
+    import csv
+
+    import bench_sim_vpr as b
+
+    ds, truth = b.build_set(short_run, 1.0, 2.0, 1.0, 0.35)
+    with open(short_run / "frames.csv") as f:
+        files = [short_run / r["file"] for r in csv.DictReader(f)]
+    gt = np.loadtxt(short_run / "groundtruth.csv", delimiter=",", skiprows=1, ndmin=2)
+    path = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(gt[:, 1:3], axis=0).T))])
+    at = {p: i for i, p in enumerate(files)}
+    ref_i, query_i = [at[p] for p in ds.references], [at[p] for p in ds.queries]
+    half = path[-1] / 2
+    # two laps: references cover the first lap at 1 m apart, queries the second at 2 m; in time order
+    assert ref_i == sorted(ref_i) and query_i == sorted(query_i) and max(ref_i) < min(query_i)
+    assert all(path[i] <= half + 0.5 for i in ref_i) and all(path[i] > half - 0.5 for i in query_i)
+    assert np.diff(path[ref_i]).min() >= 1.0 and np.diff(path[query_i]).min() >= 2.0
+    assert len(ds.references) >= 0.6 * half and truth.shape == (len(ds.queries), len(ds.references), 2)
+    # positives are exactly the references within 1 m and 0.35 rad; the second lap passes the first's places
+    for q, pos in enumerate(ds.positives):
+        assert pos == set(np.flatnonzero((truth[q, :, 0] <= 1.0) & (truth[q, :, 1] <= 0.35)).tolist())
+    assert sum(1 for p in ds.positives if p) >= 0.5 * len(ds.queries)
+    r = b.score(ds, truth, b.visual_config(None, []), 1)
+    assert r["with_positive"] == sum(1 for p in ds.positives if p)
+    assert r["tp"] > 0 and r["tp"] + r["near"] + r["fp"] <= len(ds.queries)
+    # a config override reaches the memory: nothing is accepted with the threshold out of reach (activity stops at 1)
+    none = b.score(ds, truth, b.visual_config(None, ["decision_threshold=1.0"]), 1)
+    assert none["tp"] == none["near"] == none["fp"] == 0

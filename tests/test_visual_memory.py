@@ -103,16 +103,15 @@ def test_never_learned_frame_is_rejected(memory):
     for s in (1000, 1001, 1002):
         rec = memory.recognise(scene(s))
         assert rec.frame_id is None and not rec.accepted
-        # every reset used, or given up once the first give_up_attempts attempts built no evidence up
-        assert rec.n_resets == cfg.max_resets or (
-            cfg.give_up_attempts is not None and rec.n_resets == cfg.give_up_attempts - 1
-        )
+        # every reset used, or given up once the first give_up_attempts attempts built no evidence up, or once the
+        # first give_up_late_attempts had no frame cross the threshold
+        assert rec.n_resets in (cfg.max_resets, cfg.give_up_attempts - 1, cfg.give_up_late_attempts - 1)
         assert rec.confidence == 0.0
 
 
 def test_a_recognition_gives_up_early_when_no_frame_builds_up_evidence():
-    cfg = VisualConfig(give_up_attempts=3, give_up_evidence=0.5)
-    quick, memory = VisualMemory(cfg), VisualMemory(VisualConfig(give_up_attempts=None))
+    cfg = VisualConfig(give_up_attempts=3, give_up_evidence=0.5, give_up_late_attempts=None)
+    quick, memory = VisualMemory(cfg), VisualMemory(VisualConfig(give_up_attempts=None, give_up_late_attempts=None))
     assert [quick.learn(img) for img in SCENES] == [memory.learn(img) for img in SCENES] == list(range(N_FRAMES))
     early_stops = 0
     for s in (1000, 1001, 1002, 1003, 1004):
@@ -132,6 +131,30 @@ def test_a_recognition_gives_up_early_when_no_frame_builds_up_evidence():
     # a frame it has seen is recognised as without the bound
     query = perturb(SCENES[4], seed=104)
     assert quick.recognise(query).frame_id == memory.recognise(query).frame_id == 4
+
+
+def test_a_recognition_gives_up_late_when_no_frame_has_crossed_the_threshold():
+    """``give_up_late_attempts``: after that many attempts a recognition stops unless some frame's activity has
+    crossed the decision threshold in one of them; the attempts it made are those it makes without the rule."""
+    base = VisualConfig(give_up_attempts=None)
+    cfg = base.model_copy(update={"give_up_late_attempts": 3})
+    late, memory = VisualMemory(cfg), VisualMemory(base)
+    assert [late.learn(img) for img in SCENES] == [memory.learn(img) for img in SCENES] == list(range(N_FRAMES))
+    stopped = went_on = 0
+    for s in range(1000, 1012):
+        rec, full = late.recognise(scene(s)), memory.recognise(scene(s))
+        assert rec.frame_id is None and full.frame_id is None
+        first = [a for st in full.steps if st.attempt < 3 for _, a in st.evidence]
+        if max(first, default=0.0) <= cfg.decision_threshold:  # nothing crossed in the first three: cut there
+            stopped += 1
+            assert rec.n_resets == 2 < full.n_resets and rec.reason == "no frame crossed 0.9 in 3 attempts"
+            assert rec.steps == full.steps[: len(rec.steps)] and all(st.attempt < 3 for st in rec.steps)
+        else:  # a frame crossed (and failed its verification): every reset is used, as without the rule
+            went_on += 1
+            assert rec.steps == full.steps and rec.n_resets == cfg.max_resets
+    assert stopped > 0 and went_on > 0
+    query = perturb(SCENES[4], seed=104)
+    assert late.recognise(query).frame_id == memory.recognise(query).frame_id == 4
 
 
 def test_a_recognition_can_ask_more_of_its_first_attempts_than_the_config(memory):
