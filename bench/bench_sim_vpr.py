@@ -18,9 +18,10 @@ the second half the query pass.
 Every reference is learned, every query recognised against all of them (``candidates = None``, as
 eval-vpr does; :func:`hippomap.eval.vpr_eval._run_ours`), with the visual config of ``--config`` (a
 JSON file of :class:`~hippomap.config.VisualConfig` fields, or a full config with ``visual``) and
-``--set KEY=VALUE`` overrides, over ``--memory-seeds`` seeds. Printed per set: references, queries
-with a positive, true, near and false acceptances summed over the seeds, recall and the mean fixations
-per query; then the totals. Renders come from :func:`bench_maps.simulate` (cached as there).
+``--set KEY=VALUE`` overrides as eval-vpr reads them (:func:`hippomap.eval.vpr_eval.read_visual_config`),
+over ``--memory-seeds`` seeds. Printed per set: references, queries with a positive, true, near and false
+acceptances summed over the seeds, recall and the mean fixations per query; then the totals. Renders come
+from :func:`bench_maps.simulate` (cached as there).
 
     python bench/bench_sim_vpr.py --worlds loop corridor figure8 grid hall bicocca --seeds 1 2 \\
         --textures procedural rtabmap [--set verify_saccades=1]
@@ -29,9 +30,7 @@ per query; then the totals. Renders come from :func:`bench_maps.simulate` (cache
 from __future__ import annotations
 
 import argparse
-import csv
 import itertools
-import json
 import sys
 from pathlib import Path
 from typing import Any
@@ -41,10 +40,11 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench_maps import parse_size, simulate  # noqa: E402
-from hippomap.config import HippomapConfig, VisualConfig  # noqa: E402
+from hippomap.cli.run import open_dataset  # noqa: E402
+from hippomap.config import VisualConfig  # noqa: E402
 from hippomap.eval.vpr_datasets import VPRDataset, read_image  # noqa: E402
-from hippomap.eval.vpr_eval import _run_ours  # noqa: E402
-from hippomap.geometry import wrap_angle  # noqa: E402
+from hippomap.eval.vpr_eval import _run_ours, read_visual_config  # noqa: E402
+from hippomap.geometry import path_lengths, wrap_angle  # noqa: E402
 from peers import cache_root  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
@@ -70,15 +70,15 @@ def build_set(
 ) -> tuple[VPRDataset, np.ndarray]:
     """The references, queries and positives of the rendered run in ``folder`` (see the module docstring), and
     each query's true distance (m) and heading difference (rad) to every reference, shape (queries, refs, 2)."""
-    with open(folder / "frames.csv") as f:
-        frames = [(float(r["t"]), folder / r["file"]) for r in csv.DictReader(f)]
-    gt = np.loadtxt(folder / "groundtruth.csv", delimiter=",", skiprows=1, ndmin=2)
-    t = np.array([x[0] for x in frames])
-    pose = np.column_stack([np.interp(t, gt[:, 0], gt[:, k]) for k in (1, 2)])
-    # headings: the nearest ground-truth row (interpolating an angle across the wrap would be wrong)
-    k = np.clip(np.searchsorted(gt[:, 0], t), 0, len(gt) - 1)
-    heading = gt[k, 3]
-    path = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(pose, axis=0).T))])
+    dataset = open_dataset(folder)
+    assert dataset.groundtruth is not None, f"{folder} has no ground truth"
+    tg, pg = dataset.groundtruth
+    t = np.array([f.t for f in dataset.frames])
+    pose = np.column_stack([np.interp(t, tg, pg[:, k]) for k in (0, 1)])
+    # headings: the first ground-truth row at or after the frame (the simulator writes one at every frame's time;
+    # interpolating an angle across the wrap would be wrong)
+    heading = pg[np.clip(np.searchsorted(tg, t), 0, len(tg) - 1), 2]
+    path = path_lengths(pose)
     half = path[-1] / 2
     order = np.arange(len(t))
     refs = _spaced(path, order[path <= half], ref_spacing)
@@ -87,20 +87,9 @@ def build_set(
     a = np.abs(wrap_angle(heading[queries, None] - heading[None, refs]))
     positives = [set(np.flatnonzero(row).tolist()) for row in (d <= pos_m) & (a <= pos_rad)]
     protocol = f"references every {ref_spacing} m of the first half, queries every {query_spacing} m of the second"
-    ds = VPRDataset(folder.name, [frames[i][1] for i in refs], [frames[i][1] for i in queries], positives, protocol)
+    files = [Path(f.path) for f in dataset.frames]  # a folder's frames are files on disk (FrameRef)
+    ds = VPRDataset(folder.name, [files[i] for i in refs], [files[i] for i in queries], positives, protocol)
     return ds, np.stack([d, a], axis=-1)
-
-
-def visual_config(config_file: str | None, sets: list[str]) -> VisualConfig:
-    """The visual config of ``--config`` (a VisualConfig's fields, or a full config with ``visual``) with ``--set``."""
-    over: dict[str, Any] = {}
-    if config_file:
-        data = json.loads(Path(config_file).read_text())
-        over = HippomapConfig.model_validate(data).visual.model_dump() if "visual" in data else data
-    for s in sets:
-        key, _, value = s.partition("=")
-        over[key] = json.loads(value)
-    return VisualConfig.model_validate({**VisualConfig().model_dump(), **over})
 
 
 def score(ds: VPRDataset, truth: np.ndarray, cfg: VisualConfig, seeds: int) -> dict[str, Any]:
@@ -140,7 +129,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--positive-m", type=float, default=1.0, help="a positive is learned within this of the query")
     ap.add_argument("--positive-rad", type=float, default=0.35, help="... and facing within this of its heading")
     args = ap.parse_args(argv)
-    cfg = visual_config(args.config, args.sets)
+    cfg = read_visual_config(args.config, args.sets)
     print(f"{'set':48s} {'refs':>5s} {'pos':>5s} {'TP':>5s} {'near':>4s} {'FP':>4s} {'recall':>7s} {'fix':>5s}")
     tot = {"with_positive": 0, "tp": 0, "near": 0, "fp": 0}
     fixations = 0.0

@@ -200,12 +200,8 @@ class VisualMemory(FixationSensing):
             steps[-1].event = f"reset: {st.reset_reason}"
             best = float(a.max()) if a.size else 0.0
             peak = max(peak, best)
-            if cfg.give_up_attempts is not None and resets + 1 >= cfg.give_up_attempts and peak < bar:
-                why = f"no frame reached {bar:g} in {resets + 1} attempts"
-                return Recognition(None, best, steps, resets, 0.0, q.size, why)
-            late = cfg.give_up_late_attempts
-            if late is not None and resets + 1 >= late and peak <= cfg.decision_threshold:
-                why = f"no frame crossed {cfg.decision_threshold:g} in {resets + 1} attempts"
+            why = self._given_up(resets + 1, peak, bar)
+            if why:
                 return Recognition(None, best, steps, resets, 0.0, q.size, why)
         why = f"no match after {cfg.max_resets} resets"
         return Recognition(None, best, steps, cfg.max_resets, 0.0, q.size, why)
@@ -226,6 +222,18 @@ class VisualMemory(FixationSensing):
         if len(starts) == 0:
             return Recognition(None, 0.0, [], 0, 0.0, size, "no keypoints in the query")
         return _Query(sub, sense_img, starts, scale, size, self._nframes if frames is None else int(frames.size))
+
+    def _given_up(self, attempts: int, peak: float, bar: float) -> str:
+        """Why a recognition gives up after ``attempts`` attempts whose highest frame activity was ``peak``, or "":
+        no frame reached ``bar`` in the first ``give_up_attempts``, or none crossed ``decision_threshold`` in the
+        first ``give_up_late_attempts`` (an evidence-accumulation bound that collapses with time)."""
+        cfg = self.config
+        if cfg.give_up_attempts is not None and attempts >= cfg.give_up_attempts and peak < bar:
+            return f"no frame reached {bar:g} in {attempts} attempts"
+        late = cfg.give_up_late_attempts
+        if late is not None and attempts >= late and peak <= cfg.decision_threshold:
+            return f"no frame crossed {cfg.decision_threshold:g} in {attempts} attempts"
+        return ""
 
     def _give_up_bar(self, nframes: int) -> float:
         """The give-up bar of a recognition among ``nframes`` competing frames: ``give_up_evidence``, or with

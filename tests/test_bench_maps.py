@@ -850,12 +850,13 @@ def test_sim_vpr_sets_split_a_run_into_passes_with_ground_truth_positives(short_
     import csv
 
     import bench_sim_vpr as b
+    from hippomap.geometry import path_lengths
 
     ds, truth = b.build_set(short_run, 1.0, 2.0, 1.0, 0.35)
     with open(short_run / "frames.csv") as f:
         files = [short_run / r["file"] for r in csv.DictReader(f)]
     gt = np.loadtxt(short_run / "groundtruth.csv", delimiter=",", skiprows=1, ndmin=2)
-    path = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(gt[:, 1:3], axis=0).T))])
+    path = path_lengths(gt[:, 1:3])
     at = {p: i for i, p in enumerate(files)}
     ref_i, query_i = [at[p] for p in ds.references], [at[p] for p in ds.queries]
     half = path[-1] / 2
@@ -868,9 +869,9 @@ def test_sim_vpr_sets_split_a_run_into_passes_with_ground_truth_positives(short_
     for q, pos in enumerate(ds.positives):
         assert pos == set(np.flatnonzero((truth[q, :, 0] <= 1.0) & (truth[q, :, 1] <= 0.35)).tolist())
     assert sum(1 for p in ds.positives if p) >= 0.5 * len(ds.queries)
-    r = b.score(ds, truth, b.visual_config(None, []), 1)
+    r = b.score(ds, truth, b.read_visual_config(None, None), 1)
     assert r["with_positive"] == sum(1 for p in ds.positives if p)
     assert r["tp"] > 0 and r["tp"] + r["near"] + r["fp"] <= len(ds.queries)
     # a config override reaches the memory: nothing is accepted with the threshold out of reach (activity stops at 1)
-    none = b.score(ds, truth, b.visual_config(None, ["decision_threshold=1.0"]), 1)
+    none = b.score(ds, truth, b.read_visual_config(None, ["decision_threshold=1.0"]), 1)
     assert none["tp"] == none["near"] == none["fp"] == 0

@@ -43,7 +43,7 @@ from .vpr_datasets import VPRDataset, load_vpr_dataset, read_image
 from .vpr_figures import plot_pr, write_examples
 from .vpr_scores import n_positives, ours_metrics, over_seeds, pr_points, query_rows, seed_runs, stats_ms, targets
 
-__all__ = ["VPRDataset", "load_vpr_dataset", "evaluate_vpr", "add_parser", "load_baseline_module"]
+__all__ = ["VPRDataset", "load_vpr_dataset", "evaluate_vpr", "read_visual_config", "add_parser", "load_baseline_module"]
 
 _REPO_ROOT = Path(__file__).resolve().parents[2]
 BASELINE_PATH = _REPO_ROOT / "bench" / "ratslam_baseline.py"
@@ -297,20 +297,26 @@ def _parse_overrides(items: list[str] | None) -> dict[str, Any]:
     return out
 
 
+def read_visual_config(config: str | Path | None, sets: list[str] | None) -> VisualConfig:
+    """eval-vpr's visual config: the JSON file ``config`` (VisualConfig fields, or a full config with
+    ``visual``) with the ``--set KEY=VALUE`` overrides ``sets``; the defaults without either."""
+    overrides: dict[str, Any] = {}
+    if config:
+        try:
+            data = json.loads(Path(config).read_text())
+        except (OSError, json.JSONDecodeError) as exc:
+            raise InputError(f"cannot read config {config}: {exc}") from exc
+        overrides.update(data.get("visual", data) if isinstance(data, dict) else {})
+    overrides.update(_parse_overrides(sets))
+    return _as_visual(overrides or None)
+
+
 def _run(args: argparse.Namespace) -> int:
     check("eval", "hippomap eval-vpr (precision-recall plot)")
-    overrides: dict[str, Any] = {}
-    if args.config:
-        try:
-            data = json.loads(Path(args.config).read_text())
-        except (OSError, json.JSONDecodeError) as exc:
-            raise InputError(f"cannot read config {args.config}: {exc}") from exc
-        overrides.update(data.get("visual", data) if isinstance(data, dict) else {})
-    overrides.update(_parse_overrides(args.set))
     m = evaluate_vpr(
         args.data_dir,
         args.out,
-        overrides or None,
+        read_visual_config(args.config, args.set),
         n_examples=args.examples,
         progress=progress_enabled(args),
         seeds=args.seeds,
