@@ -398,6 +398,14 @@ class MapConfig(_Frozen):
         description="standard deviations of the odometry's heading random walk over the drift path that the "
         "anchored heading part (loop_heading_anchored_rad) adds to its base [ours, docs/MODEL.md item 107]",
     )
+    loop_heading_group_sd: float | None = Field(
+        3.0,
+        ge=0,
+        description="once a verified closure has anchored the map, a visual hypothesis outside the gate may wait for "
+        "a consistent group only if the heading it gives its node is within loop_heading_anchored_rad plus this many "
+        "standard deviations of the odometry's heading walk over the drift path; beyond, it is rejected at once. "
+        "None = every such hypothesis waits [ours, docs/MODEL.md item 111]",
+    )
     loop_radius_bias_sd: float = Field(
         2.0,
         ge=0,

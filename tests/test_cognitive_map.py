@@ -316,14 +316,22 @@ def test_a_visual_hypothesis_that_turns_the_map_too_far_waits_for_a_group(turned
 
 
 @pytest.mark.parametrize(
-    "turned, anchored, status", [(0.3, 0.4, "accepted"), (0.6, 0.4, "pending"), (0.6, None, "accepted")]
+    "turned, anchored, group_sd, status",
+    [
+        (0.3, 0.4, 3.0, "accepted"),
+        (0.5, 0.4, 3.0, "pending"),
+        (0.6, 0.4, None, "pending"),
+        (0.6, 0.4, 3.0, "rejected"),
+        (0.6, None, 3.0, "accepted"),
+    ],
 )
-def test_after_a_verified_closure_the_heading_part_shrinks_to_the_odometry_s_walk(turned, anchored, status):
+def test_after_a_verified_closure_the_heading_part_shrinks_to_the_odometry_s_walk(turned, anchored, group_sd, status):
     """Once a verified closure has anchored the map, a visual hypothesis may turn its node's map heading by at most
     ``loop_heading_anchored_rad`` + ``loop_heading_anchored_sd`` x the odometry's heading sd over the drift path
     (here 6 m back through the second lap's last closure: 0.4 + 0.041 rad), not the unanchored 0.8 + 0.02 rad/m
-    (0.92 rad): the turn of 0.6 rad that the unanchored map links at once waits for a consistent group. ``None``
-    keeps the unanchored part throughout."""
+    (0.92 rad): the turn of 0.5 rad that the unanchored map links at once waits for a consistent group. Beyond
+    ``loop_heading_group_sd`` sd of that walk (0.4 + 0.122 rad) no group may take it: the turn of 0.6 rad is rejected
+    at once (``None``: it waits too). ``None`` for the anchored part keeps the unanchored part throughout."""
     inc = square_increments(laps=3)
     gt = integrate(inc)
     lap = len(inc) // 3
@@ -333,7 +341,7 @@ def test_after_a_verified_closure_the_heading_part_shrinks_to_the_odometry_s_wal
     def second_lap(step, cmap, node_at, off):
         return loops(step, cmap, node_at, off) if step <= 2 * lap else []
 
-    cmap = CognitiveMap(MapConfig(loop_heading_anchored_rad=anchored))
+    cmap = CognitiveMap(MapConfig(loop_heading_anchored_rad=anchored, loop_heading_group_sd=group_sd))
     node_at, _, _ = drive(cmap, inc[:k], hypotheses=second_lap)
     assert cmap.path_since_verified == pytest.approx(3.0, abs=0.5)  # the second lap's last closure anchored it
     node = int(node_at[j])
@@ -341,8 +349,9 @@ def test_after_a_verified_closure_the_heading_part_shrinks_to_the_odometry_s_wal
     links = cmap.link_count
     d = cmap.propose_loop(LoopHypothesis(node=node, transform=None, source="test", offset=tuple(offset)))
     assert d.status == status
-    if status == "pending":
-        assert "heading 0.600 rad" in d.reason and "exceeds the gate 0.441 rad" in d.reason
+    if status != "accepted":
+        assert f"heading {turned:.3f} rad" in d.reason and "exceeds the gate 0.441 rad" in d.reason
+        assert ("beyond a group's 0.522 rad" in d.reason) == (status == "rejected")
         assert cmap.link_count == links
     else:
         assert cmap.link_count == links + 1
