@@ -95,9 +95,9 @@ class LoopGate(MapCorrection):
         """Why visual candidate ``c``, outside the gate, may not wait for a consistent group, or "": once a verified
         closure has anchored the map, the heading it gives its node must be within ``loop_heading_anchored_rad`` +
         ``loop_heading_group_sd`` × the odometry's heading sd over the drift path of the node's map heading. Three
-        recognitions of one photograph on a wall, seen from 4-6 m away and turned by 2.1 rad, 13 standard deviations
-        of that walk, agreed with each other, were linked as a group at full weight and bent the long path between
-        them for 630 s of a run (docs/MODEL.md item 111). Measured transforms keep their own heading check."""
+        recognitions that named places 3.7-5.7 m away and turned them by 2.1 rad, 13 standard deviations of that
+        walk, agreed with each other, were linked as a group at full weight and bent the long path between them and
+        their nodes for 630 s of a run (docs/MODEL.md item 111). Measured transforms keep their own heading check."""
         cfg = self.cfg
         if cfg.loop_heading_group_sd is None or cfg.loop_heading_anchored_rad is None or c.measured:
             return ""

@@ -332,6 +332,22 @@ def test_after_a_verified_closure_the_heading_part_shrinks_to_the_odometry_s_wal
     (0.92 rad): the turn of 0.5 rad that the unanchored map links at once waits for a consistent group. Beyond
     ``loop_heading_group_sd`` sd of that walk (0.4 + 0.122 rad) no group may take it: the turn of 0.6 rad is rejected
     at once (``None``: it waits too). ``None`` for the anchored part keeps the unanchored part throughout."""
+    d, cmap, links = _after_an_anchoring_lap(
+        MapConfig(loop_heading_anchored_rad=anchored, loop_heading_group_sd=group_sd), turned
+    )
+    assert d.status == status
+    if status != "accepted":
+        assert f"heading {turned:.3f} rad" in d.reason and "exceeds the gate 0.441 rad" in d.reason
+        assert ("beyond a group's 0.522 rad" in d.reason) == (status == "rejected")
+        assert cmap.link_count == links
+    else:
+        assert cmap.link_count == links + 1
+
+
+def _after_an_anchoring_lap(cfg: MapConfig, turned: float, beside: float = 0.0):
+    """A square driven for two laps and 30 steps, the second lap closed by true loops (the last 3 m of path
+    back), then a visual hypothesis naming the node 6 m back with the robot turned by ``turned`` and moved
+    ``beside`` metres to the node's left: (its decision, the map, the link count before it)."""
     inc = square_increments(laps=3)
     gt = integrate(inc)
     lap = len(inc) // 3
@@ -341,20 +357,26 @@ def test_after_a_verified_closure_the_heading_part_shrinks_to_the_odometry_s_wal
     def second_lap(step, cmap, node_at, off):
         return loops(step, cmap, node_at, off) if step <= 2 * lap else []
 
-    cmap = CognitiveMap(MapConfig(loop_heading_anchored_rad=anchored, loop_heading_group_sd=group_sd))
+    cmap = CognitiveMap(cfg)
     node_at, _, _ = drive(cmap, inc[:k], hypotheses=second_lap)
     assert cmap.path_since_verified == pytest.approx(3.0, abs=0.5)  # the second lap's last closure anchored it
     node = int(node_at[j])
-    offset = between(cmap.poses[node], gt[k]) + [0.0, 0.0, turned]
+    offset = between(cmap.poses[node], gt[k]) + [0.0, beside, turned]
     links = cmap.link_count
     d = cmap.propose_loop(LoopHypothesis(node=node, transform=None, source="test", offset=tuple(offset)))
+    return d, cmap, links
+
+
+@pytest.mark.parametrize("turned, status", [(0.0, "pending"), (0.6, "rejected")])
+def test_outside_the_position_gate_a_hypothesis_turned_beyond_a_group_s_bound_is_rejected_at_once(turned, status):
+    """The group bound (``loop_heading_group_sd``) holds for a hypothesis outside the gate in position too: 6 m
+    beside its node (the gate 3.3 m there), one that keeps the node's heading waits for a consistent group, one
+    turned 0.6 rad (beyond 0.4 + 3 x 0.041 rad) is rejected at once, and neither touches the map."""
+    d, cmap, links = _after_an_anchoring_lap(MapConfig(), turned, beside=6.0)
     assert d.status == status
-    if status != "accepted":
-        assert f"heading {turned:.3f} rad" in d.reason and "exceeds the gate 0.441 rad" in d.reason
-        assert ("beyond a group's 0.522 rad" in d.reason) == (status == "rejected")
-        assert cmap.link_count == links
-    else:
-        assert cmap.link_count == links + 1
+    assert "map distance" in d.reason and "exceeds the gate" in d.reason
+    assert ("beyond a group's 0.522 rad" in d.reason) == (status == "rejected")
+    assert cmap.link_count == links
 
 
 def test_gate_radius_grows_with_the_path_travelled():
