@@ -606,6 +606,14 @@ class MapConfig(_Frozen):
         "heading error spread wrongly, leaving true closing links a metre off for the kernel to fade "
         "[ours, docs/MODEL.md]",
     )
+    lsq_branch_solve_iterations: int | None = Field(
+        10,
+        ge=1,
+        description="when a turned branch of the headings-first re-initialisation starts below the wrapped reading, "
+        "it and the wrapped reading are judged after this many Gauss-Newton steps of the whole solve (on copies) "
+        "instead of at their inits, whose costs favoured a wrong whole turn of a fast-drifting gyro; None = judged "
+        "at the inits [ours, docs/MODEL.md item 112]",
+    )
     lsq_window_hops: int = Field(
         40,
         ge=0,

@@ -6,7 +6,8 @@ A loop link's heading residual is known only up to whole turns: a closure alone 
 headings are re-initialised headings first (:func:`~hippomap.headings_first.rotation_first_inits`) from
 the wrapped reading and from branches that take the loop links the map does not use whole turns further
 round; a turned branch is kept when it explains the map clearly better at an ordinary drift rate, or at a
-faster one when it adds little cost to the map. This layer, below
+faster one when it adds little cost to the map; a turned branch that starts below the wrapped reading is judged,
+with it, after a short solve (item 112). This layer, below
 :class:`~hippomap.map_correction.MapCorrection`, holds these tests and the robust weights loop links
 would have on given poses.
 """
@@ -20,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from .headings_first import rate_turns, rotation_first_inits, turn_rates
-from .least_squares import graph_cost
+from .least_squares import graph_cost, solve_lsq
 from .loop_closure import link_errors
 from .map_graph import LOOP, MapGraph
 from .relaxation import _wrap_inplace
@@ -38,6 +39,18 @@ _BRANCH_MAX_TURNS = 8  # further turns tried, up to this many, for a link that r
 # sigmas (docs/MODEL.md item 76)
 _RATE_BRANCHES = 4  # branches with turns chosen link by link for one drift rate (_rate_branches), the best supported
 _RATE_AGREE_RAD = 0.5  # ... a rate explains a link when its turned residual is within this of what the rate asks
+
+
+def _short_solve(
+    Q: np.ndarray, b: float, steps: int, graph: tuple[np.ndarray, ...], bias: dict[str, Any]
+) -> tuple[np.ndarray, float, float]:
+    """A branch's init ``Q`` (with bias ``b``) after ``steps`` Gauss-Newton steps of the whole solve on ``graph``
+    (sources, targets, transforms, information, coupling), on a copy: (its poses, its bias, its cost)."""
+    src, dst, tr, info, coupling = graph
+    P = Q.copy()
+    res = solve_lsq(P, src, dst, tr, iterations=steps, information=info, coupling=coupling, **{**bias, "bias": b})
+    b = float(res.bias) if bias else b
+    return P, b, graph_cost(P, src, dst, tr, info, coupling=coupling, **{**bias, "bias": b})
 
 
 class HeadingBranches(MapGraph):
@@ -78,16 +91,23 @@ class HeadingBranches(MapGraph):
         fits every link (:meth:`_branch_rate_ok`). Costs are the whole solve's own, the map's coupled
         heading residuals included. Returns the bias to start the solve from and the information to solve
         with: ``info``, or after a turned branch ``info`` with every loop link at the robust weight the kernel
-        gives it on the branch (:meth:`_reweighted`; docs/MODEL.md item 77)."""
+        gives it on the branch (:meth:`_reweighted`; docs/MODEL.md item 77). When a turned branch starts below the
+        wrapped reading, both are judged after ``lsq_branch_solve_iterations`` steps of the solve (item 112)."""
         b0 = float(bias.get("bias", 0.0))
         coupling = self._lcoup[: self._m]
         best_cost, best = graph_cost(P, src, dst, tr, info, coupling=coupling, **bias), None
         branches = self._heading_branches(P)
         inits = rotation_first_inits(P, src, dst, tr, info, anchor=0, branches=branches, **bias)
         base = cache(partial(self._odometry_share, P, info, bias))
-        for turns, (Q, _, b) in zip(branches, inits):
+        costs = [graph_cost(Q, src, dst, tr, info, coupling=coupling, **{**bias, "bias": b}) for Q, _, b in inits]
+        # a turned branch that starts below the wrapped reading (branches[0]) is judged, with it, where a short solve
+        # takes it: an init's cost can favour a branch a few steps of the solve leave behind (docs/MODEL.md item 112)
+        steps = self._branch_solve_steps()
+        refine = steps is not None and any(t is not None and c < costs[0] for t, c in zip(branches, costs))
+        for turns, (Q, _, b), cost in zip(branches, inits, costs):
+            if refine and (turns is None or cost < costs[0]):
+                Q, b, cost = _short_solve(Q, b, int(steps or 0), (src, dst, tr, info, coupling), bias)
             at_b = {**bias, "bias": b}
-            cost = graph_cost(Q, src, dst, tr, info, coupling=coupling, **at_b)
             # another branch must explain the map clearly better than the wrapped reading, at an ordinary rate
             if turns is None:
                 better = cost < best_cost
@@ -101,6 +121,11 @@ class HeadingBranches(MapGraph):
         Q, b, turns = best
         P[:] = Q
         return b, info if turns is None else self._reweighted(Q, info)
+
+    def _branch_solve_steps(self) -> int | None:
+        """Gauss-Newton steps a turned branch that starts below the wrapped reading is judged after
+        (``lsq_branch_solve_iterations``; None: judged at its init)."""
+        return self.cfg.lsq_branch_solve_iterations
 
     def _branch_rate_ok(self, b: float, fit: Callable[[], tuple[float, int]]) -> bool:
         """Whether a turned branch's rate ``b`` may be taken: within ``odometry_bias_sigma``, or within
