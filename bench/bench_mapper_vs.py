@@ -17,7 +17,10 @@ It exits with status 1 unless every recorded output of the new code equals the o
 (floats compared bit for bit, evidence to 1e-9 absolute). A change of the model that is meant to change
 the outputs is measured with ``--expect-changes``: the differences are summarised, the map ATE of both
 versions printed when the data set has ground truth, and the exit status is 0. ``--config FILE`` runs
-the new code with those config overrides (the old code keeps its defaults).
+the new code with those config overrides (the old code keeps its defaults). Both versions get the field of
+view of the data set's camera where their config leaves it unset, as ``hippomap run`` and ``bench_maps.py`` give it
+(``dataset_config``): without it a recognition's image shift gives no heading, and the runs would not be the
+benchmark's.
 
     python -m hippomap simulate loop --out SIM --seed 3 --omega-bias 0.01 --sigma-omega 0.01 --sigma-v 0.02
     python bench/bench_mapper_vs.py SIM --against REV [--repeats 2] [--limit N] [--expect-changes] [--config FILE]
@@ -77,6 +80,16 @@ def load_revision(rev: str) -> ModuleType:
         importlib.import_module(f"{name}.{sub}")
     pkg.revision = sha  # type: ignore[attr-defined]
     return pkg
+
+
+def with_camera(pkg: ModuleType, config: Any, hfov: float | None) -> Any:
+    """``config`` (None: ``pkg``'s defaults) with the data set's camera field of view ``hfov`` where the config
+    leaves it unset, as ``hippomap.cli.run.dataset_config`` sets it; a revision whose config has no such field
+    gets its config unchanged."""
+    cfg = config if config is not None else importlib.import_module(f"{pkg.__name__}.config").HippomapConfig()
+    if hfov is None or getattr(cfg.mapper, "camera_hfov_deg", hfov) is not None:
+        return cfg
+    return cfg.model_copy(update={"mapper": cfg.mapper.model_copy(update={"camera_hfov_deg": hfov})})
 
 
 def code_record(c: Any) -> tuple:
@@ -263,6 +276,8 @@ def main() -> int:
     new_config = hippomap.config.HippomapConfig.from_file(args.config) if args.config else None
     old_pkg = load_revision(args.against)
     ds = hippomap.cli.run.open_dataset(args.data)
+    old_config = with_camera(old_pkg, None, ds.camera_hfov_deg)
+    new_config = with_camera(hippomap, new_config, ds.camera_hfov_deg)
     events: list[tuple[str, float, Any]] = []
     n_frames = 0
     for it in ds.events():
@@ -279,11 +294,11 @@ def main() -> int:
     runs: dict[str, list[dict[str, Any]]] = {"old": [], "new": []}
     for _ in range(args.repeats):
         if args.interleave:
-            o, n = run_interleaved([(old_pkg, None), (hippomap, new_config)], events)
+            o, n = run_interleaved([(old_pkg, old_config), (hippomap, new_config)], events)
             runs["old"].append(o)
             runs["new"].append(n)
             continue
-        for label, pkg, cfg in (("old", old_pkg, None), ("new", hippomap, new_config)):
+        for label, pkg, cfg in (("old", old_pkg, old_config), ("new", hippomap, new_config)):
             runs[label].append(run_once(pkg, events, cfg))
     diffs = []
     for o in runs["old"]:

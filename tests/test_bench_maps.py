@@ -696,6 +696,24 @@ def test_the_old_revision_is_imported_apart_and_its_copy_removed_at_exit(tmp_pat
     assert not list(tmp_path.glob("hippomap-rev-*")), "the old revision's copy was left behind"
 
 
+def test_both_revisions_run_with_the_data_set_s_camera_field_of_view():
+    """bench_mapper_vs gives each version the camera field of view of the data set, as ``hippomap run`` does
+    (without it a recognition's image shift gives no heading and the runs are not the benchmark's), keeps a
+    field of view the config sets, and leaves alone a config without the field (an older revision's)."""
+    import bench_mapper_vs
+    import hippomap
+    from hippomap.config import HippomapConfig
+
+    cfg = bench_mapper_vs.with_camera(hippomap, None, 62.5)
+    assert cfg.mapper.camera_hfov_deg == 62.5
+    assert cfg.model_copy(update={"mapper": HippomapConfig().mapper}) == HippomapConfig()  # nothing else changed
+    own = HippomapConfig.model_validate({"mapper": {"camera_hfov_deg": 90.0}, "visual": {"max_resets": 3}})
+    assert bench_mapper_vs.with_camera(hippomap, own, 62.5) is own
+    assert bench_mapper_vs.with_camera(hippomap, None, None).mapper.camera_hfov_deg is None
+    old = SimpleNamespace(mapper=SimpleNamespace())
+    assert bench_mapper_vs.with_camera(hippomap, old, 62.5) is old
+
+
 def test_unfinished_renders_of_stopped_runs_are_removed_and_running_ones_kept(tmp_path):
     """A run stopped while rendering leaves ``<name>.tmp<pid>`` in the render cache; the next render of the
     same folder removes it when that process is gone, and leaves a render whose process still runs."""
