@@ -709,6 +709,9 @@ def test_both_revisions_run_with_the_data_set_s_camera_field_of_view():
     assert cfg.model_copy(update={"mapper": HippomapConfig().mapper}) == HippomapConfig()  # nothing else changed
     own = HippomapConfig.model_validate({"mapper": {"camera_hfov_deg": 90.0}, "visual": {"max_resets": 3}})
     assert bench_mapper_vs.with_camera(hippomap, own, 62.5) is own
+    overrides = HippomapConfig.model_validate({"visual": {"max_resets": 3}})  # --config without a field of view
+    given = bench_mapper_vs.with_camera(hippomap, overrides, 62.5)
+    assert (given.mapper.camera_hfov_deg, given.visual.max_resets) == (62.5, 3)
     assert bench_mapper_vs.with_camera(hippomap, None, None).mapper.camera_hfov_deg is None
     old = SimpleNamespace(mapper=SimpleNamespace())
     assert bench_mapper_vs.with_camera(hippomap, old, 62.5) is old
