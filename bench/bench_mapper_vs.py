@@ -82,14 +82,15 @@ def load_revision(rev: str) -> ModuleType:
     return pkg
 
 
-def with_camera(pkg: ModuleType, config: Any, hfov: float | None) -> Any:
-    """``config`` (None: ``pkg``'s defaults) with the data set's camera field of view ``hfov`` where the config
-    leaves it unset, as ``hippomap.cli.run.dataset_config`` sets it; a revision whose config has no such field
-    gets its config unchanged."""
-    cfg = config if config is not None else importlib.import_module(f"{pkg.__name__}.config").HippomapConfig()
-    if hfov is None or getattr(cfg.mapper, "camera_hfov_deg", hfov) is not None:
-        return cfg
-    return cfg.model_copy(update={"mapper": cfg.mapper.model_copy(update={"camera_hfov_deg": hfov})})
+def with_camera(pkg: ModuleType, config: Any, dataset: Any) -> Any:
+    """``config`` (None: ``pkg``'s defaults) as ``pkg``'s own ``hippomap run`` would run ``dataset``: its
+    ``cli.run.dataset_config``, which gives it the camera's field of view where the config leaves it unset; a
+    revision without that function gets ``config`` unchanged."""
+    try:
+        dataset_config = importlib.import_module(f"{pkg.__name__}.cli.run").dataset_config
+    except (ImportError, AttributeError):
+        return config
+    return dataset_config(dataset, config)
 
 
 def code_record(c: Any) -> tuple:
@@ -276,8 +277,8 @@ def main() -> int:
     new_config = hippomap.config.HippomapConfig.from_file(args.config) if args.config else None
     old_pkg = load_revision(args.against)
     ds = hippomap.cli.run.open_dataset(args.data)
-    old_config = with_camera(old_pkg, None, ds.camera_hfov_deg)
-    new_config = with_camera(hippomap, new_config, ds.camera_hfov_deg)
+    old_config = with_camera(old_pkg, None, ds)
+    new_config = with_camera(hippomap, new_config, ds)
     events: list[tuple[str, float, Any]] = []
     n_frames = 0
     for it in ds.events():

@@ -699,22 +699,26 @@ def test_the_old_revision_is_imported_apart_and_its_copy_removed_at_exit(tmp_pat
 def test_both_revisions_run_with_the_data_set_s_camera_field_of_view():
     """bench_mapper_vs gives each version the camera field of view of the data set, as ``hippomap run`` does
     (without it a recognition's image shift gives no heading and the runs are not the benchmark's), keeps a
-    field of view the config sets, and leaves alone a config without the field (an older revision's)."""
+    field of view the config sets, and leaves alone the config of a revision without ``dataset_config``."""
+    import types
+
     import bench_mapper_vs
     import hippomap
     from hippomap.config import HippomapConfig
 
-    cfg = bench_mapper_vs.with_camera(hippomap, None, 62.5)
+    camera = SimpleNamespace(camera_hfov_deg=62.5)
+    cfg = bench_mapper_vs.with_camera(hippomap, None, camera)
     assert cfg.mapper.camera_hfov_deg == 62.5
     assert cfg.model_copy(update={"mapper": HippomapConfig().mapper}) == HippomapConfig()  # nothing else changed
     own = HippomapConfig.model_validate({"mapper": {"camera_hfov_deg": 90.0}, "visual": {"max_resets": 3}})
-    assert bench_mapper_vs.with_camera(hippomap, own, 62.5) is own
+    assert bench_mapper_vs.with_camera(hippomap, own, camera) is own
     overrides = HippomapConfig.model_validate({"visual": {"max_resets": 3}})  # --config without a field of view
-    given = bench_mapper_vs.with_camera(hippomap, overrides, 62.5)
+    given = bench_mapper_vs.with_camera(hippomap, overrides, camera)
     assert (given.mapper.camera_hfov_deg, given.visual.max_resets) == (62.5, 3)
-    assert bench_mapper_vs.with_camera(hippomap, None, None).mapper.camera_hfov_deg is None
+    no_camera = SimpleNamespace(camera_hfov_deg=None)
+    assert bench_mapper_vs.with_camera(hippomap, None, no_camera).mapper.camera_hfov_deg is None
     old = SimpleNamespace(mapper=SimpleNamespace())
-    assert bench_mapper_vs.with_camera(hippomap, old, 62.5) is old
+    assert bench_mapper_vs.with_camera(types.ModuleType("hippomap_rev_0000000"), old, camera) is old
 
 
 def test_unfinished_renders_of_stopped_runs_are_removed_and_running_ones_kept(tmp_path):

@@ -1387,7 +1387,7 @@ def _noisy_gyro_grid(until_s: float, cfg: MapConfig):
     """The simulator's grid route of seed 228 with a gyro drifting 0.03 rad/s and wandering 0.03 rad/s per √s (three
     times the benchmark's), driven until ``until_s`` with a visual hypothesis every 5 steps at places passed more than
     60 s before within 0.3 m and 0.3 rad, its offset the robot's true pose in its node's frame: (the map, the true
-    bias, the odometry's heading drift over the run's first revisit)."""
+    bias)."""
     from hippomap.sim.params import OdometryNoise
     from hippomap.sim.run import simulate
     from hippomap.sim.worlds import grid_world
