@@ -20,9 +20,10 @@ same work reads up to a third apart between runs on a shared machine); every par
 Printed: each part's CPU ms per frame over the whole run, its first and last third, and the change
 between them; then the recognitions per outcome with their mean and p95 ms, and the local solves of the
 map's corrections (``map.lsq_window_hops``) with the nodes their windows hold. Then the recognitions per
-search (``gated``: the key frames the gate offers; ``global``: the global search, ``mapper.global_search_*``)
-and outcome, with their fixations (median, p95) and CPU ms per fixation: a recognition's cost is its
-fixations times a cost per fixation, and this says which of the two sets a p95. When the run has ground
+search (``sequence``: the old path's sequence, ``mapper.sequence_window_m``; ``gated``: the key frames the gate
+offers, or the rest of them; ``global``: the global search, ``mapper.global_search_*``) and outcome, with their
+fixations (median, p95) and CPU ms per fixation: a recognition's cost is its fixations times a cost per fixation,
+and this says which of the two sets a p95. When the run has ground
 truth, a recognition that named none is also counted as *futile* when none of its candidate key frames was
 learned within ``FUTILE_M`` of where the robot truly stands (there was nothing there to recognise), and as *facing
 away* when some were but none of those faced within ``FUTILE_RAD`` of the robot's true heading (they stood near
@@ -71,7 +72,7 @@ class Recognised:
     seconds: float  # CPU
     named: bool  # named a key frame
     fixations: int
-    search: str  # "gated" or "global"
+    search: str  # "sequence", "gated" or "global"
     truth_m: float  # how far the nearest candidate key frame was learned from the robot's true position (nan: unknown)
     #: the smallest true heading difference (rad) between the robot and the candidates learned within FUTILE_M of it
     #: (nan: none, or unknown)
@@ -126,7 +127,7 @@ class PartTimer:
         memory.recognise = timed
 
     def wrap_search(self, mapper: Mapper) -> None:
-        """Tell the recognitions of ``mapper``'s gated searches from those of its global searches."""
+        """Tell the recognitions of ``mapper``'s sequence, gated and global searches apart."""
         f = mapper._recognise
 
         def tagged(*a: Any, search: str = "gated") -> Any:
@@ -294,7 +295,7 @@ def searches(recognitions: list[Recognised], timers: list[PartTimer], n: int) ->
     (over all repeats), and of those that named none, the futile ones and those facing away (ground truth only)."""
     for label, lo, hi in spans(n):
         parts = []
-        for search in ("gated", "global"):
+        for search in ("sequence", "gated", "global"):
             for named in (True, False):
                 sel = [x for x in recognitions if lo <= x.frame < hi and x.search == search and x.named == named]
                 if not sel:

@@ -49,6 +49,7 @@ class KeyFrames:
     frame_offset: dict[int, tuple[float, float, float]]
     frame_node: dict[int, int]
     frame_path: dict[int, float]
+    sequence_frame: int | None
 
     def _is_keyframe(self, t: float, previous_t: float | None) -> bool:
         """Whether the frame at time ``t`` (the frame before it at ``previous_t``, None for none) is a key frame: by
@@ -154,3 +155,17 @@ class KeyFrames:
             arr[keys] = [pick(v) for _, v in new]
         self.__dict__[key] = (d, arr, len(d))
         return arr
+
+    def _sequence(self, frames: list[int]) -> list[int]:
+        """Of ``frames``, those learned within ``sequence_window_m`` of path of the key frame the last
+        recognition named (:attr:`sequence_frame`): a robot retracing its path meets the old path's key
+        frames in their order, so the next match is most likely among them; [] without one."""
+        w = self.config.mapper.sequence_window_m
+        if w is None or self.sequence_frame is None or not frames:
+            return []
+        at = self.frame_path.get(self.sequence_frame)
+        if at is None:
+            return []
+        f = np.asarray(frames, dtype=np.int64)
+        p = self._lookup(self._frame_array("frame_path", float), f, -math.inf)
+        return f[np.abs(p - at) <= w].tolist()

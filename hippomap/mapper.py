@@ -85,6 +85,7 @@ class Mapper(KeyFrames):
         self.turn_at_keyframe = 0.0
         self.familiar = False  # the last key frame's recognition verified a loop (keyframe_familiar_distance_m)
         self.familiar_since = 0.0  # odometric path at the first of the current run of verified key frames
+        self.sequence_frame: int | None = None  # the key frame the last recognition named, if the map took it
         self._frame_distance = self._frame_turn = 0.0  # distance and turn at the previous frame
         self._set_clocks()
         self.frame_offset: dict[int, tuple[float, float, float]] = {}  # key frame -> its pose in its node's frame
@@ -144,6 +145,7 @@ class Mapper(KeyFrames):
         m._set_clocks()  # the new run's clock may differ
         m.turn_at_keyframe = m.turn
         m.familiar = False
+        m.sequence_frame = None  # the new run has recognised nothing yet
         m._frame_distance, m._frame_turn = m.distance, m.turn
         m.recognitions = []
         m.place = None
@@ -204,21 +206,7 @@ class Mapper(KeyFrames):
         recognised = False
         if self.place is not None and self.memory.frame_count and self._recognition_due(frame.t):
             self.time_at_recognition = frame.t
-            if self.cmap.lost:  # no pose on the map yet: any key frame of the saved map may be the place
-                frames = self.cmap.frames[: self.base_nodes]
-            else:
-                frames = self.cmap.frames[self.cmap.loop_candidates()]
-            candidates = self._recognisable(frames[frames >= 0])
-            if not self.cmap.lost:  # while lost the robot's heading on the map is unknown
-                candidates = self._facing(candidates)
-            if candidates:
-                recognised = self._recognise(gray, frame.t, candidates, events)
-            if not recognised and self._global_search_due():
-                self.global_search_path = self.distance
-                every = self._recognisable(self.cmap.frames[self.cmap.frames >= 0])
-                others = np.setdiff1d(np.asarray(every, np.int64), np.asarray(candidates, np.int64)).tolist()
-                if others:
-                    recognised = self._recognise(gray, frame.t, others, events, search="global")
+            recognised = self._recognise_key_frame(gray, frame.t, events)
         self.distance_at_keyframe = self.distance
         self.time_at_keyframe = frame.t
         self.turn_at_keyframe = self.turn
@@ -242,6 +230,30 @@ class Mapper(KeyFrames):
             events.append(KeyframeLearned(frame.t, int(fid), node))
             events.extend(self.cmap.take_events())
         return events
+
+    def _recognise_key_frame(self, gray: np.ndarray, t: float, events: list[MapEvent]) -> bool:
+        """The recognitions of a key frame: among the key frames the loop gate admits that could face the robot's
+        way (while lost, every key frame of the saved map), the old path's sequence first (:meth:`_sequence`), then
+        the rest; then, when one is due, a global search among all the others. True when the map did not reject
+        the hypothesis; the frame it named is where the next key frame's sequence is sought."""
+        cm = self.cmap
+        frames = cm.frames[: self.base_nodes] if cm.lost else cm.frames[cm.loop_candidates()]
+        candidates = self._recognisable(frames[frames >= 0])
+        if not cm.lost:  # while lost the robot's heading on the map is unknown
+            candidates = self._facing(candidates)
+        seq = self._sequence(candidates)
+        recognised = bool(seq) and self._recognise(gray, t, seq, events, search="sequence")
+        rest = np.setdiff1d(candidates, seq).tolist() if seq else candidates
+        if rest and not recognised:
+            recognised = self._recognise(gray, t, rest, events)
+        if not recognised and self._global_search_due():
+            self.global_search_path = self.distance
+            every = self._recognisable(cm.frames[cm.frames >= 0])
+            others = np.setdiff1d(np.asarray(every, np.int64), np.asarray(candidates, np.int64)).tolist()
+            if others:
+                recognised = self._recognise(gray, t, others, events, search="global")
+        self.sequence_frame = self.recognitions[-1]["frame_id"] if recognised else None
+        return recognised
 
     def _recognise(
         self, gray: np.ndarray, t: float, candidates: list[int], events: list[MapEvent], search: str = "gated"
@@ -426,6 +438,7 @@ class Mapper(KeyFrames):
             "turn_at_keyframe": self.turn_at_keyframe,
             "familiar": self.familiar,
             "familiar_since": self.familiar_since,
+            "sequence_frame": self.sequence_frame,
             "frame_distance": self._frame_distance,
             "frame_turn": self._frame_turn,
             **self._clock_state(),
@@ -471,6 +484,8 @@ class Mapper(KeyFrames):
         self.turn_at_keyframe = float(meta.get("turn_at_keyframe", 0.0))
         self.familiar = bool(meta.get("familiar", False))
         self.familiar_since = float(meta.get("familiar_since", self.distance))
+        sf = meta.get("sequence_frame")
+        self.sequence_frame = None if sf is None else int(sf)
         self._frame_distance = float(meta.get("frame_distance", self.distance))
         self._frame_turn = float(meta.get("frame_turn", self.turn))
         self._set_clocks(meta)

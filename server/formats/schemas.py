@@ -224,8 +224,10 @@ class RecognitionInfo(BaseModel):
     n_fixations: int | None
     search: str | None = Field(
         None,
-        description="which key frames competed: 'gated' (those the loop gate admits near the robot's map pose) or "
-        "'global' (every other one, after a long run without a verified closure); None in older sessions",
+        description="which key frames competed: 'sequence' (of the gate's, those learned near the key frame the "
+        "last recognition named, searched first), 'gated' (those the loop gate admits near the robot's map pose, or "
+        "the rest of them after a sequence search) or 'global' (every other one, after a long run without a "
+        "verified closure); None in older sessions",
     )
     candidates: int | None = Field(None, description="how many key frames competed; None in older sessions")
     saccades: str
