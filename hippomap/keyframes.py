@@ -1,14 +1,15 @@
 """The mapper's key frames: when a frame becomes one, where each was taken, and which of them a
 recognition may name from where the robot stands (paper §2.2 key frames; docs/MODEL.md items 24,
-27, 44, 45, 92, 95).
+27, 44, 45, 92, 95, 114).
 
 :class:`KeyFrames` is the part of :class:`~hippomap.mapper.Mapper` that holds, per key frame, its
 node, its pose in that node's frame (``frame_offset``) and the odometric path length when it was
-learned (``frame_path``), and answers four questions: is this frame a key frame (distance or turn,
+learned (``frame_path``), and answers five questions: is this frame a key frame (distance or turn,
 further apart on a familiar path, and some seconds apart for a fast robot), is this key frame
 recognised at all (``recognition_every_s``), was a key frame learned long enough ago to be
-recognised as a return, and could its view face the robot's way at all. It keeps the clocks these
-need (:data:`_CLOCKS`).
+recognised as a return, could its view face the robot's way at all, and was it learned near the
+key frame the last recognition named (``sequence_window_m``, off by default). It keeps the clocks
+these need (:data:`_CLOCKS`).
 """
 
 from __future__ import annotations

@@ -1,5 +1,6 @@
-"""The old path's sequence (``mapper.sequence_window_m``): after a recognition the map took, the next key frame is
-searched first among the key frames learned near the one it named, then among the rest of the gate's."""
+"""The old path's sequence (``mapper.sequence_window_m``, off by default: docs/MODEL.md item 114): after a recognition
+the map took, the next key frame is searched first among the key frames learned near the one it named, then among
+the rest of the gate's."""
 
 from __future__ import annotations
 
