@@ -23,11 +23,10 @@ map's corrections (``map.lsq_window_hops``) with the nodes their windows hold. T
 search (``sequence``: the old path's sequence, ``mapper.sequence_window_m``; ``gated``: the key frames the gate
 offers, or the rest of them; ``global``: the global search, ``mapper.global_search_*``) and outcome, with their
 fixations (median, p95) and CPU ms per fixation: a recognition's cost is its fixations times a cost per fixation,
-and this says which of the two sets a p95. When the run has ground
-truth, a recognition that named none is also counted as *futile* when none of its candidate key frames was
-learned within ``FUTILE_M`` of where the robot truly stands (there was nothing there to recognise), and as *facing
-away* when some were but none of those faced within ``FUTILE_RAD`` of the robot's true heading (they stood near
-but saw another view).
+and this says which of the two sets a p95. When the run has ground truth, a recognition that named none is also
+counted as *futile* when none of its candidate key frames was learned within ``FUTILE_M`` of where the robot truly
+stands (there was nothing there to recognise), and as *facing away* when some were but none of those faced within
+``FUTILE_RAD`` of the robot's true heading (they stood near but saw another view).
 
     python -m hippomap simulate loop --out SIM --seed 3 --omega-bias 0.01 --sigma-omega 0.01 --sigma-v 0.02
     python bench/bench_mapper_parts.py SIM [SIM ...] [--config FILE] [--repeats 3]
