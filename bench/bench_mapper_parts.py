@@ -21,9 +21,10 @@ Printed: each part's CPU ms per frame over the whole run, its first and last thi
 between them; then the recognitions per outcome with their mean and p95 ms, and the local solves of the
 map's corrections (``map.lsq_window_hops``) with the nodes their windows hold. Then the recognitions per
 search (``sequence``: the old path's sequence, ``mapper.sequence_window_m``; ``gated``: the key frames the gate
-offers, or the rest of them; ``global``: the global search, ``mapper.global_search_*``) and outcome, with their
-fixations (median, p95) and CPU ms per fixation: a recognition's cost is its fixations times a cost per fixation,
-and this says which of the two sets a p95. When the run has ground truth, a recognition that named none is also
+offers, or the rest of them; ``gated, primed``: all of them with that sequence primed, ``mapper.sequence_prior``;
+``global``: the global search, ``mapper.global_search_*``) and outcome, with their fixations (median, p95) and CPU
+ms per fixation: a recognition's cost is its fixations times a cost per fixation, and this says which of the two
+sets a p95. When the run has ground truth, a recognition that named none is also
 counted as *futile* when none of its candidate key frames was learned within ``FUTILE_M`` of where the robot truly
 stands (there was nothing there to recognise), and as *facing away* when some were but none of those faced within
 ``FUTILE_RAD`` of the robot's true heading (they stood near but saw another view).
@@ -71,7 +72,7 @@ class Recognised:
     seconds: float  # CPU
     named: bool  # named a key frame
     fixations: int
-    search: str  # "sequence", "gated" or "global"
+    search: str  # "sequence", "gated", "gated, primed" or "global"
     truth_m: float  # how far the nearest candidate key frame was learned from the robot's true position (nan: unknown)
     #: the smallest true heading difference (rad) between the robot and the candidates learned within FUTILE_M of it
     #: (nan: none, or unknown)
@@ -129,9 +130,9 @@ class PartTimer:
         """Tell the recognitions of ``mapper``'s sequence, gated and global searches apart."""
         f = mapper._recognise
 
-        def tagged(*a: Any, search: str = "gated") -> Any:
-            self.search = search
-            return f(*a, search=search)
+        def tagged(*a: Any, search: str = "gated", **k: Any) -> Any:
+            self.search = f"{search}, primed" if k.get("prior") else search
+            return f(*a, search=search, **k)
 
         mapper._recognise = tagged  # type: ignore[method-assign]
 
@@ -294,7 +295,7 @@ def searches(recognitions: list[Recognised], timers: list[PartTimer], n: int) ->
     (over all repeats), and of those that named none, the futile ones and those facing away (ground truth only)."""
     for label, lo, hi in spans(n):
         parts = []
-        for search in ("sequence", "gated", "global"):
+        for search in ("sequence", "gated", "gated, primed", "global"):
             for named in (True, False):
                 sel = [x for x in recognitions if lo <= x.frame < hi and x.search == search and x.named == named]
                 if not sel:

@@ -1,6 +1,6 @@
 """The mapper's key frames: when a frame becomes one, where each was taken, and which of them a
 recognition may name from where the robot stands (paper §2.2 key frames; docs/MODEL.md items 24,
-27, 44, 45, 92, 95, 114).
+27, 44, 45, 92, 95, 114, 115).
 
 :class:`KeyFrames` is the part of :class:`~hippomap.mapper.Mapper` that holds, per key frame, its
 node, its pose in that node's frame (``frame_offset``) and the odometric path length when it was
@@ -8,8 +8,9 @@ learned (``frame_path``), and answers five questions: is this frame a key frame 
 further apart on a familiar path, and some seconds apart for a fast robot), is this key frame
 recognised at all (``recognition_every_s``), was a key frame learned long enough ago to be
 recognised as a return, could its view face the robot's way at all, and was it learned near the
-key frame the last recognition named (``sequence_window_m``, off by default). It keeps the clocks
-these need (:data:`_CLOCKS`).
+key frame the last recognition named (``sequence_window_m``); and it plans a key frame's searches (that
+sequence primed, ``sequence_prior``, or searched first; a global search when one is due). It keeps the
+clocks these need (:data:`_CLOCKS`).
 """
 
 from __future__ import annotations
@@ -51,6 +52,7 @@ class KeyFrames:
     frame_node: dict[int, int]
     frame_path: dict[int, float]
     sequence_frame: int | None
+    global_search_path: float  # odometric path at the last global search
 
     def _is_keyframe(self, t: float, previous_t: float | None) -> bool:
         """Whether the frame at time ``t`` (the frame before it at ``previous_t``, None for none) is a key frame: by
@@ -170,3 +172,28 @@ class KeyFrames:
         f = np.asarray(frames, dtype=np.int64)
         p = self._lookup(self._frame_array("frame_path", float), f, -math.inf)
         return f[np.abs(p - at) <= w].tolist()
+
+    def _searches(self, candidates: list[int]) -> list[tuple[list[int], str, list[int] | None]]:
+        """The gated searches of a key frame among ``candidates``, in order, as (key frames, search, primed key
+        frames): all at once with the old path's sequence (:meth:`_sequence`) primed when ``sequence_prior`` is
+        set (docs/MODEL.md item 115); else the sequence first, then the rest (item 114); without one, all at once."""
+        seq = self._sequence(candidates)
+        if not seq:
+            return [(candidates, "gated", None)]
+        if self.config.mapper.sequence_prior is not None:
+            return [(candidates, "gated", seq)]
+        return [(seq, "sequence", None), (np.setdiff1d(candidates, seq).tolist(), "gated", None)]
+
+    def _global_search_due(self) -> bool:
+        """A global search (every recognisable key frame, gate or not) is due: the map has gone
+        ``global_search_after_m`` of path without a verified closure, and the last global search
+        is ``global_search_every_m`` behind. Not while localising in a saved map (it already
+        searches the whole saved map while lost)."""
+        m = self.config.mapper
+        return (
+            m.global_search_after_m is not None
+            and m.mode != "localise"
+            and not self.cmap.lost
+            and self.cmap.path_since_verified >= m.global_search_after_m
+            and self.distance - self.global_search_path >= m.global_search_every_m
+        )

@@ -233,19 +233,18 @@ class Mapper(KeyFrames):
 
     def _recognise_key_frame(self, gray: np.ndarray, t: float, events: list[MapEvent]) -> bool:
         """The recognitions of a key frame: among the key frames the loop gate admits that could face the robot's
-        way (while lost, every key frame of the saved map), the old path's sequence first (:meth:`_sequence`), then
-        the rest; then, when one is due, a global search among all the others. True when the map did not reject
-        the hypothesis; the frame it named is where the next key frame's sequence is sought."""
+        way (while lost, every key frame of the saved map), in the searches :meth:`_searches` plans (the old path's
+        sequence primed or first); then, when one is due, a global search among all the others. True when the map
+        did not reject the hypothesis; the frame it named is where the next key frame's sequence is sought."""
         cm = self.cmap
         frames = cm.frames[: self.base_nodes] if cm.lost else cm.frames[cm.loop_candidates()]
         candidates = self._recognisable(frames[frames >= 0])
         if not cm.lost:  # while lost the robot's heading on the map is unknown
             candidates = self._facing(candidates)
-        seq = self._sequence(candidates)
-        recognised = bool(seq) and self._recognise(gray, t, seq, events, search="sequence")
-        rest = np.setdiff1d(candidates, seq).tolist() if seq else candidates
-        if rest and not recognised:
-            recognised = self._recognise(gray, t, rest, events)
+        recognised = False
+        for keys, search, primed in self._searches(candidates):
+            if keys and not recognised:
+                recognised = self._recognise(gray, t, keys, events, search=search, prior=primed)
         if not recognised and self._global_search_due():
             self.global_search_path = self.distance
             every = self._recognisable(cm.frames[cm.frames >= 0])
@@ -256,14 +255,25 @@ class Mapper(KeyFrames):
         return recognised
 
     def _recognise(
-        self, gray: np.ndarray, t: float, candidates: list[int], events: list[MapEvent], search: str = "gated"
+        self,
+        gray: np.ndarray,
+        t: float,
+        candidates: list[int],
+        events: list[MapEvent],
+        search: str = "gated",
+        prior: list[int] | None = None,
     ) -> bool:
-        """Recognise ``gray`` among ``candidates``; a match is offered to the map as a loop
-        hypothesis. Appends the events; True when the map did not reject the hypothesis."""
-        bar = self.config.mapper.global_search_give_up_evidence if search == "global" else None
-        rec = self.memory.recognise(gray, candidates=candidates, give_up_evidence=bar)
+        """Recognise ``gray`` among ``candidates`` (``prior``: those starting with ``sequence_prior``'s head
+        start); a match is offered to the map as a loop hypothesis. Appends the events; True when the map did
+        not reject the hypothesis."""
+        m = self.config.mapper
+        bar = m.global_search_give_up_evidence if search == "global" else None
+        p = m.sequence_prior or 0.0
+        rec = self.memory.recognise(gray, candidates=candidates, give_up_evidence=bar, prior=prior, prior_activity=p)
         rec_id = len(self.recognitions)
         result = {**rec.to_dict(), "search": search, "candidates": len(candidates)}
+        if prior:
+            result["primed"] = len(prior)
         made = RecognitionMade(rec_id, t, int(self.cmap.current), result)
         self.recognitions.append(made.record())
         events.append(made)
@@ -296,20 +306,6 @@ class Mapper(KeyFrames):
         events.append(LoopDecided(t, decision))
         events.extend(self.cmap.take_events())
         return decision.status != "rejected"
-
-    def _global_search_due(self) -> bool:
-        """A global search (every recognisable key frame, gate or not) is due: the map has gone
-        ``global_search_after_m`` of path without a verified closure, and the last global search
-        is ``global_search_every_m`` behind. Not while localising in a saved map (it already
-        searches the whole saved map while lost)."""
-        m = self.config.mapper
-        return (
-            m.global_search_after_m is not None
-            and not self.localise_only
-            and not self.cmap.lost
-            and self.cmap.path_since_verified >= m.global_search_after_m
-            and self.distance - self.global_search_path >= m.global_search_every_m
-        )
 
     def _shift_coupling(self, rec: Any) -> float:
         """The coupling of a recognition's heading with the robot's offset beside the key frame

@@ -115,6 +115,7 @@ class _Attempt:
     reset_reason: str | None = None
     first: bool = True
     visited: list[int] = field(default_factory=list)
+    primed: float = 0.0  # the frame activity the attempt started with, summed (the prior; not evidence)
 
 
 @dataclass
@@ -128,6 +129,7 @@ class _Query:
     scale: float
     size: tuple[int, int]
     nframes: int  # the frames competing
+    prior: np.ndarray  # each frame's activity at the start of every attempt (zeros without a prior)
 
 
 def _check_bar(value: Any) -> float:
@@ -161,7 +163,12 @@ class VisualMemory(FixationSensing):
 
     # -- recognition -------------------------------------------------------------------
     def recognise(
-        self, image: Any, candidates: Iterable[int] | None = None, give_up_evidence: float | None = None
+        self,
+        image: Any,
+        candidates: Iterable[int] | None = None,
+        give_up_evidence: float | None = None,
+        prior: Iterable[int] | None = None,
+        prior_activity: float = 0.0,
     ) -> Recognition:
         """Recognise a frame by a saccade sequence (spec §2 recognition; [BBc] main loop).
 
@@ -170,6 +177,11 @@ class VisualMemory(FixationSensing):
         ``give_up_evidence``: the activity bar of the give-up rule for this recognition (``None``:
         the config's, :meth:`_give_up_bar`); a search among more frames can ask more of its first
         attempts, as chance alone lifts some frame higher there.
+        ``prior``: frames (among the candidates) expected here, which start every attempt with
+        ``prior_activity`` (in [0, ``decision_threshold``)) instead of 0: they still compete with every
+        candidate and must be verified, but need less evidence to win (a mapper retracing its path expects
+        the old path's next key frames, :attr:`~hippomap.config.MapperConfig.sequence_prior`). The head start
+        counts neither towards the give-up bars nor towards ``max_total_activity``.
 
         Attempts follow each other until one accepts a frame or ``max_resets`` resets have been
         used (or, after ``give_up_attempts`` attempts, while no frame has reached
@@ -181,24 +193,25 @@ class VisualMemory(FixationSensing):
         """
         cfg = self.config
         bar = None if give_up_evidence is None else _check_bar(give_up_evidence)
-        q = self._query(image, candidates)
+        q = self._query(image, candidates, prior, prior_activity)
         if isinstance(q, Recognition):
             return q
         if bar is None:
             bar = self._give_up_bar(q.nframes)
         a = np.zeros(self._nframes, np.float64)
+        primed = float(q.prior.sum())
         steps: list[SaccadeStep] = []
         used_starts: set[int] = set()
         peak = 0.0  # the highest frame activity of any attempt so far (activity only grows within one)
         for resets in range(cfg.max_resets + 1):
-            a[:] = 0.0
+            a[:] = q.prior
             e = self._start_point(q.starts, used_starts)
-            st = _Attempt(e=e, m=e.copy())
+            st = _Attempt(e=e, m=e.copy(), primed=primed)
             accepted = self._attempt(q, st, a, steps, resets)
             if accepted is not None:
                 return accepted
             steps[-1].event = f"reset: {st.reset_reason}"
-            best = float(a.max()) if a.size else 0.0
+            best = float((a - q.prior).max()) if a.size else 0.0
             peak = max(peak, best)
             why = self._given_up(resets + 1, peak, bar)
             if why:
@@ -206,14 +219,18 @@ class VisualMemory(FixationSensing):
         why = f"no match after {cfg.max_resets} resets"
         return Recognition(None, best, steps, cfg.max_resets, 0.0, q.size, why)
 
-    def _query(self, image: Any, candidates: Iterable[int] | None) -> _Query | Recognition:
-        """The query's views and the competing feature units, or the rejection when there is
-        nothing to recognise (no stored frame among the candidates, no corner in the query)."""
+    def _query(
+        self, image: Any, candidates: Iterable[int] | None, prior: Iterable[int] | None, prior_activity: float
+    ) -> _Query | Recognition:
+        """The query's views, the competing feature units and each frame's starting activity
+        (:meth:`_prior`), or the rejection when there is nothing to recognise (no stored frame among the
+        candidates, no corner in the query)."""
         cfg = self.config
         work, scale, cimg = self._views(image)
         H, W = work.shape[:2]
         size = (int(round(W * scale)), int(round(H * scale)))
         frames = None if candidates is None else self._candidate_frames(candidates)
+        start = self._prior(frames, prior, prior_activity)
         sub = FlcSubset(self, frames)
         if sub.n == 0:
             return Recognition(None, 0.0, [], 0, 0.0, size, "no stored frames")
@@ -221,7 +238,25 @@ class VisualMemory(FixationSensing):
         starts = self._corners(cimg, cfg.query_keypoints, self.h)
         if len(starts) == 0:
             return Recognition(None, 0.0, [], 0, 0.0, size, "no keypoints in the query")
-        return _Query(sub, sense_img, starts, scale, size, self._nframes if frames is None else int(frames.size))
+        nframes = self._nframes if frames is None else int(frames.size)
+        return _Query(sub, sense_img, starts, scale, size, nframes, start)
+
+    def _prior(self, frames: np.ndarray | None, prior: Iterable[int] | None, activity: float) -> np.ndarray:
+        """Each frame's activity at the start of an attempt: ``activity`` for the ``prior`` frames, 0 for the
+        others. The prior frames must be stored frames among the candidates (``frames``; None: all) and the
+        activity a number in [0, ``decision_threshold``): a head start, never a decision."""
+        start = np.zeros(self._nframes, np.float64)
+        if prior is None:
+            return start
+        a = finite("prior_activity", activity)
+        if not 0.0 <= a < self.config.decision_threshold:
+            raise InputError(f"prior_activity must be in [0, {self.config.decision_threshold:g}), got {a:g}")
+        ids = self._candidate_frames(prior if isinstance(prior, list) else list(prior))
+        if frames is not None and not np.isin(ids, frames).all():
+            outside = np.setdiff1d(ids, frames)[:5].tolist()
+            raise InputError(f"prior frames must be among the candidates; not candidates: {outside}")
+        start[ids] = a
+        return start
 
     def _given_up(self, attempts: int, peak: float, bar: float) -> str:
         """Why a recognition gives up after ``attempts`` attempts whose highest frame activity was ``peak``, or "":
@@ -371,7 +406,7 @@ class VisualMemory(FixationSensing):
                     a[f] = 0.0
                 elif x > 1.0:
                     a[f] = 1.0
-            if np.add.reduce(a) > cfg.max_total_activity:  # a.sum(): the same reduction
+            if np.add.reduce(a) - st.primed > cfg.max_total_activity:  # a.sum(): the same reduction
                 st.reset_reason = "total frame activity too high"
             if st.first and cfg.anchor == "start":
                 st.m = self._pos[found].astype(np.int64)  # global remapping onto the feature

@@ -533,6 +533,19 @@ def test_mapper_parts_add_up_to_the_whole_and_see_every_recognition(short_run):
     assert mean == pytest.approx(whole["total"])
 
 
+def test_mapper_parts_label_the_searches_that_primed_the_old_path_s_sequence(short_run):
+    """With ``mapper.sequence_prior`` the bench labels each recognition that started with the sequence primed
+    ``gated, primed``: exactly those whose record counts primed key frames (docs/MODEL.md item 115)."""
+    import bench_mapper_parts
+    from hippomap.config import HippomapConfig
+
+    cfg = HippomapConfig.with_overrides({"mapper": {"sequence_window_m": 5.0, "sequence_prior": 0.2}})
+    timer, m = bench_mapper_parts.run(short_run, cfg)
+    assert [x.search == "gated, primed" for x in timer.recognitions] == ["primed" in r for r in m.recognitions]
+    assert sum(x.search == "gated, primed" for x in timer.recognitions) > 0
+    assert {x.search for x in timer.recognitions} <= {"gated", "gated, primed", "global"}
+
+
 def test_mapper_parts_tell_a_candidate_facing_away_from_one_that_faces_the_robot():
     """nearest_facing_rad: among the candidates learned within FUTILE_M of the robot's true pose, the smallest
     heading difference (wrapped); nan when none was learned that near or the pose is unknown."""

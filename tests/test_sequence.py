@@ -35,14 +35,16 @@ def test_the_sequence_is_the_candidates_learned_near_the_named_frame_s_path():
         HippomapConfig.with_overrides({"mapper": {"sequence_window_m": 0.0}})
 
 
-def _two_laps(window: float | None) -> tuple[Mapper, list[list[dict]], set[int], np.ndarray]:
+def _two_laps(
+    window: float | None, prior: float | None = None
+) -> tuple[Mapper, list[list[dict]], set[int], np.ndarray]:
     """Two laps of a small loop world (noisy odometry, 5 Hz) mapped with ``sequence_window_m`` = ``window`` and
-    restored from a snapshot half way: the mapper, its recognitions grouped by key frame, the ids of those the map
-    took (did not reject when they were made), and the run's ground truth."""
+    ``sequence_prior`` = ``prior``, restored from a snapshot half way: the mapper, its recognitions grouped by key
+    frame, the ids of those the map took (did not reject when they were made), and the run's ground truth."""
     world = sim.loop_world(seed=3, size=(8.0, 5.0), laps=2)
     noise = sim.OdometryNoise(sigma_v=0.02, sigma_omega=0.01, omega_bias=0.01)
     run = sim.simulate(world, None, rate_hz=5.0, seed=1, odometry_noise=noise)
-    m = Mapper(HippomapConfig.with_overrides({"mapper": {"sequence_window_m": window}}))
+    m = Mapper(HippomapConfig.with_overrides({"mapper": {"sequence_window_m": window, "sequence_prior": prior}}))
     taken: set[int] = set()
     for i in range(len(run)):
         t, v, w = run.odometry[i]
@@ -99,3 +101,20 @@ def _end_error(est: np.ndarray, gt: np.ndarray) -> float:
         return np.column_stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]])
 
     return float(np.hypot(*(local(est) - local(gt))[-20:].T).max())
+
+
+def test_a_primed_sequence_is_one_search_among_every_candidate():
+    """With ``sequence_prior`` (docs/MODEL.md item 115) the old path's sequence is primed, not searched first: each
+    key frame has one gated search among all the gate's candidates (a global one may follow), the sequence primed
+    only after a recognition the map took, never more key frames than the search holds; the loop closes."""
+    m, groups, taken, gt = _two_laps(3.0, prior=0.2)
+    primed = 0
+    for before, group in zip(groups, groups[1:]):
+        assert [r["search"] for r in group][:1] in (["gated"], ["global"]) and len(group) <= 2
+        first = group[0]
+        if "primed" in first:
+            primed += 1
+            assert before[-1]["id"] in taken and 1 <= first["primed"] <= first["candidates"]
+    assert primed >= 10
+    drift = _end_error(m.odometry_trajectory(), gt)
+    assert drift > 0.5 and _end_error(m.corrected_trajectory(), gt) < 0.3 * drift

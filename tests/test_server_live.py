@@ -134,10 +134,11 @@ def test_queries_serve_the_session_state(server, client):
     recs = client.recognitions(sid)
     assert len(recs) == len(ref["recognitions"]) > 0
     # each says which key frames competed, as the mapper's own record does
-    assert [(r["search"], r["candidates"]) for r in recs] == [
-        (r["search"], r["candidates"]) for r in ref["recognitions"]
+    assert [(r["search"], r["candidates"], r["primed"]) for r in recs] == [
+        (r["search"], r["candidates"], r.get("primed")) for r in ref["recognitions"]
     ]
     assert all(r["search"] in ("gated", "global") and r["candidates"] >= 1 for r in recs)
+    assert all(r["primed"] is None or 1 <= r["primed"] <= r["candidates"] for r in recs)
     for lc in loops:
         d = lc["decision"]
         assert lc["nodes"] == [d["from_node"], d["hypothesis"]["node"]] and lc["t"] == d["hypothesis"]["time"]

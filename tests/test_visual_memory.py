@@ -301,6 +301,50 @@ def test_candidates_restrict_the_hypotheses(memory):
         memory.recognise(query, candidates=["x"])
 
 
+def test_a_prior_gives_the_expected_frames_a_head_start_and_nothing_more(memory):
+    """``prior`` (docs/MODEL.md item 115): the primed frames start every attempt at ``prior_activity`` and still
+    compete with every candidate. A seen frame primed is named as unprimed; with a head start of 0.2 a wrong frame
+    primed loses to the seen one; with 0.4 it steers the saccades so that the seen one may be missed, but it is
+    never named itself; views never learned are rejected with every frame primed."""
+    query = perturb(SCENES[6], seed=16)
+    plain = memory.recognise(query)
+    primed = memory.recognise(query, prior=[6, 7], prior_activity=0.4)
+    assert plain.frame_id == primed.frame_id == 6
+    first = dict(primed.steps[0].evidence)  # the leading hypotheses after the first fixation
+    assert first.get(6, 0.0) >= 0.4 and first.get(7, 0.0) >= 0.4
+    for f in range(N_FRAMES):
+        q = perturb(SCENES[f], seed=100 + f)
+        for wrong in ([(f + 3) % N_FRAMES], [(f + 1) % N_FRAMES, (f + 5) % N_FRAMES]):
+            assert memory.recognise(q, prior=wrong, prior_activity=0.2).frame_id == f
+            assert memory.recognise(q, prior=wrong, prior_activity=0.4).frame_id in (None, f)
+    for s in (1000, 1001, 1002):
+        assert memory.recognise(scene(s), prior=list(range(N_FRAMES)), prior_activity=0.6).frame_id is None
+
+
+def test_a_prior_is_checked_and_counts_towards_no_give_up_bar(memory):
+    """The primed frames must be candidates and the head start below the decision threshold (clear errors); the
+    give-up bars judge the evidence alone, so a primed search of a view never learned gives up as the unprimed."""
+    query = perturb(SCENES[8], seed=11)
+    with pytest.raises(InputError, match="among the candidates"):
+        memory.recognise(query, candidates=[2, 8], prior=[3])
+    for bad in (0.9, 1.5, -0.1, float("nan"), "x"):
+        with pytest.raises(InputError, match="prior_activity"):
+            memory.recognise(query, prior=[8], prior_activity=bad)
+    with pytest.raises(InputError):
+        memory.recognise(query, prior=[99], prior_activity=0.2)
+    assert memory.recognise(query, candidates=[2, 8], prior=[], prior_activity=0.2).frame_id == 8
+    cfg = VisualConfig(give_up_attempts=3, give_up_evidence=0.5, give_up_late_attempts=None)
+    quick = VisualMemory(cfg)
+    assert [quick.learn(img) for img in SCENES] == list(range(N_FRAMES))
+    stops = 0
+    for s in (1000, 1001, 1002, 1003, 1004):
+        rec = quick.recognise(scene(s), prior=list(range(N_FRAMES)), prior_activity=0.6)  # above the 0.5 bar
+        assert rec.frame_id is None
+        if rec.reason == "no frame reached 0.5 in 3 attempts":
+            stops += 1
+    assert stops > 0
+
+
 # -- the index path (more feature units than the exact path scores) ------------------------
 def test_index_path_recognises_and_rejects():
     cfg = VisualConfig(index_shortlist=12, stats_sample=16)

@@ -160,6 +160,7 @@ async def get_recognitions(
             "n_fixations": r.get("n_fixations"),
             "search": r.get("search"),
             "candidates": r.get("candidates"),
+            "primed": r.get("primed"),
             "saccades": f"{base}{r['id']}",
             "image": f"{base}{r['id']}/image",
         }

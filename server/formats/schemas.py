@@ -230,6 +230,11 @@ class RecognitionInfo(BaseModel):
         "verified closure); None in older sessions",
     )
     candidates: int | None = Field(None, description="how many key frames competed; None in older sessions")
+    primed: int | None = Field(
+        None,
+        description="how many of them started primed as the old path's sequence, those learned near the key frame "
+        "the last recognition named (mapper.sequence_prior: a head start, not a decision); None when none did",
+    )
     saccades: str
     image: str
 
