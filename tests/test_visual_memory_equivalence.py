@@ -204,7 +204,7 @@ class ReferenceMemory(vm.VisualMemory):
         best = int(surv[int(vals.argmax())])
         return vm.Sense(True, winner, umax, surv, wts, best, upred)
 
-    def _query(self, image, candidates):
+    def _query(self, image, candidates, prior=None, prior_activity=0.0):
         cfg = self.config
         work, scale, cimg = self._views(image)
         H, W = work.shape[:2]
@@ -220,9 +220,9 @@ class ReferenceMemory(vm.VisualMemory):
         starts = self._corners(cimg, cfg.query_keypoints, self.h)
         if len(starts) == 0:
             return vm.Recognition(None, 0.0, [], 0, 0.0, size, "no keypoints in the query")
-        return vm._Query(
-            cast(Any, sub), sense_img, starts, scale, size, self._nframes if frames is None else frames.size
-        )
+        nframes = self._nframes if frames is None else frames.size
+        start = self._prior(frames, prior, prior_activity)  # the frames' starting activity: no fast path there
+        return vm._Query(cast(Any, sub), sense_img, starts, scale, size, nframes, start)
 
     def _fixate(self, q, st, a, steps, resets):
         s = self._sense(q.sense_img, st.e, q.sub, q.sub.local(st.predicted) if st.predicted >= 0 else -1)
@@ -378,6 +378,23 @@ def test_recognitions_equal_the_reference_bit_for_bit(override):
             assert a == b
             outcomes.add(a["frame_id"] is not None)
     assert outcomes == {True, False}  # both accepted and rejected recognitions were compared
+    _same_state(fast, ref)
+
+
+def test_primed_recognitions_equal_the_reference_bit_for_bit():
+    """With a prior (docs/MODEL.md item 115) the fast paths still give the reference's recognitions; a prior on the
+    first candidates changes some of them (the head start acts), and a prior of 0 changes none."""
+    fast, ref = _pair(VisualConfig())
+    changed = 0
+    for img, cands in QUERIES:
+        prior = list(cands[:2]) if cands else [0, 1]
+        a = fast.recognise(img, candidates=cands, prior=prior, prior_activity=0.3).to_dict()
+        assert a == ref.recognise(img, candidates=cands, prior=prior, prior_activity=0.3).to_dict()
+        plain = ref.recognise(img, candidates=cands).to_dict()
+        zero = ref.recognise(img, candidates=cands, prior=prior, prior_activity=0.0).to_dict()
+        changed += a != plain
+        assert zero == plain
+    assert changed > 0
     _same_state(fast, ref)
 
 
