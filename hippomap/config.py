@@ -859,7 +859,8 @@ class MapperConfig(_Frozen):
         gt=0,
         description="after a key frame's recognition that the map did not reject, search the next key frame first "
         "among the candidates learned within this many metres of path of the frame it named (a robot retracing its "
-        "path meets the old path's key frames in their order), then among the rest. Measured, not kept: 5 m (the "
+        "path meets the old path's key frames in their order), then among the rest (or all at once with those "
+        "primed: sequence_prior). Measured, not kept: 5 m (the "
         "best of 2 / 3 / 5 / 8 m on the 64 simulated choosing runs, maps summed 22.667 -> 22.573 m) closes more "
         "of the Bicocca world's long returns but on held-out seeds 234-236 left the maps summed 4.6 % worse, the "
         "grids and halls worse and one false closure used: a search among few key frames accepts a neighbour the "
@@ -868,15 +869,14 @@ class MapperConfig(_Frozen):
     sequence_prior: float | None = Field(
         None,
         ge=0,
-        lt=0.9,
         description="with sequence_window_m: the old path's sequence is not searched first but primed, every "
         "candidate searched at once with those of the sequence starting each attempt at this activity instead of 0 "
-        "(the decision threshold is 0.9): what the robot expects next needs less evidence, but still competes with "
-        "every candidate and is verified. Measured, not kept: 0.2 (the best of 0.1 / 0.2 / 0.3 / 0.4 at 5 m on the "
-        "64 simulated choosing runs, maps summed 22.667 -> 22.445 m, 0.91 x the fixations) left held-out seeds "
-        "238-240 summed 8.853 -> 9.045 m with 0.90 x the fixations: a primed neighbour wins before the nearest key "
-        "frame and the links lie further off along the path. None = the sequence searched first, then the rest "
-        "(docs/MODEL.md items 114 and 115) [ours]",
+        "(below visual.decision_threshold, 0.9): what the robot expects next needs less evidence, but still "
+        "competes with every candidate and is verified. Measured, not kept: 0.2 (the best of 0.1 / 0.2 / 0.3 / "
+        "0.4 at 5 m on the 64 simulated choosing runs, maps summed 22.667 -> 22.445 m, 0.91 x the fixations) left "
+        "held-out seeds 238-240 summed 8.853 -> 9.045 m with 0.90 x the fixations: a primed neighbour wins before "
+        "the nearest key frame and the links lie further off along the path. None = the sequence searched first, "
+        "then the rest (docs/MODEL.md items 114 and 115) [ours]",
     )
     global_search_after_m: float | None = Field(
         40.0,
@@ -970,6 +970,13 @@ class HippomapConfig(_Frozen):
     visual: VisualConfig = VisualConfig()
     map: MapConfig = MapConfig()
     mapper: MapperConfig = MapperConfig()
+
+    @model_validator(mode="after")
+    def _check(self) -> "HippomapConfig":
+        p, bar = self.mapper.sequence_prior, self.visual.decision_threshold
+        if p is not None and not p < bar:
+            raise ValueError(f"mapper.sequence_prior ({p:g}) must be below visual.decision_threshold ({bar:g})")
+        return self
 
     @classmethod
     def with_overrides(cls, overrides: dict[str, Any] | None = None) -> "HippomapConfig":

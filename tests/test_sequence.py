@@ -103,6 +103,17 @@ def _end_error(est: np.ndarray, gt: np.ndarray) -> float:
     return float(np.hypot(*(local(est) - local(gt))[-20:].T).max())
 
 
+def test_the_head_start_is_off_by_default_and_checked_against_the_decision_threshold():
+    assert HippomapConfig().mapper.sequence_prior is None  # measured, not kept (docs/MODEL.md item 115)
+    for bad in (-0.1, 0.9, 1.2):
+        with pytest.raises(ValueError, match="sequence_prior"):
+            HippomapConfig.with_overrides({"mapper": {"sequence_prior": bad}})
+    lower = {"mapper": {"sequence_prior": 0.5}, "visual": {"decision_threshold": 0.5}}
+    with pytest.raises(ValueError, match="below visual.decision_threshold"):
+        HippomapConfig.with_overrides(lower)
+    assert HippomapConfig.with_overrides({"mapper": {"sequence_prior": 0.5}}).mapper.sequence_prior == 0.5
+
+
 def test_a_primed_sequence_is_one_search_among_every_candidate():
     """With ``sequence_prior`` (docs/MODEL.md item 115) the old path's sequence is primed, not searched first: each
     key frame has one gated search among all the gate's candidates (a global one may follow), the sequence primed
