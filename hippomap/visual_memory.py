@@ -251,10 +251,9 @@ class VisualMemory(FixationSensing):
         a = finite("prior_activity", activity)
         if not 0.0 <= a < self.config.decision_threshold:
             raise InputError(f"prior_activity must be in [0, {self.config.decision_threshold:g}), got {a:g}")
-        ids = self._candidate_frames(prior if isinstance(prior, list) else list(prior))
-        if frames is not None and not np.isin(ids, frames).all():
-            outside = np.setdiff1d(ids, frames)[:5].tolist()
-            raise InputError(f"prior frames must be among the candidates; not candidates: {outside}")
+        ids = self._candidate_frames(prior)
+        if frames is not None and (outside := np.setdiff1d(ids, frames)).size:
+            raise InputError(f"prior frames must be among the candidates; not candidates: {outside[:5].tolist()}")
         start[ids] = a
         return start
 
