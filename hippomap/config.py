@@ -875,8 +875,9 @@ class MapperConfig(_Frozen):
         "competes with every candidate and is verified. Measured, not kept: 0.2 (the best of 0.1 / 0.2 / 0.3 / "
         "0.4 at 5 m on the 64 simulated choosing runs, maps summed 22.667 -> 22.445 m, 0.91 x the fixations) left "
         "held-out seeds 238-240 summed 8.853 -> 9.045 m with 0.90 x the fixations: a primed neighbour wins before "
-        "the nearest key frame and the links lie further off along the path. None = the sequence searched first, "
-        "then the rest (docs/MODEL.md items 114 and 115) [ours]",
+        "the nearest key frame and the links lie further off along the path; holding those links loosely along "
+        "the path did not mend it (item 116). None = the sequence searched first, then the rest (docs/MODEL.md items "
+        "114 and 115) [ours]",
     )
     global_search_after_m: float | None = Field(
         40.0,
