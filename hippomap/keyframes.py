@@ -192,7 +192,7 @@ class KeyFrames:
         m = self.config.mapper
         return (
             m.global_search_after_m is not None
-            and m.mode != "localise"
+            and not self.cmap.localise_only
             and not self.cmap.lost
             and self.cmap.path_since_verified >= m.global_search_after_m
             and self.distance - self.global_search_path >= m.global_search_every_m
