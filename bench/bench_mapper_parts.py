@@ -58,6 +58,9 @@ from hippomap.mapper import Mapper  # noqa: E402
 
 #: the timed parts, in the order they are printed (``rest`` and ``total`` are derived)
 PARTS = ("spatial pathway", "map update", "candidates", "recognition", "loop decision", "learning")
+#: timed within the parts above, printed apart and left out of ``rest``: the whole-map solves, which the map update
+#: and the loop decision both start (``MapCorrection._whole_solve``)
+SUBPARTS = ("whole solves",)
 #: a recognition that names none is futile when no candidate key frame was learned within this of the robot (m)
 FUTILE_M = 2.0
 #: ... and faces away when none of the candidates learned within FUTILE_M faced within this of the robot (rad, 45 deg)
@@ -83,7 +86,7 @@ class PartTimer:
     """CPU seconds per part, accumulated while the mapper runs; :meth:`mark` closes a frame."""
 
     def __init__(self) -> None:
-        self.acc = dict.fromkeys(PARTS, 0.0)
+        self.acc = dict.fromkeys(PARTS + SUBPARTS, 0.0)
         self.rows: list[dict[str, float]] = []  # per frame: cumulative seconds per part and in total
         self.total = 0.0
         self.recognitions: list[Recognised] = []
@@ -222,6 +225,7 @@ def run(folder: Path, config: HippomapConfig | None) -> tuple[PartTimer, Mapper]
     timer.wrap(m.cmap, "loop_candidates", "candidates")
     timer.wrap(m.cmap, "propose_loop", "loop decision")
     timer.wrap(m.memory, "learn", "learning")
+    timer.wrap(m.cmap, "_whole_solve", "whole solves")
     timer.wrap_recognise(m.memory)
     timer.wrap_search(m)
     if dataset.groundtruth is not None:
@@ -243,7 +247,7 @@ def per_frame(rows: list[dict[str, float]], lo: int, hi: int) -> dict[str, float
     end = rows[hi - 1]
     start = rows[lo - 1] if lo > 0 else dict.fromkeys(end, 0.0)
     out = {k: (end[k] - start[k]) * 1e3 / (hi - lo) for k in end}
-    out["rest"] = out["total"] - sum(out[p] for p in PARTS)
+    out["rest"] = out["total"] - sum(out[p] for p in PARTS)  # the SUBPARTS are inside PARTS
     return out
 
 
@@ -260,18 +264,28 @@ def thirds(rows: list[dict[str, float]]) -> tuple[dict[str, float], dict[str, fl
     return per_frame(rows, 0, n), per_frame(rows, lo1, hi1), per_frame(rows, lo3, hi3)
 
 
-def report(name: str, timers: list[PartTimer]) -> None:
+def report(name: str, timers: list[PartTimer], slices: int = 0) -> None:
     """Print the parts of one run measured ``len(timers)`` times: the median of each figure over the
-    repeats, and the recognitions' times of all repeats together (the same recognitions each time)."""
+    repeats, and the recognitions' times of all repeats together (the same recognitions each time); with
+    ``slices`` > 1 also each part per slice of the run (where a cost starts to grow on a long run)."""
     t = timers[0]
     n = len(t.rows)
     each = [thirds(x.rows) for x in timers]
     whole, first, last = ({k: float(np.median([e[i][k] for e in each])) for k in each[0][i]} for i in range(3))
     print(f"\n{name}: {n} frames, {len(t.recognitions)} recognitions; CPU ms per frame, median of {len(timers)} runs")
     print(f"{'part':18s} {'run':>7s} {'1st 3rd':>8s} {'last 3rd':>9s} {'last-1st':>9s}")
-    for p in (*PARTS, "rest", "total"):
+    for p in (*PARTS, "rest", "total", *SUBPARTS):
         print(f"{p:18s} {whole[p]:7.3f} {first[p]:8.3f} {last[p]:9.3f} {last[p] - first[p]:+9.3f}")
     print(f"last third / first third: {last['total'] / first['total']:.2f}")
+    if slices > 1:
+        bounds = np.linspace(0, n, slices + 1).astype(int)
+        cols = [
+            {k: float(np.median([per_frame(x.rows, lo, hi)[k] for x in timers])) for k in whole}
+            for lo, hi in zip(bounds[:-1], bounds[1:])
+        ]
+        print(f"CPU ms per frame by {slices} equal slices of the run (median of the repeats):")
+        for p in (*PARTS, "rest", "total", *SUBPARTS):
+            print(f"{p:18s} " + " ".join(f"{c[p]:7.3f}" for c in cols))
     r = np.array([(x.frame, x.seconds, x.named) for t_ in timers for x in t_.recognitions], dtype=float).reshape(-1, 3)
     for label, lo, hi in (*spans(n), ("run", 0, n)):
         sel = r[(r[:, 0] >= lo) & (r[:, 0] < hi)]
@@ -324,10 +338,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("data", nargs="+", type=Path, help="recorded runs (hippomap data folders)")
     ap.add_argument("--config", help="hippomap JSON config overrides (default: the default config)")
     ap.add_argument("--repeats", type=int, default=3, help="runs of each recorded run; the median is printed")
+    ap.add_argument("--slices", type=int, default=0, help="also print each part per this many equal slices of the run")
     args = ap.parse_args(argv)
     config = HippomapConfig.from_file(args.config) if args.config else None
     for folder in args.data:
-        report(folder.name, [run(folder, config)[0] for _ in range(max(1, args.repeats))])
+        report(folder.name, [run(folder, config)[0] for _ in range(max(1, args.repeats))], args.slices)
     return 0
 
 

@@ -195,6 +195,8 @@ class CognitiveMap(Pruning):
                 "touched": list(self._touched),
                 "local_solves": self._local_solves,
                 "local_moved": self._local_moved,
+                "local_work": self._local_work,
+                "whole_work": self._whole_work,
                 "solved_path": None if math.isinf(self._solved_path) else self._solved_path,
                 "solved_t": None if math.isinf(self._solved_t) else self._solved_t,
                 "odometry_bias": self._bias,
@@ -270,6 +272,8 @@ class CognitiveMap(Pruning):
         self._touched = [int(k) for k in robot.get("touched", [-1] if self._dirty else [])]
         self._local_solves = int(robot.get("local_solves", 0))
         self._local_moved = int(robot.get("local_moved", 0))
+        self._local_work = int(robot.get("local_work", 0))
+        self._whole_work = int(robot.get("whole_work", 0))
         sp = robot.get("solved_path")
         self._solved_path = -math.inf if sp is None else float(sp)
         st = robot.get("solved_t")

@@ -660,6 +660,15 @@ class MapConfig(_Frozen):
         "the map's size; None = every lsq_window_every local solves, whatever the map's size "
         "[ours, docs/MODEL.md item 108]",
     )
+    lsq_whole_every_work: float | None = Field(
+        0.1,
+        gt=0,
+        description="... and not before the local solves since the last whole solve have done, summed, this many "
+        "times its work (the nonzeros of its factors): on a path retraced lap after lap a whole solve's factor grows "
+        "faster than the map's nodes, so the node rule let the whole solves' share of a step grow with the laps; "
+        "with this rule it is bounded by a multiple of the local solves'. None = the node rule alone. 0.1: the "
+        "larger of 0.1 and 0.2 that left every choosing map within a millimetre [ours, docs/MODEL.md item 117]",
+    )
     lsq_window_residual_m: float = Field(
         0.5, gt=0, description="largest residual of a changed link that still counts as a local correction [ours]"
     )

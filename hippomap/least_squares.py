@@ -185,6 +185,7 @@ def solve_lsq(
     nv, idx, col, H_of = _lsq_layout(n, src, dst, anchor, fixed, bdt if est else None, bias_information)
     shift = 0.0
     done = 0
+    work = 0
     lam = 0.0  # Levenberg-Marquardt damping, raised only when a Gauss-Newton step fails
     b = float(bias)
     prior = bias_information if est else 0.0
@@ -208,6 +209,7 @@ def solve_lsq(
             # symmetric positive definite: symmetric-mode LU without pivoting, in the nodes'
             # minimum-degree order computed above (several times faster than the default COLAMD spsolve)
             lu = _spd_factor(H if lam == 0 else damped(lam))
+            work += lu.nnz
             full = np.zeros(nv)
             full[idx] = lu.solve(g)
             step = full[: 3 * n].reshape(n, 3)
@@ -230,7 +232,7 @@ def solve_lsq(
             # a step that raises the cost by less than cost_rtol: the optimum, up to rounding
             at_optimum = lam == 1e-4 and np.isfinite(cost_t) and cost_t - cost <= cost_rtol * cost
             if at_optimum or lam > 1e6 or done >= iterations:
-                return RelaxResult("lsq", done, shift, b)  # no step lowers the cost: keep the poses
+                return RelaxResult("lsq", done, shift, b, work)  # no step lowers the cost: keep the poses
         P[:] = trial
         b = b_t
         shift = float(np.sqrt(np.max(step[:, 0] ** 2 + step[:, 1] ** 2)))
@@ -238,7 +240,7 @@ def solve_lsq(
         e, c, s, dx, dy, cost = e_t, c_t, s_t, dx_t, dy_t, cost_t
         if converged:
             break
-    return RelaxResult("lsq", done, shift, b)
+    return RelaxResult("lsq", done, shift, b, work)
 
 
 def bias_sigma(

@@ -13,6 +13,7 @@ g2o export's weights) and estimates the odometry's heading bias with the whole s
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -81,13 +82,17 @@ class MapCorrection(HeadingBranches):
     def _whole_due(self) -> bool:
         """Whether the next correction solves the whole map (and revises the robust weights): after
         ``lsq_window_every`` local solves, once those have moved, summed, ``lsq_whole_every_map`` times the
-        map's nodes. A whole solve's cost grows with the map and a local one's with its window: counted in
-        local solves alone, the whole solves' share of a step grew with the map's size (docs/MODEL.md item
-        108)."""
+        map's nodes (docs/MODEL.md item 108), and have done, summed, ``lsq_whole_every_work`` times the last whole
+        solve's work (its factors' nonzeros, :attr:`~hippomap.relaxation.RelaxResult.work`; item 117). A whole solve's
+        cost grows with the map and a local one's with its window: counted in local solves alone, the whole solves'
+        share of a step grew with the map's size; counted in nodes, it still grew with the laps of a path retraced
+        again and again, whose loop links make each node's share of the factor grow."""
         cfg = self.cfg
         if self._local_solves < cfg.lsq_window_every:
             return False
-        k = cfg.lsq_whole_every_map
+        k, kw = cfg.lsq_whole_every_map, cfg.lsq_whole_every_work
+        if kw is not None and self._local_work < kw * self._whole_work:
+            return False
         return k is None or self._local_moved >= k * self._n
 
     def _deferred(self, t: float) -> bool:
@@ -130,7 +135,8 @@ class MapCorrection(HeadingBranches):
         bias = self._bias_args()
         if window is None:
             res = self._whole_solve(P, src, dst, tr, info, bias, rotation_init=cfg.lsq_rotation_init and rotation_init)
-            self._local_solves = self._local_moved = 0
+            self._local_solves = self._local_moved = self._local_work = 0
+            self._whole_work = res.work
         else:
             self._local_solves += 1
             nodes, links, fixed = window
@@ -154,6 +160,7 @@ class MapCorrection(HeadingBranches):
                 **bias,
             )
             P[nodes] = Q
+            self._local_work += res.work
         # a solve cut off by lsq_iterations has not converged: the weights are revised only on a
         # converged map (IRLS), else a closure still being applied looks like an outlier and fades
         converged = res.iterations < cfg.lsq_iterations or res.max_shift < cfg.relax_tolerance_m
@@ -198,9 +205,13 @@ class MapCorrection(HeadingBranches):
                 self._bias, self._bias_sd = res.bias, sd
                 return res
             self._bias = self._bias_sd = 0.0
+            work = res.work  # the solve with the bias, not kept, was work done all the same
+        else:
+            work = 0
         if rotation_init:
             solve["information"] = self._rotation_init(P, src, dst, tr, info, {})[1]
-        return solve_lsq(P, src, dst, tr, **solve)
+        res = solve_lsq(P, src, dst, tr, **solve)
+        return replace(res, work=res.work + work)
 
     def _bias_kept(
         self,

@@ -86,6 +86,8 @@ class MapGraph:
         self._touched: list[int] = []  # links added or changed since the last solve; -1: the whole map
         self._local_solves = 0  # local solves since the last solve of the whole map
         self._local_moved = 0  # nodes those local solves moved, summed (see MapCorrection._whole_due)
+        self._local_work = 0  # those local solves' work (RelaxResult.work: factor nonzeros), summed
+        self._whole_work = 0  # the last whole solve's work (see MapCorrection._whole_due)
         self._solved_path = -math.inf  # odometric path (m) at the last correction (see MapCorrection._deferred)
         self._solved_t = -math.inf  # time of the last correction
         self._bias = 0.0  # the odometry's heading bias (rad/s), estimated by the whole solves (see _bias_args)

@@ -166,6 +166,8 @@ class RelaxResult:
     max_shift: float
     #: :func:`solve_lsq` with ``bias_dt``: the heading bias rate it ends with (rad per unit of ``bias_dt``)
     bias: float = 0.0
+    #: :func:`solve_lsq`: the nonzeros of its factorisations' L and U factors, summed (a solve's work)
+    work: int = 0
 
 
 class ColourGroups:

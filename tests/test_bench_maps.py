@@ -531,6 +531,30 @@ def test_mapper_parts_add_up_to_the_whole_and_see_every_recognition(short_run):
     first, mid, last = (bench_mapper_parts.per_frame(timer.rows, lo, hi) for lo, hi in ((0, a), (a, n - a), (n - a, n)))
     mean = (first["total"] * a + mid["total"] * (n - 2 * a) + last["total"] * a) / n
     assert mean == pytest.approx(whole["total"])
+    # the whole-map solves are timed within the map update and the loop decision that start them, not beside them
+    assert 0 < whole["whole solves"] <= whole["map update"] + whole["loop decision"]
+
+
+def test_mapper_parts_print_a_long_run_by_slices(short_run, capsys):
+    """``--slices N`` prints every part, the rest, the total and the whole-map solves per N equal slices of the run:
+    each row's slices, weighted by their frames, give the run's mean."""
+    import bench_mapper_parts
+
+    bench_mapper_parts.main([str(short_run), "--repeats", "1", "--slices", "4"])
+    out = capsys.readouterr().out
+    lines = out.splitlines()
+    head = next(i for i, line in enumerate(lines) if line.startswith("CPU ms per frame by 4 equal slices"))
+    rows = {}
+    for line in lines[head + 1 : head + 1 + len(bench_mapper_parts.PARTS) + 3]:
+        name, values = line[:18].strip(), [float(v) for v in line[18:].split()]
+        rows[name] = values
+    assert set(rows) == {*bench_mapper_parts.PARTS, "rest", "total", *bench_mapper_parts.SUBPARTS}
+    assert all(len(v) == 4 for v in rows.values())
+    run_line = next(line for line in lines if line.startswith("total "))
+    run_mean = float(run_line.split()[1])
+    frames = len((short_run / "frames.csv").read_text().splitlines()) - 1
+    sizes = np.diff(np.linspace(0, frames, 5).astype(int))
+    assert float(np.dot(rows["total"], sizes) / frames) == pytest.approx(run_mean, abs=2e-3)
 
 
 def test_mapper_parts_label_the_searches_that_primed_the_old_path_s_sequence(short_run):

@@ -863,6 +863,14 @@ def test_a_node_cap_keeps_the_local_windows_from_growing_with_the_laps():
     assert rms_xy(capped, gt) < 1.1 * rms_xy(whole, gt) + 0.02
 
 
+def _small_window_map(**rules) -> CognitiveMap:
+    """A map of 20-node local windows whose whole solve is due after every second local solve, with the ``rules``
+    that hold the periodic whole solve back (``lsq_whole_every_map``, ``lsq_whole_every_work``)."""
+    return CognitiveMap(
+        MapConfig(prune_online=False, loop_transform_radius_m=3.0, lsq_window_max_nodes=20, lsq_window_every=2, **rules)
+    )
+
+
 def test_whole_solves_wait_until_the_local_ones_have_moved_the_map_s_size():
     """The periodic whole solve (after lsq_window_every local solves) also waits, with lsq_whole_every_map k,
     until the local solves since the last whole one have moved k times the map's nodes, summed: on a map
@@ -873,15 +881,7 @@ def test_whole_solves_wait_until_the_local_ones_have_moved_the_map_s_size():
     inc, gt, noisy, first_lap = biased_square(side=8.0, laps=4)
     runs = {}
     for k in (None, 1.0):
-        cmap = CognitiveMap(
-            MapConfig(
-                prune_online=False,
-                loop_transform_radius_m=3.0,
-                lsq_window_max_nodes=20,
-                lsq_window_every=2,
-                lsq_whole_every_map=k,
-            )
-        )
+        cmap = _small_window_map(lsq_whole_every_map=k, lsq_whole_every_work=None)
         solves: list[tuple[bool, int, int, int]] = []
         original = cmap._solve_lsq
 
@@ -907,6 +907,45 @@ def test_whole_solves_wait_until_the_local_ones_have_moved_the_map_s_size():
     assert n_whole[1.0] < n_whole[None], n_whole
     assert rms_xy(amortised, plain) < 0.1
     assert rms_xy(amortised, gt) < 1.1 * rms_xy(plain, gt) + 0.02
+
+
+def test_whole_solves_wait_until_the_local_ones_have_done_the_last_whole_solve_s_work():
+    """With lsq_whole_every_work w the periodic whole solve also waits until the local solves since the last one
+    have done, summed, w times the last whole solve's work (the nonzeros of its factors, RelaxResult.work). Lap
+    after lap of the same square the loop links tie every pass to the others, so a whole solve's work grows
+    faster than the map's nodes, and the node rule (lsq_whole_every_map) lets the whole solves' share grow with
+    the laps. Over six laps the work rule holds back whole solves the node rule would have made (and only while the
+    local work since the last was short of w times it), solves the whole map fewer times, and ends on the same map."""
+    inc, gt, noisy, first_lap = biased_square(side=8.0, laps=6)
+    runs = {}
+    for w in (None, 2.0):
+        cmap = _small_window_map(lsq_whole_every_work=w)
+        solves: list[tuple[bool, int, int, int, bool]] = []
+        original = cmap._solve_lsq
+
+        def spy(window, rotation_init=True, original=original, solves=solves, cmap=cmap):
+            moved = cmap._local_moved >= cmap.node_count
+            before = (window is None, cmap._local_solves, cmap._local_work, cmap._whole_work, moved)
+            res = original(window, rotation_init)
+            solves.append(before)
+            return res
+
+        cmap._solve_lsq = spy
+        node_at, off, _ = drive(cmap, noisy, hypotheses=true_loops(gt, first_lap))
+        runs[w] = (corrected(cmap, node_at, off), solves)
+    (plain, _), (held_map, waited) = runs[None], runs[2.0]
+    # a whole solve records its work; local solves past lsq_window_every whose nodes moved would have let the
+    # node rule solve the whole map were held back, and only while their work was short of w times the last's
+    assert max(s[3] for s in waited) > 0
+    held = [(lw, ww) for whole, done, lw, ww, moved in waited if not whole and done >= 2 and moved]
+    assert len(held) >= 3, waited
+    assert all(lw < 2.0 * ww for lw, ww in held), held
+    due = [whole for whole, done, lw, ww, moved in waited if done >= 2 and moved and lw >= 2.0 * ww]
+    assert due and all(due), waited
+    n_whole = {w: sum(whole for whole, *_ in s) for w, (_, s) in runs.items()}
+    assert n_whole[2.0] < n_whole[None], n_whole
+    assert rms_xy(held_map, plain) < 0.1
+    assert rms_xy(held_map, gt) < 1.1 * rms_xy(plain, gt) + 0.02
 
 
 def test_the_step_tolerance_saves_solves_not_accuracy():

@@ -741,3 +741,28 @@ def test_rate_turns_unwinds_a_short_and_a_long_loop_apart():
     assert rate_turns(residual, np.zeros(4), 0.0, max_rate=0.06) == []
     with pytest.raises(ValueError):
         rate_turns(residual, dt[:3], 0.0, max_rate=0.06)
+
+
+def test_a_solve_s_work_is_its_factors_nonzeros():
+    """RelaxResult.work of solve_lsq: the nonzeros of the L and U factors of every factorisation it made, summed.
+    A chain's factor has fewer nonzeros than the same chain closed by loop links across it, and a solve that
+    makes no factorisation (no link) has done none."""
+    rng = np.random.default_rng(3)
+    n = 30
+    src = np.arange(n - 1)
+    dst = src + 1
+    tr = np.column_stack([np.full(n - 1, 0.5), np.zeros(n - 1), np.full(n - 1, 0.2)])
+    P = np.zeros((n, 3))
+    for i in range(1, n):
+        P[i] = compose(P[i - 1], tr[i - 1])
+    P += rng.normal(0, 0.05, P.shape)
+    chain = solve_lsq(P.copy(), src, dst, tr, iterations=1)
+    a = np.arange(0, n - 10, 3)
+    b = a + 10
+    ls = np.concatenate([src, a])
+    ld = np.concatenate([dst, b])
+    ltr = np.vstack([tr, np.array([between(P[i], P[j]) for i, j in zip(a, b)])])
+    closed = solve_lsq(P.copy(), ls, ld, ltr, iterations=1)
+    assert chain.iterations == closed.iterations == 1
+    assert 0 < chain.work < closed.work
+    assert solve_lsq(P.copy(), src[:0], dst[:0], tr[:0]).work == 0
