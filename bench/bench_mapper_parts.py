@@ -15,7 +15,9 @@ same work reads up to a third apart between runs on a shared machine); every par
   those that did not;
 * ``loop decision``: ``propose_loop`` (verification, fit, and the correction it starts);
 * ``learning``: ``VisualMemory.learn``;
-* ``rest``: everything else of ``step`` and ``observe``.
+* ``rest``: everything else of ``step`` and ``observe``;
+* ``whole solves``: the whole-map solves (``MapCorrection._whole_solve``), timed inside the map update and the loop
+  decision that start them and printed apart (not added again to the total).
 
 Printed: each part's CPU ms per frame over the whole run, its first and last third, and the change
 between them; then the recognitions per outcome with their mean and p95 ms, and the local solves of the
@@ -30,7 +32,9 @@ stands (there was nothing there to recognise), and as *facing away* when some we
 ``FUTILE_RAD`` of the robot's true heading (they stood near but saw another view).
 
     python -m hippomap simulate loop --out SIM --seed 3 --omega-bias 0.01 --sigma-omega 0.01 --sigma-v 0.02
-    python bench/bench_mapper_parts.py SIM [SIM ...] [--config FILE] [--repeats 3]
+    python bench/bench_mapper_parts.py SIM [SIM ...] [--config FILE] [--repeats 3] [--slices 6]
+
+``--slices N`` also prints every part per N equal slices of the run: where a long run's cost starts to grow.
 """
 
 from __future__ import annotations

@@ -667,7 +667,7 @@ class MapConfig(_Frozen):
         "times its work (the nonzeros of its factors): on a path retraced lap after lap a whole solve's factor grows "
         "faster than the map's nodes, so the node rule let the whole solves' share of a step grow with the laps; "
         "with this rule it is bounded by a multiple of the local solves'. None = the node rule alone. 0.1: the "
-        "larger of 0.1 and 0.2 that left every choosing map within a millimetre [ours, docs/MODEL.md item 117]",
+        "larger of 0.1 and 0.2 that left every choosing map within 1.3 mm [ours, docs/MODEL.md item 117]",
     )
     lsq_window_residual_m: float = Field(
         0.5, gt=0, description="largest residual of a changed link that still counts as a local correction [ours]"
