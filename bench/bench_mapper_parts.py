@@ -281,6 +281,7 @@ def report(name: str, timers: list[PartTimer], slices: int = 0) -> None:
     for p in (*PARTS, "rest", "total", *SUBPARTS):
         print(f"{p:18s} {whole[p]:7.3f} {first[p]:8.3f} {last[p]:9.3f} {last[p] - first[p]:+9.3f}")
     print(f"last third / first third: {last['total'] / first['total']:.2f}")
+    slices = min(slices, n)  # no empty slice
     if slices > 1:
         bounds = np.linspace(0, n, slices + 1).astype(int)
         cols = [
