@@ -278,7 +278,8 @@ def report(name: str, timers: list[PartTimer], slices: int = 0) -> None:
     whole, first, last = ({k: float(np.median([e[i][k] for e in each])) for k in each[0][i]} for i in range(3))
     print(f"\n{name}: {n} frames, {len(t.recognitions)} recognitions; CPU ms per frame, median of {len(timers)} runs")
     print(f"{'part':18s} {'run':>7s} {'1st 3rd':>8s} {'last 3rd':>9s} {'last-1st':>9s}")
-    for p in (*PARTS, "rest", "total", *SUBPARTS):
+    labels = (*PARTS, "rest", "total", *SUBPARTS)
+    for p in labels:
         print(f"{p:18s} {whole[p]:7.3f} {first[p]:8.3f} {last[p]:9.3f} {last[p] - first[p]:+9.3f}")
     print(f"last third / first third: {last['total'] / first['total']:.2f}")
     slices = min(slices, n)  # no empty slice
@@ -289,7 +290,7 @@ def report(name: str, timers: list[PartTimer], slices: int = 0) -> None:
             for lo, hi in zip(bounds[:-1], bounds[1:])
         ]
         print(f"CPU ms per frame by {slices} equal slices of the run (median of the repeats):")
-        for p in (*PARTS, "rest", "total", *SUBPARTS):
+        for p in labels:
             print(f"{p:18s} " + " ".join(f"{c[p]:7.3f}" for c in cols))
     r = np.array([(x.frame, x.seconds, x.named) for t_ in timers for x in t_.recognitions], dtype=float).reshape(-1, 3)
     for label, lo, hi in (*spans(n), ("run", 0, n)):

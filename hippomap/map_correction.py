@@ -195,6 +195,7 @@ class MapCorrection(HeadingBranches):
             "information": info,
             "coupling": self._lcoup[: self._m],  # the map's links: a whole solve's are all of them
         }
+        work = 0  # a solve with the bias whose estimate is not kept is work done all the same
         if bias:
             Q = P.copy()
             b, at = self._rotation_init(Q, src, dst, tr, info, bias) if rotation_init else (self._bias, info)
@@ -205,9 +206,7 @@ class MapCorrection(HeadingBranches):
                 self._bias, self._bias_sd = res.bias, sd
                 return res
             self._bias = self._bias_sd = 0.0
-            work = res.work  # the solve with the bias, not kept, was work done all the same
-        else:
-            work = 0
+            work = res.work
         if rotation_init:
             solve["information"] = self._rotation_init(P, src, dst, tr, info, {})[1]
         res = solve_lsq(P, src, dst, tr, **solve)
