@@ -673,10 +673,10 @@ class MapConfig(_Frozen):
         0.5,
         gt=0,
         description="largest residual of a changed link that still counts as a local correction: solved in a window, "
-        "deferred by lsq_defer_m, no headings-first init; a larger one is a new loop, solved whole. 0.75 was measured "
-        "and not kept: the maps alike, but a first closure after 6 rad of gyro drift that agreed within 0.67 m by "
-        "coincidence was then solved as a re-localisation and the drift never unwound [ours, docs/MODEL.md items 29 "
-        "and 118]",
+        "deferred by lsq_defer_m, and when solved whole, without the headings-first init; a larger one is a new loop, "
+        "solved whole at once. 0.75 was measured and not kept: the maps alike, but a first closure after 6 rad of "
+        "gyro drift that agreed within 0.67 m by coincidence was then solved as a re-localisation and the drift "
+        "never unwound [ours, docs/MODEL.md items 29 and 118]",
     )
     lsq_window_iterations: int | None = Field(
         1,
