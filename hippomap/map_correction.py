@@ -332,7 +332,8 @@ class MapCorrection(HeadingBranches):
 
     def _small_change(self) -> bool:
         """Every link added or changed since the last solve agrees with the map within
-        ``lsq_window_residual_m`` (False when there is none, or the whole map changed)."""
+        ``lsq_window_residual_m``, or within ``lsq_window_anchored_residual_m`` where the map round the
+        robot is anchored (:meth:`_anchored`); False when there is none, or the whole map changed."""
         touched, m = self._touched, self._m
         if not touched or -1 in touched:
             return False
@@ -341,7 +342,27 @@ class MapCorrection(HeadingBranches):
         if not len(k):
             return False
         r = _link_residuals(self._P[: self._n], self._src[k], self._dst[k], self._tr[k])
-        return float(np.max(np.hypot(r[:, 0], r[:, 1]))) <= self.cfg.lsq_window_residual_m
+        worst, cfg = float(np.max(np.hypot(r[:, 0], r[:, 1]))), self.cfg
+        if worst <= cfg.lsq_window_residual_m:
+            return True
+        wide = cfg.lsq_window_anchored_residual_m
+        return wide is not None and worst <= wide and self._anchored(k)
+
+    def _anchored(self, changed: np.ndarray) -> bool:
+        """Whether a used loop link (robust weight >= ``USED_WEIGHT``) that is not among the ``changed`` ones
+        lies within ``lsq_window_hops`` links of the robot's end of a changed link (the end made later): the
+        robot is re-localising on a map a closure already holds there, not closing a new loop, whose first
+        link after a long drift can agree with the drifted map by coincidence and must be solved whole."""
+        m = self._m
+        src, dst = self._src[:m], self._dst[:m]
+        loop = np.flatnonzero(self._kind[:m] == LOOP)
+        used = np.setdiff1d(loop[self._w[loop] >= USED_WEIGHT], changed)
+        if not len(used):
+            return False
+        S = self._S
+        robot = np.where(S[src[changed]] >= S[dst[changed]], src[changed], dst[changed])
+        d = hop_distances(self._n, src, dst, robot, self.cfg.lsq_window_hops)
+        return bool(np.isfinite(d[src[used]]).any() or np.isfinite(d[dst[used]]).any())
 
     def link_information(self) -> np.ndarray:
         """(M, 3) diagonal information of every link (x, y, θ) for the weighted solver: odometric

@@ -28,6 +28,7 @@ from hippomap.geometry import between, compose, integrate
 from hippomap.least_squares import graph_cost
 from hippomap.loop_closure import bias_drift
 from hippomap.map_correction import MapCorrection
+from hippomap.relaxation import _link_residuals
 from hippomap.robust_kernel import USED_WEIGHT
 
 
@@ -1269,6 +1270,67 @@ def test_loops_of_different_length_are_unwound_by_their_own_turns(monkeypatch):
     assert err < 0.5 < 2.0 < odo and bias == pytest.approx(0.025, rel=0.05)
     err_alike, _, bias_alike = _two_loop_corridor(monkeypatch, per_link_turns=False)
     assert err_alike > 2.0 and bias_alike == 0.0  # every branch turned all four faded links too: none fitted
+
+
+def test_a_new_loop_that_agrees_by_chance_is_solved_whole_where_no_closure_anchors_it(monkeypatch):
+    """The fifth pass's first closure in the corridor above agrees with the drifted map within 0.67 m by
+    coincidence, inside lsq_window_anchored_residual_m (0.75): only the loop links of the third pass lie near its
+    end, and the kernel has faded them, so no used closure anchors the map there and the change is a new loop,
+    solved whole with the heading branches. Taken as anchored, it is solved as a re-localisation and the drift is
+    never unwound (docs/MODEL.md items 118 and 119)."""
+    anchored = []
+    original = MapCorrection._anchored
+    monkeypatch.setattr(MapCorrection, "_anchored", lambda self, k: anchored.append(original(self, k)) or anchored[-1])
+    err, odo, _ = _two_loop_corridor(monkeypatch, per_link_turns=True)
+    assert err < 0.5 < 2.0 < odo
+    assert anchored and not anchored[0]  # the first change in the wider band: no used closure near it
+    monkeypatch.setattr(MapCorrection, "_anchored", lambda self, k: True)
+    err_taken, _, _ = _two_loop_corridor(monkeypatch, per_link_turns=True)
+    assert err_taken > 2.0
+
+
+def test_anchored_corrections_in_the_wider_band_are_solved_locally():
+    """Laps of a square with a heading bias, closed by true closures, two of them read 0.6 m long (a looming
+    error): such a change disagrees with the map by 0.5-0.75 m next to closures the map uses, a re-localisation.
+    With lsq_window_anchored_residual_m it is solved in a window (or deferred) instead of whole, and the map ends
+    as the whole solves leave it."""
+    inc, gt, noisy, first_lap = biased_square(side=8.0, laps=3)
+    true = true_loops(gt, first_lap)
+
+    def hypotheses(k, cmap, node_at, off):
+        out = true(k, cmap, node_at, off)
+        if out and k in (2 * first_lap + 40, 2 * first_lap + 100):
+            j = k - first_lap
+            long = compose(seen_from(cmap, gt[k], gt[j], off[j]), (0.6, 0.0, 0.0))
+            out = [LoopHypothesis(node=int(node_at[j]), transform=tuple(long), source="test", time=float(k))]
+        return out
+
+    runs = {}
+    for wide in (None, 0.75):
+        cmap = CognitiveMap(
+            MapConfig(prune_online=False, loop_transform_radius_m=3.0, lsq_window_anchored_residual_m=wide)
+        )
+        band: list[tuple[bool, bool]] = []
+        original = cmap._small_change
+
+        def small(cmap=cmap, original=original, band=band):
+            got = original()
+            k = np.unique(np.asarray([i for i in cmap._touched if 0 <= i < cmap._m], dtype=np.int64))
+            if len(k) and -1 not in cmap._touched:
+                r = _link_residuals(cmap._P[: cmap._n], cmap._src[k], cmap._dst[k], cmap._tr[k])
+                if 0.5 < float(np.max(np.hypot(r[:, 0], r[:, 1]))) <= 0.75:
+                    band.append((got, cmap._anchored(k)))
+            return got
+
+        cmap._small_change = small
+        node_at, off, _ = drive(cmap, noisy, hypotheses=hypotheses)
+        cmap.finish()
+        runs[wide] = (corrected(cmap, node_at, off), band)
+    (narrow_map, narrow_band), (wide_map, wide_band) = runs[None], runs[0.75]
+    assert narrow_band and not any(got for got, _ in narrow_band)  # 0.5 m: each solved whole
+    assert wide_band and all(got and anchored for got, anchored in wide_band)
+    assert rms_xy(wide_map, narrow_map) < 0.05
+    assert rms_xy(wide_map, gt) < 1.1 * rms_xy(narrow_map, gt) + 0.02
 
 
 def _corridor_with_a_faded_false_closure(beta, error, step, stale_weights=False, monkeypatch=None):
