@@ -681,11 +681,12 @@ class MapConfig(_Frozen):
     lsq_window_anchored_residual_m: float | None = Field(
         0.75,
         gt=0,
-        description="... and up to this residual where the map round the robot is anchored: a used loop link "
-        "that the change does not touch lies within lsq_window_hops links of the robot's end of a changed link, "
-        "so the change is a re-localisation on a closed map, not a new loop. 0.75: the bar item 118 measured "
-        "everywhere, where its saving was (0.94 x per frame on a 30-lap loop); None = lsq_window_residual_m "
-        "everywhere [ours, docs/MODEL.md item 119]",
+        description="... and up to this residual when the links beyond that bar are visual (their disagreement "
+        "mostly their own depth misread; a measured transform's is the map's) and the map round the robot is "
+        "anchored: a used loop link that the change does not touch lies within lsq_window_hops links of the "
+        "robot's end of a changed link, so the change is a re-localisation on a closed map, not a new loop. 0.75: "
+        "the bar item 118 measured everywhere, where its saving was (0.94 x per frame on a 30-lap loop); None = "
+        "lsq_window_residual_m everywhere [ours, docs/MODEL.md item 119]",
     )
     lsq_window_iterations: int | None = Field(
         1,

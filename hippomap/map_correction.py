@@ -332,8 +332,9 @@ class MapCorrection(HeadingBranches):
 
     def _small_change(self) -> bool:
         """Every link added or changed since the last solve agrees with the map within
-        ``lsq_window_residual_m``, or within ``lsq_window_anchored_residual_m`` where the map round the
-        robot is anchored (:meth:`_anchored`); False when there is none, or the whole map changed."""
+        ``lsq_window_residual_m``, or within ``lsq_window_anchored_residual_m`` when those beyond the first are
+        visual (:meth:`_loosened`) and the map round the robot is anchored (:meth:`_anchored`); False when there
+        is none, or the whole map changed."""
         touched, m = self._touched, self._m
         if not touched or -1 in touched:
             return False
@@ -342,11 +343,20 @@ class MapCorrection(HeadingBranches):
         if not len(k):
             return False
         r = _link_residuals(self._P[: self._n], self._src[k], self._dst[k], self._tr[k])
-        worst, cfg = float(np.max(np.hypot(r[:, 0], r[:, 1]))), self.cfg
-        if worst <= cfg.lsq_window_residual_m:
+        res, cfg = np.hypot(r[:, 0], r[:, 1]), self.cfg
+        if float(res.max()) <= cfg.lsq_window_residual_m:
             return True
         wide = cfg.lsq_window_anchored_residual_m
-        return wide is not None and worst <= wide and self._anchored(k)
+        if wide is None or float(res.max()) > wide:
+            return False
+        return self._loosened(k[res > cfg.lsq_window_residual_m]) and self._anchored(k)
+
+    def _loosened(self, links: np.ndarray) -> bool:
+        """Whether ``links`` are all loop links the solve holds looser along their x than the kernel judges them
+        (``_linfo`` below ``_lkpos``: a visual link, with looming's ``along_sigma`` and ``visual_solve_loosening``).
+        Such a link's disagreement of a few decimetres is mostly its own error (a depth misread); a measured
+        transform's is the map's, and a local solve that holds the rest of the map would squeeze it into the window."""
+        return bool(np.all(self._kind[links] == LOOP) and np.all(self._linfo[links, 0] < self._lkpos[links]))
 
     def _anchored(self, changed: np.ndarray) -> bool:
         """Whether a used loop link (robust weight >= ``USED_WEIGHT``) that is not among the ``changed`` ones
