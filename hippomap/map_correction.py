@@ -332,9 +332,9 @@ class MapCorrection(HeadingBranches):
 
     def _small_change(self) -> bool:
         """Every link added or changed since the last solve agrees with the map within
-        ``lsq_window_residual_m``, or within ``lsq_window_anchored_residual_m`` when those beyond the first are
-        visual (:meth:`_loosened`) and the map round the robot is anchored (:meth:`_anchored`); False when there
-        is none, or the whole map changed."""
+        ``lsq_window_residual_m``, or within ``lsq_window_anchored_residual_m`` when the links beyond the narrower
+        bar are visual (:meth:`_loosened`) and the map round the robot is anchored (:meth:`_anchored`); False when
+        there is none, or the whole map changed."""
         touched, m = self._touched, self._m
         if not touched or -1 in touched:
             return False
