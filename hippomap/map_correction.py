@@ -344,10 +344,10 @@ class MapCorrection(HeadingBranches):
             return False
         r = _link_residuals(self._P[: self._n], self._src[k], self._dst[k], self._tr[k])
         res, cfg = np.hypot(r[:, 0], r[:, 1]), self.cfg
-        if float(res.max()) <= cfg.lsq_window_residual_m:
+        worst, wide = float(res.max()), cfg.lsq_window_anchored_residual_m
+        if worst <= cfg.lsq_window_residual_m:
             return True
-        wide = cfg.lsq_window_anchored_residual_m
-        if wide is None or float(res.max()) > wide:
+        if wide is None or worst > wide:
             return False
         return self._loosened(k[res > cfg.lsq_window_residual_m]) and self._anchored(k)
 
@@ -365,7 +365,7 @@ class MapCorrection(HeadingBranches):
         link after a long drift can agree with the drifted map by coincidence and must be solved whole."""
         m = self._m
         src, dst = self._src[:m], self._dst[:m]
-        loop = np.flatnonzero(self._kind[:m] == LOOP)
+        loop = self._loop_ids()  # a retracted link (kernel width 0) sits at the floor weight: never used
         used = np.setdiff1d(loop[self._w[loop] >= USED_WEIGHT], changed)
         if not len(used):
             return False
