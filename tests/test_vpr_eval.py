@@ -10,10 +10,12 @@ import cv2
 import numpy as np
 import pytest
 
+from hippomap.config import VisualConfig
 from hippomap.errors import HippomapError, InputError
 from hippomap.eval import vpr_eval
-from hippomap.eval.vpr_datasets import load_vpr_dataset
+from hippomap.eval.vpr_datasets import VPRDataset, load_vpr_dataset
 from hippomap.eval.vpr_eval import add_parser, evaluate_vpr
+from hippomap.eval.vpr_reference import sift_reference
 from hippomap.eval.vpr_scores import pr_points
 from tests.test_visual_memory import perturb, scene  # the same synthetic scenes
 
@@ -90,10 +92,42 @@ def test_eval_scores_ours_and_the_baseline_and_writes_outputs(vpr_bench_dir, tmp
     b = m["baseline"]
     assert 0.0 <= b["recall_at_100_precision"] <= 1.0 and 0.0 <= b["recall_at_1"] <= 1.0
     assert set(m["baseline_variants"]) == {"column", "grid_60x10"}
+    # the SIFT + RANSAC reference finds the mild revisits too, and the new places score below them
+    assert set(m["references"]) == {"sift_inliers", "sift_inlier_ratio"}
+    assert m["references"]["sift_inliers"]["recall_at_1"] == 1.0
+    assert m["references"]["sift_inliers"]["recall_at_100_precision"] == 1.0
     png = cv2.imread(str(out / "pr_curve.png"))
     assert png is not None and png.shape[0] > 100
     assert m["examples"] and all((out / e).is_file() for e in m["examples"])
     assert all(cv2.imread(str(out / e)) is not None for e in m["examples"])
+
+
+def _texture(seed: int) -> np.ndarray:
+    """Smooth random texture at three scales: the blobs and corners SIFT is built for (the shape scenes of the
+    other tests repeat the same few shapes, which a similarity fit matches across scenes)."""
+    rng = np.random.default_rng(seed)
+    img = sum(cv2.GaussianBlur(rng.normal(0.0, 1.0, (240, 320)), (0, 0), s) * s for s in (2, 5, 12))
+    return ((img - img.min()) / np.ptp(img) * 255.0).astype(np.uint8)
+
+
+def test_sift_reference_fits_a_similarity_and_ranks_unseen_places_below_revisits():
+    """The reference's two scores on a revisit seen 1.15 x larger and turned 4 degrees (a similarity, which
+    its RANSAC fit follows), a revisit with noise, a change of light and a shift, and two unseen places."""
+    refs = [_texture(300 + i) for i in range(4)]
+    h, w = refs[0].shape
+    zoom = cv2.warpAffine(refs[1], cv2.getRotationMatrix2D((w / 2, h / 2), 4.0, 1.15), (w, h))
+    queries = [zoom, perturb(refs[2], seed=1), _texture(950), _texture(951)]
+    paths = [Path(f"{i}.png") for i in range(4)]
+    ds = VPRDataset("synthetic", paths, paths, [{1}, {2}, set(), set()], "synthetic")
+    out = sift_reference(VisualConfig(), ds, refs, queries)
+    inl, ratio = out["sift_inliers"], out["sift_inlier_ratio"]
+    assert inl["recall_at_1"] == 1.0  # both revisits name their reference
+    # a threshold on either score separates the revisits from the unseen places: recall 1 without a false one
+    assert inl["recall_at_100_precision"] == 1.0 and ratio["recall_at_100_precision"] == 1.0
+    assert inl["threshold_at_100_precision"] >= 50  # a fit of many matches, not a handful of chance ones
+    assert max(inl["pr_curve"]["thresholds"][2:]) < 10  # the unseen places: chance matches only
+    # the same reference again: the same figures (RANSAC's generator is seeded)
+    assert sift_reference(VisualConfig(), ds, refs, queries)["sift_inliers"]["pr_curve"] == inl["pr_curve"]
 
 
 def test_eval_rtabmap_layout(rtabmap_dir, tmp_path):

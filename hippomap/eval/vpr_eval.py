@@ -12,7 +12,8 @@ profile, loaded by path so ``hippomap`` never imports ``bench``) always returns 
 template and an error; its PR curve sweeps the match threshold, and its *recall at 100 %
 precision* is the best recall any threshold reaches without a false positive (an oracle
 choice of threshold, favourable to it). A 60 x 10 OpenRatSLAM template variant is scored
-too, for context. Ours runs at its fixed operating point (accept above the 0.9 decision
+too, for context, and so is a conventional SIFT + RANSAC recogniser (:mod:`~hippomap.eval.vpr_reference`,
+under ``references``). Ours runs at its fixed operating point (accept above the 0.9 decision
 threshold after the verification saccades); its PR curve sweeps the recognition's
 ``confidence`` over the accepted queries. Ours is stochastic: the headline is the run with
 ``config.seed``, ``seeds`` runs in all are summarised under ``ours_over_seeds``.
@@ -41,6 +42,7 @@ from ..extras import check
 from ..visual_memory import VisualMemory
 from .vpr_datasets import VPRDataset, load_vpr_dataset, read_image
 from .vpr_figures import plot_pr, write_examples
+from .vpr_reference import sift_reference
 from .vpr_scores import n_positives, ours_metrics, over_seeds, pr_points, query_rows, seed_runs, stats_ms, targets
 
 __all__ = ["VPRDataset", "load_vpr_dataset", "evaluate_vpr", "read_visual_config", "add_parser", "load_baseline_module"]
@@ -174,12 +176,14 @@ def evaluate_vpr(
         name: _run_baseline(baseline_mod, over, ds, ref_images, query_images)
         for name, over in BASELINE_VARIANTS.items()
     }
+    references = sift_reference(cfg, ds, ref_images, query_images)
     main = _run_ours(cfg, ds, ref_images, query_images, progress)
     runs = [main] + [
         _run_ours(cfg.model_copy(update={"seed": cfg.seed + k}), ds, ref_images, query_images, progress)
         for k in range(1, seeds)
     ]
     metrics, ours_pr = _metrics(data_dir, ds, cfg, runs, base_results)
+    metrics["references"] = references
     plot_pr(
         out / "pr_curve.png",
         ds.name,
@@ -187,6 +191,7 @@ def evaluate_vpr(
         (main["precision"], main["recall"]),
         base_results["column"],
         base_results.get("grid_60x10"),
+        references["sift_inliers"],
     )
     recs = [(qi, query_images[qi], rec) for qi, rec in enumerate(main["recs"])]
     metrics["examples"] = write_examples(
@@ -348,6 +353,11 @@ def _run(args: argparse.Namespace) -> int:
             f"  (RatSLAM 60x10 templates: recall at 100% precision {b2['recall_at_100_precision']:.3f}, "
             f"recall@1 {b2['recall_at_1']:.3f})"
         )
+    r1, r2 = m["references"]["sift_inliers"], m["references"]["sift_inlier_ratio"]
+    print(
+        f"  (SIFT + RANSAC: recall at 100% precision {r1['recall_at_100_precision']:.3f} by inliers, "
+        f"{r2['recall_at_100_precision']:.3f} by inliers over the runner-up's; recall@1 {r1['recall_at_1']:.3f})"
+    )
     print(f"  wrote {Path(args.out) / 'metrics.json'}, pr_curve.png, traces/")
     return 0
 

@@ -41,9 +41,11 @@ def plot_pr(
     op: tuple[float, float],
     base: dict[str, Any],
     base2: dict[str, Any] | None = None,
+    reference: dict[str, Any] | None = None,
 ) -> None:
-    """Write the precision-recall figure: the baselines' curves, ours sweeping confidence, ours at its operating
-    point ``op`` = (precision, recall)."""
+    """Write the precision-recall figure: the baselines' curves, the SIFT + RANSAC reference's
+    (:mod:`~hippomap.eval.vpr_reference`), ours sweeping confidence, ours at its operating point ``op`` =
+    (precision, recall)."""
     with requires("eval", "the precision-recall plot"):
         import matplotlib
 
@@ -66,6 +68,14 @@ def plot_pr(
             ":",
             color="tab:gray",
             label=f"RatSLAM 60x10 templates (R@P100 = {base2['recall_at_100_precision']:.2f})",
+        )
+    if reference is not None and reference["pr_curve"]["recall"]:
+        ax.plot(
+            [0.0] + reference["pr_curve"]["recall"],
+            [1.0] + reference["pr_curve"]["precision"],
+            "--",
+            color="tab:green",
+            label=f"SIFT + RANSAC inliers, reference (R@P100 = {reference['recall_at_100_precision']:.2f})",
         )
     if ours["recall"]:
         ax.plot(
