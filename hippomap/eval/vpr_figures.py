@@ -53,30 +53,20 @@ def plot_pr(
         import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(5.5, 4.5), dpi=120)
-    if base["pr_curve"]["recall"]:
-        ax.plot(
-            [0.0] + base["pr_curve"]["recall"],
-            [1.0] + base["pr_curve"]["precision"],
-            "-",
-            color="tab:gray",
-            label=f"RatSLAM column profile, baseline (R@P100 = {base['recall_at_100_precision']:.2f})",
-        )
-    if base2 is not None and base2["pr_curve"]["recall"]:
-        ax.plot(
-            [0.0] + base2["pr_curve"]["recall"],
-            [1.0] + base2["pr_curve"]["precision"],
-            ":",
-            color="tab:gray",
-            label=f"RatSLAM 60x10 templates (R@P100 = {base2['recall_at_100_precision']:.2f})",
-        )
-    if reference is not None and reference["pr_curve"]["recall"]:
-        ax.plot(
-            [0.0] + reference["pr_curve"]["recall"],
-            [1.0] + reference["pr_curve"]["precision"],
-            "--",
-            color="tab:green",
-            label=f"SIFT + RANSAC inliers, reference (R@P100 = {reference['recall_at_100_precision']:.2f})",
-        )
+    curves = (
+        (base, "-", "tab:gray", "RatSLAM column profile, baseline"),
+        (base2, ":", "tab:gray", "RatSLAM 60x10 templates"),
+        (reference, "--", "tab:green", "SIFT + RANSAC inliers, reference"),
+    )
+    for result, style, colour, text in curves:
+        if result is not None and result["pr_curve"]["recall"]:
+            ax.plot(
+                [0.0] + result["pr_curve"]["recall"],
+                [1.0] + result["pr_curve"]["precision"],
+                style,
+                color=colour,
+                label=f"{text} (R@P100 = {result['recall_at_100_precision']:.2f})",
+            )
     if ours["recall"]:
         ax.plot(
             [0.0] + ours["recall"], [1.0] + ours["precision"], "-", color="tab:blue", label="ours, sweeping confidence"
