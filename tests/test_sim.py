@@ -485,6 +485,41 @@ def test_hall_world_is_an_open_room_of_pillars_driven_as_a_random_walk_of_its_se
             sim.hall_world(**bad)
 
 
+def test_office_world_is_a_corridor_whose_route_visits_rooms_through_their_doors():
+    """The office world: five rooms off a corridor, each with a desk; the route drives the corridor end to end
+    ``passes`` times and on each pass goes round the desk of at least one room it passes, entering and leaving
+    through the door; the seed picks the rooms; walls keep their distance from the camera; the rooms' sizes and
+    the passes are checked."""
+    world = sim.office_world(seed=4, passes=3)
+    assert world.name == "office"
+    run = sim.simulate(world, rate_hz=2.0, odometry_noise=sim.OdometryNoise())
+    gt = run.groundtruth
+    assert_walls_clear(world, gt[::3], 0.5)
+    x, y = gt[:, 0], gt[:, 1]
+    assert x.min() > -0.5 and x.max() > 27.0  # end to end along the corridor
+    inside = np.abs(y) > 2.4  # beyond the doorways: in a room, past its desk's near side
+    assert inside.any()
+    # every stretch in a room goes round its desk: it reaches the far wall's side of the desk
+    rooms = {(xc, side) for xc, side in sim.worlds.OFFICE_ROOMS}
+    seen = {(xc, side) for xc, side in rooms if np.any((np.abs(x - xc) < 2.5) & (side * y > 5.0))}
+    assert len(seen) >= 2  # seed 4 goes round the desks of several rooms over its three passes
+    # into and out of a room only through its door: where the route crosses the corridor's wall line
+    cross = np.flatnonzero(np.diff(np.sign(np.abs(y) - 1.2)) != 0)
+    doors = np.array([xc for xc, _ in sim.worlds.OFFICE_ROOMS])
+    assert np.all(np.min(np.abs(x[cross][:, None] - doors[None, :]), axis=1) < 0.7)
+    routes = {tuple(np.round(sim.office_world(seed=s).route.path(1.0)[:60].ravel(), 3)) for s in range(5)}
+    assert len(routes) > 1  # the seed chooses the rooms
+    for bad, match in (
+        ({"length": 20.0}, "length"),
+        ({"room": (3.0, 5.0)}, "rooms"),
+        ({"door": 0.8}, "door"),
+        ({"desk": (2.5, 1.0)}, "desk"),
+        ({"passes": 0}, "passes"),
+    ):
+        with pytest.raises(InputError, match=match):
+            sim.office_world(**bad)
+
+
 # --------------------------------------------------------------------------- output
 
 
@@ -659,6 +694,8 @@ def test_command_line_writes_a_run(tmp_path, capsys):
     assert json.loads((tmp_path / "g" / "sim.json").read_text())["world"] == "grid"
     assert main(["hall", "--out", str(tmp_path / "h"), "--laps", "1", "--frame-every", "100", "--no-progress"]) == 0
     assert json.loads((tmp_path / "h" / "sim.json").read_text())["world"] == "hall"
+    assert main(["office", "--out", str(tmp_path / "o"), "--laps", "1", "--frame-every", "100", "--no-progress"]) == 0
+    assert json.loads((tmp_path / "o" / "sim.json").read_text())["world"] == "office"
     assert main(["grid", "--out", str(tmp_path / "g3"), "--blocks", "3", "--laps", "1", "--frame-every", "100"]) == 0
     gt = np.loadtxt(tmp_path / "g3" / "groundtruth.csv", delimiter=",", skiprows=1)
     assert float(np.hypot(*np.diff(gt[:, 1:3], axis=0).T).sum()) > 150  # a 3 x 3 grid: 168 m of corridors (2 x 2: 84)

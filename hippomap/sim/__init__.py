@@ -39,6 +39,7 @@ from .worlds import (
     hall_world,
     interpolate_poses,
     loop_world,
+    office_world,
     path_world,
 )
 
@@ -64,6 +65,7 @@ __all__ = [
     "grid_walk",
     "grid_world",
     "hall_world",
+    "office_world",
     "interpolate_poses",
     "loop_world",
     "measure_odometry",

@@ -44,7 +44,7 @@ def _arguments(p: argparse.ArgumentParser) -> None:
 
 
 #: the worlds ``hippomap simulate`` renders (bench/bench_maps.py reports them in this order)
-WORLDS = ("loop", "corridor", "figure8", "grid", "hall", "bicocca")
+WORLDS = ("loop", "corridor", "figure8", "grid", "hall", "office", "bicocca")
 
 
 def _world_arguments(p: argparse.ArgumentParser) -> None:
@@ -56,6 +56,7 @@ def _world_arguments(p: argparse.ArgumentParser) -> None:
         "figure8: corridors round two 10 m x 7 m blocks driven as a figure of eight; "
         "grid: corridors round a 2 x 2 grid of 8 m x 6 m blocks driven as a random walk of the seed; "
         "hall: an open 18 m x 13 m hall with six pillars, driven as a random walk of the seed between them; "
+        "office: a 28 m corridor with five rooms off it, driven end to end, visiting rooms as the seed chooses; "
         "bicocca: walls along the real Bicocca run, driven as recorded",
     )
     p.add_argument("--out", required=True, help="output folder")
@@ -70,8 +71,8 @@ def _world_arguments(p: argparse.ArgumentParser) -> None:
         "--laps",
         type=int,
         default=3,
-        help="loop and figure8: laps, corridor: passes, grid and hall: the walk's length in lengths of the grid's "
-        "corridors or the hall's lanes "
+        help="loop and figure8: laps, corridor and office: passes, grid and hall: the walk's length in lengths of "
+        "the grid's corridors or the hall's lanes "
         "(default 3; the bicocca world drives the recorded run once)",
     )
     p.add_argument(
@@ -90,8 +91,8 @@ def _world_arguments(p: argparse.ArgumentParser) -> None:
         "--speed",
         type=float,
         default=None,
-        help="loop, corridor, figure8, grid and hall: the route's mean speed in m/s (default 0.4); the bicocca world "
-        "drives the recorded run at its recorded speed",
+        help="loop, corridor, figure8, grid, hall and office: the route's mean speed in m/s (default 0.4); the "
+        "bicocca world drives the recorded run at its recorded speed",
     )
     p.add_argument(
         "--stop-every",
@@ -223,6 +224,8 @@ def run_command(args) -> int:
         world = worlds.grid_world(seed=args.seed, laps=args.laps, blocks=(n, n), texture=tex, **speed)
     elif args.world == "hall":
         world = worlds.hall_world(seed=args.seed, laps=args.laps, texture=tex, **speed)
+    elif args.world == "office":
+        world = worlds.office_world(seed=args.seed, passes=args.laps, texture=tex, **speed)
     elif speed:
         raise InputError("--speed: the bicocca world drives the recorded run at its recorded speed")
     else:

@@ -1,7 +1,7 @@
 """Ready-made worlds: a rectangular corridor loop, a straight corridor, a figure of eight
 of corridors round two blocks, a grid of blocks driven as a random walk, an open hall of
-pillars driven as a random walk, and the Bicocca 2009-02-25b run (real odometry, ground-truth
-camera path, walls built around it)."""
+pillars driven as a random walk, an office of rooms off a corridor, and the Bicocca 2009-02-25b
+run (real odometry, ground-truth camera path, walls built around it)."""
 
 from __future__ import annotations
 
@@ -195,6 +195,84 @@ def hall_world(
             polys.append(_rect(cx - h, cy - h, cx + h, cy + h))
     route = _wandering(way, False, 1, speed_mps, 0.12, seed)
     return World.from_polylines(polys, name="hall", texture=texture, seed=seed, route=route)
+
+
+#: the office world's rooms: (centre x along the corridor, side: +1 north, -1 south)
+OFFICE_ROOMS = ((4.0, 1), (9.0, -1), (14.0, 1), (19.0, -1), (24.0, 1))
+
+
+def _office_room(xc: float, side: int, half_width: float, room: tuple[float, float], desk: tuple[float, float]):
+    """One room of :func:`office_world`: its three walls beyond the corridor's (an open polyline), its desk (a
+    closed one), and the waypoints of a visit from the corridor's centre line: through the door, once round
+    the desk anticlockwise as seen from above (``side`` flips y), back out through the door."""
+    rw, rd = room
+    y0, y1 = side * half_width, side * (half_width + rd)
+    walls = np.array([[xc - rw / 2, y0], [xc - rw / 2, y1], [xc + rw / 2, y1], [xc + rw / 2, y0]])
+    ym = side * (half_width + rd / 2)
+    dx, dy = desk[0] / 2, desk[1] / 2
+    desk_poly = _rect(xc - dx, ym - dy, xc + dx, ym + dy)
+    near, far = side * (half_width + 0.9), side * (half_width + rd - 0.9)
+    ax, bx = xc - rw / 2 + 0.9, xc + rw / 2 - 0.9
+    ring = [(xc, near), (bx, near), (bx, far), (ax, far), (ax, near), (xc, near)]
+    if side < 0:  # the same turning sense seen from the corridor: mirror the order
+        ring = [(xc, near), (ax, near), (ax, far), (bx, far), (bx, near), (xc, near)]
+    return walls, desk_poly, [(xc, 0.0)] + ring + [(xc, 0.0)]
+
+
+def office_world(
+    seed: int = 0,
+    length: float = 28.0,
+    corridor_width: float = 2.4,
+    room: tuple[float, float] = (5.0, 5.0),
+    door: float = 1.6,
+    desk: tuple[float, float] = (1.6, 1.2),
+    passes: int = 3,
+    speed_mps: float = 0.4,
+    texture: TextureParams | None = None,
+) -> World:
+    """An office: a straight corridor along +x from the origin, ``length`` long and ``corridor_width`` wide,
+    closed at both ends, with five ``room``-sized rooms (width along the corridor, depth) off it, three on the
+    north side and two on the south (:data:`OFFICE_ROOMS`), each entered through a ``door`` in the corridor's
+    wall and holding a ``desk`` at its centre. The default route drives the corridor end to end ``passes`` times
+    (out, back, ...), and on each pass visits each room it passes with even odds (the seed's; at least one per
+    pass): in through the door, once round the desk, out again. Rooms visited on several passes are revisited
+    from the same side; the corridor is revisited in both directions. Unlike the other worlds, a revisit often
+    starts in a doorway, after a sharp turn out of a small room."""
+    h = corridor_width / 2
+    rw, rd = room
+    if not (length >= 26.0 and 1.6 <= corridor_width and rw >= 4.0 and rd >= 4.0):
+        raise InputError(
+            f"office length {length} must be >= 26 m, corridor width {corridor_width} >= 1.6 m and rooms {room} "
+            "at least 4 m x 4 m (the rooms are spaced along the corridor, and a visit circles the desk)"
+        )
+    if not (1.2 <= door < rw - 1.0 and 0 < desk[0] < rw - 3.2 and 0 < desk[1] < rd - 3.2):
+        raise InputError(f"office door {door} must be 1.2 m to {rw - 1.0} m wide and desk {desk} leave 1.6 m round it")
+    if not (isinstance(passes, int) and passes >= 1):
+        raise InputError(f"office passes {passes!r} must be an integer >= 1")
+    polys, visits = [], {}
+    for xc, side in OFFICE_ROOMS:
+        walls, desk_poly, visit = _office_room(xc, side, h, room, desk)
+        polys += [walls, desk_poly]
+        visits[(xc, side)] = visit
+    for side in (1, -1):  # the corridor's walls, with a gap for each door on that side
+        doors = sorted(xc for xc, s in OFFICE_ROOMS if s == side)
+        xs = [-1.5] + [x for xc in doors for x in (xc - door / 2, xc + door / 2)] + [length + 1.5]
+        polys += [np.array([[xs[i], side * h], [xs[i + 1], side * h]]) for i in range(0, len(xs), 2)]
+    polys.append(np.array([[-1.5, -h], [-1.5, h]]))
+    polys.append(np.array([[length + 1.5, -h], [length + 1.5, h]]))
+    rng = np.random.default_rng([seed, 5])
+    way: list[tuple[float, float]] = [(0.0, 0.0)]
+    for k in range(passes):
+        order = sorted(OFFICE_ROOMS, reverse=bool(k % 2))
+        go = rng.random(len(order)) < 0.5
+        if not go.any():
+            go[int(rng.integers(len(order)))] = True
+        for (xc, side), g in zip(order, go):
+            if g:
+                way += visits[(xc, side)]
+        way.append((length if k % 2 == 0 else 0.0, 0.0))
+    route = _wandering(way, False, 1, speed_mps, 0.1, seed)
+    return World.from_polylines(polys, name="office", texture=texture, seed=seed, route=route)
 
 
 def _route_world(
