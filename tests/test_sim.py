@@ -512,6 +512,7 @@ def test_office_world_is_a_corridor_whose_route_visits_rooms_through_their_doors
     for bad, match in (
         ({"length": 20.0}, "length"),
         ({"room": (3.0, 5.0)}, "rooms"),
+        ({"room": (11.0, 5.0)}, "rooms"),
         ({"door": 0.8}, "door"),
         ({"desk": (2.5, 1.0)}, "desk"),
         ({"passes": 0}, "passes"),

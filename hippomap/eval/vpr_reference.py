@@ -62,6 +62,8 @@ def _inliers(matcher: Any, q: tuple[np.ndarray, np.ndarray | None], r: tuple[np.
 
 
 def _scored(name: str, score: np.ndarray, ok: np.ndarray, ds: VPRDataset, timing: dict[str, Any]) -> dict[str, Any]:
+    """The figures of one ranking: every query's best reference (right or not: ``ok``) accepted when its ``score``
+    passes a threshold, swept as for the baseline (:func:`~hippomap.eval.vpr_scores.pr_points`)."""
     n_pos = n_positives(ds)
     has_pos = np.array([bool(p) for p in ds.positives])
     pr = pr_points(score, ok, n_pos, higher_better=True)

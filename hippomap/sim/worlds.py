@@ -204,7 +204,7 @@ OFFICE_ROOMS = ((4.0, 1), (9.0, -1), (14.0, 1), (19.0, -1), (24.0, 1))
 def _office_room(xc: float, side: int, half_width: float, room: tuple[float, float], desk: tuple[float, float]):
     """One room of :func:`office_world`: its three walls beyond the corridor's (an open polyline), its desk (a
     closed one), and the waypoints of a visit from the corridor's centre line: through the door, once round
-    the desk anticlockwise as seen from above (``side`` flips y), back out through the door."""
+    the desk anticlockwise (seen from above), back out through the door."""
     rw, rd = room
     y0, y1 = side * half_width, side * (half_width + rd)
     walls = np.array([[xc - rw / 2, y0], [xc - rw / 2, y1], [xc + rw / 2, y1], [xc + rw / 2, y0]])
@@ -214,7 +214,7 @@ def _office_room(xc: float, side: int, half_width: float, room: tuple[float, flo
     near, far = side * (half_width + 0.9), side * (half_width + rd - 0.9)
     ax, bx = xc - rw / 2 + 0.9, xc + rw / 2 - 0.9
     ring = [(xc, near), (bx, near), (bx, far), (ax, far), (ax, near), (xc, near)]
-    if side < 0:  # the same turning sense seen from the corridor: mirror the order
+    if side < 0:  # the near side is the desk's north here: anticlockwise starts westwards
         ring = [(xc, near), (ax, near), (ax, far), (bx, far), (bx, near), (xc, near)]
     return walls, desk_poly, [(xc, 0.0)] + ring + [(xc, 0.0)]
 
@@ -240,10 +240,10 @@ def office_world(
     starts in a doorway, after a sharp turn out of a small room."""
     h = corridor_width / 2
     rw, rd = room
-    if not (length >= 26.0 and 1.6 <= corridor_width and rw >= 4.0 and rd >= 4.0):
+    if not (length >= 26.0 and 1.6 <= corridor_width and 4.0 <= rw <= 10.0 and rd >= 4.0):
         raise InputError(
             f"office length {length} must be >= 26 m, corridor width {corridor_width} >= 1.6 m and rooms {room} "
-            "at least 4 m x 4 m (the rooms are spaced along the corridor, and a visit circles the desk)"
+            "4-10 m wide and at least 4 m deep (the rooms of a side are 10 m apart, and a visit circles the desk)"
         )
     if not (1.2 <= door < rw - 1.0 and 0 < desk[0] < rw - 3.2 and 0 < desk[1] < rd - 3.2):
         raise InputError(f"office door {door} must be 1.2 m to {rw - 1.0} m wide and desk {desk} leave 1.6 m round it")
