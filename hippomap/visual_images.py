@@ -17,7 +17,7 @@ from .config import VisualConfig
 from .errors import InputError
 from .retina import Retina
 
-__all__ = ["check_image", "prepare_image", "prepare_views", "working_size"]
+__all__ = ["check_image", "prepare_image", "prepare_views", "working_gray", "working_size"]
 
 
 def check_image(image: Any, name: str = "image") -> np.ndarray:
@@ -81,11 +81,19 @@ def prepare_views(
     ``work`` is ``H x W`` (the ganglion image), or ``H x W x (1 + v1_orientations)`` with the V1
     orientation channels behind it (:meth:`~hippomap.retina.Retina.sensory_image`)."""
     cfg = config or VisualConfig()
+    work, scale = working_gray(image, cfg, name)
+    return work, _retina(cfg).sensory_image(work), scale
+
+
+def working_gray(image: Any, cfg: VisualConfig, name: str = "image") -> tuple[np.ndarray, float]:
+    """``(work, scale)``: the frame's grey levels at the working width (area-averaged down, bilinear up; a copy
+    when already that size) before any retina, and the original px per working px; :func:`working_size`'s
+    :class:`InputError` for a frame the memory could not take."""
     gray, width, height = working_size(image, cfg, name)
     h0, w0 = gray.shape
     interp = cv2.INTER_AREA if width < w0 else cv2.INTER_LINEAR
     work = cv2.resize(gray, (width, height), interpolation=interp) if (width, height) != (w0, h0) else gray.copy()
-    return work, _retina(cfg).sensory_image(work), w0 / float(width)
+    return work, w0 / float(width)
 
 
 _last_retina: tuple[VisualConfig, Retina] | None = None

@@ -43,7 +43,7 @@ from ..visual_memory import VisualMemory
 from .vpr_datasets import VPRDataset, load_vpr_dataset, read_image
 from .vpr_figures import plot_pr, write_examples
 from .vpr_reference import sift_reference
-from .vpr_scores import n_positives, ours_metrics, over_seeds, pr_points, query_rows, seed_runs, stats_ms, targets
+from .vpr_scores import n_positives, ours_metrics, over_seeds, query_rows, ranking_figures, seed_runs, stats_ms, targets
 
 __all__ = ["VPRDataset", "load_vpr_dataset", "evaluate_vpr", "read_visual_config", "add_parser", "load_baseline_module"]
 
@@ -258,22 +258,17 @@ def _run_baseline(
     _, t_bl = _timed(base.add, ref_images)
     compared, t_bc = _timed(base.compare, query_images)
     best, errs = [b_id for b_id, _ in compared], [b_err for _, b_err in compared]
-    n_pos = n_positives(ds)
-    has_pos = np.array([bool(p) for p in ds.positives])
     b_ok = np.array([b in ds.positives[i] for i, b in enumerate(best)])
-    pr = pr_points(np.array(errs), b_ok, n_pos, higher_better=False)
+    figures = ranking_figures(np.array(errs), b_ok, ds, higher_better=False)
+    curve = figures.pop("pr_curve")
     return {
         "name": "RatSLAM view templates (OpenRatSLAM local_view_match: SAD with shift)"
         + (", column intensity profile" if bcfg.template_y == 1 else f", {bcfg.template_x}x{bcfg.template_y} template"),
         "config": {k: getattr(bcfg, k) for k in bcfg.__dataclass_fields__},
-        "recall_at_1": float(b_ok[has_pos].mean()) if n_pos else 0.0,
-        "recall_at_100_precision": pr["recall_at_100_precision"],
-        "threshold_at_100_precision": pr["threshold_at_100_precision"],
-        "average_precision": pr["average_precision"],
-        "best_f1": pr.get("best_f1"),
+        **figures,
         "learn_ms": stats_ms(t_bl),
         "compare_ms": stats_ms(t_bc),
-        "pr_curve": {k: pr[k] for k in ("precision", "recall", "thresholds")},
+        "pr_curve": curve,
         "_best": best,
         "_errors": errs,
         "_ok": b_ok.tolist(),

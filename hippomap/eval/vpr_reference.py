@@ -22,9 +22,9 @@ import cv2
 import numpy as np
 
 from ..config import VisualConfig
-from ..visual_images import working_size
+from ..visual_images import working_gray
 from .vpr_datasets import VPRDataset
-from .vpr_scores import n_positives, pr_points, stats_ms
+from .vpr_scores import ranking_figures, stats_ms
 
 __all__ = ["RATIO", "RANSAC_PX", "sift_reference"]
 
@@ -38,10 +38,7 @@ _MIN_MATCHES = 4
 
 def _features(sift: Any, image: np.ndarray, cfg: VisualConfig) -> tuple[np.ndarray, np.ndarray | None]:
     """SIFT keypoint positions ``(n, 2)`` float32 and descriptors of ``image`` at the working size."""
-    gray, width, height = working_size(image, cfg, "image")
-    h0, w0 = gray.shape
-    if (width, height) != (w0, h0):
-        gray = cv2.resize(gray, (width, height), interpolation=cv2.INTER_AREA if width < w0 else cv2.INTER_LINEAR)
+    gray, _ = working_gray(image, cfg)
     keypoints, descriptors = sift.detectAndCompute(gray, None)
     return np.array([k.pt for k in keypoints], dtype=np.float32).reshape(-1, 2), descriptors
 
@@ -59,24 +56,6 @@ def _inliers(matcher: Any, q: tuple[np.ndarray, np.ndarray | None], r: tuple[np.
     dst = rp[[m.trainIdx for m in good]]
     _, mask = cv2.estimateAffinePartial2D(src, dst, method=cv2.RANSAC, ransacReprojThreshold=RANSAC_PX)
     return 0 if mask is None else int(mask.sum())
-
-
-def _scored(name: str, score: np.ndarray, ok: np.ndarray, ds: VPRDataset, timing: dict[str, Any]) -> dict[str, Any]:
-    """The figures of one ranking: every query's best reference (right or not: ``ok``) accepted when its ``score``
-    passes a threshold, swept as for the baseline (:func:`~hippomap.eval.vpr_scores.pr_points`)."""
-    n_pos = n_positives(ds)
-    has_pos = np.array([bool(p) for p in ds.positives])
-    pr = pr_points(score, ok, n_pos, higher_better=True)
-    return {
-        "name": name,
-        "recall_at_1": float(ok[has_pos].mean()) if n_pos else 0.0,
-        "recall_at_100_precision": pr["recall_at_100_precision"],
-        "threshold_at_100_precision": pr["threshold_at_100_precision"],
-        "average_precision": pr["average_precision"],
-        "best_f1": pr.get("best_f1"),
-        **timing,
-        "pr_curve": {k: pr[k] for k in ("precision", "recall", "thresholds")},
-    }
 
 
 def sift_reference(
@@ -110,13 +89,12 @@ def sift_reference(
         "compare_ms": stats_ms(t_cmp),
     }
     inl, runner_up = np.array(first), np.array(second)
+    name = "SIFT + ratio test + RANSAC similarity: inliers"
     return {
-        "sift_inliers": _scored("SIFT + ratio test + RANSAC similarity: inliers", inl, ok, ds, timing),
-        "sift_inlier_ratio": _scored(
-            "SIFT + ratio test + RANSAC similarity: inliers over the runner-up's",
-            inl / np.maximum(runner_up, 1.0),
-            ok,
-            ds,
-            timing,
-        ),
+        "sift_inliers": {"name": name, **ranking_figures(inl, ok, ds, True), **timing},
+        "sift_inlier_ratio": {
+            "name": name + " over the runner-up's",
+            **ranking_figures(inl / np.maximum(runner_up, 1.0), ok, ds, True),
+            **timing,
+        },
     }

@@ -15,7 +15,17 @@ import numpy as np
 from ..config import VisualConfig
 from .vpr_datasets import VPRDataset
 
-__all__ = ["pr_points", "stats_ms", "n_positives", "ours_metrics", "seed_runs", "over_seeds", "query_rows", "targets"]
+__all__ = [
+    "pr_points",
+    "ranking_figures",
+    "stats_ms",
+    "n_positives",
+    "ours_metrics",
+    "seed_runs",
+    "over_seeds",
+    "query_rows",
+    "targets",
+]
 
 
 def pr_points(scores: np.ndarray, correct: np.ndarray, n_pos: int, higher_better: bool) -> dict[str, Any]:
@@ -58,6 +68,23 @@ def pr_points(scores: np.ndarray, correct: np.ndarray, n_pos: int, higher_better
             "recall": float(recall[b]),
             "threshold": float(s[b]),
         },
+    }
+
+
+def ranking_figures(scores: np.ndarray, ok: np.ndarray, ds: VPRDataset, higher_better: bool) -> dict[str, Any]:
+    """The figures of a recogniser that names every query's best reference (right or not: ``ok``) with a score:
+    recall@1 over the queries with a positive, and the threshold sweep of :func:`pr_points` (recall at 100 %
+    precision and its threshold, average precision, best F1, the curve under ``pr_curve``)."""
+    n_pos = n_positives(ds)
+    has_pos = np.array([bool(p) for p in ds.positives])
+    pr = pr_points(scores, ok, n_pos, higher_better=higher_better)
+    return {
+        "recall_at_1": float(ok[has_pos].mean()) if n_pos else 0.0,
+        "recall_at_100_precision": pr["recall_at_100_precision"],
+        "threshold_at_100_precision": pr["threshold_at_100_precision"],
+        "average_precision": pr["average_precision"],
+        "best_f1": pr.get("best_f1"),
+        "pr_curve": {k: pr[k] for k in ("precision", "recall", "thresholds")},
     }
 
 
