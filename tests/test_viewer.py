@@ -383,7 +383,9 @@ def test_a_faded_closure_is_drawn_apart_from_the_used_ones():
     from hippomap.mapper import Mapper
     from tests.test_loop_closure import square_with_a_false_closure
 
-    m = Mapper(HippomapConfig.with_overrides({"map": {"prune_online": False, "relax_loops": 200}}))
+    # no retraction (loop_retract_below None): the false closure stays an accepted, faded link
+    cfg = {"map": {"prune_online": False, "relax_loops": 200, "loop_retract_below": None}}
+    m = Mapper(HippomapConfig.with_overrides(cfg))
     square_with_a_false_closure(m.cmap)
     rows = m.cmap.loop_rows()
     used = [r for r in rows if r["used"]]
