@@ -363,8 +363,8 @@ class MapConfig(_Frozen):
         "link is judged for retraction (map.loop_retract_below), once a closure verified since it was made has had "
         "the chance to move the map. 0 (judged when its window ends) chosen among 0 / 5 / 20 on the simulated "
         "tuning runs and the runs at 0.8 and 1.2 m/s: accepted false closures 6 -> 3, maps 22.646 -> 22.625 m "
-        "summed; faded links made in a run's last 25 m are no longer left unjudged [ours, docs/MODEL.md items 99, "
-        "121]",
+        "summed; faded links made 5-25 m before a run's end are no longer left unjudged [ours, docs/MODEL.md "
+        "items 99, 121]",
     )
     loop_retract_groups: bool = Field(
         True,
