@@ -6,16 +6,19 @@ of its saccade correspondences (``hippomap.loop_pose.looming_offset``, docs/MODE
 ``d = D (1 - 1 / s)`` with ``s`` the scale change of the scene and ``D`` one typical view distance
 (``mapper.view_distance_m``). Nothing in a recognition measures how far beside the key frame the
 robot stands. This bench runs one mapper (the default config, or ``--config``) over each run and
-records, for every recognition that named a key frame, the scale ``s`` and the robot's true pose in
-the frame of the key frame's true pose (ground truth at the time the key frame was learned and at the
-time of the recognition): ``along`` (m, ahead along the key frame's view) and ``beside`` (m, to its
-left). Recognitions whose true offset exceeds ``--plausible-m`` on either axis name a key frame of
+records, for every recognition that named a key frame, the scale ``s`` (read between the image
+positions of the correspondences, and on the viewing sphere as the mapper reads it when the camera's
+field of view is known, ``mapper.looming_on_sphere``) and the robot's true pose in the frame of the key
+frame's true pose (ground truth at the time the key frame was learned and at the time of the
+recognition): ``along`` (m, ahead along the key frame's view), ``beside`` (m, to its left) and ``turn``
+(rad). Recognitions whose true offset exceeds ``--plausible-m`` on either axis name a key frame of
 another place (the map's verification is there to reject them) and are counted apart.
 
 Printed per run and over all runs: the correlation of the estimate with the true along offset, the
 median error of the along estimate for each view distance of ``--view-distances`` (and for none,
-the robot put on the key frame), the estimate and the distance beside the track per band of true
-along offset, and the true offset per band of estimate.
+the robot put on the key frame), the median error of both readings per band of true turn, the
+estimate and the distance beside the track per band of true along offset, and the true offset per
+band of estimate.
 
     python bench/bench_looming.py RUN [RUN ...] [--config FILE] [--view-distances 2 3 4 5]
 """
@@ -36,16 +39,19 @@ from hippomap.config import HippomapConfig  # noqa: E402
 from hippomap.eval.evaluation import groundtruth_at  # noqa: E402
 from hippomap.geometry import between  # noqa: E402
 from hippomap.inputs import Odometry  # noqa: E402
-from hippomap.loop_pose import looming_distance, looming_scale  # noqa: E402
+from hippomap.loop_pose import looming_distance, looming_scale, view_sphere  # noqa: E402
 from hippomap.mapper import Mapper  # noqa: E402
 
 #: bands of true along offset (m) and of estimated along offset (m) the tables are split into
+TURN_BANDS = ((0.0, 0.15), (0.15, 0.3), (0.3, 0.5), (0.5, 3.2))
 TRUE_BANDS = ((-3.0, -1.0), (-1.0, -0.5), (-0.5, -0.2), (-0.2, 0.2), (0.2, 0.5), (0.5, 1.0), (1.0, 3.0))
 ESTIMATE_BANDS = ((-1.6, -0.6), (-0.6, -0.3), (-0.3, 0.3), (0.3, 0.6), (0.6, 1.6))
 
 
 def record(folder: Path, config: HippomapConfig | None) -> np.ndarray:
-    """(N, 3) per recognition that named a key frame and has a scale: scale, true along, true beside."""
+    """(N, 5) per recognition that named a key frame and has a scale: the scale as the mapper reads it (on the
+    viewing sphere when its config says so), true along, true beside, true turn, and the scale between the image
+    positions."""
     dataset = open_dataset(folder)
     if dataset.groundtruth is None:
         raise SystemExit(f"{folder}: no ground truth")
@@ -54,7 +60,8 @@ def record(folder: Path, config: HippomapConfig | None) -> np.ndarray:
     learned_at: dict[int, float] = {}
     now = {"t": 0.0}
     learn, recognise = m.memory.learn, m.memory.recognise
-    rows: list[tuple[float, float, float]] = []
+    rows: list[tuple[float, ...]] = []
+    hfov = m.config.mapper.camera_hfov_deg if m.config.mapper.looming_on_sphere else None
 
     def dated_learn(image: Any) -> Any:
         fid = learn(image)
@@ -67,11 +74,16 @@ def record(folder: Path, config: HippomapConfig | None) -> np.ndarray:
         pairs = rec.correspondences or []
         if rec.frame is None or not pairs:
             return rec
-        s = looming_scale([c["query"] for c in pairs], [c["memory"] for c in pairs])
+        q, mem = [c["query"] for c in pairs], [c["memory"] for c in pairs]
+        flat = looming_scale(q, mem)
+        s = flat
+        if hfov is not None:
+            h, w = image.shape[:2]
+            s = looming_scale(view_sphere(q, w, h, hfov), view_sphere(mem, w, h, hfov))
         a, b = groundtruth_at(gt, learned_at[int(rec.frame)]), groundtruth_at(gt, now["t"])
-        if s is not None and a is not None and b is not None:
+        if s is not None and flat is not None and a is not None and b is not None:
             rel = between(a, b)
-            rows.append((s, float(rel[0]), float(rel[1])))
+            rows.append((s, float(rel[0]), float(rel[1]), float(rel[2]), flat))
         return rec
 
     m.memory.learn = dated_learn
@@ -83,7 +95,7 @@ def record(folder: Path, config: HippomapConfig | None) -> np.ndarray:
             frame = e.load()
             now["t"] = frame.t
             m.observe(frame)
-    return np.array(rows, dtype=float).reshape(-1, 3)
+    return np.array(rows, dtype=float).reshape(-1, 5)
 
 
 def report(name: str, rows: np.ndarray, view_distances: list[float], default_d: float, plausible_m: float) -> None:
@@ -98,6 +110,13 @@ def report(name: str, rows: np.ndarray, view_distances: list[float], default_d: 
     corr = np.corrcoef(est, along)[0, 1]
     print(f"correlation of the estimate (D {default_d:g} m) with the true along offset: {corr:.2f}")
     print(f"median |along error| (m): none (on the key frame): {np.median(np.abs(along)):.3f}, {errs}")
+    flat = looming_distance(r[:, 4], default_d)
+    print(f"{'|true turn| (rad)':>17s} {'n':>5s} {'|along error| as read':>22s} {'in the image plane':>19s}")
+    for lo, hi in TURN_BANDS:
+        s = (np.abs(r[:, 3]) >= lo) & (np.abs(r[:, 3]) < hi)
+        if s.any():
+            e_read, e_flat = np.median(np.abs(est[s] - along[s])), np.median(np.abs(flat[s] - along[s]))
+            print(f"{f'[{lo:g}, {hi:g})':>17s} {int(s.sum()):5d} {e_read:22.3f} {e_flat:19.3f}")
     print(f"{'true along (m)':>16s} {'n':>5s} {'estimate median':>16s} {'|beside| median':>16s}")
     for lo, hi in TRUE_BANDS:
         s = (along >= lo) & (along < hi)

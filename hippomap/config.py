@@ -959,6 +959,14 @@ class MapperConfig(_Frozen):
         "is taken to be at the key frame. 4.5 chosen among 3 / 3.75 / 4.5 / 6 on the 24 simulated tuning runs (3 "
         "before, chosen for looming alone; docs/MODEL.md items 37 and 72) [ours]",
     )
+    looming_on_sphere: bool = Field(
+        True,
+        description="where the camera's field of view is known (camera_hfov_deg), a recognition's looming is "
+        "measured between the correspondences' directions on the viewing sphere (azimuth and elevation), where a "
+        "turn of the camera moves every point alike, instead of between their image positions, where the same "
+        "turn changes the spacing of points as they move towards the image centre and reads as a step along "
+        "the view. Not tuned: geometry; False = image positions (before; docs/MODEL.md item 122) [ours]",
+    )
     looming_spread: float | None = Field(
         0.5,
         ge=0,

@@ -5,7 +5,8 @@ A visual recognition names a node; how far the robot is from it comes from two p
 
 * :func:`looming_offset` — one recognition: how far the camera stands ahead of where the matched
   key frame was taken, along its view, from the scale change of the scene between the two
-  images (the saccade correspondences).
+  images (the saccade correspondences), measured on the viewing sphere (:func:`view_sphere`) when
+  the camera's field of view is known, so that a turn does not read as a step.
 * :func:`align_group` — a group of consistent hypotheses (:func:`~hippomap.loop_closure.consistent`):
   one SE(2) transform that puts the robot's recent dead-reckoned path onto the matched nodes (a
   2-D Procrustes fit); each hypothesis' offset is then where the fit puts the robot relative to
@@ -31,7 +32,15 @@ from .errors import InputError, vec3
 from .geometry import compose, se2_between, se2_compose, wrap_angle
 from .loop_closure import Candidate, place_of
 
-__all__ = ["align_group", "fit_group", "looming_distance", "looming_offset", "looming_scale", "reanchor"]
+__all__ = [
+    "align_group",
+    "fit_group",
+    "looming_distance",
+    "looming_offset",
+    "looming_scale",
+    "reanchor",
+    "view_sphere",
+]
 
 
 def align_group(odom: np.ndarray, targets: np.ndarray, min_spread_m: float) -> np.ndarray:
@@ -82,7 +91,31 @@ def looming_scale(query: Any, memory: Any, min_separation_px: float = 10.0) -> f
     return math.exp(float(np.median(np.log(dq[ok] / dm[ok]))))
 
 
-def looming_offset(query: Any, memory: Any, view_distance_m: float, min_separation_px: float = 10.0) -> float | None:
+def view_sphere(points: Any, width: float, height: float, hfov_deg: float) -> np.ndarray:
+    """Image points (K, 2; px, origin at the top-left corner) as directions on the viewing sphere of
+    a pinhole camera with horizontal field of view ``hfov_deg``: (azimuth, elevation) times the focal
+    length, so that near the image centre they are the pixels themselves.
+
+    A turn of the camera about its vertical axis moves every direction by the same azimuth and leaves
+    the elevations as they were, so distances between them change only when the camera moves. In the
+    image plane the same turn stretches a pair of points that comes towards the centre by up to
+    ``1 / cos²`` of its angle from it and shrinks their vertical spacing by the depth's ``cos``: read
+    as looming, 0.1–0.2 m for a 0.4 rad turn of a 60° camera (MODEL item 122)."""
+    p = np.asarray(points, dtype=float).reshape(-1, 2)
+    if not (math.isfinite(hfov_deg) and 0 < hfov_deg < 180):
+        raise InputError(f"hfov_deg must lie in (0, 180), got {hfov_deg!r}")
+    f = 0.5 * width / math.tan(math.radians(hfov_deg) / 2)
+    x, y = p[:, 0] - 0.5 * width, p[:, 1] - 0.5 * height
+    return f * np.column_stack([np.arctan2(x, f), np.arctan2(y, np.hypot(x, f))])
+
+
+def looming_offset(
+    query: Any,
+    memory: Any,
+    view_distance_m: float,
+    min_separation_px: float = 10.0,
+    camera: tuple[float, float, float] | None = None,
+) -> float | None:
     """How far the camera stands ahead of where a key frame was taken, along the key frame's
     view (m; negative: behind it), from the scale change of the scene between the two images.
 
@@ -93,9 +126,13 @@ def looming_offset(query: Any, memory: Any, view_distance_m: float, min_separati
     depth is not measured: ``view_distance_m`` stands for it (one typical distance, a model
     parameter). The result is bounded by ±``view_distance_m`` / 2 (a scale change beyond
     2 : 3 is no plausible recognition). ``None`` with fewer than three points or no usable
-    pair: then the recognition says nothing about the along-view offset."""
+    pair: then the recognition says nothing about the along-view offset. ``camera`` = (width, height,
+    horizontal field of view in degrees): the points are first taken to the viewing sphere
+    (:func:`view_sphere`), so that the scale change is the camera's step and not its turn."""
     if not (math.isfinite(view_distance_m) and view_distance_m > 0):
         raise InputError(f"view_distance_m must be a positive number, got {view_distance_m!r}")
+    if camera is not None:
+        query, memory = (view_sphere(p, *camera) for p in (query, memory))
     scale = looming_scale(query, memory, min_separation_px)
     return None if scale is None else float(looming_distance(scale, view_distance_m))
 

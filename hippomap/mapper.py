@@ -280,11 +280,11 @@ class Mapper(KeyFrames):
         if rec.frame is None:
             return False
         meta: dict[str, Any] = {"recognition": rec_id, "frame": int(rec.frame)}
-        ahead = self._looming(rec)
+        ahead = self._looming(rec, gray.shape)
         if search != "gated":
             meta["search"] = search
         key_node = node = self.frame_node[int(rec.frame)]
-        offset = self._visual_offset(rec, gray.shape[1], ahead)
+        offset = self._visual_offset(rec, gray.shape, ahead)
         span = self.config.mapper.reanchor_span
         if span is not None:  # the link names the node nearest the place claimed (MODEL item 103)
             end = self.cmap.node_count - self.config.map.exclude_recent
@@ -327,31 +327,36 @@ class Mapper(KeyFrames):
             return None
         return cast("dict[str, Any]", shift)
 
-    def _looming(self, rec: Any) -> float:
+    def _looming(self, rec: Any, shape: tuple[int, ...]) -> float:
         """How far the robot stands ahead of the matched key frame along its view (m; negative: behind),
         from the looming of the recognition's saccade correspondences
         (:func:`~hippomap.loop_pose.looming_offset`: the scene appears larger when the robot stands ahead of
-        the key frame); 0 without ``mapper.view_distance_m`` or a usable pair of correspondences."""
-        view = self.config.mapper.view_distance_m
+        the key frame), on the viewing sphere of an image of ``shape`` when ``mapper.looming_on_sphere`` and
+        the camera's field of view is known; 0 without ``mapper.view_distance_m`` or a usable pair."""
+        m = self.config.mapper
         pairs = getattr(rec, "correspondences", None) or []
-        if view is None or not pairs:
+        if m.view_distance_m is None or not pairs:
             return 0.0
-        d = looming_offset([c["query"] for c in pairs], [c["memory"] for c in pairs], view)
+        hfov = m.camera_hfov_deg if m.looming_on_sphere else None
+        camera = None if hfov is None else (float(shape[1]), float(shape[0]), hfov)
+        d = looming_offset([c["query"] for c in pairs], [c["memory"] for c in pairs], m.view_distance_m, camera=camera)
         return 0.0 if d is None else d
 
-    def _visual_offset(self, rec: Any, width: int, ahead: float | None = None) -> tuple[float, float, float]:
+    def _visual_offset(
+        self, rec: Any, shape: tuple[int, ...], ahead: float | None = None
+    ) -> tuple[float, float, float]:
         """The robot's pose in the matched node's frame as recognition tells it: where the
         matched key frame was taken, moved ``ahead`` along the key frame's view (:meth:`_looming` when
         None), and turned by the heading the horizontal image shift of the correspondences implies (a
         feature further right in the query than in memory means the robot has turned left) when the
         camera's field of view is known."""
         off = self.frame_offset.get(int(rec.frame), (0.0, 0.0, 0.0))
-        ahead = self._looming(rec) if ahead is None else ahead
+        ahead = self._looming(rec, shape) if ahead is None else ahead
         turn = 0.0
         hfov = self.config.mapper.camera_hfov_deg
         shift = self._shift_of(rec)
         if hfov is not None and shift is not None:
-            focal = 0.5 * width / math.tan(math.radians(hfov) / 2)
+            focal = 0.5 * shape[1] / math.tan(math.radians(hfov) / 2)
             turn = math.atan2(float(shift["x"]), focal)
         if ahead == 0.0 and turn == 0.0:
             return off

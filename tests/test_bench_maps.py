@@ -609,10 +609,15 @@ def test_mapper_parts_report_prints_the_recognitions_per_search(short_run, capsy
 
 def test_looming_bench_scores_named_recognitions_against_ground_truth(short_run):
     import bench_looming
+    from hippomap.config import HippomapConfig
     from hippomap.loop_pose import looming_offset
 
     rows = bench_looming.record(short_run, None)
-    assert len(rows) > 0 and np.all(rows[:, 0] > 0) and np.all(np.isfinite(rows))
+    assert rows.shape[1] == 5 and len(rows) > 0 and np.all(rows[:, [0, 4]] > 0) and np.all(np.isfinite(rows))
+    # the run knows its camera's field of view: the mapper's reading is on the viewing sphere, not the image plane's
+    assert np.any(np.abs(np.log(rows[:, 0] / rows[:, 4])) > 1e-6)
+    flat = bench_looming.record(short_run, HippomapConfig.with_overrides({"mapper": {"looming_on_sphere": False}}))
+    np.testing.assert_array_equal(flat[:, 0], flat[:, 4])
     # most recognitions that name a key frame name one near the robot (the loop's laps lie within 0.5 m)
     assert np.median(np.hypot(rows[:, 1], rows[:, 2])) < 1.0
     # the bench's estimate is the model's looming offset for the same scale

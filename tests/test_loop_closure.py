@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from hippomap import sim
@@ -18,7 +18,7 @@ from hippomap.geometry import between, compose, integrate, wrap_angle
 from hippomap.graph_paths import _undirected_paths, _undirected_paths_reference, hop_distances
 from hippomap.inputs import Frame, Odometry
 from hippomap.loop_closure import Candidate, LoopHypothesis, consistent, link_errors, link_info3
-from hippomap.loop_pose import align_group, looming_offset, looming_scale, reanchor
+from hippomap.loop_pose import align_group, looming_offset, looming_scale, reanchor, view_sphere
 from hippomap.loop_record import GROUP_VERIFIED, RETRACTED
 from hippomap.map_graph import LOOP, MapGraph
 from hippomap.map_reuse import ReuseMap
@@ -324,6 +324,74 @@ def test_looming_scale_is_the_magnification_beyond_the_offset_bound():
     assert looming_offset(_magnified(pts, 1.3), pts, 3.0) == pytest.approx(3.0 * (1 - 1 / 1.3), rel=1e-12)
 
 
+def _pinhole(points: np.ndarray, pose, width=320, height=240, hfov=60.0) -> tuple[np.ndarray, np.ndarray]:
+    """Scene points (K, 3: x, y on the floor, z up) in the image of a camera at ``pose`` (x, y, heading),
+    and their depth along its view."""
+    f = 0.5 * width / math.tan(math.radians(hfov) / 2)
+    dx, dy = points[:, 0] - pose[0], points[:, 1] - pose[1]
+    ahead = dx * math.cos(pose[2]) + dy * math.sin(pose[2])
+    left = -dx * math.sin(pose[2]) + dy * math.cos(pose[2])
+    return np.column_stack([0.5 * width - f * left / ahead, 0.5 * height - f * points[:, 2] / ahead]), ahead
+
+
+def _seen_by_both(scene: np.ndarray, a, b, width=320, height=240) -> tuple[np.ndarray, np.ndarray]:
+    (pa, da), (pb, db) = _pinhole(scene, a), _pinhole(scene, b)
+    inside = [
+        (d > 0.5) & (p[:, 0] >= 0) & (p[:, 0] < width) & (p[:, 1] >= 0) & (p[:, 1] < height)
+        for p, d in ((pa, da), (pb, db))
+    ]
+    keep = inside[0] & inside[1]
+    return pb[keep], pa[keep]
+
+
+@settings(max_examples=80, deadline=None)
+@given(st.floats(-0.45, 0.45), st.integers(0, 10_000))
+def test_a_turn_on_the_spot_reads_as_no_step_on_the_viewing_sphere(turn, seed):
+    """A camera turned about its vertical axis without moving sees every direction shifted by the same azimuth:
+    on the viewing sphere (:func:`view_sphere`) the spacings of the points stay, and the looming reads no step
+    at any turn, wherever the points lie."""
+    rng = np.random.default_rng(seed)
+    az, depth = rng.uniform(-1.0, 1.0, 40), rng.uniform(2.0, 8.0, 40)
+    scene = np.column_stack([depth * np.cos(az), depth * np.sin(az), rng.uniform(-1.0, 1.0, 40)])
+    query, memory = _seen_by_both(scene, (0.0, 0.0, 0.0), (0.0, 0.0, turn))
+    d = looming_offset(query, memory, 4.5, camera=(320, 240, 60.0))
+    assume(d is not None)
+    assert d == pytest.approx(0.0, abs=1e-9)
+
+
+def test_a_turn_misreads_as_a_step_in_the_image_plane_and_not_on_the_sphere():
+    """The same turn read between image positions changes the spacing of points that move towards the image centre
+    (the reason looming is read on the sphere); a step towards the scene reads at least as well there."""
+    rng = np.random.default_rng(7)
+    plane, sphere, stepped = [], [], []
+    for _ in range(60):
+        az, depth = rng.uniform(-1.0, 1.0, 30), rng.uniform(3.0, 6.0, 30)
+        scene = np.column_stack([depth * np.cos(az), depth * np.sin(az), rng.uniform(-1.0, 1.0, 30)])
+        query, memory = _seen_by_both(scene, (0.0, 0.0, 0.0), (0.0, 0.0, 0.4))
+        plane.append(looming_offset(query, memory, 4.5))
+        sphere.append(looming_offset(query, memory, 4.5, camera=(320, 240, 60.0)))
+        query, memory = _seen_by_both(scene, (0.0, 0.0, 0.0), (0.5, 0.0, 0.0))
+        stepped.append(
+            [looming_offset(query, memory, 4.5, camera=(320, 240, 60.0)), looming_offset(query, memory, 4.5)]
+        )
+    assert np.median(np.abs(plane)) > 0.05
+    assert np.max(np.abs(sphere)) < 1e-9
+    err = np.abs(np.array(stepped) - 0.5)  # the step read through one typical depth (the scene's lie 3-6 m away)
+    assert np.median(err[:, 0]) <= np.median(err[:, 1]) < 0.1 and err.max() < 0.2
+
+
+def test_view_sphere_keeps_the_image_centre_and_its_scale_and_rejects_a_bad_field_of_view():
+    pts = np.array([[160.0, 120.0], [161.0, 120.0], [160.0, 121.0], [0.0, 0.0]])
+    s = view_sphere(pts, 320, 240, 60.0)
+    np.testing.assert_allclose(s[:3], [[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]], atol=1e-5)
+    f = 160 / math.tan(math.radians(30))
+    assert s[3, 0] == pytest.approx(-f * math.radians(30))  # the left edge: half the field of view
+    assert abs(s[3, 1]) < 120  # a corner's elevation is less than its row offset
+    for bad in (0.0, 180.0, float("nan")):
+        with pytest.raises(InputError, match="hfov_deg"):
+            view_sphere(pts, 320, 240, bad)
+
+
 def test_looming_offset_places_rendered_views_along_the_track():
     """Key frames rendered every 0.5 m along a corridor of the simulated loop world; queries
     0.2-0.4 m ahead of or behind a key frame position (slightly off the line and turned) are
@@ -372,11 +440,11 @@ def test_visual_offset_moves_the_robot_along_the_key_frames_view():
     D = m.config.mapper.view_distance_m
     assert D is not None and D > 0
     ahead = D * (1 - 1 / 1.1)
-    x, y, th = m._visual_offset(Rec(), 320)
+    x, y, th = m._visual_offset(Rec(), (240, 320))
     assert (x, y, th) == pytest.approx((0.3 + ahead * math.cos(0.5), -0.1 + ahead * math.sin(0.5), 0.5))
     off = Mapper(HippomapConfig.with_overrides({"mapper": {"view_distance_m": None}}))
     off.frame_offset[4] = (0.3, -0.1, 0.5)
-    assert off._visual_offset(Rec(), 320) == (0.3, -0.1, 0.5)
+    assert off._visual_offset(Rec(), (240, 320)) == (0.3, -0.1, 0.5)
 
 
 @settings(max_examples=60, deadline=None)

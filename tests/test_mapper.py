@@ -16,6 +16,7 @@ from hippomap.cli.run import dataset_config, open_dataset, run_dataset
 from hippomap.config import HippomapConfig
 from hippomap.errors import InputError
 from hippomap.inputs import Frame, Odometry
+from hippomap.loop_pose import looming_offset
 from hippomap.mapper import Mapper
 from hippomap.mapper_state import pack, unpack
 
@@ -51,15 +52,23 @@ def feed(m: Mapper, items) -> list[str]:
 
 def test_a_recognition_s_hypothesis_is_as_uncertain_along_the_view_as_its_looming_is_long(inputs):
     """Every visual hypothesis the mapper offers carries ``along_sigma`` = ``mapper.looming_spread`` times the
-    looming offset its recognition's correspondences read (0 with the spread off), and an offset moved by it."""
+    looming offset its recognition's correspondences read (0 with the spread off), and an offset moved by it;
+    with the camera's field of view known, as the simulator's 60 degrees, the looming is read on the viewing sphere."""
+    shape = inputs[1].image.shape
     for spread in (0.5, None):
-        m = Mapper(HippomapConfig.with_overrides({"mapper": {"looming_spread": spread}}))
+        m = Mapper(HippomapConfig.with_overrides({"mapper": {"looming_spread": spread, "camera_hfov_deg": 60.0}}))
         feed(m, inputs)
         visual = [d.hypothesis for d in m.cmap.loop_decisions if "recognition" in d.hypothesis.meta]
         assert len(visual) >= 3
         for h in visual:
             rec = SimpleNamespace(**m.recognitions[h.meta["recognition"]])
-            ahead = m._looming(rec)
+            ahead = m._looming(rec, shape)
+            D = m.config.mapper.view_distance_m
+            pairs = rec.correspondences
+            on_sphere = looming_offset(
+                [c["query"] for c in pairs], [c["memory"] for c in pairs], D, camera=(shape[1], shape[0], 60.0)
+            )
+            assert ahead == pytest.approx(on_sphere or 0.0)
             assert h.along_sigma == pytest.approx((spread or 0.0) * abs(ahead))
         if spread:
             assert sum(h.along_sigma > 0.02 for h in visual) >= len(visual) // 2
