@@ -376,7 +376,7 @@ def test_a_turn_misreads_as_a_step_in_the_image_plane_and_not_on_the_sphere():
         )
     assert np.median(np.abs(plane)) > 0.05
     assert np.max(np.abs(sphere)) < 1e-9
-    err = np.abs(np.array(stepped) - 0.5)  # the step read through one typical depth (the scene's lie 3-6 m away)
+    err = np.abs(np.array(stepped) - 0.5)  # the step read through one typical depth (the scenes lie 3-6 m away)
     assert np.median(err[:, 0]) <= np.median(err[:, 1]) < 0.1 and err.max() < 0.2
 
 
