@@ -39,7 +39,7 @@ from hippomap.config import HippomapConfig  # noqa: E402
 from hippomap.eval.evaluation import groundtruth_at  # noqa: E402
 from hippomap.geometry import between  # noqa: E402
 from hippomap.inputs import Odometry  # noqa: E402
-from hippomap.loop_pose import looming_distance, looming_scale, view_sphere  # noqa: E402
+from hippomap.loop_pose import looming_distance, looming_scale  # noqa: E402
 from hippomap.mapper import Mapper  # noqa: E402
 
 #: bands of true along offset (m) and of estimated along offset (m) the tables are split into
@@ -76,10 +76,7 @@ def record(folder: Path, config: HippomapConfig | None) -> np.ndarray:
             return rec
         q, mem = [c["query"] for c in pairs], [c["memory"] for c in pairs]
         flat = looming_scale(q, mem)
-        s = flat
-        if hfov is not None:
-            h, w = image.shape[:2]
-            s = looming_scale(view_sphere(q, w, h, hfov), view_sphere(mem, w, h, hfov))
+        s = flat if hfov is None else looming_scale(q, mem, camera=(image.shape[1], image.shape[0], hfov))
         a, b = groundtruth_at(gt, learned_at[int(rec.frame)]), groundtruth_at(gt, now["t"])
         if s is not None and flat is not None and a is not None and b is not None:
             rel = between(a, b)

@@ -38,6 +38,7 @@ __all__ = [
     "looming_distance",
     "looming_offset",
     "looming_scale",
+    "focal_px",
     "reanchor",
     "view_sphere",
 ]
@@ -69,13 +70,19 @@ def align_group(odom: np.ndarray, targets: np.ndarray, min_spread_m: float) -> n
     return np.array([t[0], t[1], phi])
 
 
-def looming_scale(query: Any, memory: Any, min_separation_px: float = 10.0) -> float | None:
+def looming_scale(
+    query: Any, memory: Any, min_separation_px: float = 10.0, camera: tuple[float, float, float] | None = None
+) -> float | None:
     """The scale change of the scene from a key frame to a query: the median ratio of the distances
     between pairs of the same K scene points in the query and in memory (``query``, ``memory`` (K, 2),
     px; a recognition's saccade correspondences), taken as the exponential of the median log ratio.
     Pairs closer than ``min_separation_px`` in memory are left out (their ratio is pixel noise); a
     pairwise ratio ignores the image shift that a turn causes. ``None`` with fewer than three points
-    or no usable pair."""
+    or no usable pair. ``camera`` = (width, height, horizontal field of view in degrees): the points are first
+    taken to the viewing sphere (:func:`view_sphere`), so that the scale change is the camera's step and not its
+    turn."""
+    if camera is not None:
+        query, memory = (view_sphere(p, *camera) for p in (query, memory))
     q = np.asarray(query, dtype=float).reshape(-1, 2)
     m = np.asarray(memory, dtype=float).reshape(-1, 2)
     if q.shape != m.shape:
@@ -91,6 +98,13 @@ def looming_scale(query: Any, memory: Any, min_separation_px: float = 10.0) -> f
     return math.exp(float(np.median(np.log(dq[ok] / dm[ok]))))
 
 
+def focal_px(width: float, hfov_deg: float) -> float:
+    """The focal length (px) of a pinhole camera ``width`` px wide with horizontal field of view ``hfov_deg``."""
+    if not (math.isfinite(hfov_deg) and 0 < hfov_deg < 180):
+        raise InputError(f"hfov_deg must lie in (0, 180), got {hfov_deg!r}")
+    return 0.5 * width / math.tan(math.radians(hfov_deg) / 2)
+
+
 def view_sphere(points: Any, width: float, height: float, hfov_deg: float) -> np.ndarray:
     """Image points (K, 2; px, origin at the top-left corner) as directions on the viewing sphere of
     a pinhole camera with horizontal field of view ``hfov_deg``: (azimuth, elevation) times the focal
@@ -103,9 +117,7 @@ def view_sphere(points: Any, width: float, height: float, hfov_deg: float) -> np
     read as looming, a 0.4 rad turn of a 60° camera on the spot is a step of 0.18 m at the median over
     random scenes 3–6 m away (docs/MODEL.md item 122)."""
     p = np.asarray(points, dtype=float).reshape(-1, 2)
-    if not (math.isfinite(hfov_deg) and 0 < hfov_deg < 180):
-        raise InputError(f"hfov_deg must lie in (0, 180), got {hfov_deg!r}")
-    f = 0.5 * width / math.tan(math.radians(hfov_deg) / 2)
+    f = focal_px(width, hfov_deg)
     x, y = p[:, 0] - 0.5 * width, p[:, 1] - 0.5 * height
     return f * np.column_stack([np.arctan2(x, f), np.arctan2(y, np.hypot(x, f))])
 
@@ -127,14 +139,11 @@ def looming_offset(
     depth is not measured: ``view_distance_m`` stands for it (one typical distance, a model
     parameter). The result is bounded by ±``view_distance_m`` / 2 (a scale change beyond
     2 : 3 is no plausible recognition). ``None`` with fewer than three points or no usable
-    pair: then the recognition says nothing about the along-view offset. ``camera`` = (width, height,
-    horizontal field of view in degrees): the points are first taken to the viewing sphere
-    (:func:`view_sphere`), so that the scale change is the camera's step and not its turn."""
+    pair: then the recognition says nothing about the along-view offset. ``camera``: as for
+    :func:`looming_scale`, the scale read on the viewing sphere."""
     if not (math.isfinite(view_distance_m) and view_distance_m > 0):
         raise InputError(f"view_distance_m must be a positive number, got {view_distance_m!r}")
-    if camera is not None:
-        query, memory = (view_sphere(p, *camera) for p in (query, memory))
-    scale = looming_scale(query, memory, min_separation_px)
+    scale = looming_scale(query, memory, min_separation_px, camera)
     return None if scale is None else float(looming_distance(scale, view_distance_m))
 
 

@@ -45,7 +45,7 @@ from .geometry import compose, se2_compose
 from .inputs import Frame, Odometry, follows
 from .keyframes import KeyFrames
 from .loop_closure import LoopHypothesis
-from .loop_pose import looming_offset, reanchor
+from .loop_pose import focal_px, looming_offset, reanchor
 from .map_events import KeyframeLearned, LoopDecided, MapEvent, RecognitionMade
 from .map_reuse import ReuseMap
 from .mapper_state import Grow, config_over, join_arrays, pack, split_arrays, unpack
@@ -356,8 +356,7 @@ class Mapper(KeyFrames):
         hfov = self.config.mapper.camera_hfov_deg
         shift = self._shift_of(rec)
         if hfov is not None and shift is not None:
-            focal = 0.5 * shape[1] / math.tan(math.radians(hfov) / 2)
-            turn = math.atan2(float(shift["x"]), focal)
+            turn = math.atan2(float(shift["x"]), focal_px(shape[1], hfov))
         if ahead == 0.0 and turn == 0.0:
             return off
         return se2_compose(off, (ahead, 0.0, turn))
