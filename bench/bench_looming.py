@@ -61,7 +61,7 @@ def record(folder: Path, config: HippomapConfig | None) -> np.ndarray:
     now = {"t": 0.0}
     learn, recognise = m.memory.learn, m.memory.recognise
     rows: list[tuple[float, ...]] = []
-    hfov = m.config.mapper.camera_hfov_deg if m.config.mapper.looming_on_sphere else None
+    hfov = m.config.mapper.looming_hfov_deg
 
     def dated_learn(image: Any) -> Any:
         fid = learn(image)

@@ -999,6 +999,12 @@ class MapperConfig(_Frozen):
         "move the map (localisation in a saved map, as RTAB-Map's localisation mode) [ours, docs/MODEL.md]",
     )
 
+    @property
+    def looming_hfov_deg(self) -> float | None:
+        """The field of view a recognition's looming is read with: ``camera_hfov_deg`` when ``looming_on_sphere``
+        (the correspondences are taken to the viewing sphere first), else None (their image positions)."""
+        return self.camera_hfov_deg if self.looming_on_sphere else None
+
 
 class HippomapConfig(_Frozen):
     """All of hippomap's model parameters."""

@@ -337,7 +337,7 @@ class Mapper(KeyFrames):
         pairs = getattr(rec, "correspondences", None) or []
         if m.view_distance_m is None or not pairs:
             return 0.0
-        hfov = m.camera_hfov_deg if m.looming_on_sphere else None
+        hfov = m.looming_hfov_deg
         camera = None if hfov is None else (float(shape[1]), float(shape[0]), hfov)
         d = looming_offset([c["query"] for c in pairs], [c["memory"] for c in pairs], m.view_distance_m, camera=camera)
         return 0.0 if d is None else d

@@ -72,6 +72,11 @@ def test_a_recognition_s_hypothesis_is_as_uncertain_along_the_view_as_its_loomin
             assert h.along_sigma == pytest.approx((spread or 0.0) * abs(ahead))
         if spread:
             assert sum(h.along_sigma > 0.02 for h in visual) >= len(visual) // 2
+    # the field of view the looming is read with: the camera's on the sphere, none in the image plane
+    on, off = ({"camera_hfov_deg": 60.0, "looming_on_sphere": s} for s in (True, False))
+    assert HippomapConfig.with_overrides({"mapper": on}).mapper.looming_hfov_deg == 60.0
+    assert HippomapConfig.with_overrides({"mapper": off}).mapper.looming_hfov_deg is None
+    assert HippomapConfig().mapper.looming_hfov_deg is None  # no camera known
 
 
 def test_a_recognition_s_link_names_the_node_nearest_where_the_robot_stood():
