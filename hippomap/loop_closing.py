@@ -20,7 +20,7 @@ import numpy as np
 from .errors import InputError
 from .geometry import se2_between, se2_compose, se2_inverse
 from .loop_closure import Candidate, LoopDecision, LoopHypothesis, consistent
-from .loop_gate import OUTER_PART
+from .loop_gate import OBLIQUE, OUTER_PART
 from .loop_pose import fit_group
 from .loop_record import GROUP_VERIFIED, LoopRecord
 from .map_events import LoopAccepted, LoopPending
@@ -185,7 +185,7 @@ class LoopClosing(LoopRecord):
             sup = tuple(sorted(ids - {c.id}))
             d = book.decisions[c.id]
             why = gate_reason if c.id == cand.id else d.reason  # the others' reasons say why they waited
-            where = OUTER_PART if OUTER_PART in why else "outside the gate"
+            where = next((w for w in (OUTER_PART, OBLIQUE) if w in why), "outside the gate")
             book.decisions[c.id] = replace(
                 d,
                 status="accepted",

@@ -280,9 +280,11 @@ class Mapper(KeyFrames):
         if rec.frame is None:
             return False
         meta: dict[str, Any] = {"recognition": rec_id, "frame": int(rec.frame)}
+        turn = self._view_turn(rec, gray.shape)
+        if turn is not None:  # across a wide turn the gate asks for a group (map.loop_oblique_turn_rad)
+            meta["view_turn"] = turn
         ahead = self._looming(rec, gray.shape)
-        if search != "gated":
-            meta["search"] = search
+        meta.update({"search": search} if search != "gated" else {})
         key_node = node = self.frame_node[int(rec.frame)]
         offset = self._visual_offset(rec, gray.shape, ahead)
         span = self.config.mapper.reanchor_span
@@ -309,11 +311,9 @@ class Mapper(KeyFrames):
 
     def _shift_coupling(self, rec: Any) -> float:
         """The coupling of a recognition's heading with the robot's offset beside the key frame
-        (:attr:`~hippomap.loop_closure.LoopHypothesis.coupling`): ``1 / mapper.view_distance_m`` when
-        the heading comes from the image shift (the camera's field of view is known and the
-        recognition has correspondences) and ``mapper.shift_coupling`` is on; else 0. A scene ``D``
-        away shifts in the image by the turn plus the sideways step over ``D``, so the shift fixes
-        ``heading + lateral / D``, not the heading alone."""
+        (:attr:`~hippomap.loop_closure.LoopHypothesis.coupling`): ``1 / mapper.view_distance_m`` when the heading
+        comes from the image shift (:meth:`_view_turn`) and ``mapper.shift_coupling`` is on; else 0. A scene ``D``
+        away shifts by the turn plus the sideways step over ``D``: the shift fixes ``heading + lateral / D``."""
         m = self.config.mapper
         if not m.shift_coupling or m.view_distance_m is None or self._shift_of(rec) is None:
             return 0.0
@@ -345,21 +345,21 @@ class Mapper(KeyFrames):
     def _visual_offset(
         self, rec: Any, shape: tuple[int, ...], ahead: float | None = None
     ) -> tuple[float, float, float]:
-        """The robot's pose in the matched node's frame as recognition tells it: where the
-        matched key frame was taken, moved ``ahead`` along the key frame's view (:meth:`_looming` when
-        None), and turned by the heading the horizontal image shift of the correspondences implies (a
-        feature further right in the query than in memory means the robot has turned left) when the
-        camera's field of view is known."""
+        """The robot's pose in the matched node's frame as recognition tells it: where the matched key frame was
+        taken, moved ``ahead`` along its view (:meth:`_looming` when None), turned by :meth:`_view_turn`."""
         off = self.frame_offset.get(int(rec.frame), (0.0, 0.0, 0.0))
         ahead = self._looming(rec, shape) if ahead is None else ahead
-        turn = 0.0
-        hfov = self.config.mapper.camera_hfov_deg
-        shift = self._shift_of(rec)
-        if hfov is not None and shift is not None:
-            turn = math.atan2(float(shift["x"]), focal_px(shape[1], hfov))
+        turn = self._view_turn(rec, shape) or 0.0
         if ahead == 0.0 and turn == 0.0:
             return off
         return se2_compose(off, (ahead, 0.0, turn))
+
+    def _view_turn(self, rec: Any, shape: tuple[int, ...]) -> float | None:
+        """How far the robot has turned from the matched key frame's view (rad, left positive: a feature further right
+        in the query than in memory) by the recognition's image shift; None without the field of view or a shift."""
+        shift = self._shift_of(rec)
+        hfov = self.config.mapper.camera_hfov_deg
+        return None if shift is None or hfov is None else math.atan2(float(shift["x"]), focal_px(shape[1], hfov))
 
     # ----------------------------------------------------------------- queries
     @property

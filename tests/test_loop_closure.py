@@ -4,6 +4,7 @@ fade while true ones are applied, and key frames that mean the same at any frame
 
 import argparse
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -18,6 +19,7 @@ from hippomap.geometry import between, compose, integrate, wrap_angle
 from hippomap.graph_paths import _undirected_paths, _undirected_paths_reference, hop_distances
 from hippomap.inputs import Frame, Odometry
 from hippomap.loop_closure import Candidate, LoopHypothesis, consistent, link_errors, link_info3
+from hippomap.loop_gate import OBLIQUE
 from hippomap.loop_pose import align_group, looming_offset, looming_scale, reanchor, view_sphere
 from hippomap.loop_record import GROUP_VERIFIED, RETRACTED
 from hippomap.map_graph import LOOP, MapGraph
@@ -1290,3 +1292,40 @@ def test_a_false_group_outside_the_gate_fades_and_is_retracted(groups):
     assert all(r["status"] == "accepted" for r in true)
     assert sum(r["used"] for r in true) > 0.9 * len(true)
     assert rms_xy(corrected(cmap, node_at, off), gt) < 0.05 * rms_xy(odo, gt)  # measured 0.27-0.28 vs 15.2 m
+
+
+@pytest.mark.parametrize("bar", [None, MapConfig().loop_oblique_turn_rad])
+def test_a_recognition_across_a_wide_turn_waits_for_a_consistent_group(bar):
+    """``map.loop_oblique_turn_rad``: on a map without drift, true recognitions each read across a 0.6 rad turn from
+    its key frame's view (``meta['view_turn']``, as the mapper's image shift gives it), and a false one across the same
+    turn naming the place 2.6 m on, inside the gate's inner part. Without the bar each becomes a link at once, the
+    false one too; with it the first three wait until the third makes a consistent group, the last true one, alone,
+    waits and expires, and so does the false one: no link before a group."""
+    _, gt, _, noisy = _drifting_square(0.0)
+    first_lap = len(gt) // 2
+
+    def hyps(k, cmap, node_at, off):
+        if k == first_lap + 150:  # false: names the place 2.6 m further on
+            h = LoopHypothesis(node=int(node_at[175]), source="false", time=float(k), offset=tuple(off[175]))
+            return [replace(h, meta={"view_turn": 0.6})]
+        if k <= first_lap + 20 or k > first_lap + 40 or k % 5:
+            return []
+        h = _visual(gt, node_at, off, k, k - first_lap, None)
+        return [replace(h, meta={**h.meta, "view_turn": -0.6})]
+
+    cmap = CognitiveMap(MapConfig(loop_oblique_turn_rad=bar))
+    drive(cmap, noisy[: first_lap + 330], hypotheses=hyps)
+    rows = cmap.loop_rows()
+    assert len(rows) == 5
+    true, false = rows[:4], rows[4]
+    assert 1.5 < false["gate_distance_m"] < 0.7 * false["gate_limit_m"]  # in the gate's inner part
+    if bar is None:
+        assert all(r["status"] == "accepted" and r["reason"].startswith("gate;") for r in rows)
+        assert all(r["decided_step"] == r["proposed_step"] for r in rows)  # each at once
+    else:
+        group = true[:3]
+        assert all(r["status"] == "accepted" and r["reason"] == f"{OBLIQUE}; {GROUP_VERIFIED}" for r in group)
+        assert {r["decided_step"] for r in group} == {group[2]["proposed_step"]}  # no link before the group
+        assert true[3]["status"] == false["status"] == "rejected"
+        assert all("no consistent support" in r["reason"] for r in (true[3], false))
+        assert cmap.link_count == cmap.node_count - 1 + 3

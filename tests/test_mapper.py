@@ -16,7 +16,7 @@ from hippomap.cli.run import dataset_config, open_dataset, run_dataset
 from hippomap.config import HippomapConfig
 from hippomap.errors import InputError
 from hippomap.inputs import Frame, Odometry
-from hippomap.loop_pose import looming_offset
+from hippomap.loop_pose import focal_px, looming_offset
 from hippomap.mapper import Mapper
 from hippomap.mapper_state import pack, unpack
 
@@ -70,6 +70,9 @@ def test_a_recognition_s_hypothesis_is_as_uncertain_along_the_view_as_its_loomin
             )
             assert ahead == pytest.approx(on_sphere or 0.0)
             assert h.along_sigma == pytest.approx((spread or 0.0) * abs(ahead))
+            # the turn from the key frame's view the image shift reads, weighed by the gate (map.loop_oblique_turn_rad)
+            turn = math.atan2(rec.shift["x"], focal_px(shape[1], 60.0)) if rec.shift and rec.shift["n"] >= 2 else None
+            assert h.meta.get("view_turn") == pytest.approx(turn)
         if spread:
             assert sum(h.along_sigma > 0.02 for h in visual) >= len(visual) // 2
     # the field of view the looming is read with: the camera's on the sphere, none in the image plane
