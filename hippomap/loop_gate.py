@@ -130,7 +130,7 @@ class LoopGate(MapCorrection):
         consistent group as one outside the gate does. Of the recognitions of the simulated tuning runs that named a
         key frame, 0.4 % of those read below 0.15 rad were more than 2 m from it, 16 % of those at 0.4 rad or more
         (docs/MODEL.md item 124)."""
-        bar, turn = self.cfg.loop_oblique_turn_rad, (h.meta or {}).get("view_turn")
+        bar, turn = self.cfg.loop_oblique_turn_rad, h.meta.get("view_turn")
         if bar is None or turn is None or abs(turn) < bar:
             return ""
         return f"{OBLIQUE}: view turned {abs(turn):.3f} rad from its key frame's (from {bar:.3f} rad)"

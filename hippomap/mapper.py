@@ -284,9 +284,10 @@ class Mapper(KeyFrames):
         if turn is not None:  # across a wide turn the gate asks for a group (map.loop_oblique_turn_rad)
             meta["view_turn"] = turn
         ahead = self._looming(rec, gray.shape)
-        meta.update({"search": search} if search != "gated" else {})
+        if search != "gated":
+            meta["search"] = search
         key_node = node = self.frame_node[int(rec.frame)]
-        offset = self._visual_offset(rec, gray.shape, ahead)
+        offset = self._visual_offset(rec, gray.shape, ahead, turn)
         span = self.config.mapper.reanchor_span
         if span is not None:  # the link names the node nearest the place claimed (MODEL item 103)
             end = self.cmap.node_count - self.config.map.exclude_recent
@@ -343,13 +344,13 @@ class Mapper(KeyFrames):
         return 0.0 if d is None else d
 
     def _visual_offset(
-        self, rec: Any, shape: tuple[int, ...], ahead: float | None = None
+        self, rec: Any, shape: tuple[int, ...], ahead: float | None = None, turn: float | None = None
     ) -> tuple[float, float, float]:
-        """The robot's pose in the matched node's frame as recognition tells it: where the matched key frame was
-        taken, moved ``ahead`` along its view (:meth:`_looming` when None), turned by :meth:`_view_turn`."""
+        """The robot's pose in the matched node's frame as recognition tells it: where the matched key frame was taken,
+        moved ``ahead`` along its view (:meth:`_looming` if None), turned by ``turn`` (:meth:`_view_turn` if None)."""
         off = self.frame_offset.get(int(rec.frame), (0.0, 0.0, 0.0))
         ahead = self._looming(rec, shape) if ahead is None else ahead
-        turn = self._view_turn(rec, shape) or 0.0
+        turn = (self._view_turn(rec, shape) if turn is None else turn) or 0.0
         if ahead == 0.0 and turn == 0.0:
             return off
         return se2_compose(off, (ahead, 0.0, turn))
