@@ -201,6 +201,7 @@ class CognitiveMap(Pruning):
                 "solved_t": None if math.isinf(self._solved_t) else self._solved_t,
                 "odometry_bias": self._bias,
                 "odometry_bias_sd": self._bias_sd,
+                "odometry_bias_unkept": self._bias_unkept,
             },
             "loop": self._loops.state_dict(),
             "events": [e.to_dict() for e in self._events],
@@ -280,3 +281,4 @@ class CognitiveMap(Pruning):
         self._solved_t = -math.inf if st is None else float(st)
         self._bias = float(robot.get("odometry_bias", 0.0))
         self._bias_sd = float(robot.get("odometry_bias_sd", 0.0))
+        self._bias_unkept = float(robot.get("odometry_bias_unkept", 0.0))

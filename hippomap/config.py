@@ -435,6 +435,14 @@ class MapConfig(_Frozen):
         "the heading error over the path between it and the robot only, instead of e D^2 / (2 v) for every node "
         "(False). Chosen on the 60 simulated choosing runs (docs/MODEL.md items 102 and 104) [ours]",
     )
+    loop_bias_unkept: bool = Field(
+        True,
+        description="loop_radius_bias_sd's allowance also for an estimate a whole solve made and did not keep "
+        "(odometry_bias_significance, odometry_bias_observed): the map then applies no bias, so the odometry's may be "
+        "the estimate's size plus loop_radius_bias_sd of its posterior standard deviations, e = |b| + k sd. False = no "
+        "allowance while no estimate is kept (the model before; a bias of 0.0006 rad/s too small to keep left the "
+        "simulated Bicocca world's return to its start outside the gate, maps 10-12 m) [ours, docs/MODEL.md item 125]",
+    )
     loop_drift: Literal["verified", "graph"] = Field(
         "graph",
         description="the path over which drift may separate a visual hypothesis's node from the robot, for the gate: "

@@ -334,7 +334,9 @@ def gate_limit(cfg: MapConfig, measured: bool, drift, bias_m: Any = 0.0) -> Any:
     return base + cfg.loop_radius_per_m * np.asarray(drift, dtype=float) + bias_m
 
 
-def bias_drift(cfg: MapConfig, bias_sd: float, path_m: float, seconds_per_m: float, node_m: Any = None) -> Any:
+def bias_drift(
+    cfg: MapConfig, bias_sd: float, path_m: float, seconds_per_m: float, node_m: Any = None, unkept: float = 0.0
+) -> Any:
     """How far (m) the error of the odometry's estimated heading bias may have moved the robot's map
     pose over the ``path_m`` metres since the map last anchored it (the last verified closure).
 
@@ -347,13 +349,17 @@ def bias_drift(cfg: MapConfig, bias_sd: float, path_m: float, seconds_per_m: flo
     significance test while the graph does not determine it) bounds nothing: no allowance, rather
     than a gate over the whole map. ``node_m`` (the path since each node was made): the error between
     the robot and a node ``d`` metres back is the heading error over those metres only, ``e d (D - d/2)
-    seconds_per_m`` for ``d`` below ``D`` = ``path_m`` (``map.loop_bias_per_node``)."""
+    seconds_per_m`` for ``d`` below ``D`` = ``path_m`` (``map.loop_bias_per_node``). ``unkept``: the size (rad/s)
+    of an estimate the whole solve made but did not keep (``map.loop_bias_unkept``); the map applies no bias, so the
+    odometry's may be that much plus the estimate's doubt: ``e`` = ``unkept`` + ``loop_radius_bias_sd`` ×
+    ``bias_sd``."""
     if cfg.loop_radius_bias_sd <= 0 or not 0 < bias_sd < math.inf or path_m <= 0 or seconds_per_m <= 0:
         return 0.0
+    e = cfg.loop_radius_bias_sd * bias_sd + unkept
     if node_m is None:
-        return float(cfg.loop_radius_bias_sd * bias_sd * path_m * path_m * seconds_per_m / 2.0)
+        return float(e * path_m * path_m * seconds_per_m / 2.0)
     d = np.minimum(np.asarray(node_m, dtype=float), path_m)
-    return cfg.loop_radius_bias_sd * bias_sd * seconds_per_m * d * (path_m - d / 2.0)
+    return e * seconds_per_m * d * (path_m - d / 2.0)
 
 
 def cycle_errors(older: list[Candidate], b: Candidate, P: np.ndarray) -> np.ndarray:

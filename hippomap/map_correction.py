@@ -200,12 +200,13 @@ class MapCorrection(HeadingBranches):
             Q = P.copy()
             b, at = self._rotation_init(Q, src, dst, tr, info, bias) if rotation_init else (self._bias, info)
             res = solve_lsq(Q, src, dst, tr, **{**solve, "information": at}, **{**bias, "bias": b})
-            sd = self._bias_kept(Q, src, dst, tr, at, bias, res.bias)
-            if sd is not None:
+            sd, kept = self._bias_kept(Q, src, dst, tr, at, bias, res.bias)
+            if kept:
                 P[:] = Q
-                self._bias, self._bias_sd = res.bias, sd
+                self._bias, self._bias_sd, self._bias_unkept = res.bias, sd, 0.0
                 return res
-            self._bias = self._bias_sd = 0.0
+            unkept = cfg.loop_bias_unkept  # the gate allows for it all the same (docs/MODEL.md item 125)
+            self._bias, self._bias_sd, self._bias_unkept = 0.0, sd if unkept else 0.0, abs(res.bias) if unkept else 0.0
             work = res.work
         if rotation_init:
             solve["information"] = self._rotation_init(P, src, dst, tr, info, {})[1]
@@ -221,20 +222,20 @@ class MapCorrection(HeadingBranches):
         info: np.ndarray,
         bias: dict[str, Any],
         b: float,
-    ) -> float | None:
-        """σ_b when the estimate ``b`` of the solution ``Q`` is kept, else None. Kept: significant (``|b| >
+    ) -> tuple[float, bool]:
+        """(σ_b, whether the estimate ``b`` of the solution ``Q`` is kept). Kept: significant (``|b| >
         odometry_bias_significance × σ_b``, σ_b its posterior standard deviation there, a Wald test)
         and observed by the loops (``σ_b ≤ odometry_bias_observed × odometry_bias_sigma``), σ_b counting
         only the loop links whose heading ``Q`` explains (:meth:`_used_information`). The gate widens
-        with σ_b (:meth:`_bias_drift`)."""
+        with σ_b (:meth:`_bias_drift`), and with ``|b|`` too when it is not kept (``map.loop_bias_unkept``)."""
         cfg = self.cfg
         k, bound = cfg.odometry_bias_significance, cfg.odometry_bias_observed
         used = self._used_information(info, Q)
         sigma = bias_sigma(Q, src, dst, tr, bias["bias_dt"], b, bias["bias_information"], used)
         if k <= 0 and bound is None:  # no test: any estimate off zero is kept
-            return sigma if abs(b) > 0 else None
+            return sigma, abs(b) > 0
         observed = bound is None or sigma <= bound * cfg.odometry_bias_sigma
-        return sigma if abs(b) > k * sigma and observed else None
+        return sigma, bool(abs(b) > k * sigma and observed)
 
     def _used_information(self, info: np.ndarray, Q: np.ndarray) -> np.ndarray:
         """``info`` (M, 3) without the loop links whose heading the solved poses ``Q`` leave

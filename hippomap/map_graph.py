@@ -91,7 +91,9 @@ class MapGraph:
         self._solved_path = -math.inf  # odometric path (m) at the last correction (see MapCorrection._deferred)
         self._solved_t = -math.inf  # time of the last correction
         self._bias = 0.0  # the odometry's heading bias (rad/s), estimated by the whole solves (see _bias_args)
-        self._bias_sd = 0.0  # its posterior standard deviation (rad/s) when a whole solve kept it; 0: none kept
+        self._bias_sd = 0.0  # its posterior standard deviation (rad/s) when a whole solve kept it (or, with
+        # loop_bias_unkept, did not); 0: none
+        self._bias_unkept = 0.0  # the size (rad/s) of the last whole solve's estimate when it was not kept
         # robot state
         self._cur = 0
         self._delta = (0.0, 0.0, 0.0)  # robot pose in the current node's frame
@@ -392,7 +394,8 @@ class MapGraph:
 
     def _bias_drift(self, nodes: np.ndarray | None = None) -> float | np.ndarray:
         """:func:`~hippomap.loop_closure.bias_drift` since the last verified closure (or the start): its
-        path, and the seconds per metre of the nodes made since (the robot's pace over the drift)."""
+        path, and the seconds per metre of the nodes made since (the robot's pace over the drift); with an estimate
+        the whole solve did not keep, its size too (``map.loop_bias_unkept``)."""
         if self._bias_sd <= 0:
             return 0.0
         n = self._n
@@ -401,7 +404,7 @@ class MapGraph:
             return 0.0
         ds, dt = self._S[n - 1] - self._S[first], self._Tn[n - 1] - self._Tn[first]
         node_m = None if nodes is None else self._path - self._S[nodes]
-        return bias_drift(self.cfg, self._bias_sd, self.path_since_verified, dt / ds, node_m)
+        return bias_drift(self.cfg, self._bias_sd, self.path_since_verified, dt / ds, node_m, self._bias_unkept)
 
     def take_events(self) -> list[MapEvent]:
         """The events queued since the last call that returned events (by :meth:`propose_loop`,
