@@ -682,8 +682,13 @@ def test_a_group_outside_the_gate_is_in_sequence_by_the_places_it_names_not_its_
         assert cmap.link_count == cmap.node_count - 1  # no loop link
 
 
+@pytest.mark.parametrize("unkept", [False, True])
 @pytest.mark.parametrize("search", ["global", None])
-def test_inconsistent_recognitions_outside_the_gate_expire_without_touching_the_map(search):
+def test_inconsistent_recognitions_outside_the_gate_expire_without_touching_the_map(search, unkept):
+    """Random recognitions of first-lap places through a drift that puts the second lap beyond the gate: those outside
+    expire, none joins a group. Their links' whole solves estimate a heading bias they do not keep; with
+    ``loop_bias_unkept`` (the default) the gate allows for it, so that more of them fall inside and become links,
+    each faded by the robust kernel and none used (docs/MODEL.md item 125)."""
     inc, gt, odo, noisy = _drifting_square()
     first_lap = len(inc) // 2
     rng = np.random.default_rng(0)
@@ -705,12 +710,14 @@ def test_inconsistent_recognitions_outside_the_gate_expire_without_touching_the_
             )
         ]
 
-    cmap = CognitiveMap(MapConfig())
+    cmap = CognitiveMap(MapConfig(loop_bias_unkept=unkept))
     node_at, off, _ = drive(cmap, noisy, hypotheses=hyps)
     rows = cmap.loop_rows()
     assert len(rows) > 25
     expired = [r for r in rows if r["status"] == "rejected" and "no consistent support" in r["reason"]]
-    assert len(expired) > 0.5 * len(rows)
+    assert len(expired) > (0.4 if unkept else 0.5) * len(rows)
+    w = cmap.loop_weights()  # per decision; NaN where no link was made
+    assert np.all(w[np.isfinite(w)] < 0.05)  # the kernel fades every link of a random recognition
     # the few that happened to name a node inside the gate took the gated path (a link the robust kernel
     # weighs, or a link retracted once it had faded); no group outside the gate was ever accepted
     linked = [r for r in rows if r.get("link", -1) >= 0]
