@@ -443,6 +443,14 @@ class MapConfig(_Frozen):
         "allowance while no estimate is kept (the model before; a bias of 0.0006 rad/s too small to keep left the "
         "simulated Bicocca world's return to its start outside the gate, maps 10-12 m) [ours, docs/MODEL.md item 125]",
     )
+    loop_heading_bias: bool = Field(
+        True,
+        description="the gate's anchored heading part (loop_heading_anchored_rad, loop_heading_group_sd) adds the "
+        "turn that loop_radius_bias_sd's rate error e (with loop_bias_unkept, the unkept estimate's size too) makes "
+        "over the seconds since the last verified closure, e t: what is left of the heading drift once a closure has "
+        "anchored the map is the odometry's walk and that error, not the walk alone. False = the walk alone (the model "
+        "before) [ours, docs/MODEL.md item 125]",
+    )
     loop_drift: Literal["verified", "graph"] = Field(
         "graph",
         description="the path over which drift may separate a visual hypothesis's node from the robot, for the gate: "

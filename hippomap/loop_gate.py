@@ -90,7 +90,7 @@ class LoopGate(MapCorrection):
         turn, drift, walk = self._turn(c)
         limit = cfg.loop_heading_radius_rad + cfg.loop_heading_per_m * drift
         if cfg.loop_heading_anchored_rad is not None and self._loops.last_verified_path is not None:
-            limit = min(limit, cfg.loop_heading_anchored_rad + cfg.loop_heading_anchored_sd * walk)
+            limit = min(limit, cfg.loop_heading_anchored_rad + cfg.loop_heading_anchored_sd * walk + self._bias_turn())
         return f"heading {turn:.3f} rad from the node's exceeds the gate {limit:.3f} rad" if turn > limit else ""
 
     def _beyond_group_heading(self, c: Candidate) -> str:
@@ -106,7 +106,7 @@ class LoopGate(MapCorrection):
         if self._loops.last_verified_path is None:  # before the first verified closure the bias turns true ones far
             return ""
         turn, _, walk = self._turn(c)
-        bound = cfg.loop_heading_anchored_rad + cfg.loop_heading_group_sd * walk
+        bound = cfg.loop_heading_anchored_rad + cfg.loop_heading_group_sd * walk + self._bias_turn()
         return f"its heading {turn:.3f} rad is beyond a group's {bound:.3f} rad" if turn > bound else ""
 
     def _turn(self, c: Candidate) -> tuple[float, float, float]:

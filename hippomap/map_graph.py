@@ -406,6 +406,20 @@ class MapGraph:
         node_m = None if nodes is None else self._path - self._S[nodes]
         return bias_drift(self.cfg, self._bias_sd, self.path_since_verified, dt / ds, node_m, self._bias_unkept)
 
+    def _bias_turn(self) -> float:
+        """How far (rad) the heading-rate error the gate allows for may have turned the robot since the last verified
+        closure (``map.loop_heading_bias``; 0 when off or no estimate bounds it)."""
+        cfg = self.cfg
+        if not cfg.loop_heading_bias or self._bias_sd <= 0 or not self._bias_sd < math.inf:
+            return 0.0
+        n = self._n
+        first = int(np.searchsorted(self._S[:n], self._loops.last_verified_path or 0.0))
+        if n - first < 2 or not self._S[n - 1] > self._S[first]:
+            return 0.0
+        pace = (self._Tn[n - 1] - self._Tn[first]) / (self._S[n - 1] - self._S[first])
+        e = cfg.loop_radius_bias_sd * self._bias_sd + self._bias_unkept
+        return float(e * self.path_since_verified * pace) if cfg.loop_radius_bias_sd > 0 else 0.0
+
     def take_events(self) -> list[MapEvent]:
         """The events queued since the last call that returned events (by :meth:`propose_loop`,
         :meth:`set_frame`, :meth:`prune`), emptying the queue: a caller returns them from the call
