@@ -333,9 +333,10 @@ def test_after_a_verified_closure_the_heading_part_shrinks_to_the_odometry_s_wal
     (here 6 m back through the second lap's last closure: 0.4 + 0.041 rad), not the unanchored 0.8 + 0.02 rad/m
     (0.92 rad): the turn of 0.5 rad that the unanchored map links at once waits for a consistent group. Beyond
     ``loop_heading_group_sd`` sd of that walk (0.4 + 0.122 rad) no group may take it: the turn of 0.6 rad is rejected
-    at once (``None``: it waits too). ``None`` for the anchored part keeps the unanchored part throughout."""
+    at once (``None``: it waits too). ``None`` for the anchored part keeps the unanchored part throughout. The parts
+    are the walk's alone here (``loop_heading_bias`` off; item 125's turn of the bias error is tested with it)."""
     d, cmap, links = _after_an_anchoring_lap(
-        MapConfig(loop_heading_anchored_rad=anchored, loop_heading_group_sd=group_sd), turned
+        MapConfig(loop_heading_anchored_rad=anchored, loop_heading_group_sd=group_sd, loop_heading_bias=False), turned
     )
     assert d.status == status
     if status != "accepted":
@@ -373,8 +374,9 @@ def _after_an_anchoring_lap(cfg: MapConfig, turned: float, beside: float = 0.0):
 def test_outside_the_position_gate_a_hypothesis_turned_beyond_a_group_s_bound_is_rejected_at_once(turned, status):
     """The group bound (``loop_heading_group_sd``) holds for a hypothesis outside the gate in position too: 6 m
     beside its node (the gate 3.3 m there), one that keeps the node's heading waits for a consistent group, one
-    turned 0.6 rad (beyond 0.4 + 3 x 0.041 rad) is rejected at once, and neither touches the map."""
-    d, cmap, links = _after_an_anchoring_lap(MapConfig(), turned, beside=6.0)
+    turned 0.6 rad (beyond 0.4 + 3 x 0.041 rad; ``loop_heading_bias`` off, the walk's part alone) is rejected at once,
+    and neither touches the map."""
+    d, cmap, links = _after_an_anchoring_lap(MapConfig(loop_heading_bias=False), turned, beside=6.0)
     assert d.status == status
     assert "map distance" in d.reason and "exceeds the gate" in d.reason
     assert ("beyond a group's 0.522 rad" in d.reason) == (status == "rejected")
@@ -1662,12 +1664,22 @@ def test_the_gate_widens_with_the_error_of_the_kept_bias():
     assert 0.0 < allowance < 0.5 * full
 
 
+def _heading_limit(cmap, node):
+    """The gate's heading part (rad) for a visual hypothesis naming ``node``, read from the reason of one turned
+    half a circle, which exceeds any part."""
+    c = cmap._candidate(LoopHypothesis(node=node, transform=None, offset=(0.0, 0.0, math.pi), source="test"))
+    reason = cmap._heading_gate(c)
+    assert reason.startswith("heading")
+    return float(reason.split("exceeds the gate ")[1].split(" rad")[0])
+
+
 def test_the_gate_allows_for_a_bias_estimate_too_small_to_keep():
     """A real 0.001 rad/s drift that two laps under heading noise cannot tell from zero: the whole solves' estimate is
     not kept, and the map applies no bias with ``loop_bias_unkept`` on or off (the same poses). The odometry's rate
     may still be that estimate plus its doubt: with the option, the gate 20 m further adds ``bias_drift`` of e = |b|
-    + 2 sd over the path since the last verified closure at the robot's pace; without it, nothing, as before
-    (docs/MODEL.md item 125). A restored map keeps it."""
+    + 2 sd over the path since the last verified closure at the robot's pace, and its anchored heading part the turn
+    e t over those seconds (``loop_heading_bias``); without it, nothing, as before (docs/MODEL.md item 125). A
+    restored map keeps both."""
     inc = square_increments()
     gt, noisy, times = drifting(np.vstack([inc, np.tile([0.1, 0.0, 0.0], (200, 1))]), 0.001, 0.2)
     noisy[:, 2] += np.random.default_rng(0).normal(0.0, 0.002, len(noisy))
@@ -1695,6 +1707,11 @@ def test_the_gate_allows_for_a_bias_estimate_too_small_to_keep():
     assert 2.0 <= pace <= 2.2  # seconds per metre: 0.2 s per 0.1 m step, and the turns since the last closure
     # the size of the estimate counts beside its doubt: without it the allowance is that of 2 sd alone
     assert wide.gate_limit - plain.gate_limit > bias_drift(on.cfg, sd, since, pace) * 1.1
+    turn = (2.0 * sd + unkept) * since * pace
+    assert on._bias_turn() == pytest.approx(turn, rel=1e-9) and off._bias_turn() == 0.0
+    assert _heading_limit(on, 2) - _heading_limit(off, 2) == pytest.approx(turn, abs=2e-3)
+    flat = CognitiveMap.from_state(on.cfg.model_copy(update={"loop_heading_bias": False}), on.state_dict())
+    assert flat._bias_turn() == 0.0 and _heading_limit(flat, 2) == _heading_limit(off, 2)
     restored = CognitiveMap.from_state(on.cfg, on.state_dict())
     again = restored.propose_loop(LoopHypothesis(node=2, transform=None, source="test"))
-    assert again.gate_limit == wide.gate_limit
+    assert again.gate_limit == wide.gate_limit and restored._bias_turn() == on._bias_turn()
