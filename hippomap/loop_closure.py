@@ -48,6 +48,7 @@ __all__ = [
     "LoopBook",
     "gate_limit",
     "bias_drift",
+    "bias_rate_error",
     "cycle_errors",
     "consistent",
     "couple",
@@ -334,6 +335,16 @@ def gate_limit(cfg: MapConfig, measured: bool, drift, bias_m: Any = 0.0) -> Any:
     return base + cfg.loop_radius_per_m * np.asarray(drift, dtype=float) + bias_m
 
 
+def bias_rate_error(cfg: MapConfig, bias_sd: float, unkept: float = 0.0) -> float:
+    """The heading-rate error (rad/s) the gate allows for: ``loop_radius_bias_sd`` posterior standard deviations
+    ``bias_sd`` of the whole solve's bias estimate, plus ``unkept``, the size of an estimate it did not keep (the map
+    applies no bias then, so the odometry's may be that much plus the doubt; ``map.loop_bias_unkept``, docs/MODEL.md
+    item 125). 0 with the option off, or when no estimate bounds it (``bias_sd`` 0 or not finite)."""
+    if cfg.loop_radius_bias_sd <= 0 or not 0 < bias_sd < math.inf:
+        return 0.0
+    return cfg.loop_radius_bias_sd * bias_sd + unkept
+
+
 def bias_drift(
     cfg: MapConfig, bias_sd: float, path_m: float, seconds_per_m: float, node_m: Any = None, unkept: float = 0.0
 ) -> Any:
@@ -350,12 +361,10 @@ def bias_drift(
     than a gate over the whole map. ``node_m`` (the path since each node was made): the error between
     the robot and a node ``d`` metres back is the heading error over those metres only, ``e d (D - d/2)
     seconds_per_m`` for ``d`` below ``D`` = ``path_m`` (``map.loop_bias_per_node``). ``unkept``: the size (rad/s)
-    of an estimate the whole solve made but did not keep (``map.loop_bias_unkept``); the map applies no bias, so the
-    odometry's may be that much plus the estimate's doubt: ``e`` = ``unkept`` + ``loop_radius_bias_sd`` ×
-    ``bias_sd``."""
-    if cfg.loop_radius_bias_sd <= 0 or not 0 < bias_sd < math.inf or path_m <= 0 or seconds_per_m <= 0:
+    of an estimate the whole solve did not keep, which :func:`bias_rate_error` adds to ``e``."""
+    e = bias_rate_error(cfg, bias_sd, unkept)
+    if e <= 0 or path_m <= 0 or seconds_per_m <= 0:
         return 0.0
-    e = cfg.loop_radius_bias_sd * bias_sd + unkept
     if node_m is None:
         return float(e * path_m * path_m * seconds_per_m / 2.0)
     d = np.minimum(np.asarray(node_m, dtype=float), path_m)

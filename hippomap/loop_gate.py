@@ -83,7 +83,8 @@ class LoopGate(MapCorrection):
         verified closure (docs/MODEL.md). Once a verified closure has anchored the map (and the odometry's bias), the
         part is at most ``loop_heading_anchored_rad`` + ``loop_heading_anchored_sd`` × the odometry's heading sd over
         the drift path: a lateral alias read as a turn of 0.7-0.8 rad passed 0.8 + 0.02 rad/m at the end of a long
-        route (docs/MODEL.md item 107). Measured transforms keep their own heading check."""
+        route (docs/MODEL.md item 107), plus the turn of the heading-rate error the gate allows for since that closure
+        (``loop_heading_bias``, item 125). Measured transforms keep their own heading check."""
         cfg = self.cfg
         if cfg.loop_heading_radius_rad is None or c.measured:
             return ""
@@ -99,7 +100,9 @@ class LoopGate(MapCorrection):
         ``loop_heading_group_sd`` × the odometry's heading sd over the drift path of the node's map heading. Three
         recognitions that named places 3.7-5.7 m away and turned them by 2.1 rad, 13 standard deviations of that
         walk, agreed with each other, were linked as a group at full weight and bent the long path between them and
-        their nodes for 630 s of a run (docs/MODEL.md item 111). Measured transforms keep their own heading check."""
+        their nodes for 630 s of a run (docs/MODEL.md item 111); the bound, too, adds the turn of the heading-rate
+        error the gate allows for (``loop_heading_bias``, item 125). Measured transforms keep their own heading
+        check."""
         cfg = self.cfg
         if cfg.loop_heading_group_sd is None or cfg.loop_heading_anchored_rad is None or c.measured:
             return ""

@@ -205,8 +205,9 @@ class MapCorrection(HeadingBranches):
                 P[:] = Q
                 self._bias, self._bias_sd, self._bias_unkept = res.bias, sd, 0.0
                 return res
-            unkept = cfg.loop_bias_unkept  # the gate allows for it all the same (docs/MODEL.md item 125)
-            self._bias, self._bias_sd, self._bias_unkept = 0.0, sd if unkept else 0.0, abs(res.bias) if unkept else 0.0
+            self._bias = 0.0
+            # the gate allows for the estimate all the same (loop_bias_unkept, docs/MODEL.md item 125)
+            self._bias_sd, self._bias_unkept = (sd, abs(res.bias)) if cfg.loop_bias_unkept else (0.0, 0.0)
             work = res.work
         if rotation_init:
             solve["information"] = self._rotation_init(P, src, dst, tr, info, {})[1]

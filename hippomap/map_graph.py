@@ -30,7 +30,7 @@ from .config import MapConfig
 from .errors import InputError, finite, node_id, vec3
 from .geometry import se2_between, se2_compose, se2_inverse, wrap_angle
 from .graph_paths import GraphPaths
-from .loop_closure import LoopBook, bias_drift, drift_path, gate_limit, link_errors, link_info3
+from .loop_closure import LoopBook, bias_drift, bias_rate_error, drift_path, gate_limit, link_errors, link_info3
 from .map_events import FrameAssigned, MapEvent
 from .relaxation import ColourGroups, colour_link, edge_colouring
 from .robust_kernel import USED_WEIGHT, kernel_weights
@@ -392,33 +392,34 @@ class MapGraph:
         bias = self._bias_drift(nodes if self.cfg.loop_bias_per_node else None)
         return np.asarray(gate_limit(self.cfg, measured, self._drift(nodes, measured), bias))
 
-    def _bias_drift(self, nodes: np.ndarray | None = None) -> float | np.ndarray:
-        """:func:`~hippomap.loop_closure.bias_drift` since the last verified closure (or the start): its
-        path, and the seconds per metre of the nodes made since (the robot's pace over the drift); with an estimate
-        the whole solve did not keep, its size too (``map.loop_bias_unkept``)."""
-        if self._bias_sd <= 0:
-            return 0.0
+    def _bias_pace(self) -> float:
+        """Seconds per metre of the nodes made since the last verified closure (or the start): the robot's pace
+        over the drift; 0 while fewer than two nodes span some path."""
         n = self._n
         first = int(np.searchsorted(self._S[:n], self._loops.last_verified_path or 0.0))  # nodes: in path order
         if n - first < 2 or not self._S[n - 1] > self._S[first]:
             return 0.0
-        ds, dt = self._S[n - 1] - self._S[first], self._Tn[n - 1] - self._Tn[first]
+        return float((self._Tn[n - 1] - self._Tn[first]) / (self._S[n - 1] - self._S[first]))
+
+    def _bias_drift(self, nodes: np.ndarray | None = None) -> float | np.ndarray:
+        """:func:`~hippomap.loop_closure.bias_drift` since the last verified closure (or the start), at the pace
+        over that path (:meth:`_bias_pace`); with an estimate the whole solve did not keep, its size too
+        (``map.loop_bias_unkept``)."""
+        if self._bias_sd <= 0:
+            return 0.0
         node_m = None if nodes is None else self._path - self._S[nodes]
-        return bias_drift(self.cfg, self._bias_sd, self.path_since_verified, dt / ds, node_m, self._bias_unkept)
+        return bias_drift(
+            self.cfg, self._bias_sd, self.path_since_verified, self._bias_pace(), node_m, self._bias_unkept
+        )
 
     def _bias_turn(self) -> float:
-        """How far (rad) the heading-rate error the gate allows for may have turned the robot since the last verified
-        closure (``map.loop_heading_bias``; 0 when off or no estimate bounds it)."""
-        cfg = self.cfg
-        if not cfg.loop_heading_bias or self._bias_sd <= 0 or not self._bias_sd < math.inf:
+        """How far (rad) the heading-rate error the gate allows for (:func:`~hippomap.loop_closure.bias_rate_error`)
+        may have turned the robot since the last verified closure, e t over those seconds (``map.loop_heading_bias``;
+        0 when off or no estimate bounds it)."""
+        if not self.cfg.loop_heading_bias or self._bias_sd <= 0:
             return 0.0
-        n = self._n
-        first = int(np.searchsorted(self._S[:n], self._loops.last_verified_path or 0.0))
-        if n - first < 2 or not self._S[n - 1] > self._S[first]:
-            return 0.0
-        pace = (self._Tn[n - 1] - self._Tn[first]) / (self._S[n - 1] - self._S[first])
-        e = cfg.loop_radius_bias_sd * self._bias_sd + self._bias_unkept
-        return float(e * self.path_since_verified * pace) if cfg.loop_radius_bias_sd > 0 else 0.0
+        e = bias_rate_error(self.cfg, self._bias_sd, self._bias_unkept)
+        return e * self.path_since_verified * self._bias_pace()
 
     def take_events(self) -> list[MapEvent]:
         """The events queued since the last call that returned events (by :meth:`propose_loop`,
