@@ -287,7 +287,7 @@ class Mapper(KeyFrames):
         if search != "gated":
             meta["search"] = search
         key_node = node = self.frame_node[int(rec.frame)]
-        offset = self._visual_offset(rec, gray.shape, ahead, turn)
+        offset = self._visual_offset(rec, gray.shape, ahead, turn or 0.0)  # None: no shift, no turn
         span = self.config.mapper.reanchor_span
         if span is not None:  # the link names the node nearest the place claimed (MODEL item 103)
             end = self.cmap.node_count - self.config.map.exclude_recent
