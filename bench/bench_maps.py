@@ -140,6 +140,7 @@ def sim_source_hash() -> str:
 #: the grid world's size, and on photo walls how many photos and whether posters are drawn over them
 SIM_OPTIONS = (
     "omega-bias",
+    "omega-bias-walk",
     "sigma-omega",
     "sigma-v",
     "scale-error",

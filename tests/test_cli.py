@@ -173,6 +173,7 @@ def test_simulate_writes_noisy_odometry_by_default_and_exact_with_no_noise(tmp_p
         "sigma_omega": 0.01,
         "omega_bias": 0.01,
         "scale_error": 0.0,
+        "omega_bias_walk": 0.0,
     }
     assert _odometry_drift(tmp_path / "exact") < 1e-6
     assert _odometry_drift(tmp_path / "noisy") > 0.2  # one 52 m lap drifting 0.01 rad/s

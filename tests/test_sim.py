@@ -4,6 +4,7 @@ odometry noise model, dataset-folder output and wall building around a path."""
 from __future__ import annotations
 
 import csv
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -362,6 +363,25 @@ def test_odometry_noise_statistics_match_config(loop):
     np.testing.assert_array_equal(again.odometry, run.odometry)
     other = sim.simulate(loop, rate_hz=10.0, odometry_noise=noise, seed=5)
     assert not np.array_equal(other.odometry, run.odometry)
+
+
+def test_omega_bias_walk_wanders_at_its_rate_and_leaves_the_other_noise_as_it_was(loop):
+    base = sim.OdometryNoise(sigma_v=0.02, sigma_omega=0.01, omega_bias=0.01)
+    walk = 0.002
+    steady = sim.simulate(loop, rate_hz=10.0, odometry_noise=base, seed=4)
+    wander = sim.simulate(loop, rate_hz=10.0, odometry_noise=replace(base, omega_bias_walk=walk), seed=4)
+    # the same draws for speed and turn-rate noise: only the bias differs
+    np.testing.assert_array_equal(wander.odometry[:, 1], steady.odometry[:, 1])
+    b = wander.odometry[1:, 2] - steady.odometry[1:, 2]
+    dt = np.diff(wander.times)
+    steps = np.diff(b) / np.sqrt(dt[1:])
+    assert abs(steps.mean()) < 4 * walk / np.sqrt(len(steps))
+    assert steps.std() == pytest.approx(walk, rel=0.1)
+    # a random walk, not white noise: the bias at the end is far from the start on the scale of one step
+    assert np.abs(b).max() > 5 * walk * np.sqrt(dt.mean())
+    with pytest.raises(InputError, match="omega_bias_walk"):
+        sim.OdometryNoise(omega_bias_walk=-0.001)
+    assert not sim.OdometryNoise(omega_bias_walk=0.001).is_zero
 
 
 @settings(max_examples=200, deadline=None)

@@ -193,6 +193,14 @@ def _noise_arguments(p: argparse.ArgumentParser) -> None:
         help=f"odometry distance scale error, a fraction (default {realistic.scale_error})",
     )
     p.add_argument(
+        "--omega-bias-walk",
+        type=float,
+        default=None,
+        help="the turn-rate bias wanders as a random walk of this many (rad/s)/sqrt(s), a gyro's rate random "
+        f"walk: after T seconds it has moved by about this times sqrt(T) (default {realistic.omega_bias_walk}: "
+        "a constant bias)",
+    )
+    p.add_argument(
         "--no-noise", action="store_true", help="exact odometry: every noise option 0 unless given explicitly"
     )
 
@@ -260,6 +268,7 @@ def run_command(args) -> int:
             if n.is_zero
             else f"sigma_v {n.sigma_v} m/s, sigma_omega {n.sigma_omega} rad/s, "
             f"omega_bias {n.omega_bias} rad/s, scale_error {n.scale_error}"
+            + (f", omega_bias_walk {n.omega_bias_walk} (rad/s)/sqrt(s)" if n.omega_bias_walk else "")
         )
     )
     return 0

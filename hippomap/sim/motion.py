@@ -320,4 +320,6 @@ def measure_odometry(traj: Trajectory, noise: OdometryNoise, rng: np.random.Gene
         return v, w, inc
     v = (1.0 + noise.scale_error) * v + (rng.normal(0.0, noise.sigma_v, len(v)) if noise.sigma_v > 0 else 0.0)
     w = w + noise.omega_bias + (rng.normal(0.0, noise.sigma_omega, len(w)) if noise.sigma_omega > 0 else 0.0)
+    if noise.omega_bias_walk > 0:  # drawn after the others, so a run without it keeps its noise
+        w = w + np.cumsum(rng.normal(0.0, 1.0, len(w)) * noise.omega_bias_walk * np.sqrt(dt))
     return v, w, arc_increments(v, w, dt)

@@ -177,10 +177,14 @@ class OdometryNoise:
     """Wheel-odometry error model applied to the true (v, ω) of every step:
 
     ``v_meas = (1 + scale_error) * v + N(0, sigma_v)``,
-    ``ω_meas = ω + omega_bias + N(0, sigma_omega)``.
+    ``ω_meas = ω + b(t) + N(0, sigma_omega)``, ``b(t) = omega_bias + W(t)``.
 
     A constant ``omega_bias`` makes the integrated heading drift by ``omega_bias * T``;
-    ``scale_error`` stretches every distance by ``1 + scale_error``.
+    ``scale_error`` stretches every distance by ``1 + scale_error``. ``omega_bias_walk`` lets the
+    bias itself wander as a real gyro's does (temperature, bias instability): ``W`` is a random walk
+    whose steps over ``dt`` seconds are ``N(0, omega_bias_walk * sqrt(dt))`` ((rad/s)/√s, a gyro
+    data sheet's rate random walk), so after ``T`` seconds the bias has moved by about
+    ``omega_bias_walk * sqrt(T)``; 0 keeps it constant.
 
     A field left out is 0, so ``OdometryNoise()`` is exact odometry and
     ``OdometryNoise(omega_bias=0.01)`` a pure heading drift. :meth:`realistic` is the wheel
@@ -191,12 +195,14 @@ class OdometryNoise:
     sigma_omega: float = 0.0  # rad/s
     omega_bias: float = 0.0  # rad/s
     scale_error: float = 0.0  # fraction
+    omega_bias_walk: float = 0.0  # (rad/s)/sqrt(s)
 
     def __post_init__(self):
         _finite(self)
         _check(self, "sigma_v", self.sigma_v >= 0, "must be >= 0")
         _check(self, "sigma_omega", self.sigma_omega >= 0, "must be >= 0")
         _check(self, "scale_error", self.scale_error > -1, "must be > -1")
+        _check(self, "omega_bias_walk", self.omega_bias_walk >= 0, "must be >= 0")
 
     @classmethod
     def realistic(cls) -> "OdometryNoise":
@@ -208,7 +214,13 @@ class OdometryNoise:
 
     @property
     def is_zero(self) -> bool:
-        return self.sigma_v == 0 and self.sigma_omega == 0 and self.omega_bias == 0 and self.scale_error == 0
+        return (
+            self.sigma_v == 0
+            and self.sigma_omega == 0
+            and self.omega_bias == 0
+            and self.scale_error == 0
+            and self.omega_bias_walk == 0
+        )
 
 
 @dataclass(frozen=True)
