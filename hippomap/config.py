@@ -444,6 +444,17 @@ class MapConfig(_Frozen):
         "keep, five of six simulated Bicocca-world maps of the choosing seeds were 8.9-11.7 m off; with "
         "loop_heading_bias, 44 choosing runs at other biases 78.4 -> 36.0 m summed) [ours, docs/MODEL.md item 125]",
     )
+    loop_bias_walk: float = Field(
+        0.0,
+        ge=0,
+        description="(rad/s)/sqrt(s): how fast the odometry's heading bias may wander (a gyro's rate random walk; "
+        "temperature and bias instability move it over a run). The whole solves estimate one rate for the run; after T "
+        "seconds the bias may stand off that average by walk sqrt(T / 3), which loop_radius_bias_sd's allowance adds "
+        "to the estimate's standard deviation in quadrature. 0 (default) = a constant bias. An option for a gyro known "
+        "to wander, set to its data sheet's rate random walk: with the bias wandering 1e-4 (rad/s)/sqrt(s), 1e-4 took "
+        "held-out Bicocca-world maps from 36.0 to 16.4 m summed (seeds 297-299); with a constant bias it grows the "
+        "gate over whole maps (the 64 simulated choosing runs 22.18 -> 42.72 m) [ours, docs/MODEL.md item 126]",
+    )
     loop_heading_bias: bool = Field(
         True,
         description="the gate's anchored heading part (loop_heading_anchored_rad, loop_heading_group_sd) adds the "

@@ -335,34 +335,42 @@ def gate_limit(cfg: MapConfig, measured: bool, drift, bias_m: Any = 0.0) -> Any:
     return base + cfg.loop_radius_per_m * np.asarray(drift, dtype=float) + bias_m
 
 
-def bias_rate_error(cfg: MapConfig, bias_sd: float, unkept: float = 0.0) -> float:
+def bias_rate_error(cfg: MapConfig, bias_sd: float, unkept: float = 0.0, seconds: float = 0.0) -> float:
     """The heading-rate error (rad/s) the gate allows for: ``loop_radius_bias_sd`` posterior standard deviations
     ``bias_sd`` of the whole solve's bias estimate, plus ``unkept``, the size of an estimate it did not keep (the map
     applies no bias then, so the odometry's may be that much plus the doubt; ``map.loop_bias_unkept``, docs/MODEL.md
-    item 125). 0 with the option off, or when no estimate bounds it (``bias_sd`` 0 or not finite)."""
+    item 125). 0 with the option off, or when no estimate bounds it (``bias_sd`` 0 or not finite). ``seconds``: the
+    run's length ``T``; a bias wandering as a random walk of ``map.loop_bias_walk`` (rad/s)/√s stands off its average
+    over the run by ``walk √(T / 3)`` (sd), added to ``bias_sd`` in quadrature (docs/MODEL.md item 126)."""
     if cfg.loop_radius_bias_sd <= 0 or not 0 < bias_sd < math.inf:
         return 0.0
-    return cfg.loop_radius_bias_sd * bias_sd + unkept
+    wander = cfg.loop_bias_walk**2 * max(seconds, 0.0) / 3.0
+    return cfg.loop_radius_bias_sd * math.sqrt(bias_sd * bias_sd + wander) + unkept
 
 
 def bias_drift(
-    cfg: MapConfig, bias_sd: float, path_m: float, seconds_per_m: float, node_m: Any = None, unkept: float = 0.0
+    cfg: MapConfig,
+    bias_sd: float,
+    path_m: float,
+    seconds_per_m: float,
+    node_m: Any = None,
+    unkept: float = 0.0,
+    seconds: float = 0.0,
 ) -> Any:
     """How far (m) the error of the odometry's estimated heading bias may have moved the robot's map
     pose over the ``path_m`` metres since the map last anchored it (the last verified closure).
 
-    A bias error ``e`` (rad/s) turns the heading by ``e t`` after ``t`` seconds; each metre driven
-    then is off by that angle, so at a steady ``seconds_per_m`` the position is off by ``∫ e t ds =
-    e path_m² seconds_per_m / 2``. The gate allows it for ``e`` = ``loop_radius_bias_sd`` posterior
-    standard deviations ``bias_sd`` of the estimate (0 when no bias estimate is applied): the drift
-    allowance ``loop_radius_per_m`` grows with the path, this one with its square, which is how a
-    heading-rate error grows. A ``bias_sd`` that is not finite (an estimate kept by a config without the
-    significance test while the graph does not determine it) bounds nothing: no allowance, rather
-    than a gate over the whole map. ``node_m`` (the path since each node was made): the error between
-    the robot and a node ``d`` metres back is the heading error over those metres only, ``e d (D - d/2)
-    seconds_per_m`` for ``d`` below ``D`` = ``path_m`` (``map.loop_bias_per_node``). ``unkept``: the size (rad/s)
-    of an estimate the whole solve did not keep, which :func:`bias_rate_error` adds to ``e``."""
-    e = bias_rate_error(cfg, bias_sd, unkept)
+    A bias error ``e`` (rad/s) turns the heading by ``e t`` after ``t`` seconds; each metre driven then is off by
+    that angle, so at a steady ``seconds_per_m`` the position is off by ``∫ e t ds = e path_m² seconds_per_m / 2``.
+    The gate allows it for ``e`` = ``loop_radius_bias_sd`` posterior standard deviations ``bias_sd`` of the estimate
+    (0 when no bias estimate is applied): the drift allowance ``loop_radius_per_m`` grows with the path, this one
+    with its square, which is how a heading-rate error grows. A ``bias_sd`` that is not finite (an estimate kept by
+    a config without the significance test while the graph does not determine it) bounds nothing: no allowance,
+    rather than a gate over the whole map. ``node_m`` (the path since each node was made): the error between the
+    robot and a node ``d`` metres back is the heading error over those metres only, ``e d (D - d/2) seconds_per_m``
+    for ``d`` below ``D`` = ``path_m`` (``map.loop_bias_per_node``). ``unkept``: the size (rad/s) of an estimate the
+    whole solve did not keep, and ``seconds`` (the run's length), as :func:`bias_rate_error`."""
+    e = bias_rate_error(cfg, bias_sd, unkept, seconds)
     if e <= 0 or path_m <= 0 or seconds_per_m <= 0:
         return 0.0
     if node_m is None:

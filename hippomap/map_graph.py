@@ -409,8 +409,20 @@ class MapGraph:
             return 0.0
         node_m = None if nodes is None else self._path - self._S[nodes]
         return bias_drift(
-            self.cfg, self._bias_sd, self.path_since_verified, self._bias_pace(), node_m, self._bias_unkept
+            self.cfg,
+            self._bias_sd,
+            self.path_since_verified,
+            self._bias_pace(),
+            node_m,
+            self._bias_unkept,
+            self._run_seconds(),
         )
+
+    def _run_seconds(self) -> float:
+        """Seconds from the first node to the newest: how long the bias the whole solves estimate as one rate may
+        have wandered (``map.loop_bias_walk``)."""
+        n = self._n
+        return float(self._Tn[n - 1] - self._Tn[0]) if n > 1 else 0.0
 
     def _bias_turn(self) -> float:
         """How far (rad) the heading-rate error the gate allows for (:func:`~hippomap.loop_closure.bias_rate_error`)
@@ -418,7 +430,7 @@ class MapGraph:
         0 when off or no estimate bounds it)."""
         if not self.cfg.loop_heading_bias or self._bias_sd <= 0:
             return 0.0
-        e = bias_rate_error(self.cfg, self._bias_sd, self._bias_unkept)
+        e = bias_rate_error(self.cfg, self._bias_sd, self._bias_unkept, self._run_seconds())
         return e * self.path_since_verified * self._bias_pace()
 
     def take_events(self) -> list[MapEvent]:

@@ -26,7 +26,7 @@ from hippomap.config import MapConfig
 from hippomap.errors import InputError
 from hippomap.geometry import between, compose, integrate
 from hippomap.least_squares import graph_cost
-from hippomap.loop_closure import bias_drift
+from hippomap.loop_closure import bias_drift, bias_rate_error
 from hippomap.map_correction import MapCorrection
 from hippomap.map_graph import LOOP
 from hippomap.relaxation import _link_residuals
@@ -1662,6 +1662,68 @@ def test_the_gate_widens_with_the_error_of_the_kept_bias():
     allowance = bias_drift(m2.cfg, sd, since, pace, np.array([m2._path - m2._S[recent]]))[0]
     assert alike.gate_limit - per_node.gate_limit == pytest.approx(full - allowance)
     assert 0.0 < allowance < 0.5 * full
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    k=st.floats(0.1, 5.0),
+    sd=st.floats(1e-6, 0.01),
+    walk=st.floats(0.0, 3e-4),
+    seconds=st.floats(0.0, 7200.0),
+    unkept=st.floats(0.0, 0.01),
+)
+def test_a_wandering_bias_adds_its_spread_about_the_run_average_in_quadrature(k, sd, walk, seconds, unkept):
+    """``bias_rate_error`` with ``loop_bias_walk``: one rate estimated for a run of T seconds misses a bias that
+    wanders as a random walk of ``walk`` (rad/s)/sqrt(s) by its spread about its own average, sd walk sqrt(T / 3),
+    added to the estimate's in quadrature; walk 0 (the default) or T 0 is the constant-bias allowance exactly, the
+    allowance grows with the run, and no estimate (sd 0) still bounds nothing."""
+    cfg = MapConfig(loop_radius_bias_sd=k, loop_bias_walk=walk)
+    got = bias_rate_error(cfg, sd, unkept, seconds)
+    assert got == pytest.approx(k * math.sqrt(sd * sd + walk * walk * seconds / 3.0) + unkept, rel=1e-12)
+    assert bias_rate_error(MapConfig(loop_radius_bias_sd=k), sd, unkept, seconds) == k * sd + unkept
+    assert bias_rate_error(cfg, sd, unkept, 0.0) == pytest.approx(k * sd + unkept, rel=1e-12)
+    assert bias_rate_error(cfg, sd, unkept, 2.0 * seconds + 1.0) >= got
+    assert bias_rate_error(cfg, 0.0, unkept, seconds) == 0.0
+    # the spread of a random walk about its own average over [0, T] is T / 3 in variance (simulated)
+    if walk > 0 and seconds > 10:
+        rng = np.random.default_rng(1)
+        steps = rng.normal(0.0, walk * math.sqrt(seconds / 400), (4000, 400))
+        b = np.cumsum(steps, axis=1)
+        assert np.var(b[:, -1] - b.mean(axis=1)) == pytest.approx(walk * walk * seconds / 3.0, rel=0.1)
+
+
+def test_the_gate_widens_with_how_long_a_wandering_bias_has_had():
+    """The map of ``test_the_gate_widens_with_the_error_of_the_kept_bias`` with ``loop_bias_walk``: the same poses
+    and estimate (the option moves only the gate), and the gate's bias allowance is that of the estimate's deviation
+    and the walk's spread over the run's seconds, in quadrature; its anchored heading part grows the same way."""
+    inc = square_increments()
+    gt, noisy, times = drifting(np.vstack([inc, np.tile([0.1, 0.0, 0.0], (200, 1))]), 0.01, 0.2)
+    loops = true_loops(gt, len(inc) // 2)
+
+    def laps_only(k, cmap, node_at, off):
+        return loops(k, cmap, node_at, off) if k <= len(inc) else []
+
+    maps = {}
+    for walk in (1e-4, 0.0):
+        maps[walk] = CognitiveMap(MapConfig(**_DRIFT_LOOPS, loop_bias_walk=walk))
+        drive(maps[walk], noisy, times=times, hypotheses=laps_only)
+    on, off = maps[1e-4], maps[0.0]
+    np.testing.assert_array_equal(on.poses, off.poses)
+    assert on.state_dict()["robot"] == off.state_dict()["robot"]
+    sd = on.state_dict()["robot"]["odometry_bias_sd"]
+    seconds = on._run_seconds()
+    assert seconds == pytest.approx(float(times[-1] - times[0]), rel=0.05)
+    wide, plain = (m.propose_loop(LoopHypothesis(node=2, transform=None, source="test")) for m in (on, off))
+    since = on.path_since_verified
+    pace = on._bias_pace()
+    spread = math.sqrt(sd * sd + 1e-8 * seconds / 3.0)
+    assert spread > 1.2 * sd  # the walk's spread counts beside the estimate's
+    grown = bias_drift(on.cfg, spread, since, pace, np.array([on._path - on._S[2]]))[0]
+    kept = bias_drift(off.cfg, sd, since, pace, np.array([off._path - off._S[2]]))[0]
+    assert wide.gate_limit - plain.gate_limit == pytest.approx(grown - kept, rel=1e-9)
+    assert on._bias_turn() == pytest.approx(off._bias_turn() * spread / sd, rel=1e-9)
+    restored = CognitiveMap.from_state(on.cfg, on.state_dict())
+    assert restored.propose_loop(LoopHypothesis(node=2, transform=None, source="test")).gate_limit == wide.gate_limit
 
 
 def _heading_limit(cmap, node):
