@@ -17,18 +17,16 @@ After Bicanski & Burgess (2019, [BBc]), adapted to robot key frames:
   ``W_ID->FLC`` its transpose).
 * **Recognition** (:meth:`VisualMemory.recognise`) is a saccade sequence ([BBc] main loop,
   spec §2): the first fixation (a query corner) drives the FLCs, which drive competing
-  frame hypotheses; the most active frame chooses the next feature; the saccade vector to
-  it is decoded from the grid code (Eqs. 4-5, :mod:`hippomap.visual_grid_cells`); a
-  microsaccade snaps the fovea to the best match of the predicted patch within
-  ``tolerance_px``; the feature found there (or not) updates the evidence; a frame is
-  accepted above ``decision_threshold`` (0.9) once it has also predicted
-  ``verify_saccades`` further features correctly (optionally more after resets,
-  ``verify_per_reset``; [S] §3.2: "it will continue to scan");
-  an attempt resets after ``max_prediction_errors`` wrong predictions and the query is
-  rejected after ``max_resets`` resets, or earlier when no frame's activity has reached
-  ``give_up_evidence`` in the first ``give_up_attempts`` attempts (optionally a bar that grows
-  with the number of competing frames, ``give_up_frames``) or has crossed ``decision_threshold``
-  in the first ``give_up_late_attempts``.
+  frame hypotheses; the most active frame chooses the next feature; the saccade vector to it is decoded from the
+  grid code (Eqs. 4-5, :mod:`hippomap.visual_grid_cells`); a microsaccade snaps the fovea to the best match of the
+  predicted patch within ``tolerance_px``; the feature found there (or not) updates the evidence; a frame is accepted
+  above ``decision_threshold`` (0.9) once it has also predicted ``verify_saccades`` further features correctly
+  (optionally more after resets, ``verify_per_reset``; [S] §3.2: "it will continue to scan"), or once it has crossed
+  the threshold in ``repeat_accept`` attempts each reset before their verification was done (docs/MODEL.md item 127);
+  an attempt resets after ``max_prediction_errors`` wrong predictions and the query is rejected after ``max_resets``
+  resets, or earlier when no frame's activity has reached ``give_up_evidence`` in the first ``give_up_attempts``
+  attempts (optionally a bar that grows with the number of competing frames, ``give_up_frames``) or has crossed
+  ``decision_threshold`` in the first ``give_up_late_attempts``.
 
   The grid code is re-anchored onto the first recognised feature (BB's "global
   remapping" for displaced stimuli) and onto every predicted feature, so saccades are the
@@ -203,11 +201,12 @@ class VisualMemory(FixationSensing):
         steps: list[SaccadeStep] = []
         used_starts: set[int] = set()
         peak = 0.0  # the highest frame activity of any attempt so far (activity only grows within one)
+        crossed: dict[int, int] = {}  # attempts in which each frame crossed the threshold and failed verification
         for resets in range(cfg.max_resets + 1):
             a[:] = q.prior
             e = self._start_point(q.starts, used_starts)
             st = _Attempt(e=e, m=e.copy(), primed=primed)
-            accepted = self._attempt(q, st, a, steps, resets)
+            accepted = self._attempt(q, st, a, steps, resets) or self._repeated(q, st, a, steps, resets, crossed)
             if accepted is not None:
                 return accepted
             steps[-1].event = f"reset: {st.reset_reason}"
@@ -344,6 +343,17 @@ class VisualMemory(FixationSensing):
         )
         st.first = False
         return s, outcome
+
+    def _repeated(
+        self, q: _Query, st: _Attempt, a: np.ndarray, steps: list[SaccadeStep], resets: int, crossed: dict[int, int]
+    ) -> Recognition | None:
+        """After an attempt that reset past the threshold: its frame accepted once it has crossed in
+        ``repeat_accept`` attempts (``crossed`` counts them), unless primed (docs/MODEL.md item 127)."""
+        f, k = st.accepted_frame, self.config.repeat_accept
+        if f < 0 or not k or q.prior[f]:
+            return None
+        crossed[f] = crossed.get(f, 0) + 1
+        return self._accepted(st, steps, a, resets, q.size) if crossed[f] >= k else None
 
     def _accepted(
         self, st: _Attempt, steps: list[SaccadeStep], a: np.ndarray, resets: int, size: tuple[int, int]

@@ -566,6 +566,37 @@ def test_later_attempts_must_verify_more():
     assert max(seen_resets) >= 1  # the rule was exercised
 
 
+def test_a_frame_that_keeps_crossing_the_threshold_is_accepted_after_repeat_accept_attempts():
+    """repeat_accept K: a frame that crosses the decision threshold in K attempts of one recognition, each ending in a
+    failed verification, is accepted at the K-th. Views shifted sideways (a step aside) under strict verification
+    keep reaching the right frame and failing a far prediction: without the option most are rejected, with it they
+    are accepted, each as the frame shown, never in the first attempt."""
+    strict = VisualConfig(verify_saccades=6)
+    mems = {k: VisualMemory(strict.model_copy(update={"repeat_accept": k})) for k in (None, 2)}
+    for mem in mems.values():
+        for s in range(N_FRAMES):
+            mem.learn(SCENES[s])
+    rng = np.random.default_rng(3)
+    plain_accepted, repeats = 0, 0
+    for i in range(N_FRAMES):
+        view = np.roll(SCENES[i], 60, axis=1)
+        noisy = np.clip(view.astype(float) + rng.normal(0, 30, view.shape), 0, 255).astype(np.uint8)
+        plain, rec = (mems[k].recognise(noisy) for k in (None, 2))
+        plain_accepted += plain.accepted
+        if not rec.accepted:
+            continue
+        assert rec.frame_id == i
+        last = [s for s in rec.steps if s.attempt == rec.n_resets]
+        th = [k for k, s in enumerate(last) if s.event == "threshold"]
+        after = last[th[0] + 1 :] if th else last
+        assert last[-1].event == "accept"
+        if len(after) == strict.verify_saccades and all(s.outcome == "confirmed" for s in after):
+            continue  # a verified acceptance
+        repeats += 1  # the verification was cut short (here: the next saccade left the shifted view)
+        assert rec.n_resets >= 1  # an earlier attempt crossed the threshold with this frame too
+    assert repeats >= 4 and plain_accepted <= N_FRAMES - repeats
+
+
 @pytest.mark.parametrize(
     "image",
     [
@@ -686,7 +717,7 @@ def test_zoomed_view_is_recognised_with_amplitude_scaled_microsaccades():
     scenes = [scene(100 + s) for s in range(10)]
     ok = {}
     for gain in (0.0, 0.2):
-        mem = VisualMemory(VisualConfig(microsaccade_gain=gain))
+        mem = VisualMemory(VisualConfig(microsaccade_gain=gain, repeat_accept=None))  # its premise: the misses
         ids = [mem.learn(s) for s in scenes]
         recs = [mem.recognise(_zoom(s, 1.2)) for s in scenes]
         assert not any(r.accepted and r.frame_id != fid for r, fid in zip(recs, ids))
