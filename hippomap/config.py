@@ -150,7 +150,7 @@ class VisualConfig(_Frozen):
         "missing the same far prediction); not a primed frame, whose head start makes it cross again and again. 3 "
         "(the first tried): on the 64 simulated choosing runs maps summed 22.180 -> 21.843 m with 0.93 x the "
         "fixations; eval-vpr rtabmap_samples 0.818 -> 0.841, corridor 0.000 -> 0.009, no false positive; held-out "
-        "seed 300 6.531 -> 3.615 m, its small worlds 5-66 mm worse on 7 of 12. None = never (the model before) "
+        "seed 300 6.531 -> 3.615 m, six of its 12 small worlds 9-66 mm worse. None = never (the model before) "
         "[ours, docs/MODEL.md item 127]",
     )
     give_up_late_attempts: int | None = Field(
