@@ -1617,25 +1617,35 @@ def test_bias_drift_per_node_is_the_heading_error_over_the_path_since_the_node(k
         assert np.sum(steps * k * sd * pace * s * (s >= path - di)) == pytest.approx(g, rel=2e-2, abs=1e-9)
 
 
+def _laps_then_straight(rate: float, configs: list[MapConfig], heading_noise: float = 0.0) -> list[CognitiveMap]:
+    """Two square laps whose second closes on the first by true loops, then 20 m straight without a closure, on
+    odometry turning ``rate`` rad/s too much (0.2 s a step; ``heading_noise`` rad per step on top, seed 0): one map
+    driven through it per config, in order."""
+    inc = square_increments()
+    gt, noisy, times = drifting(np.vstack([inc, np.tile([0.1, 0.0, 0.0], (200, 1))]), rate, 0.2)
+    if heading_noise:
+        noisy[:, 2] += np.random.default_rng(0).normal(0.0, heading_noise, len(noisy))
+    loops = true_loops(gt, len(inc) // 2)
+
+    def laps_only(k, cmap, node_at, off):  # the closures of the second lap, none on the straight
+        return loops(k, cmap, node_at, off) if k <= len(inc) else []
+
+    maps = []
+    for cfg in configs:
+        cmap = CognitiveMap(cfg)
+        drive(cmap, noisy, times=times, hypotheses=laps_only)
+        maps.append(cmap)
+    return maps
+
+
 def test_the_gate_widens_with_the_error_of_the_kept_bias():
     """After two laps closed over odometry turning 0.01 rad/s too much, the whole solves keep a bias
     estimate and its posterior standard deviation; 20 m further without a closure the gate of a
     hypothesis is the drift allowance plus ``bias_drift`` of that deviation over the path since the
     last verified closure at the robot's pace (0.2 s per 0.1 m step, and the turns). With ``loop_radius_bias_sd`` 0
     the gate is the drift allowance alone, and a restored map gives the same gate."""
-    inc = square_increments()
-    straight = np.tile([0.1, 0.0, 0.0], (200, 1))
-    gt, noisy, times = drifting(np.vstack([inc, straight]), 0.01, 0.2)
-    loops = true_loops(gt, len(inc) // 2)
-
-    def laps_only(k, cmap, node_at, off):  # the closures of the second lap, none on the straight
-        return loops(k, cmap, node_at, off) if k <= len(inc) else []
-
-    maps = {}
-    for k in (2.0, 0.0):
-        cmap = CognitiveMap(MapConfig(**_DRIFT_LOOPS, loop_radius_bias_sd=k))
-        drive(cmap, noisy, times=times, hypotheses=laps_only)
-        maps[k] = cmap
+    ks = (2.0, 0.0)
+    maps = dict(zip(ks, _laps_then_straight(0.01, [MapConfig(**_DRIFT_LOOPS, loop_radius_bias_sd=k) for k in ks])))
     robot = maps[2.0].state_dict()["robot"]
     assert robot["odometry_bias"] == pytest.approx(0.01, rel=0.1)
     sd = robot["odometry_bias_sd"]
@@ -1696,23 +1706,12 @@ def test_the_gate_widens_with_how_long_a_wandering_bias_has_had():
     """The map of ``test_the_gate_widens_with_the_error_of_the_kept_bias`` with ``loop_bias_walk``: the same poses
     and estimate (the option moves only the gate), and the gate's bias allowance is that of the estimate's deviation
     and the walk's spread over the run's seconds, in quadrature; its anchored heading part grows the same way."""
-    inc = square_increments()
-    gt, noisy, times = drifting(np.vstack([inc, np.tile([0.1, 0.0, 0.0], (200, 1))]), 0.01, 0.2)
-    loops = true_loops(gt, len(inc) // 2)
-
-    def laps_only(k, cmap, node_at, off):
-        return loops(k, cmap, node_at, off) if k <= len(inc) else []
-
-    maps = {}
-    for walk in (1e-4, 0.0):
-        maps[walk] = CognitiveMap(MapConfig(**_DRIFT_LOOPS, loop_bias_walk=walk))
-        drive(maps[walk], noisy, times=times, hypotheses=laps_only)
-    on, off = maps[1e-4], maps[0.0]
+    on, off = _laps_then_straight(0.01, [MapConfig(**_DRIFT_LOOPS, loop_bias_walk=w) for w in (1e-4, 0.0)])
     np.testing.assert_array_equal(on.poses, off.poses)
     assert on.state_dict()["robot"] == off.state_dict()["robot"]
     sd = on.state_dict()["robot"]["odometry_bias_sd"]
     seconds = on._run_seconds()
-    assert seconds == pytest.approx(float(times[-1] - times[0]), rel=0.05)
+    assert seconds == pytest.approx(0.2 * (len(square_increments()) + 200), rel=0.05)  # the run's clock
     wide, plain = (m.propose_loop(LoopHypothesis(node=2, transform=None, source="test")) for m in (on, off))
     since = on.path_since_verified
     pace = on._bias_pace()
@@ -1742,19 +1741,8 @@ def test_the_gate_allows_for_a_bias_estimate_too_small_to_keep():
     + 2 sd over the path since the last verified closure at the robot's pace, and its anchored heading part the turn
     e t over those seconds (``loop_heading_bias``); without it, nothing, as before (docs/MODEL.md item 125). A
     restored map keeps both."""
-    inc = square_increments()
-    gt, noisy, times = drifting(np.vstack([inc, np.tile([0.1, 0.0, 0.0], (200, 1))]), 0.001, 0.2)
-    noisy[:, 2] += np.random.default_rng(0).normal(0.0, 0.002, len(noisy))
-    loops = true_loops(gt, len(inc) // 2)
-
-    def laps_only(k, cmap, node_at, off):  # the closures of the second lap, none on the straight
-        return loops(k, cmap, node_at, off) if k <= len(inc) else []
-
-    maps = {}
-    for unkept in (True, False):
-        maps[unkept] = CognitiveMap(MapConfig(**_DRIFT_LOOPS, loop_bias_unkept=unkept))
-        drive(maps[unkept], noisy, times=times, hypotheses=laps_only)
-    on, off = maps[True], maps[False]
+    configs = [MapConfig(**_DRIFT_LOOPS, loop_bias_unkept=unkept) for unkept in (True, False)]
+    on, off = _laps_then_straight(0.001, configs, heading_noise=0.002)
     np.testing.assert_array_equal(on.poses, off.poses)
     robot, before = on.state_dict()["robot"], off.state_dict()["robot"]
     assert robot["odometry_bias"] == before["odometry_bias"] == 0.0
