@@ -153,6 +153,27 @@ class VisualConfig(_Frozen):
         "seed 300 6.531 -> 3.615 m, six of its 12 small worlds 9-66 mm worse. None = never (the model before) "
         "[ours, docs/MODEL.md item 127]",
     )
+    place_accept: int | None = Field(
+        None,
+        ge=1,
+        description="a recognition about to end without a frame accepts its place once frames learned within "
+        "place_span of each other have crossed decision_threshold in this many of its attempts, each reset before "
+        "its verify_saccades were done: the most active crossing's frame (key frames learned one after the other "
+        "are views of one stretch of the route, and a view between two of them splits its evidence); "
+        "Recognition.reason says 'accepted by its place'. Off by default: with 2, eval-vpr rtabmap_samples 0.841 -> "
+        "0.886 and corridor 0.009 -> 0.018 with no false positive, but on the 64 simulated choosing runs maps "
+        "summed 21.843 -> 22.130 m and accepted false closures 4 -> 11. None = never [ours, docs/MODEL.md item 128]",
+    )
+    place_span: int = Field(
+        2, ge=0, description="frames learned within this many of each other are one place for place_accept [ours]"
+    )
+    place_confirmed: int = Field(
+        2,
+        ge=0,
+        description="a crossing counts for place_accept only when its attempt had confirmed this many predictions: "
+        "of 300 scenes never learned, 12 were accepted with 1, 3 with 2, 1 with 3 (1 without place_accept), and "
+        "3 loses eval-vpr's gain [ours, docs/MODEL.md item 128]",
+    )
     give_up_late_attempts: int | None = Field(
         5,
         ge=1,

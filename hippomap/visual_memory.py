@@ -82,7 +82,8 @@ from .retina import imadjust as _imadjust  # noqa: F401  (kept importable from h
 from .visual_drawing import draw_frame_features, draw_trace
 from .visual_fixation import FixationSensing, Sense
 from .visual_images import prepare_image, prepare_views
-from .visual_recognition import Recognition, SaccadeStep, shift_summary
+from .visual_recognition import PLACE_ACCEPTED, Crossing, Recognition, SaccadeStep, place_choice, shift_summary
+from .visual_recognition import leading as _leading
 
 __all__ = [
     "VisualMemory",
@@ -138,18 +139,6 @@ def _check_bar(value: Any) -> float:
     return bar
 
 
-def _leading(a: np.ndarray, k: int) -> list[tuple[int, float]]:
-    """The ``k`` most active frame hypotheses (frame, activity), strongest first."""
-    # the same selection as ``nz[np.argsort(-a[nz], kind="stable")[:k]]`` over ``nz = np.flatnonzero(a > 0)``,
-    # read through the nonzero values once; ``tolist`` gives the same Python ints and floats as int() and float()
-    nz = (a > 0).nonzero()[0]
-    if nz.size == 0:
-        return []
-    v = a[nz]
-    top = (-v).argsort(kind="stable")[:k]
-    return list(zip(nz[top].tolist(), v[top].tolist()))
-
-
 class VisualMemory(FixationSensing):
     """Library of key frames learned one-shot, recognised by saccade sequences (paper §2.2).
 
@@ -201,7 +190,7 @@ class VisualMemory(FixationSensing):
         steps: list[SaccadeStep] = []
         used_starts: set[int] = set()
         peak = 0.0  # the highest frame activity of any attempt so far (activity only grows within one)
-        crossed: dict[int, int] = {}  # attempts in which each frame crossed the threshold and failed verification
+        crossed: list[Crossing] = []  # frames that crossed the threshold and failed verification, attempt by attempt
         for resets in range(cfg.max_resets + 1):
             a[:] = q.prior
             e = self._start_point(q.starts, used_starts)
@@ -214,9 +203,10 @@ class VisualMemory(FixationSensing):
             peak = max(peak, best)
             why = self._given_up(resets + 1, peak, bar)
             if why:
-                return Recognition(None, best, steps, resets, 0.0, q.size, why)
-        why = f"no match after {cfg.max_resets} resets"
-        return Recognition(None, best, steps, cfg.max_resets, 0.0, q.size, why)
+                break
+        else:
+            why = f"no match after {cfg.max_resets} resets"
+        return self._placed(crossed, steps, resets, q.size) or Recognition(None, best, steps, resets, 0.0, q.size, why)
 
     def _query(
         self, image: Any, candidates: Iterable[int] | None, prior: Iterable[int] | None, prior_activity: float
@@ -309,7 +299,8 @@ class VisualMemory(FixationSensing):
             s, outcome = self._fixate(q, st, a, steps, resets)
             self._decide(st, outcome, steps, a, resets)
             if st.reset_reason is None and st.verify_left == 0:
-                return self._accepted(st, steps, a, resets, q.size)
+                f = st.accepted_frame
+                return self._accepted(Crossing(f, resets, float(a[f]), st.confirmed), steps, resets, q.size)
             if not self._next_saccade(st, s, q.sub, a, q.sense_img):
                 return None
 
@@ -345,27 +336,36 @@ class VisualMemory(FixationSensing):
         return s, outcome
 
     def _repeated(
-        self, q: _Query, st: _Attempt, a: np.ndarray, steps: list[SaccadeStep], resets: int, crossed: dict[int, int]
+        self, q: _Query, st: _Attempt, a: np.ndarray, steps: list[SaccadeStep], resets: int, crossed: list[Crossing]
     ) -> Recognition | None:
-        """After an attempt that reset past the threshold: its frame accepted once it has crossed in
-        ``repeat_accept`` attempts (``crossed`` counts them), unless primed (docs/MODEL.md item 127)."""
+        """After an attempt that reset past the threshold: the crossing recorded in ``crossed`` (never a primed
+        frame's) and its frame accepted once it has crossed in ``repeat_accept`` attempts (docs/MODEL.md item 127)."""
         f, k = st.accepted_frame, self.config.repeat_accept
-        if f < 0 or not k or q.prior[f]:
+        if f < 0 or q.prior[f]:
             return None
-        crossed[f] = crossed.get(f, 0) + 1
-        return self._accepted(st, steps, a, resets, q.size) if crossed[f] >= k else None
+        crossed.append(Crossing(f, resets, float(a[f]), st.confirmed))
+        if not k or sum(c.frame == f for c in crossed) < k:
+            return None
+        return self._accepted(crossed[-1], steps, resets, q.size)
+
+    def _placed(self, cs: list[Crossing], steps: list[SaccadeStep], resets: int, size: tuple[int, int]) -> Any:
+        """The :class:`Recognition` of a recognition about to end without a frame: its place, the most active
+        crossing's frame, once frames learned within ``place_span`` of it have crossed in ``place_accept`` of its
+        attempts (``cs``; :func:`place_choice`, docs/MODEL.md item 128); else None."""
+        n = self.config.place_accept
+        at = place_choice(cs, n, self.config.place_span, self.config.place_confirmed) if n else None
+        return None if at is None else self._accepted(at, steps, resets, size, PLACE_ACCEPTED)
 
     def _accepted(
-        self, st: _Attempt, steps: list[SaccadeStep], a: np.ndarray, resets: int, size: tuple[int, int]
+        self, at: Crossing, steps: list[SaccadeStep], resets: int, size: tuple[int, int], reason: str = "accepted"
     ) -> Recognition:
-        """The recognition of the attempt's accepted frame: its confidence (the fraction of
-        confirmed predictions, discounted by the resets needed) and image correspondences."""
-        fid = st.accepted_frame
+        """The recognition of crossing ``at`` (the accepting attempt's, or an earlier one's): its confidence (the
+        fraction of confirmed predictions, discounted by the resets needed) and that attempt's correspondences."""
         steps[-1].event = "accept"
-        n_att = sum(1 for x in steps if x.attempt == resets)
-        conf = (st.confirmed + 1) / max(1, n_att) / (1.0 + resets)
-        corr, shift = self._correspondences(steps, resets, fid)
-        return Recognition(fid, float(a[fid]), steps, resets, float(conf), size, "accepted", corr, shift)
+        n_att = sum(1 for x in steps if x.attempt == at.attempt)
+        conf = (at.confirmed + 1) / max(1, n_att) / (1.0 + resets)
+        corr, shift = self._correspondences(steps, at.attempt, at.frame)
+        return Recognition(at.frame, at.activity, steps, resets, float(conf), size, reason, corr, shift)
 
     def _start_point(self, starts: np.ndarray, used_starts: set[int]) -> np.ndarray:
         """The first fixation of a new attempt (working px): a query corner not used yet by this

@@ -16,7 +16,7 @@ import numpy as np
 
 from .errors import InputError
 
-__all__ = ["Recognition", "SaccadeStep", "shift_summary"]
+__all__ = ["PLACE_ACCEPTED", "Crossing", "Recognition", "SaccadeStep", "leading", "place_choice", "shift_summary"]
 
 
 def _pt(p: Any) -> list[float] | None:
@@ -33,6 +33,48 @@ def shift_summary(correspondences: list[dict[str, Any]]) -> dict[str, Any] | Non
     med = np.median(d, axis=0)
     mad = np.median(np.abs(d - med), axis=0)
     return {"x": float(med[0]), "y": float(med[1]), "mad_x": float(mad[0]), "mad_y": float(mad[1]), "n": int(len(d))}
+
+
+@dataclass(frozen=True)
+class Crossing:
+    """A frame whose activity crossed the decision threshold in one attempt of a recognition, which then reset
+    before its verification saccades were done: the frame, the attempt, its activity then and the predictions it
+    had confirmed."""
+
+    frame: int
+    attempt: int
+    activity: float
+    confirmed: int
+
+
+def leading(a: np.ndarray, k: int) -> list[tuple[int, float]]:
+    """The ``k`` most active frame hypotheses (frame, activity), strongest first."""
+    # the same selection as ``nz[np.argsort(-a[nz], kind="stable")[:k]]`` over ``nz = np.flatnonzero(a > 0)``,
+    # read through the nonzero values once; ``tolist`` gives the same Python ints and floats as int() and float()
+    nz = (a > 0).nonzero()[0]
+    if nz.size == 0:
+        return []
+    v = a[nz]
+    top = (-v).argsort(kind="stable")[:k]
+    return list(zip(nz[top].tolist(), v[top].tolist()))
+
+
+#: :attr:`Recognition.reason` of a frame accepted for the crossings of its place (:func:`place_choice`)
+PLACE_ACCEPTED = "accepted by its place"
+
+
+def place_choice(crossings: list[Crossing], n: int, span: int, confirmed: int = 0) -> Crossing | None:
+    """The crossing a recognition that found no frame accepts for its place: of the crossings with at least
+    ``confirmed`` confirmed predictions, the most active (the earliest on ties), once frames learned within ``span`` of
+    its frame (that frame included) have crossed in ``n`` of them; else None (docs/MODEL.md item 128). Key frames
+    learned one after the other are views of one stretch of the route: a view between two of them splits its
+    evidence, and each may cross the threshold and miss a far prediction, as a view from a step aside does with one
+    frame (item 127). A crossing on the drive of a start fixation and one lucky prediction is what chance gives."""
+    crossings = [c for c in crossings if c.confirmed >= confirmed]
+    if not crossings:
+        return None
+    best = max(crossings, key=lambda c: c.activity)
+    return best if sum(abs(c.frame - best.frame) <= span for c in crossings) >= n else None
 
 
 @dataclass

@@ -24,6 +24,7 @@ from hippomap.visual_memory import (
     draw_trace,
     prepare_image,
 )
+from hippomap.visual_recognition import PLACE_ACCEPTED, Crossing, place_choice
 
 scene = shapes_scene
 
@@ -595,6 +596,59 @@ def test_a_frame_that_keeps_crossing_the_threshold_is_accepted_after_repeat_acce
         repeats += 1  # the verification was cut short (here: the next saccade left the shifted view)
         assert rec.n_resets >= 1  # an earlier attempt crossed the threshold with this frame too
     assert repeats >= 4 and plain_accepted <= N_FRAMES - repeats
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    frames=hs.lists(hs.integers(0, 12), max_size=10),
+    acts=hs.lists(hs.sampled_from([0.91, 0.95, 1.0]), min_size=10, max_size=10),
+    n=hs.integers(1, 4),
+    span=hs.integers(0, 3),
+    confirmed=hs.integers(0, 3),
+)
+def test_place_choice_is_the_most_active_crossing_once_its_place_has_n(frames, acts, n, span, confirmed):
+    """place_choice: of the crossings with ``confirmed`` confirmed predictions or more, the most active, the earliest
+    on ties, once frames within ``span`` of its frame (itself included) have crossed ``n`` times among them; else None
+    (and None without such a crossing)."""
+    cs = [Crossing(f, i, acts[i], i % 3) for i, f in enumerate(frames)]
+    got = place_choice(cs, n, span, confirmed)
+    counted = [c for c in cs if c.confirmed >= confirmed]
+    if not counted:
+        assert got is None
+        return
+    top = max(c.activity for c in counted)
+    best = next(c for c in counted if c.activity == top)
+    assert got == (best if sum(abs(c.frame - best.frame) <= span for c in counted) >= n else None)
+
+
+def test_views_between_key_frames_are_accepted_by_their_place():
+    """place_accept: key frames learned one after the other along a wall (views 80 px apart) split the evidence of a
+    view taken between two of them; under strict verification their crossings, added up at the end of a recognition
+    that found no frame, accept more such views, each as a key frame whose view overlaps the query's, and no scene
+    never seen is accepted more than without."""
+    n, step = 12, 80
+    counts = {}
+    for place in (None, 2):
+        accepted = placed = novel = 0
+        for seed in range(3):
+            wall = scene(seed, width=320 + (n + 1) * step, shapes=150)
+            mem = VisualMemory(VisualConfig(verify_saccades=6, place_accept=place))
+            for j in range(n):
+                mem.learn(wall[:, j * step : j * step + 320])
+            rng = np.random.default_rng(seed)
+            for j in range(n - 1):
+                o = j * step + step // 2  # between key frames j and j + 1
+                view = wall[:, o : o + 320].astype(float) + rng.normal(0, 20, (240, 320))
+                rec = mem.recognise(np.clip(view, 0, 255).astype(np.uint8))
+                if rec.accepted:
+                    accepted += 1
+                    placed += rec.reason == PLACE_ACCEPTED
+                    assert -1 <= rec.frame_id - j <= 2  # at most 1.5 key frames off: half the view in common
+            novel += sum(mem.recognise(scene(s)).accepted for s in range(100, 110))
+        counts[place] = (accepted, placed, novel)
+    assert counts[None][1] == 0 and counts[2][1] >= 4
+    assert counts[2][0] >= counts[None][0] + 4
+    assert counts[2][2] <= counts[None][2]
 
 
 @pytest.mark.parametrize(
