@@ -4,7 +4,9 @@
 accepted frame (or none), every fixation as a :class:`SaccadeStep`, and for an accepted frame the
 image correspondences and their robust shift (:func:`shift_summary`), what the cognitive map needs
 to turn a recognition into a relative pose. Both records round-trip through plain dicts
-(``to_dict`` / ``from_dict``), which the mapper's events, the service and the viewer carry.
+(``to_dict`` / ``from_dict``), which the mapper's events, the service and the viewer carry. A
+recognition also keeps the threshold crossings its attempts made (:class:`Crossing`), from which
+:func:`place_choice` names a place (docs/MODEL.md item 128).
 """
 
 from __future__ import annotations
