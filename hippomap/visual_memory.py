@@ -206,7 +206,7 @@ class VisualMemory(FixationSensing):
                 break
         else:
             why = f"no match after {cfg.max_resets} resets"
-        return self._placed(crossed, steps, resets, q.size) or Recognition(None, best, steps, resets, 0.0, q.size, why)
+        return self._placed(crossed, q, steps, resets) or Recognition(None, best, steps, resets, 0.0, q.size, why)
 
     def _query(
         self, image: Any, candidates: Iterable[int] | None, prior: Iterable[int] | None, prior_activity: float
@@ -348,13 +348,13 @@ class VisualMemory(FixationSensing):
             return None
         return self._accepted(crossed[-1], steps, resets, q.size)
 
-    def _placed(self, cs: list[Crossing], steps: list[SaccadeStep], resets: int, size: tuple[int, int]) -> Any:
+    def _placed(self, cs: list[Crossing], q: _Query, steps: list[SaccadeStep], resets: int) -> Recognition | None:
         """The :class:`Recognition` of a recognition about to end without a frame: its place, the most active
         crossing's frame, once frames learned within ``place_span`` of it have crossed in ``place_accept`` of its
         attempts (``cs``; :func:`place_choice`, docs/MODEL.md item 128); else None."""
         n = self.config.place_accept
         at = place_choice(cs, n, self.config.place_span, self.config.place_confirmed) if n else None
-        return None if at is None else self._accepted(at, steps, resets, size, PLACE_ACCEPTED)
+        return None if at is None else self._accepted(at, steps, resets, q.size, PLACE_ACCEPTED)
 
     def _accepted(
         self, at: Crossing, steps: list[SaccadeStep], resets: int, size: tuple[int, int], reason: str = "accepted"
