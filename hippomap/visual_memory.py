@@ -82,7 +82,16 @@ from .retina import imadjust as _imadjust  # noqa: F401  (kept importable from h
 from .visual_drawing import draw_frame_features, draw_trace
 from .visual_fixation import FixationSensing, Sense
 from .visual_images import prepare_image, prepare_views
-from .visual_recognition import PLACE_ACCEPTED, Crossing, Recognition, SaccadeStep, place_choice, shift_summary
+from .visual_recognition import (
+    PLACE_ACCEPTED,
+    PLACE_LOOKED,
+    Crossing,
+    Recognition,
+    SaccadeStep,
+    correspondences,
+    place_choice,
+    shift_summary,
+)
 from .visual_recognition import leading as _leading
 
 __all__ = [
@@ -129,6 +138,7 @@ class _Query:
     size: tuple[int, int]
     nframes: int  # the frames competing
     prior: np.ndarray  # each frame's activity at the start of every attempt (zeros without a prior)
+    reason: str = "accepted"  # Recognition.reason of a frame accepted among these units
 
 
 def _check_bar(value: Any) -> float:
@@ -159,24 +169,19 @@ class VisualMemory(FixationSensing):
     ) -> Recognition:
         """Recognise a frame by a saccade sequence (spec §2 recognition; [BBc] main loop).
 
-        ``candidates``: restrict the hypotheses to these frame ids (the cognitive map passes
-        the frames of nodes near the current place code); ``None`` = all frames.
-        ``give_up_evidence``: the activity bar of the give-up rule for this recognition (``None``:
-        the config's, :meth:`_give_up_bar`); a search among more frames can ask more of its first
-        attempts, as chance alone lifts some frame higher there.
-        ``prior``: frames (among the candidates) expected here, which start every attempt with
-        ``prior_activity`` (in [0, ``decision_threshold``)) instead of 0: they still compete with every
-        candidate and must be verified, but need less evidence to win (a mapper retracing its path expects
-        the old path's next key frames, :attr:`~hippomap.config.MapperConfig.sequence_prior`). The head start
-        counts neither towards the give-up bars nor towards ``max_total_activity``.
+        ``candidates``: the frame ids whose hypotheses compete (the map passes the key frames near its place code);
+        ``None`` = all. ``give_up_evidence``: this recognition's bar of the give-up rule (``None``: the config's,
+        :meth:`_give_up_bar`; a search among more frames can ask more). ``prior``: candidate frames expected here
+        (:attr:`~hippomap.config.MapperConfig.sequence_prior`), which start every attempt at ``prior_activity`` (in
+        [0, ``decision_threshold``)): they still compete and must be verified; the head start counts towards neither
+        the give-up bars nor ``max_total_activity``.
 
-        Attempts follow each other until one accepts a frame or ``max_resets`` resets have been
-        used (or, after ``give_up_attempts`` attempts, while no frame has reached
-        ``give_up_evidence``; after ``give_up_late_attempts``, while none has crossed ``decision_threshold``).
-        Each attempt (:meth:`_attempt`) starts at a query corner (:meth:`_start_point`); at every fixation
-        (:meth:`_fixate`) the feature units are driven (:meth:`_sense`), the frame hypotheses updated
-        (:meth:`_observe`), the decision checked (:meth:`_decide`), and the most active frame chooses the next
-        saccade (:meth:`_next_saccade`).
+        Attempts (:meth:`_attempt`, each from a query corner, :meth:`_start_point`) follow each other until one
+        accepts a frame, ``max_resets`` resets are used or a give-up rule ends them (:meth:`_given_up`); once a
+        place's frames have kept crossing the threshold, the next attempts may look at them alone
+        (:meth:`_place_look`). At every fixation (:meth:`_fixate`) the feature units are driven (:meth:`_sense`), the
+        hypotheses updated (:meth:`_observe`), the decision checked (:meth:`_decide`) and the most active frame
+        chooses the next saccade (:meth:`_next_saccade`).
         """
         cfg = self.config
         bar = None if give_up_evidence is None else _check_bar(give_up_evidence)
@@ -191,17 +196,23 @@ class VisualMemory(FixationSensing):
         used_starts: set[int] = set()
         peak = 0.0  # the highest frame activity of any attempt so far (activity only grows within one)
         crossed: list[Crossing] = []  # frames that crossed the threshold and failed verification, attempt by attempt
+        look: _Query | None = None  # the place's frames alone, once they have kept crossing (docs/MODEL.md item 129)
+        looks = 0
         for resets in range(cfg.max_resets + 1):
             a[:] = q.prior
             e = self._start_point(q.starts, used_starts)
             st = _Attempt(e=e, m=e.copy(), primed=primed)
-            accepted = self._attempt(q, st, a, steps, resets) or self._repeated(q, st, a, steps, resets, crossed)
+            accepted = self._attempt(look or q, st, a, steps, resets)
+            if accepted is None and look is None:
+                accepted = self._repeated(q, st, a, steps, resets, crossed)
             if accepted is not None:
                 return accepted
             steps[-1].event = f"reset: {st.reset_reason}"
             best = float((a - q.prior).max()) if a.size else 0.0
             peak = max(peak, best)
-            why = self._given_up(resets + 1, peak, bar)
+            looks += look is not None
+            look = look or self._place_look(crossed, q)
+            why = self._given_up(resets + 1, peak, bar, looks)
             if why:
                 break
         else:
@@ -246,11 +257,14 @@ class VisualMemory(FixationSensing):
         start[ids] = a
         return start
 
-    def _given_up(self, attempts: int, peak: float, bar: float) -> str:
+    def _given_up(self, attempts: int, peak: float, bar: float, looks: int = 0) -> str:
         """Why a recognition gives up after ``attempts`` attempts whose highest frame activity was ``peak``, or "":
         no frame reached ``bar`` in the first ``give_up_attempts``, or none crossed ``decision_threshold`` in the
-        first ``give_up_late_attempts`` (an evidence-accumulation bound that collapses with time)."""
+        first ``give_up_late_attempts`` (an evidence-accumulation bound that collapses with time), or ``looks``
+        attempts among a place's frames alone verified none (``place_look``)."""
         cfg = self.config
+        if cfg.place_look is not None and looks >= cfg.place_look:
+            return f"its place not verified in {looks} attempts"
         if cfg.give_up_attempts is not None and attempts >= cfg.give_up_attempts and peak < bar:
             return f"no frame reached {bar:g} in {attempts} attempts"
         late = cfg.give_up_late_attempts
@@ -300,7 +314,7 @@ class VisualMemory(FixationSensing):
             self._decide(st, outcome, steps, a, resets)
             if st.reset_reason is None and st.verify_left == 0:
                 f = st.accepted_frame
-                return self._accepted(Crossing(f, resets, float(a[f]), st.confirmed), steps, resets, q.size)
+                return self._accepted(Crossing(f, resets, float(a[f]), st.confirmed), steps, resets, q.size, q.reason)
             if not self._next_saccade(st, s, q.sub, a, q.sense_img):
                 return None
 
@@ -356,6 +370,19 @@ class VisualMemory(FixationSensing):
         at = place_choice(cs, n, self.config.place_span, self.config.place_confirmed) if n else None
         return None if at is None else self._accepted(at, steps, resets, q.size, PLACE_ACCEPTED)
 
+    def _place_look(self, cs: list[Crossing], q: _Query) -> _Query | None:
+        """The query among its place's frames alone (the candidates learned within ``place_span`` of the most active
+        crossing's frame), once such frames have crossed in ``place_look_crossings`` of its attempts (``cs``;
+        :func:`place_choice`), if ``place_look`` is set; else None (docs/MODEL.md item 129)."""
+        cfg = self.config
+        at = place_choice(cs, cfg.place_look_crossings, cfg.place_span, cfg.place_confirmed) if cfg.place_look else None
+        if at is None:
+            return None
+        frames = np.unique(self._frame[q.sub.idx]).astype(np.int64)
+        frames = frames[np.abs(frames - at.frame) <= cfg.place_span]
+        sub = FlcSubset(self, frames)
+        return _Query(sub, q.sense_img, q.starts, q.scale, q.size, int(frames.size), q.prior, PLACE_LOOKED)
+
     def _accepted(
         self, at: Crossing, steps: list[SaccadeStep], resets: int, size: tuple[int, int], reason: str = "accepted"
     ) -> Recognition:
@@ -364,7 +391,8 @@ class VisualMemory(FixationSensing):
         steps[-1].event = "accept"
         n_att = sum(1 for x in steps if x.attempt == at.attempt)
         conf = (at.confirmed + 1) / max(1, n_att) / (1.0 + resets)
-        corr, shift = self._correspondences(steps, at.attempt, at.frame)
+        scale = float(self._fscale[at.frame])
+        corr, shift = correspondences(steps, at.attempt, at.frame, self._frame, self._pos, scale)
         return Recognition(at.frame, at.activity, steps, resets, float(conf), size, reason, corr, shift)
 
     def _start_point(self, starts: np.ndarray, used_starts: set[int]) -> np.ndarray:
@@ -465,36 +493,3 @@ class VisualMemory(FixationSensing):
         st.m = self._pos[k_star].astype(np.int64) if cfg.anchor == "start" else st.e.copy()
         st.predicted = k_star
         return True
-
-    def _correspondences(
-        self, steps: list[SaccadeStep], attempt: int, fid: int
-    ) -> tuple[list[dict[str, Any]], dict[str, Any] | None]:
-        """Image correspondences of the accepting attempt and their robust shift summary.
-
-        One per fixation of ``attempt`` whose feature belongs to the accepted frame ``fid``:
-        the start fixation with the feature that won it, every confirmed fixation with the
-        predicted feature (the microsaccade has snapped the fovea onto it). ``query`` is the
-        fixation, ``memory`` the feature's learned position, both in input-image px."""
-        corr: list[dict[str, Any]] = []
-        for st in steps:
-            if st.attempt != attempt:
-                continue
-            if st.outcome == "start":
-                k = st.found_feature
-            elif st.outcome == "confirmed":
-                k = st.predicted_feature
-            else:
-                continue
-            if k is None or int(self._frame[k]) != fid:
-                continue
-            sc = float(self._fscale[fid])
-            mx, my = (float(v) * sc for v in self._pos[k])
-            corr.append(
-                {
-                    "query": [float(st.fixation[0]), float(st.fixation[1])],
-                    "memory": [mx, my],
-                    "feature": int(k),
-                    "outcome": st.outcome,
-                }
-            )
-        return corr, shift_summary(corr)

@@ -18,7 +18,17 @@ import numpy as np
 
 from .errors import InputError
 
-__all__ = ["PLACE_ACCEPTED", "Crossing", "Recognition", "SaccadeStep", "leading", "place_choice", "shift_summary"]
+__all__ = [
+    "PLACE_ACCEPTED",
+    "PLACE_LOOKED",
+    "Crossing",
+    "Recognition",
+    "SaccadeStep",
+    "correspondences",
+    "leading",
+    "place_choice",
+    "shift_summary",
+]
 
 
 def _pt(p: Any) -> list[float] | None:
@@ -35,6 +45,39 @@ def shift_summary(correspondences: list[dict[str, Any]]) -> dict[str, Any] | Non
     med = np.median(d, axis=0)
     mad = np.median(np.abs(d - med), axis=0)
     return {"x": float(med[0]), "y": float(med[1]), "mad_x": float(mad[0]), "mad_y": float(mad[1]), "n": int(len(d))}
+
+
+def correspondences(
+    steps: list[SaccadeStep], attempt: int, fid: int, frame_of: np.ndarray, pos: np.ndarray, scale: float
+) -> tuple[list[dict[str, Any]], dict[str, Any] | None]:
+    """Image correspondences of the accepting ``attempt`` and their robust shift summary (:func:`shift_summary`).
+
+    One per fixation of ``attempt`` whose feature belongs to the accepted frame ``fid`` (``frame_of``: each feature's
+    frame): the start fixation with the feature that won it, every confirmed fixation with the predicted feature (the
+    microsaccade has snapped the fovea onto it). ``query`` is the fixation, ``memory`` the feature's learned position
+    (``pos``, working px of its frame, times the frame's input ``scale``), both in input-image px."""
+    corr: list[dict[str, Any]] = []
+    for st in steps:
+        if st.attempt != attempt:
+            continue
+        if st.outcome == "start":
+            k = st.found_feature
+        elif st.outcome == "confirmed":
+            k = st.predicted_feature
+        else:
+            continue
+        if k is None or int(frame_of[k]) != fid:
+            continue
+        mx, my = (float(v) * scale for v in pos[k])
+        corr.append(
+            {
+                "query": [float(st.fixation[0]), float(st.fixation[1])],
+                "memory": [mx, my],
+                "feature": int(k),
+                "outcome": st.outcome,
+            }
+        )
+    return corr, shift_summary(corr)
 
 
 @dataclass(frozen=True)
@@ -63,6 +106,8 @@ def leading(a: np.ndarray, k: int) -> list[tuple[int, float]]:
 
 #: :attr:`Recognition.reason` of a frame accepted for the crossings of its place (:func:`place_choice`)
 PLACE_ACCEPTED = "accepted by its place"
+#: :attr:`Recognition.reason` of a frame accepted and verified among its place's frames (docs/MODEL.md item 129)
+PLACE_LOOKED = "accepted among its place's frames"
 
 
 def place_choice(crossings: list[Crossing], n: int, span: int, confirmed: int = 0) -> Crossing | None:

@@ -24,7 +24,7 @@ from hippomap.visual_memory import (
     draw_trace,
     prepare_image,
 )
-from hippomap.visual_recognition import PLACE_ACCEPTED, Crossing, place_choice
+from hippomap.visual_recognition import PLACE_ACCEPTED, PLACE_LOOKED, Crossing, place_choice
 
 scene = shapes_scene
 
@@ -621,25 +621,33 @@ def test_place_choice_is_the_most_active_crossing_once_its_place_has_n(frames, a
     assert got == (best if sum(abs(c.frame - best.frame) <= span for c in counted) >= n else None)
 
 
+def wall_views(config: VisualConfig, seed: int, n: int = 12, step: int = 80):
+    """A memory of ``n`` key frames learned one after the other along a wall (views ``step`` px apart), and the
+    recognition of a noisy view taken between each two of them, ``(j, rec)`` for the view between frames j and j + 1;
+    then the memory itself (for scenes never seen)."""
+    wall = scene(seed, width=320 + (n + 1) * step, shapes=150)
+    mem = VisualMemory(config)
+    for j in range(n):
+        mem.learn(wall[:, j * step : j * step + 320])
+    rng = np.random.default_rng(seed)
+    for j in range(n - 1):
+        o = j * step + step // 2  # between key frames j and j + 1
+        view = wall[:, o : o + 320].astype(float) + rng.normal(0, 20, (240, 320))
+        yield j, mem.recognise(np.clip(view, 0, 255).astype(np.uint8))
+    yield -1, mem
+
+
 def test_views_between_key_frames_are_accepted_by_their_place():
     """place_accept: key frames learned one after the other along a wall (views 80 px apart) split the evidence of a
     view taken between two of them; under strict verification their crossings, added up at the end of a recognition
     that found no frame, accept more such views, each as a key frame whose view overlaps the query's, and no scene
     never seen is accepted more than without."""
-    n, step = 12, 80
     counts = {}
     for place in (None, 2):
         accepted = placed = novel = 0
         for seed in range(3):
-            wall = scene(seed, width=320 + (n + 1) * step, shapes=150)
-            mem = VisualMemory(VisualConfig(verify_saccades=6, place_accept=place))
-            for j in range(n):
-                mem.learn(wall[:, j * step : j * step + 320])
-            rng = np.random.default_rng(seed)
-            for j in range(n - 1):
-                o = j * step + step // 2  # between key frames j and j + 1
-                view = wall[:, o : o + 320].astype(float) + rng.normal(0, 20, (240, 320))
-                rec = mem.recognise(np.clip(view, 0, 255).astype(np.uint8))
+            *views, (_, mem) = wall_views(VisualConfig(verify_saccades=6, place_accept=place), seed)
+            for j, rec in views:
                 if rec.accepted:
                     accepted += 1
                     placed += rec.reason == PLACE_ACCEPTED
@@ -649,6 +657,63 @@ def test_views_between_key_frames_are_accepted_by_their_place():
     assert counts[None][1] == 0 and counts[2][1] >= 4
     assert counts[2][0] >= counts[None][0] + 4
     assert counts[2][2] <= counts[None][2]
+
+
+def test_a_place_whose_frames_keep_crossing_is_looked_at_alone_and_verified():
+    """place_look: views taken between two key frames learned one after the other along a wall split their evidence;
+    under strict verification, once the place's frames have crossed the threshold in two attempts, the next attempts
+    are made among them alone. Some views are then accepted among their place's frames, each as a key frame whose view
+    overlaps the query's and verified like any acceptance (its frame crossed the threshold, then confirmed every one
+    of ``verify_saccades`` predictions), and no scene never seen is accepted more than without."""
+    counts = {}
+    for look in (None, 3):
+        looked = novel = 0
+        for seed in range(3):
+            *views, (_, mem) = wall_views(VisualConfig(verify_saccades=4, place_look=look), seed)
+            for j, rec in views:
+                if rec.reason != PLACE_LOOKED:
+                    continue
+                looked += 1
+                assert -1 <= rec.frame_id - j <= 2  # at most 1.5 key frames off: half the view in common
+                last = [s for s in rec.steps if s.attempt == rec.n_resets]
+                th = [k for k, s in enumerate(last) if s.event == "threshold"]
+                after = last[th[0] + 1 :]
+                assert len(after) == 4 and all(
+                    s.outcome == "confirmed" and s.predicted_frame == rec.frame_id for s in after
+                )
+            novel += sum(mem.recognise(scene(s)).accepted for s in range(100, 110))
+        counts[look] = (looked, novel)
+    assert counts[None][0] == 0 and counts[3][0] >= 3
+    assert counts[3][1] <= counts[None][1]
+
+
+@pytest.mark.parametrize(
+    ("crossings", "candidates", "look", "frames"),
+    [
+        ([(5, 0.95, 2), (6, 0.97, 2)], None, 3, {4, 5, 6, 7, 8}),  # within place_span (2) of the most active, 6
+        ([(5, 0.95, 2), (6, 0.97, 2)], [0, 5, 6, 8, 9], 3, {5, 6, 8}),  # ... among the candidates only
+        ([(1, 0.99, 2), (6, 0.97, 2), (8, 0.95, 2)], None, 3, None),  # the most active (1) has no neighbour crossing
+        ([(5, 0.95, 2), (6, 0.97, 1)], None, 3, None),  # a crossing with one confirmed prediction does not count
+        ([(5, 0.95, 2)], None, 3, None),  # one crossing is not a place
+        ([(5, 0.95, 2), (6, 0.97, 2)], None, None, None),  # place_look off
+    ],
+)
+def test_a_place_look_is_the_query_among_the_place_frames_alone(crossings, candidates, look, frames):
+    """place_look: once frames learned within place_span of each other have crossed in place_look_crossings attempts
+    (each with place_confirmed confirmed predictions), the next attempts compete among the candidate frames within
+    place_span of the most active crossing's frame, and only their feature units."""
+    mem = VisualMemory(VisualConfig(place_look=look))
+    for s in range(10):
+        mem.learn(scene(s))
+    q = mem._query(scene(3), candidates, None, 0.0)
+    got = mem._place_look([Crossing(f, i, act, c) for i, (f, act, c) in enumerate(crossings)], q)
+    if frames is None:
+        assert got is None
+        return
+    assert got is not None and set(mem._frame[got.sub.idx].tolist()) == frames
+    want = np.concatenate([np.arange(mem._fstart[f], mem._fstart[f] + mem._fcount[f]) for f in sorted(frames)])
+    assert np.array_equal(np.sort(got.sub.idx), want)
+    assert got.nframes == len(frames) and got.starts is q.starts and got.sense_img is q.sense_img
 
 
 @pytest.mark.parametrize(
