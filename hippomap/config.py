@@ -171,12 +171,20 @@ class VisualConfig(_Frozen):
         "place_look_crossings attempts of a recognition, each reset before its verify_saccades were done, its next "
         "attempts (at most this many, within max_resets) are made among those frames alone, each accepting only a "
         "frame verified as usual; Recognition.reason says 'accepted among its place's frames'. Off by default: "
-        "with 3, eval-vpr rtabmap_samples 0.841 -> 0.864 with no false positive, but corridor 0.009 -> 0.000, and "
-        "held out (seeds 309-311) maps summed 8.150 -> 8.338 m, the Bicocca world's 3 % worse. None = never "
+        "with 3, eval-vpr rtabmap_samples 0.841 -> 0.864 and corridor 0.009 -> 0.009 with no false positive, but "
+        "the Bicocca world's maps 1-3 % worse (64 choosing runs 21.843 -> 22.092 m; held out, seeds 309-311, "
+        "8.150 -> 8.312 m, the small worlds better). None = never "
         "[ours, docs/MODEL.md item 129]",
     )
     place_look_crossings: int = Field(
         2, ge=1, description="crossings of a place's frames that make place_look look at them alone [ours]"
+    )
+    place_look_distinct: int = Field(
+        2,
+        ge=1,
+        description="of the crossings that make place_look look at a place, at least this many of different frames "
+        "(one frame crossing again and again is repeat_accept's case): with 1, corridor's one recognised query is "
+        "lost to a look [ours, docs/MODEL.md item 129]",
     )
     place_span: int = Field(
         2,

@@ -375,7 +375,8 @@ class VisualMemory(FixationSensing):
         crossing's frame), once such frames have crossed in ``place_look_crossings`` of its attempts (``cs``;
         :func:`place_choice`), if ``place_look`` is set; else None (docs/MODEL.md item 129)."""
         cfg = self.config
-        at = place_choice(cs, cfg.place_look_crossings, cfg.place_span, cfg.place_confirmed) if cfg.place_look else None
+        n, distinct = cfg.place_look_crossings, cfg.place_look_distinct
+        at = place_choice(cs, n, cfg.place_span, cfg.place_confirmed, distinct) if cfg.place_look else None
         if at is None:
             return None
         frames = np.unique(self._frame[q.sub.idx]).astype(np.int64)

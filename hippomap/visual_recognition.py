@@ -110,10 +110,13 @@ PLACE_ACCEPTED = "accepted by its place"
 PLACE_LOOKED = "accepted among its place's frames"
 
 
-def place_choice(crossings: list[Crossing], n: int, span: int, confirmed: int = 0) -> Crossing | None:
+def place_choice(
+    crossings: list[Crossing], n: int, span: int, confirmed: int = 0, distinct: int = 1
+) -> Crossing | None:
     """The crossing a recognition that found no frame accepts for its place: of the crossings with at least
     ``confirmed`` confirmed predictions, the most active (the earliest on ties), once frames learned within ``span`` of
-    its frame (that frame included) have crossed in ``n`` of them; else None (docs/MODEL.md item 128). Key frames
+    its frame (that frame included) have crossed in ``n`` of them, ``distinct`` different frames at least; else None
+    (docs/MODEL.md items 128 and 129). Key frames
     learned one after the other are views of one stretch of the route: a view between two of them splits its
     evidence, and each may cross the threshold and miss a far prediction, as a view from a step aside does with one
     frame (item 127). A crossing on the drive of a start fixation and one lucky prediction is what chance gives."""
@@ -121,7 +124,8 @@ def place_choice(crossings: list[Crossing], n: int, span: int, confirmed: int = 
     if not crossings:
         return None
     best = max(crossings, key=lambda c: c.activity)
-    return best if sum(abs(c.frame - best.frame) <= span for c in crossings) >= n else None
+    place = [c.frame for c in crossings if abs(c.frame - best.frame) <= span]
+    return best if len(place) >= n and len(set(place)) >= distinct else None
 
 
 @dataclass

@@ -605,20 +605,22 @@ def test_a_frame_that_keeps_crossing_the_threshold_is_accepted_after_repeat_acce
     n=hs.integers(1, 4),
     span=hs.integers(0, 3),
     confirmed=hs.integers(0, 3),
+    distinct=hs.integers(1, 3),
 )
-def test_place_choice_is_the_most_active_crossing_once_its_place_has_n(frames, acts, n, span, confirmed):
+def test_place_choice_is_the_most_active_crossing_once_its_place_has_n(frames, acts, n, span, confirmed, distinct):
     """place_choice: of the crossings with ``confirmed`` confirmed predictions or more, the most active, the earliest
-    on ties, once frames within ``span`` of its frame (itself included) have crossed ``n`` times among them; else None
-    (and None without such a crossing)."""
+    on ties, once frames within ``span`` of its frame (itself included) have crossed ``n`` times among them, of
+    ``distinct`` different frames at least; else None (and None without such a crossing)."""
     cs = [Crossing(f, i, acts[i], i % 3) for i, f in enumerate(frames)]
-    got = place_choice(cs, n, span, confirmed)
+    got = place_choice(cs, n, span, confirmed, distinct)
     counted = [c for c in cs if c.confirmed >= confirmed]
     if not counted:
         assert got is None
         return
     top = max(c.activity for c in counted)
     best = next(c for c in counted if c.activity == top)
-    assert got == (best if sum(abs(c.frame - best.frame) <= span for c in counted) >= n else None)
+    near = [c.frame for c in counted if abs(c.frame - best.frame) <= span]
+    assert got == (best if len(near) >= n and len(set(near)) >= distinct else None)
 
 
 def wall_views(config: VisualConfig, seed: int, n: int = 12, step: int = 80):
@@ -688,21 +690,25 @@ def test_a_place_whose_frames_keep_crossing_is_looked_at_alone_and_verified():
 
 
 @pytest.mark.parametrize(
-    ("crossings", "candidates", "look", "frames"),
+    ("crossings", "candidates", "look", "distinct", "frames"),
     [
-        ([(5, 0.95, 2), (6, 0.97, 2)], None, 3, {4, 5, 6, 7, 8}),  # within place_span (2) of the most active, 6
-        ([(5, 0.95, 2), (6, 0.97, 2)], [0, 5, 6, 8, 9], 3, {5, 6, 8}),  # ... among the candidates only
-        ([(1, 0.99, 2), (6, 0.97, 2), (8, 0.95, 2)], None, 3, None),  # the most active (1) has no neighbour crossing
-        ([(5, 0.95, 2), (6, 0.97, 1)], None, 3, None),  # a crossing with one confirmed prediction does not count
-        ([(5, 0.95, 2)], None, 3, None),  # one crossing is not a place
-        ([(5, 0.95, 2), (6, 0.97, 2)], None, None, None),  # place_look off
+        ([(5, 0.95, 2), (6, 0.97, 2)], None, 3, 1, {4, 5, 6, 7, 8}),  # within place_span (2) of the most active, 6
+        ([(5, 0.95, 2), (6, 0.97, 2)], [0, 5, 6, 8, 9], 3, 1, {5, 6, 8}),  # ... among the candidates only
+        ([(1, 0.99, 2), (6, 0.97, 2), (8, 0.95, 2)], None, 3, 1, None),  # the most active (1) has no neighbour
+        ([(5, 0.95, 2), (6, 0.97, 1)], None, 3, 1, None),  # a crossing with one confirmed prediction does not count
+        ([(5, 0.95, 2)], None, 3, 1, None),  # one crossing is not a place
+        ([(6, 0.95, 2), (6, 0.97, 2)], None, 3, 1, {4, 5, 6, 7, 8}),  # one frame twice ...
+        ([(6, 0.95, 2), (6, 0.97, 2)], None, 3, 2, None),  # ... is not two frames
+        ([(5, 0.95, 2), (6, 0.97, 2)], None, 3, 2, {4, 5, 6, 7, 8}),
+        ([(5, 0.95, 2), (6, 0.97, 2)], None, None, 1, None),  # place_look off
     ],
 )
-def test_a_place_look_is_the_query_among_the_place_frames_alone(crossings, candidates, look, frames):
+def test_a_place_look_is_the_query_among_the_place_frames_alone(crossings, candidates, look, distinct, frames):
     """place_look: once frames learned within place_span of each other have crossed in place_look_crossings attempts
-    (each with place_confirmed confirmed predictions), the next attempts compete among the candidate frames within
-    place_span of the most active crossing's frame, and only their feature units."""
-    mem = VisualMemory(VisualConfig(place_look=look))
+    (each with place_confirmed confirmed predictions, of place_look_distinct different frames), the next attempts
+    compete among the candidate frames within place_span of the most active crossing's frame, and only their
+    feature units."""
+    mem = VisualMemory(VisualConfig(place_look=look, place_look_distinct=distinct))
     for s in range(10):
         mem.learn(scene(s))
     q = mem._query(scene(3), candidates, None, 0.0)
