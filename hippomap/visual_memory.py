@@ -26,7 +26,8 @@ After Bicanski & Burgess (2019, [BBc]), adapted to robot key frames:
   an attempt resets after ``max_prediction_errors`` wrong predictions and the query is rejected after ``max_resets``
   resets, or earlier when no frame's activity has reached ``give_up_evidence`` in the first ``give_up_attempts``
   attempts (optionally a bar that grows with the number of competing frames, ``give_up_frames``) or has crossed
-  ``decision_threshold`` in the first ``give_up_late_attempts``; optionally it then accepts its place (item 128).
+  ``decision_threshold`` in the first ``give_up_late_attempts``; optionally it then accepts its place (item 128),
+  or, once a place's key frames have kept crossing the threshold, looks at them alone (item 129).
 
   The grid code is re-anchored onto the first recognised feature (BB's "global
   remapping" for displaced stimuli) and onto every predicted feature, so saccades are the

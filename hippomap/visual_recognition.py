@@ -2,11 +2,11 @@
 
 :class:`Recognition` is the outcome of :meth:`~hippomap.visual_memory.VisualMemory.recognise`: the
 accepted frame (or none), every fixation as a :class:`SaccadeStep`, and for an accepted frame the
-image correspondences and their robust shift (:func:`shift_summary`), what the cognitive map needs
-to turn a recognition into a relative pose. Both records round-trip through plain dicts
+image correspondences (:func:`correspondences`) and their robust shift (:func:`shift_summary`), what the
+cognitive map needs to turn a recognition into a relative pose. Both records round-trip through plain dicts
 (``to_dict`` / ``from_dict``), which the mapper's events, the service and the viewer carry. A
 recognition also keeps the threshold crossings its attempts made (:class:`Crossing`), from which
-:func:`place_choice` names a place (docs/MODEL.md item 128).
+:func:`place_choice` names a place (docs/MODEL.md items 128 and 129).
 """
 
 from __future__ import annotations
@@ -113,7 +113,7 @@ PLACE_LOOKED = "accepted among its place's frames"
 def place_choice(
     crossings: list[Crossing], n: int, span: int, confirmed: int = 0, distinct: int = 1
 ) -> Crossing | None:
-    """The crossing a recognition that found no frame accepts for its place: of the crossings with at least
+    """The crossing that names a recognition's place (accepted at its end, or looked at): of the crossings with at least
     ``confirmed`` confirmed predictions, the most active (the earliest on ties), once frames learned within ``span`` of
     its frame (that frame included) have crossed in ``n`` of them, ``distinct`` different frames at least; else None
     (docs/MODEL.md items 128 and 129). Key frames
