@@ -126,6 +126,10 @@ class _Attempt:
     visited: list[int] = field(default_factory=list)
     primed: float = 0.0  # the frame activity the attempt started with, summed (the prior; not evidence)
 
+    def crossing(self, a: np.ndarray, attempt: int) -> Crossing:
+        """The attempt's threshold crossing: its accepted frame, ``attempt``, that frame's activity in ``a``."""
+        return Crossing(self.accepted_frame, attempt, float(a[self.accepted_frame]), self.confirmed)
+
 
 @dataclass
 class _Query:
@@ -258,7 +262,7 @@ class VisualMemory(FixationSensing):
         start[ids] = a
         return start
 
-    def _given_up(self, attempts: int, peak: float, bar: float, looks: int = 0) -> str:
+    def _given_up(self, attempts: int, peak: float, bar: float, looks: int) -> str:
         """Why a recognition gives up after ``attempts`` attempts whose highest frame activity was ``peak``, or "":
         no frame reached ``bar`` in the first ``give_up_attempts``, or none crossed ``decision_threshold`` in the
         first ``give_up_late_attempts`` (an evidence-accumulation bound that collapses with time), or ``looks``
@@ -314,8 +318,7 @@ class VisualMemory(FixationSensing):
             s, outcome = self._fixate(q, st, a, steps, resets)
             self._decide(st, outcome, steps, a, resets)
             if st.reset_reason is None and st.verify_left == 0:
-                f = st.accepted_frame
-                return self._accepted(Crossing(f, resets, float(a[f]), st.confirmed), steps, resets, q.size, q.reason)
+                return self._accepted(st.crossing(a, resets), steps, resets, q.size, q.reason)
             if not self._next_saccade(st, s, q.sub, a, q.sense_img):
                 return None
 
@@ -358,10 +361,10 @@ class VisualMemory(FixationSensing):
         f, k = st.accepted_frame, self.config.repeat_accept
         if f < 0 or q.prior[f]:
             return None
-        crossed.append(Crossing(f, resets, float(a[f]), st.confirmed))
+        crossed.append(st.crossing(a, resets))
         if not k or sum(c.frame == f for c in crossed) < k:
             return None
-        return self._accepted(crossed[-1], steps, resets, q.size)
+        return self._accepted(crossed[-1], steps, resets, q.size, q.reason)
 
     def _placed(self, cs: list[Crossing], q: _Query, steps: list[SaccadeStep], resets: int) -> Recognition | None:
         """The :class:`Recognition` of a recognition about to end without a frame: its place, the most active
@@ -386,7 +389,7 @@ class VisualMemory(FixationSensing):
         return _Query(sub, q.sense_img, q.starts, q.scale, q.size, int(frames.size), q.prior, PLACE_LOOKED)
 
     def _accepted(
-        self, at: Crossing, steps: list[SaccadeStep], resets: int, size: tuple[int, int], reason: str = "accepted"
+        self, at: Crossing, steps: list[SaccadeStep], resets: int, size: tuple[int, int], reason: str
     ) -> Recognition:
         """The recognition of crossing ``at`` (the accepting attempt's, or an earlier one's): its confidence (the
         fraction of confirmed predictions, discounted by the resets needed) and that attempt's correspondences."""

@@ -113,13 +113,13 @@ PLACE_LOOKED = "accepted among its place's frames"
 def place_choice(
     crossings: list[Crossing], n: int, span: int, confirmed: int = 0, distinct: int = 1
 ) -> Crossing | None:
-    """The crossing that names a recognition's place (accepted at its end, or looked at): of the crossings with at least
-    ``confirmed`` confirmed predictions, the most active (the earliest on ties), once frames learned within ``span`` of
-    its frame (that frame included) have crossed in ``n`` of them, ``distinct`` different frames at least; else None
-    (docs/MODEL.md items 128 and 129). Key frames
-    learned one after the other are views of one stretch of the route: a view between two of them splits its
-    evidence, and each may cross the threshold and miss a far prediction, as a view from a step aside does with one
-    frame (item 127). A crossing on the drive of a start fixation and one lucky prediction is what chance gives."""
+    """The crossing that names a recognition's place (accepted at its end, or looked at): of the crossings with at
+    least ``confirmed`` confirmed predictions, the most active (the earliest on ties), once frames learned within
+    ``span`` of its frame (that frame included) have crossed in ``n`` of them, ``distinct`` different frames at least;
+    else None (docs/MODEL.md items 128 and 129). Key frames learned one after the other are views of one stretch of
+    the route: a view between two of them splits its evidence, and each may cross the threshold and miss a far
+    prediction, as a view from a step aside does with one frame (item 127). A crossing on the drive of a start
+    fixation and one lucky prediction is what chance gives."""
     crossings = [c for c in crossings if c.confirmed >= confirmed]
     if not crossings:
         return None
