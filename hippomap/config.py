@@ -477,6 +477,22 @@ class MapConfig(_Frozen):
         "standard deviations of the odometry's heading walk over the drift path; beyond, it is rejected at once. "
         "None = every such hypothesis waits [ours, docs/MODEL.md item 111]",
     )
+    loop_turned_group: int | None = Field(
+        6,
+        ge=2,
+        description="a visual hypothesis turned beyond loop_heading_group_sd is not rejected at once: it waits for a "
+        "long group, at least this many mutually consistent recognitions (outside_min_support's test) spread over at "
+        "least loop_turned_group_m of the robot's path; a gyro bias that wanders turns the map by 2 rad over a long "
+        "excursion, and the right recognitions at its end were all rejected, where the false groups that item 111 "
+        "refuses were 3 recognitions within 1.1 m of path. None = rejected at once (item 111) [ours, docs/MODEL.md "
+        "item 130]",
+    )
+    loop_turned_group_m: float = Field(
+        3.0,
+        ge=0,
+        description="metres of the robot's path a long group (loop_turned_group) must spread over [ours, "
+        "docs/MODEL.md item 130]",
+    )
     loop_radius_bias_sd: float = Field(
         2.0,
         ge=0,

@@ -26,7 +26,10 @@ from .loop_record import GROUP_VERIFIED, LoopRecord
 from .map_events import LoopAccepted, LoopPending
 from .map_graph import LOOP, PRUNE
 
-__all__ = ["LoopClosing"]
+__all__ = ["LONG_GROUP", "LoopClosing"]
+
+#: how the reason of a closure accepted with a long group turned beyond a group's heading bound ends (item 130)
+LONG_GROUP = "a long group turned beyond a group's heading bound"
 
 _compose3, _inv3, _between3 = se2_compose, se2_inverse, se2_between
 
@@ -65,11 +68,11 @@ class LoopClosing(LoopRecord):
         book = self._loops
         cand = self._candidate(h)
         t = self._t if self._t is not None else h.time
-        base, reason, outside = self._screen(h, cand)
+        base, reason, outside, turned = self._screen(h, cand)
         book.decisions.append(base)
         waits = cfg.outside_searches == "all" or h.meta.get("search") == "global"  # else the gate rejects it
         if outside and waits and not h.measured and cfg.outside_min_support > 0:
-            return self._propose_outside(cand, t, reason)
+            return self._propose_outside(replace(cand, turned=turned), t, reason)
         if reason:
             return self._reject(cand.id, reason, t)
         if cfg.loop_accept == "robust":
@@ -144,12 +147,14 @@ class LoopClosing(LoopRecord):
         (:func:`consistent`: the distance driven between two proposals equals the distance between
         the places they name) and in sequence (the old path between the two named places is as long
         as the path driven between the proposals, within ``loop_consistency_m`` + 10 %); the group
-        must then fit one SE(2) transform (:meth:`_fit_group`). A fitted group
+        must then fit one SE(2) transform (:meth:`_fit_group`); one with a member turned beyond a group's heading
+        bound must be longer (:meth:`_group_enough`). A fitted group
         becomes verified loop links at weight 1 and the whole map is solved; a lone or
         contradicted hypothesis expires without touching the map."""
         cfg, book, P, S = self.cfg, self._loops, self._P, self._S
         self._expire_outside(t)
-        older = [c for c in book.outside if c.step != cand.step]
+        # a turned one (item 130) may join only a long group, which turned ones start: the others group as before
+        older = [c for c in book.outside if c.step != cand.step and (cand.turned or not c.turned)]
         # consistent in space, and in sequence: a revisit retraces the old path, so the old path between the two
         # named places (each node's path, plus how far ahead of it the hypothesis puts the robot) is as long as
         # the robot's path between the two proposals
@@ -160,7 +165,7 @@ class LoopClosing(LoopRecord):
             and abs((S[cand.node] + cand.ahead - S[c.node] - c.ahead) - (cand.path - c.path))
             < cfg.loop_consistency_m + 0.1 * abs(cand.path - c.path)
         ]
-        group = self._fit_group(ok + [cand], []) if 1 + len(ok) >= cfg.outside_min_support else None
+        group = self._fit_group(ok + [cand], []) if self._group_enough(ok + [cand]) else None
         if group is None:
             book.outside.append(cand)
             d = replace(
@@ -173,11 +178,28 @@ class LoopClosing(LoopRecord):
             return d
         return self._accept_outside(group, cand, gate_reason, t)
 
+    def awaits_long_group(self, decision_id: int) -> bool:
+        """Whether hypothesis ``decision_id`` waits for a long group (turned beyond a group's heading bound, item
+        130): until one takes it, the mapper treats its key frame as not recognised, as when it was rejected."""
+        return any(c.id == decision_id and c.turned for c in self._loops.outside)
+
+    def _group_enough(self, group: list[Candidate]) -> bool:
+        """Whether ``group`` is large enough to be fitted: ``outside_min_support`` members, or with a member turned
+        beyond a group's heading bound (:attr:`Candidate.turned`) at least ``loop_turned_group`` members spread over
+        ``loop_turned_group_m`` of the robot's path (docs/MODEL.md item 130)."""
+        cfg = self.cfg
+        if not any(c.turned for c in group):
+            return len(group) >= cfg.outside_min_support
+        paths = [c.path for c in group]
+        need = max(cfg.outside_min_support, cfg.loop_turned_group or 0)
+        return len(group) >= need and max(paths) - min(paths) >= cfg.loop_turned_group_m
+
     def _accept_outside(self, group: list[Candidate], cand: Candidate, gate_reason: str, t: float) -> LoopDecision:
         """A fitted group outside the gate (or in its outer part) becomes loop links, each supported by the others;
         the links wait to be judged for retraction (``loop_retract_groups``); the whole map is solved."""
         cfg, book = self.cfg, self._loops
         ids = {c.id for c in group}
+        verified = GROUP_VERIFIED + (f", {LONG_GROUP}" if any(c.turned for c in group) else "")
         for c in sorted(group, key=lambda c: c.id):
             link = self._add_loop_link(c)
             if link >= 0:
@@ -191,7 +213,7 @@ class LoopClosing(LoopRecord):
                 status="accepted",
                 link=link,
                 support=sup,
-                reason=f"{where}; {GROUP_VERIFIED}",
+                reason=f"{where}; {verified}",
                 decided_step=self._step,
                 transform=c.link_tr,
             )

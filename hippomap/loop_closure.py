@@ -1,29 +1,24 @@
 """Loop-closure data and maths: hypotheses and their verification.
 
-The cognitive map (:mod:`hippomap.cognitive_map`) keeps nodes, links, relaxation and pruning, and
-decides on loop hypotheses in :mod:`hippomap.loop_closing`; this module holds the data and the
-maths those decisions use, free of the map's state (a hypothesis' relative pose, fitted or from
-an image's looming, is :mod:`hippomap.loop_pose`):
+The cognitive map (:mod:`hippomap.cognitive_map`) keeps nodes, links, relaxation and pruning, and decides on loop
+hypotheses in :mod:`hippomap.loop_closing`; this module holds the data and the maths those decisions use, free of the
+map's state (a hypothesis' relative pose, fitted or from an image's looming, is :mod:`hippomap.loop_pose`):
 
-* :class:`LoopHypothesis` — a proposal "the robot is back near node ``node``", with a measured
-  transform (a data set's loop edge) or, for a visual recognition, the robot's estimated
-  offset from the node (where the matched key frame was learned, moved along its view by the
-  image's scale change and turned by its shift, from the saccade correspondences:
-  :func:`~hippomap.loop_pose.looming_offset`).
-* :class:`Candidate` — what verification needs of a gated hypothesis: the robot's
-  dead-reckoned pose and path at the proposal, the node's pose in the robot's frame.
-* :func:`gate_limit` — the radius a hypothesis must fall within: a base radius plus an
-  allowance for odometric drift that grows with the path travelled since the node was made or
-  since the last verified closure, whichever is shorter, and one for the error of the
-  odometry's estimated bias (:func:`bias_drift`), which grows with its square (per node: over the
-  path between the node and the robot).
-* :func:`cycle_errors` / :func:`consistent` — geometric verification: two hypotheses made at
-  different times and the odometry between them form a cycle through the map, which must
-  compose to identity.
+* :class:`LoopHypothesis` — a proposal "the robot is back near node ``node``", with a measured transform (a data
+  set's loop edge) or, for a visual recognition, the robot's estimated offset from the node (where the matched key
+  frame was learned, moved along its view by the image's scale change and turned by its shift, from the saccade
+  correspondences: :func:`~hippomap.loop_pose.looming_offset`).
+* :class:`Candidate` — what verification needs of a gated hypothesis: the robot's dead-reckoned pose and path at the
+  proposal, the node's pose in the robot's frame.
+* :func:`gate_limit` — the radius a hypothesis must fall within: a base radius plus an allowance for odometric drift
+  that grows with the path travelled since the node was made or since the last verified closure, whichever is
+  shorter, and one for the error of the odometry's estimated bias (:func:`bias_drift`), which grows with its square
+  (per node: over the path between the node and the robot).
+* :func:`cycle_errors` / :func:`consistent` — geometric verification: two hypotheses made at different times and the
+  odometry between them form a cycle through the map, which must compose to identity.
 * :func:`link_info3` — a loop link's information in its source frame, which the robust kernel
   (:mod:`hippomap.robust_kernel`) whitens its residual (:func:`link_errors`) by.
-* :class:`LoopBook` — the decisions, pending and recently accepted candidates, and their
-  serialisation.
+* :class:`LoopBook` — the decisions, pending and recently accepted candidates, and their serialisation.
 """
 
 from __future__ import annotations
@@ -256,6 +251,7 @@ class Candidate:
     coupling: float = 0.0  # the hypothesis' heading-lateral coupling (m^-1; LoopHypothesis.coupling)
     coupled_heading: float = 0.0  # what it measured: heading + coupling x lateral of the robot in the node frame
     along_sigma: float = 0.0  # the hypothesis' along-track uncertainty (m; LoopHypothesis.along_sigma)
+    turned: bool = False  # beyond the group heading bound: it waits for a long group (MapConfig.loop_turned_group)
 
     @property
     def delta(self) -> tuple[float, float, float]:
@@ -290,6 +286,7 @@ class Candidate:
         } | (
             ({"coupling": self.coupling, "coupled_heading": self.coupled_heading} if self.coupling else {})
             | ({"along_sigma": self.along_sigma} if self.along_sigma else {})
+            | ({"turned": True} if self.turned else {})
         )
 
     @classmethod
@@ -310,6 +307,7 @@ class Candidate:
             float(d.get("coupling", 0.0)),
             float(d.get("coupled_heading", 0.0)),
             float(d.get("along_sigma", 0.0)),
+            bool(d.get("turned", False)),
         )
 
 

@@ -7,9 +7,10 @@ The layer of :class:`~hippomap.cognitive_map.CognitiveMap` between its correctio
 that grows with the drift path (docs/MODEL.md items 21, 47 and 58); a visual hypothesis must also give the node a
 heading within ``loop_heading_radius_rad`` + ``loop_heading_per_m`` x the drift path of its map heading (item 90),
 once a verified closure has anchored the map within ``loop_heading_anchored_rad`` + the odometry's heading walk over
-that path (item 107), and then, to wait for a group at all, within a few standard deviations of that walk (item 111).
-The mapper's recognition candidates are the nodes inside the same gate (:meth:`LoopGate.loop_candidates`). A
-hypothesis outside the gate is rejected, or waits for a consistent group (:mod:`hippomap.loop_closing`).
+that path (item 107), and then, to wait for a group, within a few standard deviations of that walk (item 111);
+beyond, it waits for a long group (item 130). The mapper's recognition candidates are the nodes inside the same gate
+(:meth:`LoopGate.loop_candidates`). A hypothesis outside the gate is rejected, or waits for a consistent group
+(:mod:`hippomap.loop_closing`).
 """
 
 from __future__ import annotations
@@ -49,13 +50,14 @@ class LoopGate(MapCorrection):
         ids = ids[np.argsort(d[ids], kind="stable")]
         return ids if limit is None else ids[:limit]
 
-    def _screen(self, h: LoopHypothesis, cand: Candidate) -> tuple[LoopDecision, str, bool]:
+    def _screen(self, h: LoopHypothesis, cand: Candidate) -> tuple[LoopDecision, str, bool, bool]:
         """The first checks of :meth:`propose_loop`: (pending decision with its gate distance and
-        limit, reason to reject or "", whether the hypothesis fell outside the gate)."""
+        limit, reason to reject or "", whether the hypothesis fell outside the gate, whether it is turned beyond a
+        group's heading bound and may wait only for a long group, ``loop_turned_group``)."""
         cfg = self.cfg
         base = LoopDecision(cand.id, "pending", "", h, self._cur, proposed_step=self._step)
         reason = ""
-        outside = False
+        outside = turned = False
         if h.node != self._cur and h.node >= self._n - cfg.exclude_recent:
             reason = f"node {h.node} is among the {cfg.exclude_recent} most recent nodes"
         else:
@@ -71,9 +73,10 @@ class LoopGate(MapCorrection):
                     reason = self._heading_gate(cand) or self._outer_gate(cand, dist, limit, what) or self._oblique(h)
                     outside = bool(reason)
                 beyond = self._beyond_group_heading(cand) if outside else ""
-                if beyond:  # no group can make it right: rejected at once
-                    reason, outside = f"{reason}, and {beyond}", False
-        return base, reason, outside
+                if beyond:  # only a long group can make it right (item 130), or none: rejected at once (item 111)
+                    reason, turned = f"{reason}, and {beyond}", cfg.loop_turned_group is not None
+                    outside = turned
+        return base, reason, outside, turned
 
     def _heading_gate(self, c: Candidate) -> str:
         """Why visual candidate ``c`` is outside the gate's heading part, or "": the heading it gives the named node
@@ -95,14 +98,16 @@ class LoopGate(MapCorrection):
         return f"heading {turn:.3f} rad from the node's exceeds the gate {limit:.3f} rad" if turn > limit else ""
 
     def _beyond_group_heading(self, c: Candidate) -> str:
-        """Why visual candidate ``c``, outside the gate, may not wait for a consistent group, or "": once a verified
-        closure has anchored the map, the heading it gives its node must be within ``loop_heading_anchored_rad`` +
-        ``loop_heading_group_sd`` × the odometry's heading sd over the drift path of the node's map heading. Three
+        """Why visual candidate ``c``, outside the gate, may wait only for a long group (``loop_turned_group``; None:
+        it is rejected at once), or "": once a verified closure has anchored the map, the heading it gives its node
+        must be within ``loop_heading_anchored_rad`` + ``loop_heading_group_sd`` × the odometry's heading sd over the
+        drift path of the node's map heading. Three
         recognitions that named places 3.7-5.7 m away and turned them by 2.1 rad, 13 standard deviations of that
         walk, agreed with each other, were linked as a group at full weight and bent the long path between them and
         their nodes for 630 s of a run (docs/MODEL.md item 111); the bound, too, adds the turn of the heading-rate
-        error the gate allows for (``loop_heading_bias``, item 125). Measured transforms keep their own heading
-        check."""
+        error the gate allows for (``loop_heading_bias``, item 125). A gyro bias that wanders turns the map by up to
+        2 rad over a long excursion, so that the right recognitions at its end lie beyond too: a long group may take
+        them (item 130). Measured transforms keep their own heading check."""
         cfg = self.cfg
         if cfg.loop_heading_group_sd is None or cfg.loop_heading_anchored_rad is None or c.measured:
             return ""

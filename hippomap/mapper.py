@@ -265,7 +265,7 @@ class Mapper(KeyFrames):
     ) -> bool:
         """Recognise ``gray`` among ``candidates`` (``prior``: those starting with ``sequence_prior``'s head
         start); a match is offered to the map as a loop hypothesis. Appends the events; True when the map did
-        not reject the hypothesis."""
+        not reject the hypothesis nor leave it waiting for a long group (docs/MODEL.md item 130)."""
         m = self.config.mapper
         bar = m.global_search_give_up_evidence if search == "global" else None
         p = m.sequence_prior or 0.0
@@ -308,7 +308,7 @@ class Mapper(KeyFrames):
         decision = self.cmap.propose_loop(hyp)
         events.append(LoopDecided(t, decision))
         events.extend(self.cmap.take_events())
-        return decision.status != "rejected"
+        return decision.status != "rejected" and not self.cmap.awaits_long_group(decision.id)
 
     def _shift_coupling(self, rec: Any) -> float:
         """The coupling of a recognition's heading with the robot's offset beside the key frame

@@ -334,10 +334,15 @@ def test_after_a_verified_closure_the_heading_part_shrinks_to_the_odometry_s_wal
     (0.92 rad): the turn of 0.5 rad that the unanchored map links at once waits for a consistent group. Beyond
     ``loop_heading_group_sd`` sd of that walk (0.4 + 0.122 rad) no group may take it: the turn of 0.6 rad is rejected
     at once (``None``: it waits too). ``None`` for the anchored part keeps the unanchored part throughout. The parts
-    are the walk's alone here (``loop_heading_bias`` off; item 125's turn of the bias error is tested with it)."""
-    d, cmap, links = _after_an_anchoring_lap(
-        MapConfig(loop_heading_anchored_rad=anchored, loop_heading_group_sd=group_sd, loop_heading_bias=False), turned
+    are the walk's alone here (``loop_heading_bias`` off; item 125's turn of the bias error is tested with it), and
+    no long group may take it either (``loop_turned_group`` None; item 130's long groups are tested with them)."""
+    cfg = MapConfig(
+        loop_heading_anchored_rad=anchored,
+        loop_heading_group_sd=group_sd,
+        loop_heading_bias=False,
+        loop_turned_group=None,
     )
+    d, cmap, links = _after_an_anchoring_lap(cfg, turned)
     assert d.status == status
     if status != "accepted":
         assert f"heading {turned:.3f} rad" in d.reason and "exceeds the gate 0.441 rad" in d.reason
@@ -370,16 +375,23 @@ def _after_an_anchoring_lap(cfg: MapConfig, turned: float, beside: float = 0.0):
     return d, cmap, links
 
 
-@pytest.mark.parametrize("turned, status", [(0.0, "pending"), (0.6, "rejected")])
-def test_outside_the_position_gate_a_hypothesis_turned_beyond_a_group_s_bound_is_rejected_at_once(turned, status):
+@pytest.mark.parametrize(
+    "turned, long_group, status", [(0.0, None, "pending"), (0.6, None, "rejected"), (0.6, 6, "pending")]
+)
+def test_outside_the_position_gate_a_hypothesis_turned_beyond_a_group_s_bound_is_rejected_at_once(
+    turned, long_group, status
+):
     """The group bound (``loop_heading_group_sd``) holds for a hypothesis outside the gate in position too: 6 m
     beside its node (the gate 3.3 m there), one that keeps the node's heading waits for a consistent group, one
-    turned 0.6 rad (beyond 0.4 + 3 x 0.041 rad; ``loop_heading_bias`` off, the walk's part alone) is rejected at once,
-    and neither touches the map."""
-    d, cmap, links = _after_an_anchoring_lap(MapConfig(loop_heading_bias=False), turned, beside=6.0)
+    turned 0.6 rad (beyond 0.4 + 3 x 0.041 rad; ``loop_heading_bias`` off, the walk's part alone) is rejected at once
+    without long groups (``loop_turned_group`` None) and with them waits for one (item 130), and none touches the
+    map."""
+    d, cmap, links = _after_an_anchoring_lap(
+        MapConfig(loop_heading_bias=False, loop_turned_group=long_group), turned, beside=6.0
+    )
     assert d.status == status
     assert "map distance" in d.reason and "exceeds the gate" in d.reason
-    assert ("beyond a group's 0.522 rad" in d.reason) == (status == "rejected")
+    assert ("beyond a group's 0.522 rad" in d.reason) == (turned > 0.5)
     assert cmap.link_count == links
 
 

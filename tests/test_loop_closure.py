@@ -3,6 +3,7 @@ group of visual hypotheses, heading-free consistency, robust weights that let a 
 fade while true ones are applied, and key frames that mean the same at any frame rate."""
 
 import argparse
+import json
 import math
 from dataclasses import replace
 
@@ -18,6 +19,7 @@ from hippomap.errors import InputError, vec3
 from hippomap.geometry import between, compose, integrate, wrap_angle
 from hippomap.graph_paths import _undirected_paths, _undirected_paths_reference, hop_distances
 from hippomap.inputs import Frame, Odometry
+from hippomap.loop_closing import LONG_GROUP
 from hippomap.loop_closure import Candidate, LoopHypothesis, consistent, link_errors, link_info3
 from hippomap.loop_gate import OBLIQUE
 from hippomap.loop_pose import align_group, looming_offset, looming_scale, reanchor, view_sphere
@@ -1336,3 +1338,63 @@ def test_a_recognition_across_a_wide_turn_waits_for_a_consistent_group(bar):
         assert true[3]["status"] == false["status"] == "rejected"
         assert all("no consistent support" in r["reason"] for r in (true[3], false))
         assert cmap.link_count == cmap.node_count - 1 + 3
+
+
+def _turned_revisit(cfg: MapConfig, count: int, every: int):
+    """Two laps of a 20 m square; the second lap's first 10 m closed by true recognitions (a verified closure
+    anchors the map), then 10 m over which the odometry turns 0.012 rad per 0.1 m (a gyro bias that wandered: 1.2
+    rad), then ``count`` true recognitions ``every`` steps of 0.1 m apart naming the first lap's places, each turned
+    beyond a group's heading bound by the map's turned heading. ``(their loop rows, the map, node_at, off, true poses,
+    dead-reckoned poses)``."""
+    inc = square_increments(side=20.0, laps=2)
+    gt = integrate(inc)
+    lap = len(inc) // 2
+    noisy = inc.copy()
+    noisy[lap + 100 : lap + 200, 2] += 0.012
+    at = set(range(lap + 20, lap + 101, 5)) | set(range(lap + 230, lap + 230 + count * every, every))
+
+    def hyps(k, cmap, node_at, off):
+        return [_visual(gt, node_at, off, k, k - lap, search=None)] if k in at else []
+
+    cmap = CognitiveMap(cfg)
+    node_at, off, _ = drive(cmap, noisy[: lap + 230 + count * every + 10], hypotheses=hyps)
+    rows = [r for r in cmap.loop_rows() if r["proposed_step"] >= lap + 230]
+    return rows, cmap, node_at, off, gt, integrate(noisy)
+
+
+@pytest.mark.parametrize(
+    "count, every, long_group, status",
+    [(6, 10, 6, "accepted"), (5, 10, 6, "pending"), (8, 2, 6, "pending"), (6, 10, None, "rejected")],
+)
+def test_recognitions_turned_beyond_a_group_s_bound_close_the_loop_only_as_a_long_group(
+    count, every, long_group, status
+):
+    """After a verified closure, the odometry turns the map by 1.2 rad (a wandering gyro bias, docs/MODEL.md item
+    130); the true recognitions that follow give their nodes headings beyond a group's bound (item 111). They wait
+    for a long group: six mutually consistent ones over at least 3 m of path (``loop_turned_group``,
+    ``loop_turned_group_m``) become links at once and bring the map's end within 0.3 × the odometry's error; five, or
+    eight within 1.4 m, wait without touching the map (and the mapper treats their key frames as not recognised);
+    with ``loop_turned_group`` None each is rejected at once (item 111)."""
+    cfg = MapConfig(loop_turned_group=long_group)
+    rows, cmap, node_at, off, gt, odo = _turned_revisit(cfg, count, every)
+    assert len(rows) == count and all("beyond a group's" in r["reason"] for r in rows)
+    assert all(r["status"] == status for r in rows)
+    assert all(cmap.awaits_long_group(r["id"]) == (status == "pending") for r in rows)  # the mapper learns their frames
+    end = len(node_at)  # the map's last 30 poses against the odometry's (measured 2.15 against 9.75 m)
+    error = rms_xy(corrected(cmap, node_at, off)[-30:], gt[end - 30 : end]) / rms_xy(
+        odo[end - 30 : end], gt[end - 30 : end]
+    )
+    if status == "accepted":
+        assert all(r["reason"].endswith(LONG_GROUP) and r["link"] >= 0 for r in rows)
+        assert error < 0.3
+    else:
+        assert all(r["link"] < 0 for r in rows)
+        assert error > 0.9
+
+
+def test_a_turned_candidate_keeps_its_mark_through_a_snapshot():
+    """A candidate waiting for a long group (:attr:`Candidate.turned`) is still one after the loop book is saved and
+    restored, so that a restored session asks the same group of it; the mark is absent from the dict when unset."""
+    c = Candidate(5, 2, 40, (1.0, 0.0, 0.1), (-1.0, 0.0, -0.1), (3.0, 4.0, 0.2), 17, path=12.5, turned=True)
+    assert Candidate.from_dict(json.loads(json.dumps(c.to_dict()))) == c
+    assert "turned" not in replace(c, turned=False).to_dict()
