@@ -378,7 +378,7 @@ def _after_an_anchoring_lap(cfg: MapConfig, turned: float, beside: float = 0.0):
 @pytest.mark.parametrize(
     "turned, long_group, status", [(0.0, None, "pending"), (0.6, None, "rejected"), (0.6, 6, "pending")]
 )
-def test_outside_the_position_gate_a_hypothesis_turned_beyond_a_group_s_bound_is_rejected_at_once(
+def test_outside_the_position_gate_a_hypothesis_turned_beyond_a_group_s_bound_is_rejected_or_waits_for_a_long_group(
     turned, long_group, status
 ):
     """The group bound (``loop_heading_group_sd``) holds for a hypothesis outside the gate in position too: 6 m

@@ -1373,8 +1373,8 @@ def test_recognitions_turned_beyond_a_group_s_bound_close_the_loop_only_as_a_lon
     130); the true recognitions that follow give their nodes headings beyond a group's bound (item 111). They wait
     for a long group: six mutually consistent ones over at least 3 m of path (``loop_turned_group``,
     ``loop_turned_group_m``) become links at once and bring the map's end within 0.3 × the odometry's error; five, or
-    eight within 1.4 m, wait without touching the map (and the mapper treats their key frames as not recognised);
-    with ``loop_turned_group`` None each is rejected at once (item 111)."""
+    eight within 1.4 m, wait and leave the map exactly as rejecting them would (and the mapper treats their key
+    frames as not recognised); with ``loop_turned_group`` None each is rejected at once (item 111)."""
     cfg = MapConfig(loop_turned_group=long_group)
     rows, cmap, node_at, off, gt, odo = _turned_revisit(cfg, count, every)
     assert len(rows) == count and all("beyond a group's" in r["reason"] for r in rows)
@@ -1390,6 +1390,9 @@ def test_recognitions_turned_beyond_a_group_s_bound_close_the_loop_only_as_a_lon
     else:
         assert all(r["link"] < 0 for r in rows)
         assert error > 0.9
+    if status == "pending":  # waiting, they leave the map as item 111's rule does by rejecting them
+        off_map = _turned_revisit(cfg.model_copy(update={"loop_turned_group": None}), count, every)[1]
+        np.testing.assert_array_equal(cmap.poses, off_map.poses)
 
 
 def test_a_turned_candidate_keeps_its_mark_through_a_snapshot():
