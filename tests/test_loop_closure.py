@@ -1340,9 +1340,9 @@ def test_a_recognition_across_a_wide_turn_waits_for_a_consistent_group(bar):
         assert cmap.link_count == cmap.node_count - 1 + 3
 
 
-def _turned_revisit(cfg: MapConfig, count: int, every: int):
+def _turned_revisit(cfg: MapConfig, count: int, every: int, turn: float = 0.012):
     """Two laps of a 20 m square; the second lap's first 10 m closed by true recognitions (a verified closure
-    anchors the map), then 10 m over which the odometry turns 0.012 rad per 0.1 m (a gyro bias that wandered: 1.2
+    anchors the map), then 10 m over which the odometry turns ``turn`` rad per 0.1 m (a gyro bias that wandered: 1.2
     rad), then ``count`` true recognitions ``every`` steps of 0.1 m apart naming the first lap's places, each turned
     beyond a group's heading bound by the map's turned heading. ``(their loop rows, the map, node_at, off, true poses,
     dead-reckoned poses)``."""
@@ -1350,7 +1350,7 @@ def _turned_revisit(cfg: MapConfig, count: int, every: int):
     gt = integrate(inc)
     lap = len(inc) // 2
     noisy = inc.copy()
-    noisy[lap + 100 : lap + 200, 2] += 0.012
+    noisy[lap + 100 : lap + 200, 2] += turn
     at = set(range(lap + 20, lap + 101, 5)) | set(range(lap + 230, lap + 230 + count * every, every))
 
     def hyps(k, cmap, node_at, off):
@@ -1393,6 +1393,37 @@ def test_recognitions_turned_beyond_a_group_s_bound_close_the_loop_only_as_a_lon
     if status == "pending":  # waiting, they leave the map as item 111's rule does by rejecting them
         off_map = _turned_revisit(cfg.model_copy(update={"loop_turned_group": None}), count, every)[1]
         np.testing.assert_array_equal(cmap.poses, off_map.poses)
+
+
+@pytest.mark.parametrize(
+    "turn, long_group, recognised, status",
+    [(0.012, 6, False, "pending"), (0.012, None, False, "rejected"), (0.0, 6, True, None)],
+)
+def test_the_mapper_learns_a_key_frame_whose_recognition_waits_for_a_long_group(turn, long_group, recognised, status):
+    """``Mapper._recognise`` on a map turned 1.2 rad after an anchoring closure (the map of the test above, no turned
+    recognition yet): a real recognition of a learned view, named by a first-lap node at the robot's true place,
+    gives that node a heading beyond a group's bound. Waiting for a long group (docs/MODEL.md item 130) it counts as
+    not recognised, as when item 111 rejects it, so that the mapper learns the key frame; on the same map without the
+    turn the same recognition passes the gate and counts as recognised."""
+    from tests.test_visual_memory import SCENES
+
+    cfg = HippomapConfig.with_overrides({"map": {"loop_turned_group": long_group}})
+    _, cmap, node_at, _, _, _ = _turned_revisit(cfg.map, 0, 10, turn)
+    m = Mapper(cfg)
+    m.cmap = cmap
+    fid = [m.memory.learn(img) for img in SCENES][0]  # the library the memory's tests recognise in
+    lap = len(square_increments(side=20.0, laps=2)) // 2
+    m.frame_node[fid] = int(node_at[len(node_at) - 1 - lap])  # the first lap's node where the robot stands
+    before = cmap.poses.copy()
+    assert m._recognise(SCENES[0], 1e4, [fid], []) is recognised
+    assert m.recognitions[-1]["frame_id"] == fid  # the view was recognised in every case
+    row = cmap.loop_rows()[-1]
+    if status is None:
+        assert row["status"] != "rejected" and "beyond a group's" not in row["reason"]
+    else:
+        assert row["status"] == status and "beyond a group's" in row["reason"]
+        assert cmap.awaits_long_group(row["id"]) == (status == "pending")
+        np.testing.assert_array_equal(cmap.poses, before)  # waiting or rejected, it leaves the map as it was
 
 
 def test_a_turned_candidate_keeps_its_mark_through_a_snapshot():
