@@ -1408,11 +1408,11 @@ def test_the_mapper_learns_a_key_frame_whose_recognition_waits_for_a_long_group(
     from tests.test_visual_memory import SCENES
 
     cfg = HippomapConfig.with_overrides({"map": {"loop_turned_group": long_group}})
-    _, cmap, node_at, _, _, _ = _turned_revisit(cfg.map, 0, 10, turn)
+    _, cmap, node_at, _, gt, _ = _turned_revisit(cfg.map, 0, 10, turn)
     m = Mapper(cfg)
     m.cmap = cmap
     fid = [m.memory.learn(img) for img in SCENES][0]  # the library the memory's tests recognise in
-    lap = len(square_increments(side=20.0, laps=2)) // 2
+    lap = (len(gt) - 1) // 2  # the helper's steps per lap (its true poses hold the start too)
     m.frame_node[fid] = int(node_at[len(node_at) - 1 - lap])  # the first lap's node where the robot stands
     before = cmap.poses.copy()
     assert m._recognise(SCENES[0], 1e4, [fid], []) is recognised
